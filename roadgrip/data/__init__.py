@@ -1,0 +1,1 @@
+"""Telemetry schema (the one source of truth for columns and units) and dataset I/O."""

@@ -1,0 +1,1 @@
+"""The open vehicle simulator that replaces CarSim: roads, driver, sensors, integrator, scenarios and presets."""

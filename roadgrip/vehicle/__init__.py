@@ -1,0 +1,1 @@
+"""Vehicle parameters, tire models and the body dynamics of the simulator."""

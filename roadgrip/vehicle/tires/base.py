@@ -1,0 +1,59 @@
+"""The one interface of the tire models.
+
+A tire model maps the slips of one tire, its vertical load and the road's adhesion coefficient to the force the road puts on
+the tire, in the wheel frame: fx along the wheel's heading, fy to its left. Sign conventions are the paper's: slip ratio as
+eq. 6 (positive when driving, -1 at a locked wheel), slip angle as eq. 8 (positive alpha gives positive fy).
+
+Each model is a numba kernel `forces(tp, slip_ratio, slip_angle_rad, fz_n, mu) -> (fx_n, fy_n)` over a packed parameter row
+`tp` (so the simulator's compiled loop can call it) and a Python class that packs the row and evaluates arrays.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+from numba import njit
+
+from roadgrip.vehicle.params import TireParams
+
+# Layout of a packed tire row: [model id, C_x/F_z, C_y/F_z, model-specific parameters...]
+TP_MODEL, TP_CX, TP_CY, TP_SHAPE = 0, 1, 2, 3
+TP_LEN = 40
+MAX_SLIP_ANGLE_RAD = 1.4  # tan() stays finite; a tire never runs beyond 80 degrees of slip in the simulator
+
+
+class TireModel(ABC):
+    """A tire model: `forces` over arrays, `row` to pack it for the compiled simulator."""
+
+    name: str
+    kernel_id: int
+
+    @abstractmethod
+    def shape_params(self) -> list[float]:
+        """The model-specific parameters, in the order its kernel reads them from tp[TP_SHAPE:]."""
+
+    def row(self, tire: TireParams) -> np.ndarray:
+        tp = np.zeros(TP_LEN)
+        tp[TP_MODEL] = self.kernel_id
+        tp[TP_CX] = tire.longitudinal_stiffness_per_load
+        tp[TP_CY] = tire.cornering_stiffness_per_load_per_rad
+        shape = self.shape_params()
+        tp[TP_SHAPE : TP_SHAPE + len(shape)] = shape
+        return tp
+
+    def forces(self, tire: TireParams, slip_ratio, slip_angle_rad, fz_n, mu):
+        """(fx_n, fy_n) arrays for broadcastable inputs: slip ratio, slip angle [rad], vertical load [N], road mu."""
+        from roadgrip.vehicle.tires.kernel import forces_array
+
+        s, a, fz, m = (np.ascontiguousarray(x, dtype=np.float64) for x in np.broadcast_arrays(
+            slip_ratio, slip_angle_rad, fz_n, mu))
+        fx = np.empty(s.size)
+        fy = np.empty(s.size)
+        forces_array(self.row(tire), s.ravel(), a.ravel(), fz.ravel(), m.ravel(), fx, fy)
+        return fx.reshape(s.shape), fy.reshape(s.shape)
+
+
+@njit(cache=True)
+def clamp_slip_angle(alpha_rad):
+    return min(max(alpha_rad, -MAX_SLIP_ANGLE_RAD), MAX_SLIP_ANGLE_RAD)
