@@ -5,7 +5,8 @@
   split) or brake torque (front/rear brake split). Under ACC the demand is limited to ISO 15622 comfort values.
 - Path: pure pursuit on the road's polyline (Coulter 1992), or an open-loop steering input (sine steer, constant steer).
 - ABS: per wheel, release brake torque when the slip ratio falls below -0.15, hold, and re-apply above -0.05.
-- Traction control: cut drive torque while a driven wheel's slip exceeds 0.12, restore it below 0.06.
+- Traction and stability control: cut drive torque while a driven wheel's slip exceeds 0.05 or the body's sideslip angle
+  exceeds 3 degrees (the engine-intervention half of ESC), restore it below 0.02 and 2 degrees.
 At the friction limit nothing here can make the car follow its profile: the tires saturate and the car slides.
 """
 
@@ -34,7 +35,8 @@ ABS_RELEASE_SLIP = -0.15
 ABS_REAPPLY_SLIP = -0.05
 ABS_MIN_SPEED_MPS = 2.0  # ABS switches off below about 7 km/h, as production systems do
 BRAKE_RISE_S = 0.15  # hydraulic brake pressure rise time to full torque; release is twice as fast
-TCS_CUT_SLIP, TCS_RESTORE_SLIP = 0.12, 0.06
+TCS_CUT_SLIP, TCS_RESTORE_SLIP = 0.05, 0.02
+ESC_CUT_SIDESLIP_RAD, ESC_RESTORE_SIDESLIP_RAD = math.radians(3.0), math.radians(2.0)
 TCS_CUT_PER_S, TCS_RESTORE_PER_S = 5.0, 2.0
 APPLY, HOLD, RELEASE = 0, 1, 2
 
@@ -171,10 +173,10 @@ def abs_step(mode, brake_torque, demand, slip, speed_mps, enabled, rate_nmps, dt
 
 
 @njit(cache=True)
-def traction_control(factor, max_driven_slip, dt):
-    """Drive torque factor in [0, 1] after one step of traction control."""
-    if max_driven_slip > TCS_CUT_SLIP:
+def traction_control(factor, max_driven_slip, sideslip_rad, dt):
+    """Drive torque factor in [0, 1] after one step of traction and stability control."""
+    if max_driven_slip > TCS_CUT_SLIP or abs(sideslip_rad) > ESC_CUT_SIDESLIP_RAD:
         return max(factor - TCS_CUT_PER_S * dt, 0.0)
-    if max_driven_slip < TCS_RESTORE_SLIP:
+    if max_driven_slip < TCS_RESTORE_SLIP and abs(sideslip_rad) < ESC_RESTORE_SIDESLIP_RAD:
         return min(factor + TCS_RESTORE_PER_S * dt, 1.0)
     return factor

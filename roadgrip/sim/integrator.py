@@ -130,7 +130,8 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
                 abs_mode[i], brake_t[i], brake_demand[i], sigma[i], x[VX], abs_on, brake_rate, dt)
             abs_window = abs_window or intervening
         if tcs_on:
-            tcs_factor = traction_control(tcs_factor, driven_slip, dt)
+            sideslip = math.atan2(x[VY], max(abs(x[VX]), 1.0))
+            tcs_factor = traction_control(tcs_factor, driven_slip, sideslip, dt)
         # body: explicit Euler
         for j in range(W0):
             x[j] += dt * dx[j]

@@ -48,7 +48,7 @@ class VehicleParams:
     wheel_radius_m: float = field(default=0.383, metadata=bounded(0.1, 1.5, low_open=True))
     steering_ratio: float = field(default=16.0, metadata=bounded(1.0, 40.0))
     drive: str = "awd"
-    front_drive_share: float = field(default=0.4, metadata=bounded(0.0, 1.0))
+    front_drive_share: float = field(default=0.5, metadata=bounded(0.0, 1.0))
     yaw_inertia_kgm2: float = field(default=5830.0, metadata=bounded(10.0, 1.0e6, low_open=True))
     roll_inertia_kgm2: float = field(default=1000.0, metadata=bounded(1.0, 1.0e5, low_open=True))
     unsprung_mass_kg: float = field(default=240.0, metadata=bounded(0.0, 5000.0))
