@@ -21,6 +21,7 @@ from roadgrip.vehicle.tires import BurckhardtTire, DugoffTire, MagicFormulaTire
 PAPER_DURATION_S = 40.0
 PAPER_TOP_SPEED_MPS = kmh_to_mps(120.0)
 PAPER_CIRCLE_RADIUS_M = 1000.0  # the paper gives none; 120 km/h on it asks 0.11 g, inside even the 0.2 road's limit
+PAPER_SECTIONS_SPAN = 0.75  # share of the profile's distance that the four sections of a varying road cover
 PAPER_CONDITIONS = {
     "low": [0.2],
     "medium": [0.5],
@@ -46,9 +47,10 @@ def _run_seeds(seed: int, n: int) -> list[int]:
 def paper_scenarios(seed: int = 0) -> list[Scenario]:
     """The paper's 20 runs: 5 conditions x 2 roads x 2 experiments, 0 - 120 - 0 km/h in 40 s, the Table 1 vehicle.
 
-    The four mu sections of the increasing and decreasing roads start where the speed profile puts the car at 0, 10, 20
-    and 30 s (0, 83, 333 and 583 m): equal time on each section if the car could follow the profile; on the 0.1 section it
-    cannot, and falls behind. The two experiments of a case differ by their seed: sensor noise and biases."""
+    The four mu sections of the increasing and decreasing roads are equal 125 m lengths that cover the first 500 m of the
+    667 m the speed profile asks for: on a 0.1 section the car cannot accelerate or brake as asked and falls behind, and
+    the margin lets it still reach the last section. The two experiments of a case differ by their seed: sensor noise and
+    biases."""
     speed = SpeedProfile.accelerate_decelerate(PAPER_TOP_SPEED_MPS, PAPER_DURATION_S / 2, PAPER_DURATION_S)
     distance_m = speed.distance_m(PAPER_DURATION_S)
     cases = [(c, r, e) for c in PAPER_CONDITIONS for r in PAPER_ROADS for e in (1, 2)]
@@ -58,7 +60,7 @@ def paper_scenarios(seed: int = 0) -> list[Scenario]:
         scenarios.append(Scenario(
             run_id=f"paper-{condition}-{road}-e{experiment}",
             path=_road(road, 1.5 * distance_m + 300.0),
-            mu=_timed_sections(values, speed, PAPER_DURATION_S),
+            mu=MuProfile.sections(values, PAPER_SECTIONS_SPAN * distance_m / len(values)),
             speed=speed,
             condition=condition,
             road=road,
@@ -70,12 +72,6 @@ def paper_scenarios(seed: int = 0) -> list[Scenario]:
             manoeuvre="accelerate_decelerate",
         ))
     return scenarios
-
-
-def _timed_sections(values, speed: SpeedProfile, duration_s: float) -> MuProfile:
-    """Sections of mu that start where the profile's car is at equal fractions of the run's duration."""
-    starts = [speed.distance_m(duration_s * k / len(values)) if k else 0.0 for k in range(len(values))]
-    return MuProfile(starts, values, values)
 
 
 def random_vehicle(rng: np.random.Generator, name: str) -> VehicleParams:

@@ -1,0 +1,99 @@
+import numpy as np
+import pyarrow.compute as pc
+import pytest
+
+from roadgrip.data.schema import DATASET_SCHEMA
+from roadgrip.sim.presets import PAPER_CONDITIONS, paper_scenarios, preset_scenarios, random_scenarios
+from roadgrip.sim.simulate import simulate
+from roadgrip.units import kmh_to_mps
+from roadgrip.vehicle.params import PAPER_SUV
+
+
+@pytest.fixture(scope="module")
+def paper_table():
+    return simulate(paper_scenarios(seed=0))
+
+
+def test_paper_preset_is_the_papers_design():
+    scenarios = paper_scenarios()
+    assert len(scenarios) == 20
+    cases = {(s.condition, s.road, s.experiment) for s in scenarios}
+    assert cases == {(c, r, e) for c in PAPER_CONDITIONS for r in ("straight", "circular") for e in (1, 2)}
+    for s in scenarios:
+        assert s.duration_s == 40.0 and s.n_samples == 400
+        assert s.vehicle == PAPER_SUV
+        assert s.speed.speeds_mps.max() == pytest.approx(kmh_to_mps(120.0))
+        assert s.speed.speeds_mps[0] == 0.0 and s.speed.speeds_mps[-1] == 0.0
+    values = {s.condition: s.mu.mu_left.tolist() for s in scenarios}
+    assert values == {"low": [0.2], "medium": [0.5], "high": [0.8], "increasing": [0.1, 0.3, 0.6, 0.9],
+                      "decreasing": [0.9, 0.6, 0.3, 0.1]}
+    seeds = [s.seed for s in scenarios]
+    assert len(set(seeds)) == 20, "each experiment has its own seed"
+
+
+def test_paper_dataset_rows_schema_and_labels(paper_table):
+    assert paper_table.schema == DATASET_SCHEMA
+    assert paper_table.num_rows == 20 * 400
+    t = paper_table["t_s"].to_numpy()
+    assert np.allclose(np.diff(t.reshape(20, 400), axis=1), 0.1)
+    ts = paper_table["timestamp_ms"].to_numpy().reshape(20, 400)
+    assert (np.diff(ts, axis=1) == 100).all()
+    for condition, values in PAPER_CONDITIONS.items():
+        run = paper_table.filter(pc.equal(paper_table["run_id"], f"paper-{condition}-straight-e2"))
+        assert sorted(np.unique(run["mu"].to_numpy())) == sorted(values), "every section of the road is driven over"
+    numeric = [f.name for f in DATASET_SCHEMA if f.type in ("double", "int64")]
+    for name in numeric:
+        assert np.isfinite(paper_table[name].to_numpy()).all(), name
+
+
+def test_paper_vehicle_reaches_120_kmh_on_the_high_mu_road(paper_table):
+    run = paper_table.filter(pc.equal(paper_table["run_id"], "paper-high-straight-e1"))
+    assert run["vx_true_mps"].to_numpy().max() == pytest.approx(kmh_to_mps(120.0), rel=0.02)
+
+
+def test_decreasing_road_ends_beyond_the_limit_with_abs(paper_table):
+    """On the last, 0.1 section the profile asks 1.67 m/s^2 of braking, more than 0.1 g allows: ABS works, the car lags."""
+    run = paper_table.filter(pc.equal(paper_table["run_id"], "paper-decreasing-straight-e1"))
+    mu = run["mu"].to_numpy()
+    on_ice = mu == 0.1
+    assert run["abs_active"].to_numpy()[on_ice].any()
+    assert -run["ax_true_mps2"].to_numpy()[on_ice].max() < 0.1 * 9.81 * 1.05
+
+
+def test_same_seed_same_data_other_seed_other_noise():
+    a = simulate(paper_scenarios(seed=3)[:2])
+    b = simulate(paper_scenarios(seed=3)[:2])
+    c = simulate(paper_scenarios(seed=4)[:2])
+    assert a.equals(b)
+    assert not np.array_equal(a["speed_mps"].to_numpy(), c["speed_mps"].to_numpy())
+    assert np.array_equal(a["vx_true_mps"].to_numpy(), c["vx_true_mps"].to_numpy()), "noise differs, physics does not"
+
+
+def test_random_preset_is_varied_and_reproducible():
+    scenarios = random_scenarios(runs=60, seed=11)
+    assert [s.run_id for s in scenarios] == [s.run_id for s in random_scenarios(runs=60, seed=11)]
+    assert len({s.manoeuvre for s in scenarios}) == 7
+    assert len({s.tire.name for s in scenarios}) == 3
+    assert len({s.vehicle.drive for s in scenarios}) == 3
+    mus = np.concatenate([np.r_[s.mu.mu_left, s.mu.mu_right] for s in scenarios])
+    assert mus.min() >= 0.1 and mus.max() <= 1.0
+    assert any(not s.abs_enabled for s in scenarios) and any(s.speed.acc_active.any() for s in scenarios)
+
+
+def test_random_preset_runs_have_no_nan_and_acc_flag_means_acc():
+    scenarios = random_scenarios(runs=40, seed=5)
+    table = simulate(scenarios)
+    for name in ("vx_true_mps", "vy_true_mps", "yaw_rate_true_radps", "fz_fl_n", "speed_mps", "latitude_deg"):
+        assert np.isfinite(table[name].to_numpy()).all(), name
+    acc = table["acc_active"].to_numpy()
+    cruise = np.array([m == "cruise" for m in table["manoeuvre"].to_pylist()])
+    assert acc[cruise].all() and not acc[~cruise].any()
+
+
+def test_preset_errors_name_the_problem():
+    with pytest.raises(ValueError, match="preset.*'bogus'"):
+        preset_scenarios("bogus")
+    with pytest.raises(ValueError, match="exactly 20 runs"):
+        preset_scenarios("paper", runs=5)
+    with pytest.raises(ValueError, match="runs must be >= 1, got 0"):
+        preset_scenarios("random", runs=0)
