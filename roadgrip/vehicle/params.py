@@ -68,8 +68,8 @@ class VehicleParams:
     width_m: float = field(default=1.989, metadata=bounded(0.5, 3.0))
     height_m: float = field(default=1.778, metadata=bounded(0.5, 5.0))
     ground_clearance_m: float = field(default=0.190, metadata=bounded(0.0, 1.0))
-    tire_front: TireParams = TireParams(25.0, 16.0)
-    tire_rear: TireParams = TireParams(25.0, 19.0)
+    tire_front: TireParams = TireParams(25.0, 14.0)
+    tire_rear: TireParams = TireParams(25.0, 20.0)
 
     def __post_init__(self):
         check_bounds(self)
@@ -170,7 +170,7 @@ MIDSIZE_SEDAN = VehicleParams(
     width_m=1.84,
     height_m=1.45,
     ground_clearance_m=0.14,
-    tire_front=TireParams(22.0, 17.0),
+    tire_front=TireParams(22.0, 15.0),
     tire_rear=TireParams(22.0, 21.0),
 )
 

@@ -95,7 +95,7 @@ def test_lateral_force_is_odd_in_slip_angle(model):
 @pytest.mark.parametrize("model", LINEAR_MODELS, ids=LINEAR_IDS)
 def test_small_slip_slope_is_the_linear_stiffness(model, tire, fz, mu):
     h = 1e-5
-    fx_plus, _ = model.forces(TIRE if tire is None else tire, h, 0.0, fz, mu)
+    fx_plus, _ = model.forces(tire, h, 0.0, fz, mu)
     fx_minus, _ = model.forces(tire, -h, 0.0, fz, mu)
     _, fy_plus = model.forces(tire, 0.0, h, fz, mu)
     _, fy_minus = model.forces(tire, 0.0, -h, fz, mu)
@@ -186,7 +186,10 @@ def test_peak_mu_is_the_maximum_of_each_curve(surface):
     s = np.linspace(0.0, 1.0, 100001)
     curve = c1 * (1.0 - np.exp(-c2 * s)) - c3 * s
     assert peak_mu(c1, c2, c3) == pytest.approx(curve.max(), rel=1e-8)
-    assert peak_slip(c1, c2, c3) == pytest.approx(s[np.argmax(curve)], abs=2e-5)
+    if c3 > 0.0:  # with c3 = 0 (ice) the curve rises monotonically: its maximum is at s = 1, flat to rounding
+        assert peak_slip(c1, c2, c3) == pytest.approx(s[np.argmax(curve)], abs=2e-5)
+    else:
+        assert peak_slip(c1, c2, c3) == 1.0
 
 
 def test_burckhardt_tire_on_its_own_peak_reproduces_the_curve():
