@@ -82,8 +82,8 @@ def test_longitudinal_acceleration_moves_exactly_m_ax_h_over_l_to_the_rear(vehic
 @pytest.mark.parametrize(("ay", "phi", "phid"), [(3.0, 0.02, 0.0), (-5.0, -0.04, 0.3), (2.0, -0.01, -0.5)])
 @pytest.mark.parametrize("vehicle", SHIPPED, ids=SHIPPED_IDS)
 def test_lateral_transfer_keeps_the_weight_and_balances_the_roll_moment(vehicle, ay, phi, phid):
-    """Per axle: m_axle a_y h_rc / d through the roll centre plus (K phi + C phid) / d through the suspension. Summed over
-    the wheels, sum F_z y = -(m a_y h_ra + (K_f + K_r) phi + C phid), h_ra the roll-axis height under the CoG."""
+    """Per axle: m_axle a_y h_rc / d through the roll centre plus (K phi + C phid) / d through the suspension. Summed
+    over the wheels, sum F_z y = -(m a_y h_ra + (K_f + K_r) phi + C phid), h_ra the roll-axis height under the CoG."""
     fz = loads(vehicle, ay=ay, phi=phi, phid=phid)
     assert (fz > 0).all()
     assert fz.sum() == pytest.approx(vehicle.mass_kg * G_MPS2, rel=1e-12)
@@ -91,7 +91,9 @@ def test_lateral_transfer_keeps_the_weight_and_balances_the_roll_moment(vehicle,
     assert fz[FL] + fz[FR] == pytest.approx(rest[FL] + rest[FR], rel=1e-12)  # lateral transfer stays on its axle
     y = positions(vehicle)[:, 1]
     k_total = vehicle.roll_stiffness_front_nmprad + vehicle.roll_stiffness_rear_nmprad
-    roll_moment = vehicle.mass_kg * ay * roll_axis_height_m(vehicle) + k_total * phi + vehicle.roll_damping_nmsprad * phid
+    roll_moment = (
+        vehicle.mass_kg * ay * roll_axis_height_m(vehicle) + k_total * phi + vehicle.roll_damping_nmsprad * phid
+    )
     assert np.dot(fz, y) == pytest.approx(-roll_moment, rel=1e-9)
 
 
@@ -145,7 +147,8 @@ def test_free_rolling_wheel_has_zero_slip(speed_mps):
 
 
 @pytest.mark.parametrize(
-    ("wheel_speed_mps", "hub_speed_mps"), [(21.0, 20.0), (19.0, 20.0), (30.0, 20.0), (10.0, 20.0), (3.0, 0.0), (1.0, 2.0)]
+    ("wheel_speed_mps", "hub_speed_mps"),
+    [(21.0, 20.0), (19.0, 20.0), (30.0, 20.0), (10.0, 20.0), (3.0, 0.0), (1.0, 2.0)],
 )
 def test_slip_ratio_is_eq_6(wheel_speed_mps, hub_speed_mps):
     """sigma = (R omega - v) / max(R omega, v): positive when driving, negative when braking."""
@@ -165,7 +168,8 @@ def test_slip_ratio_stays_in_minus_one_one_and_finite_near_standstill():
 
 
 @pytest.mark.parametrize(
-    ("wheel_speed_mps", "hub_speed_mps"), [(21.0, 20.0), (19.0, 20.0), (30.0, 20.0), (2.0, 20.0), (0.3, 0.1), (0.1, 0.3)]
+    ("wheel_speed_mps", "hub_speed_mps"),
+    [(21.0, 20.0), (19.0, 20.0), (30.0, 20.0), (2.0, 20.0), (0.3, 0.1), (0.1, 0.3)],
 )
 def test_slip_ratio_per_spin_is_its_derivative(wheel_speed_mps, hub_speed_mps):
     radius = 0.383

@@ -139,7 +139,9 @@ def test_dict_round_trip(vehicle):
 
 
 def test_partial_dict_takes_defaults_for_missing_fields():
-    v = VehicleParams.from_dict({"name": "light", "mass_kg": 1200.0, "tire_front": {"longitudinal_stiffness_per_load": 20.0}})
+    v = VehicleParams.from_dict(
+        {"name": "light", "mass_kg": 1200.0, "tire_front": {"longitudinal_stiffness_per_load": 20.0}}
+    )
     assert v.mass_kg == 1200.0
     assert v.wheelbase_m == PAPER_SUV.wheelbase_m
     assert v.tire_front == TireParams(20.0, TireParams().cornering_stiffness_per_load_per_rad)

@@ -1,6 +1,6 @@
-"""Tire models against their limits and closed forms: zero slip gives zero force, the force stays inside the friction circle
-|F| <= mu F_z, the small-slip slope is the linear stiffness, the force saturates at the road's mu, the paper's sign
-conventions, and the Burckhardt curves' closed-form peaks."""
+"""Tire models against their limits and closed forms: zero slip gives zero force, the force stays inside the friction
+circle |F| <= mu F_z, the small-slip slope is the linear stiffness, the force saturates at the road's mu, the paper's
+sign conventions, and the Burckhardt curves' closed-form peaks."""
 
 import math
 
@@ -29,7 +29,7 @@ def closed_form_peak(c1, c2, c3):
 
 
 def dense_grid():
-    """Slip ratio in [-1, 1], slip angle in [-1.3, 1.3] rad, F_z in [0, 10 kN], mu in [0, 1.5], with the edges and zero."""
+    """Slip ratio in [-1, 1], slip angle in [-1.3, 1.3] rad, F_z in [0, 10 kN], mu in [0, 1.5]; edges and 0 included."""
     slip = np.unique(np.concatenate([np.linspace(-1.0, 1.0, 81), [-0.999, -1e-4, 1e-4, 0.999]]))
     alpha = np.unique(np.concatenate([np.linspace(-1.3, 1.3, 53), [-1e-4, 1e-4]]))
     fz = np.linspace(0.0, 10000.0, 11)
@@ -58,7 +58,9 @@ def test_zero_load_or_zero_mu_gives_zero_force(model):
         assert np.all(fx == 0.0) and np.all(fy == 0.0)
 
 
-@pytest.mark.parametrize("tire", [TIRE, TireParams(22.0, 21.0), TireParams(60.0, 5.0)], ids=["default", "sedan-rear", "stiff-x"])
+@pytest.mark.parametrize(
+    "tire", [TIRE, TireParams(22.0, 21.0), TireParams(60.0, 5.0)], ids=["default", "sedan-rear", "stiff-x"]
+)
 @pytest.mark.parametrize("model", MODELS, ids=MODEL_IDS)
 def test_force_stays_inside_the_friction_circle(model, tire):
     slip, alpha, fz, mu = dense_grid()
@@ -131,7 +133,8 @@ def test_peak_force_over_slip_is_mu_fz(model, mu):
 
 @pytest.mark.parametrize("mu", [0.1, 0.5, 0.9, 1.5])
 def test_dugoff_saturates_to_mu_fz_at_large_slip(mu):
-    """Saturated Dugoff force: |F| = mu F_z (1 - lambda / 2), lambda = mu F_z (1 + sigma) / (2 |C s|) -> 0 as slip grows."""
+    """Saturated Dugoff force: |F| = mu F_z (1 - lambda / 2), lambda = mu F_z (1 + sigma) / (2 |C s|) -> 0 as the slip
+    grows."""
     fz = 6000.0
     fx_locked, _ = DugoffTire().forces(TIRE, -1.0, 0.0, fz, mu)
     assert -fx_locked == pytest.approx(mu * fz, rel=1e-6)
@@ -217,7 +220,7 @@ def test_wet_to_dry_asphalt_peak_ratio_is_about_0_68():
 
 
 def test_burckhardt_picks_the_surface_whose_peak_is_nearest_the_road_mu():
-    """On a road of mu 0.80 (wet asphalt's peak, 0.80) the curve has wet asphalt's shape: it peaks at wet asphalt's s*."""
+    """On a road of mu 0.80 (wet asphalt's peak) the curve has wet asphalt's shape: it peaks at wet asphalt's s*."""
     s_wet, mu_wet = closed_form_peak(*WET_ASPHALT)
     s_dry, _ = closed_form_peak(*DRY_ASPHALT)
     slip = np.linspace(0.0, 1.0, 100001)
@@ -261,7 +264,7 @@ def dugoff_original(tire, sigma, alpha, fz, mu):
 
 
 def dugoff_as_printed(tire, sigma, alpha, fz, mu):
-    """The paper's eq. 7 as printed, without the factor 2: lambda = mu F_z (1 + sigma) / sqrt((C_x s)^2 + (C_y tan a)^2)."""
+    """The paper's eq. 7 as printed, without the factor 2: lambda = mu F_z (1 + s) / sqrt((C_x s)^2 + (C_y tan a)^2)."""
     cx = tire.longitudinal_stiffness_per_load * fz
     cy = tire.cornering_stiffness_per_load_per_rad * fz
     q = np.maximum(1.0 + sigma, 1e-9)
@@ -283,7 +286,7 @@ def test_dugoff_matches_the_original_formula():
 
 
 def test_paper_printed_eq7_exceeds_mu_fz_and_ours_does_not():
-    """Without the 2, the saturated force is mu F_z (2 - lambda) (up to twice mu F_z): the print breaks the friction limit."""
+    """Without the 2 the saturated force is mu F_z (2 - lambda), up to 2 mu F_z: the print breaks the friction limit."""
     slip, alpha, fz, mu = (g[..., 1:, 1:] for g in dense_grid())
     fx_p, fy_p = dugoff_as_printed(TIRE, slip, alpha, fz, mu)
     fx, fy = DugoffTire().forces(TIRE, slip, alpha, fz, mu)
@@ -292,7 +295,8 @@ def test_paper_printed_eq7_exceeds_mu_fz_and_ours_does_not():
     assert printed_ratio.max() > 1.9
     assert ours_ratio.max() <= 1.0 + 1e-12
     # a single braking point, by hand: sigma = -0.2, F_z = 5 kN, mu = 0.5
-    # printed: lambda = 0.5 * 5000 * 0.8 / (25 * 5000 * 0.2) = 0.08, |F| = 25000 / 0.8 * (2 - 0.08) * 0.08 = 4800 N > 2500 N
+    # printed: lambda = 0.5 * 5000 * 0.8 / (25 * 5000 * 0.2) = 0.08,
+    # |F| = 25000 / 0.8 * (2 - 0.08) * 0.08 = 4800 N > mu F_z = 2500 N
     fx_p, _ = dugoff_as_printed(TIRE, -0.2, 0.0, 5000.0, 0.5)
     assert -fx_p == pytest.approx(4800.0, rel=1e-12)
     # ours: lambda = 0.04, |F| = mu F_z (1 - lambda / 2) = 2450 N
