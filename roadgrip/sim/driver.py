@@ -4,7 +4,7 @@
   a feed-forward + PI controller whose demanded acceleration becomes drive torque (engine torque and power limits, drive
   split) or brake torque (front/rear brake split). Under ACC the demand is limited to ISO 15622 comfort values.
 - Path: pure pursuit on the road's polyline (Coulter 1992), or an open-loop steering input (sine steer, constant steer).
-- ABS: per wheel, release brake torque when the slip ratio falls below -0.15, hold, and re-apply above -0.05.
+- ABS: per wheel, release brake torque when the slip ratio falls below -0.12, hold, and re-apply above -0.08.
 - Traction and stability control: cut drive torque while a driven wheel's slip exceeds 0.05 or the body's sideslip angle
   exceeds 3 degrees (the engine-intervention half of ESC), restore it below 0.02 and 2 degrees.
 At the friction limit nothing here can make the car follow its profile: the tires saturate and the car slides.
@@ -31,10 +31,10 @@ STANDSTILL_HOLD_MPS2 = -2.0  # brake demand that holds the car once stopped at a
 STEER_LAG_S = 0.1  # steering actuator: first-order lag
 LOOKAHEAD_TIME_S = 1.2  # pure pursuit look-ahead distance = max(LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S * speed)
 LOOKAHEAD_MIN_M = 8.0
-ABS_RELEASE_SLIP = -0.15
-ABS_REAPPLY_SLIP = -0.05
+ABS_RELEASE_SLIP = -0.12
+ABS_REAPPLY_SLIP = -0.08
 ABS_MIN_SPEED_MPS = 2.0  # ABS switches off below about 7 km/h, as production systems do
-BRAKE_RISE_S = 0.15  # hydraulic brake pressure rise time to full torque; release is twice as fast
+BRAKE_RISE_S = 0.15  # hydraulic brake pressure rise time to full torque; release as fast
 TCS_CUT_SLIP, TCS_RESTORE_SLIP = 0.05, 0.02
 ESC_CUT_SIDESLIP_RAD, ESC_RESTORE_SIDESLIP_RAD = math.radians(3.0), math.radians(2.0)
 TCS_CUT_PER_S, TCS_RESTORE_PER_S = 5.0, 2.0
@@ -155,7 +155,8 @@ def steer_input(row, t):
 @njit(cache=True)
 def abs_step(mode, brake_torque, demand, slip, speed_mps, enabled, rate_nmps, dt):
     """One ABS (or plain hydraulic) step for one wheel: (mode, brake torque N m, intervening)."""
-    if enabled and speed_mps > ABS_MIN_SPEED_MPS:
+    modulating = enabled and speed_mps > ABS_MIN_SPEED_MPS
+    if modulating:
         if slip < ABS_RELEASE_SLIP:
             mode = RELEASE
         elif slip > ABS_REAPPLY_SLIP:
@@ -165,7 +166,7 @@ def abs_step(mode, brake_torque, demand, slip, speed_mps, enabled, rate_nmps, dt
     else:
         mode = APPLY
     if mode == RELEASE:
-        brake_torque = max(brake_torque - 2.0 * rate_nmps * dt, 0.0)
+        brake_torque = max(brake_torque - rate_nmps * dt, 0.0)
     elif mode == APPLY:
         brake_torque = min(brake_torque + rate_nmps * dt, demand) if brake_torque < demand else demand
     intervening = mode != APPLY and demand > brake_torque
