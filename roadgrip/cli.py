@@ -48,10 +48,12 @@ def _code_version() -> str:
     return f"{roadgrip.__version__}+{sha}" if sha else roadgrip.__version__
 
 
-def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overwrite: bool):
+def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overwrite: bool,
+                      scenario_file: Path | None = None):
+    from roadgrip.sim.scenario_file import load_scenarios
     from roadgrip.sim.simulate import simulate
 
-    scenarios = preset_scenarios(preset, runs, seed)
+    scenarios = load_scenarios(scenario_file) if scenario_file else preset_scenarios(preset, runs, seed)
     start = time.perf_counter()
     with Progress(TextColumn("[bold]simulating[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console, transient=True) as progress:
@@ -60,6 +62,7 @@ def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overw
     manifest = {
         "format": "roadgrip simulation dataset (DESIGN 3.3)",
         "preset": preset,
+        "scenario_file": str(scenario_file) if scenario_file else None,
         "seed": seed,
         "runs": len(scenarios),
         "code_version": _code_version(),
@@ -73,14 +76,17 @@ def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overw
 @app.command()
 @friendly_errors
 def simulate(
-    preset: str = typer.Option(..., help=f"scenario preset: {' | '.join(PRESETS)}"),
     out: Path = typer.Option(..., help="output folder (Parquet + manifest)"),
+    preset: str = typer.Option(None, help=f"scenario preset: {' | '.join(PRESETS)}"),
+    scenario: Path = typer.Option(None, help="a scenario YAML file (see roadgrip/sim/scenario_file.py) instead of a preset"),
     runs: int = typer.Option(None, help="number of runs (random preset; the paper preset has 20)"),
     seed: int = typer.Option(0, help="seed: the same seed gives the same data"),
     overwrite: bool = typer.Option(False, help="replace an existing dataset in OUT"),
 ):
-    """Simulate a preset and write the dataset (DESIGN 3.3)."""
-    scenarios, table, wall = _simulate_dataset(preset, runs, seed, out, overwrite)
+    """Simulate a preset (or the runs of a scenario file) and write the dataset (DESIGN 3.3)."""
+    if (preset is None) == (scenario is None):
+        raise ValueError("give exactly one of --preset and --scenario")
+    scenarios, table, wall = _simulate_dataset(preset or "custom", runs, seed, out, overwrite, scenario)
     console.print(f"wrote {table.num_rows} samples of {len(scenarios)} runs to {out} in {wall:.1f} s")
 
 

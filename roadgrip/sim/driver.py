@@ -4,7 +4,10 @@
   a feed-forward + PI controller whose demanded acceleration becomes drive torque (engine torque and power limits, drive
   split) or brake torque (front/rear brake split). Under ACC the demand is limited to ISO 15622 comfort values.
 - Path: pure pursuit on the road's polyline (Coulter 1992), or an open-loop steering input (sine steer, constant steer).
-- ABS: per wheel, release brake torque when the slip ratio falls below -0.12, hold, and re-apply above -0.08.
+- ABS: per wheel, release brake torque when the slip ratio falls below -0.12, hold, and re-apply above -0.08; the rear
+  axle is controlled select-low (both rear wheels get the lower of their two torques) and the difference between the
+  front brakes grows slowly and stays below 15 % of a full brake (yaw-moment build-up delay), as production systems do
+  on split mu.
 - Traction and stability control: cut drive torque while a driven wheel's slip exceeds 0.05 or the body's sideslip angle
   exceeds 3 degrees (the engine-intervention half of ESC), restore it below 0.02 and 2 degrees.
 At the friction limit nothing here can make the car follow its profile: the tires saturate and the car slides.
@@ -33,6 +36,8 @@ LOOKAHEAD_TIME_S = 1.2  # pure pursuit look-ahead distance = max(LOOKAHEAD_MIN_M
 LOOKAHEAD_MIN_M = 8.0
 ABS_RELEASE_SLIP = -0.12
 ABS_REAPPLY_SLIP = -0.08
+YAW_BUILD_UP_S = 1.5  # s for the front brakes' allowed difference to reach a full brake's torque ...
+YAW_MAX_SHARE = 0.15  # ... capped at this share of it
 ABS_MIN_SPEED_MPS = 2.0  # ABS switches off below about 7 km/h, as production systems do
 BRAKE_RISE_S = 0.15  # hydraulic brake pressure rise time to full torque; release as fast
 TCS_CUT_SLIP, TCS_RESTORE_SLIP = 0.05, 0.02

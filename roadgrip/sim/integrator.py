@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit, prange
 
 from roadgrip.sim.driver import (
-    APPLY, BRAKE_RISE_S, LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S, STEER_LAG_S, abs_step, pure_pursuit, speed_control,
+    BRAKE_RISE_S, YAW_BUILD_UP_S, YAW_MAX_SHARE, LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S, STEER_LAG_S, abs_step, pure_pursuit, speed_control,
     speed_reference, steer_input, traction_control,
 )
 from roadgrip.sim.roads import mu_at, point_at_station, project_on_path
@@ -77,6 +77,7 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
     delta, delta_cmd, accel_cmd, integral, tcs_factor = 0.0, 0.0, 0.0, 0.0, 1.0
     seg, sp_k, station, v_ref, acc = 0, 0, 0.0, speed[0, 1], False
     abs_window = False
+    yaw_limit = 0.0  # N m: how far the front brakes may differ (grows while braking)
     for step in range(n_samples * n_sub):
         t = step * dt
         if step % CONTROL_EVERY == 0:
@@ -129,6 +130,14 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
             abs_mode[i], brake_t[i], intervening = abs_step(
                 abs_mode[i], brake_t[i], brake_demand[i], sigma[i], x[VX], abs_on, brake_rate, dt)
             abs_window = abs_window or intervening
+        if abs_on:
+            # rear axle select-low, front axle yaw-moment build-up delay, as production ABS does on split mu
+            brake_t[2] = brake_t[3] = min(brake_t[2], brake_t[3])
+            full_brake = brake_rate * BRAKE_RISE_S
+            yaw_limit = min(yaw_limit + dt * full_brake / YAW_BUILD_UP_S, YAW_MAX_SHARE * full_brake) if brake_demand[0] > 0.0 else 0.0
+            low = min(brake_t[0], brake_t[1])
+            brake_t[0] = min(brake_t[0], low + yaw_limit)
+            brake_t[1] = min(brake_t[1], low + yaw_limit)
         if tcs_on:
             sideslip = math.atan2(x[VY], max(abs(x[VX]), 1.0))
             tcs_factor = traction_control(tcs_factor, driven_slip, sideslip, dt)
