@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 import typer
 from rich.console import Console
@@ -88,6 +89,136 @@ def simulate(
         raise ValueError("give exactly one of --preset and --scenario")
     scenarios, table, wall = _simulate_dataset(preset or "custom", runs, seed, out, overwrite, scenario)
     console.print(f"wrote {table.num_rows} samples of {len(scenarios)} runs to {out} in {wall:.1f} s")
+
+
+def _parse_config(items: list[str] | None) -> dict:
+    """KEY=VALUE pairs (values parsed as YAML: numbers, lists) into model config overrides."""
+    import yaml
+
+    overrides = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--config takes KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        value = yaml.safe_load(value)
+        overrides[key] = tuple(value) if isinstance(value, list) else value
+    return overrides
+
+
+@app.command()
+@friendly_errors
+def train(
+    model: str = typer.Option(..., help="dnn | cnn | convlstm | sa-cnn-lstm"),
+    data: Path = typer.Option(..., help="a dataset folder (roadgrip simulate)"),
+    out: Path = typer.Option(..., help="model file to write (.pt)"),
+    features: str = typer.Option("terminal", help="feature set: paper | terminal"),
+    experiment: int = typer.Option(None, help="train on this experiment's runs only (paper preset: 1)"),
+    condition: list[str] = typer.Option(None, help="train on these conditions only (repeatable)"),
+    config: list[str] = typer.Option(None, help="model config override KEY=VALUE (repeatable)"),
+    folds: int = typer.Option(0, help="also report K-fold cross-validation grouped by run (0: none)"),
+    seed: int = typer.Option(0, help="training seed"),
+):
+    """Train one model on a dataset and write its checkpoint."""
+    import sys
+
+    from roadgrip.data.dataset import read_dataset, read_manifest
+    from roadgrip.training.fit import block_split, cross_validate, fit, prepare, save_fitted
+    from roadgrip.training.trainer import TrainConfig
+
+    manifest = read_manifest(data)
+    table = read_dataset(data)
+    if experiment is not None:
+        table = table.filter(pc.equal(table["experiment"], experiment))
+    if condition:
+        table = table.filter(pc.is_in(table["condition"], value_set=pa.array(condition)))
+    if table.num_rows == 0:
+        raise ValueError(f"no rows left in {data} after the experiment/condition filters")
+    overrides = _parse_config(config)
+    prepared = prepare(table, features)
+    train_config = TrainConfig(seed=seed)
+    cv = []
+    if folds:
+        with console.status(f"{folds}-fold cross-validation grouped by run..."):
+            cv = cross_validate(model, prepared, folds, overrides, train_config)
+        console.print(f"cross-validation RMSE per fold: {', '.join(f'{v:.4f}' for v in cv)} "
+                      f"(mean {np.mean(cv):.4f}, std {np.std(cv):.4f})")
+    with console.status(f"training {model} on {len(prepared.targets)} windows..."):
+        train_idx, val_idx = block_split(prepared)
+        fitted = fit(model, prepared, train_idx, val_idx, overrides, train_config)
+    save_fitted(out, fitted, features, {
+        "command": "roadgrip " + " ".join(sys.argv[1:]), "dataset": str(data), "preset": manifest.get("preset"),
+        "data_seed": manifest.get("seed"), "code_version": _code_version(), "seed": seed, "windows": len(train_idx),
+        "cv_rmse": cv})
+    console.print(f"wrote {out}: validation RMSE {fitted.result.best_val_rmse:.4f} after {fitted.result.epochs_run} "
+                  f"epochs; 90 % interval {fitted.interval['q05']:+.3f} / {fitted.interval['q95']:+.3f}")
+
+
+@app.command()
+@friendly_errors
+def evaluate(
+    benchmark: str = typer.Option(..., help="paper"),
+    out: Path = typer.Option(..., help="output folder: metrics.csv, tables.md, figures"),
+    data: Path = typer.Option(None, help="a paper-preset dataset; default: simulate it (seed 0) into OUT/data"),
+    seed: int = typer.Option(0, help="training seed"),
+    workers: int = typer.Option(2, help="training processes in parallel"),
+):
+    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8 (DESIGN 4)."""
+    from roadgrip.data.dataset import read_dataset
+    from roadgrip.evaluation.paper import run_paper_benchmark
+    from roadgrip.evaluation.report import write_report
+    from roadgrip.validation import check_choice
+
+    check_choice("evaluate", "benchmark", benchmark, {"paper"})
+    start = time.perf_counter()
+    if data is None:
+        _simulate_dataset("paper", None, 0, out / "data", overwrite=True)
+        data = out / "data"
+    table = read_dataset(data)
+    with Progress(TextColumn("[bold]training[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=console, transient=True) as progress:
+        task = progress.add_task("paper benchmark", total=None)
+        metrics, predictions = run_paper_benchmark(
+            table, seed=seed, workers=workers, progress=lambda done, total: progress.update(task, completed=done,
+                                                                                            total=total))
+    paths = write_report(metrics, predictions, out)
+    console.print(f"paper benchmark done in {time.perf_counter() - start:.0f} s: {out}")
+    for name, path in paths.items():
+        console.print(f"  {name}: {path}")
+
+
+@app.command()
+@friendly_errors
+def estimate(
+    input: Path = typer.Option(..., help="telemetry file: CSV, Parquet, NDJSON or JSON (wire format v1)"),
+    out: Path = typer.Option(..., help="estimates file (.csv, .parquet or .ndjson)"),
+    model: str = typer.Option("default", help="model file (.pt) or name: default"),
+    vehicle: Path = typer.Option(None, help="vehicle profile YAML (DESIGN 3.2); default: the paper's SUV"),
+):
+    """Offline estimates of mu (DESIGN 3.4) for every sample of a telemetry file that can be judged."""
+    from roadgrip.data.tables import write_table
+    from roadgrip.data.telemetry import read_telemetry
+    from roadgrip.estimators.base import ESTIMATE_SCHEMA
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+
+    profile = VehicleParams.from_yaml(vehicle) if vehicle else PAPER_SUV
+    estimator = load_estimator(model)
+    batch = read_telemetry(input, wheel_radius_m=profile.wheel_radius_m)
+    for warning in batch.warnings:
+        console.print(f"[yellow]warning:[/] {warning}")
+    ids = np.asarray(batch.table["vehicle_id"].to_pylist())
+    results = []
+    for vid in dict.fromkeys(ids.tolist()):
+        rows = np.flatnonzero(ids == vid)
+        results.append(estimator.estimate_batch(batch.table.take(rows), batch.segments[rows], profile))
+    estimates = pa.concat_tables(results) if results else ESTIMATE_SCHEMA.empty_table()
+    write_table(estimates, out)
+    console.print(f"wrote {estimates.num_rows} estimates for {batch.table.num_rows} accepted samples of "
+                  f"{len(set(ids.tolist()))} vehicle(s) to {out} ({estimator.name})")
+    if batch.rejections:
+        report = out.with_name(out.stem + ".rejections.csv")
+        write_table(batch.rejection_table(), report)
+        console.print(f"[yellow]{len(batch.rejections)} input row(s) rejected:[/] see {report}")
 
 
 @bench_app.command("sim")

@@ -1,0 +1,72 @@
+"""The one estimator interface, for offline files, benchmarks and the cloud alike.
+
+An estimator is used per vehicle. Streaming: `start(vehicle)` makes that vehicle's state, `update(state, sample)` feeds one
+100 ms sample (a dict in wire format v1) and returns the estimate for it, or None while the estimator cannot judge yet (a
+window still filling). `reset(state)` forgets the past (after a gap in the stream). The state is a plain object that can be
+saved with `state_to_dict` and restored with `state_from_dict`. Batch: `estimate_batch(batch, vehicle)` over a validated
+telemetry batch (roadgrip/data/telemetry.py), the same numbers as streaming but vectorised.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass
+
+import pyarrow as pa
+
+from roadgrip.vehicle.params import VehicleParams
+
+ESTIMATE_SCHEMA = pa.schema([
+    pa.field("vehicle_id", pa.string(), nullable=False),
+    pa.field("timestamp_ms", pa.int64(), nullable=False),
+    pa.field("mu", pa.float64(), nullable=False),
+    pa.field("mu_lower", pa.float64(), nullable=False),
+    pa.field("mu_upper", pa.float64(), nullable=False),
+    pa.field("excited", pa.bool_(), nullable=False),
+    pa.field("estimator", pa.string(), nullable=False),
+])
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """DESIGN 3.4: the most probable mu, a 90 % interval (5 % and 95 %), and whether the manoeuvre made mu observable."""
+
+    vehicle_id: str
+    timestamp_ms: int
+    mu: float
+    mu_lower: float
+    mu_upper: float
+    excited: bool
+    estimator: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Estimator(ABC):
+    name: str
+
+    @abstractmethod
+    def start(self, vehicle: VehicleParams):
+        """A fresh per-vehicle state."""
+
+    @abstractmethod
+    def update(self, state, sample: dict) -> Estimate | None:
+        """Feed one sample (wire format v1 dict) of the state's vehicle; the estimate for it, or None."""
+
+    @abstractmethod
+    def reset(self, state) -> None:
+        """Forget the past samples (a gap in the stream): the next estimates start afresh."""
+
+    @abstractmethod
+    def state_to_dict(self, state) -> dict:
+        """The state as plain JSON-able data."""
+
+    @abstractmethod
+    def state_from_dict(self, data: dict):
+        """The inverse of state_to_dict."""
+
+    @abstractmethod
+    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams) -> pa.Table:
+        """Estimates (ESTIMATE_SCHEMA) for the rows of a validated telemetry table of one vehicle, in order; `segments`
+        gives an id per row that changes at every gap, where the estimator restarts."""

@@ -1,0 +1,93 @@
+"""A trained model (checkpoint) behind the estimator interface."""
+
+from __future__ import annotations
+
+from collections import deque
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.excitation import excited
+from roadgrip.features.windows import Scaler, feature_columns, feature_matrix, make_windows
+from roadgrip.training.checkpoint import load_checkpoint
+from roadgrip.training.trainer import predict
+from roadgrip.vehicle.params import VehicleParams
+
+DEFAULT_MODEL = "default"
+
+
+class LearnedEstimator(Estimator):
+    """Estimates mu at the last sample of each window of `window` samples; the interval is the model's residual
+    quantiles on its validation windows (a split-conformal 90 % band)."""
+
+    def __init__(self, model, model_name: str, meta: dict):
+        self.model = model
+        self.model_name = model_name
+        self.meta = meta
+        self.name = meta.get("estimator_name", model_name)
+        self.feature_set = meta["feature_set"]
+        self.window = int(meta["window"])
+        self.scaler = Scaler(meta["scaler_mean"], meta["scaler_scale"])
+        self.q05, self.q95 = float(meta["interval"]["q05"]), float(meta["interval"]["q95"])
+
+    @classmethod
+    def load(cls, path: str | Path) -> LearnedEstimator:
+        model, name, meta = load_checkpoint(path)
+        return cls(model, name, meta)
+
+    def _estimates(self, windows: np.ndarray, accel_lon, accel_lat, abs_active):
+        mu = predict(self.model, self.scaler.transform(windows)).astype(np.float64)
+        return mu, mu + self.q05, mu + self.q95, excited(accel_lon, accel_lat, abs_active, mu)
+
+    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
+        features = feature_matrix(table, self.feature_set)
+        windows, ends = make_windows(features, np.asarray(segments), self.window)
+        col = {c: table[c].to_numpy(zero_copy_only=False)[ends] for c in ("accel_lon_mps2", "accel_lat_mps2",
+                                                                          "abs_active")}
+        mu, lower, upper, exc = self._estimates(windows, col["accel_lon_mps2"], col["accel_lat_mps2"],
+                                                col["abs_active"])
+        return pa.table({
+            "vehicle_id": np.asarray(table["vehicle_id"].to_pylist(), dtype=object)[ends],
+            "timestamp_ms": table["timestamp_ms"].to_numpy()[ends],
+            "mu": mu, "mu_lower": lower, "mu_upper": upper, "excited": exc,
+            "estimator": [self.name] * len(ends),
+        }, schema=ESTIMATE_SCHEMA)
+
+    def start(self, vehicle: VehicleParams | None = None):
+        return {"buffer": deque(maxlen=self.window)}
+
+    def update(self, state, sample: dict) -> Estimate | None:
+        state["buffer"].append([float(sample[c]) for c in feature_columns(self.feature_set)])
+        if len(state["buffer"]) < self.window:
+            return None
+        windows = np.asarray([state["buffer"]], dtype=np.float32)
+        mu, lower, upper, exc = self._estimates(windows, sample["accel_lon_mps2"], sample["accel_lat_mps2"],
+                                                bool(sample["abs_active"]))
+        return Estimate(str(sample["vehicle_id"]), int(sample["timestamp_ms"]), float(mu[0]), float(lower[0]),
+                        float(upper[0]), bool(exc[0]), self.name)
+
+    def reset(self, state) -> None:
+        state["buffer"].clear()
+
+    def state_to_dict(self, state) -> dict:
+        return {"buffer": [list(row) for row in state["buffer"]]}
+
+    def state_from_dict(self, data: dict):
+        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window)}
+
+
+def default_model_path() -> Path:
+    return Path(str(resources.files("roadgrip.estimators").joinpath("default_model.pt")))
+
+
+def load_estimator(spec: str | Path = DEFAULT_MODEL) -> Estimator:
+    """An estimator from a model file, or by name: 'default' is the model shipped in the package."""
+    if str(spec) == DEFAULT_MODEL:
+        return LearnedEstimator.load(default_model_path())
+    path = Path(spec)
+    if path.suffix == ".pt" or path.exists():
+        return LearnedEstimator.load(path)
+    raise ValueError(f"--model must be a model file (.pt) or one of ['{DEFAULT_MODEL}'], got {str(spec)!r}")

@@ -1,0 +1,106 @@
+"""From a dataset table to a trained model: windows, the 4:1 split by interleaved time blocks, the scaler, the trainer,
+and the calibration of the 90 % interval on the validation windows."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import torch
+
+from roadgrip.features.folds import grouped_folds, time_blocks
+from roadgrip.estimators.excitation import excited
+from roadgrip.features.windows import Scaler, feature_matrix, make_windows, segment_ids
+from roadgrip.models.registry import build_model, model_config
+from roadgrip.training.trainer import Trainer, TrainConfig, TrainResult, predict
+
+WINDOW = 10  # samples: 1 s of telemetry at 10 Hz
+BLOCK_S = 4.0  # runs are cut in blocks of 4 s; windows never straddle blocks
+N_FOLDS = 5  # block k of every 5 is validation in fold k: the paper's 4:1 split
+SELECTION_FOLD = N_FOLDS - 1
+
+
+@dataclass
+class PreparedData:
+    windows: np.ndarray  # (m, WINDOW, n_features), raw units
+    targets: np.ndarray  # (m,) mu at each window's last sample
+    runs: np.ndarray  # (m,) run id of each window
+    blocks: np.ndarray  # (m,) time block of each window within its run
+    t_s: np.ndarray  # (m,) time of each window's last sample
+    feature_set: str
+    excited: np.ndarray  # (m,) DESIGN 4 excitation of each window's last sample (true accelerations against true mu)
+
+
+def prepare(table: pa.Table, feature_set: str, window: int = WINDOW) -> PreparedData:
+    """Windows of a simulation dataset, cut per (run, 2 s block), labelled with the true mu."""
+    features = feature_matrix(table, feature_set)
+    runs = np.asarray(table["run_id"].to_pylist())
+    t_s = table["t_s"].to_numpy()
+    blocks = time_blocks(t_s, BLOCK_S)
+    windows, ends = make_windows(features, segment_ids(runs, blocks), window)
+    mu = table["mu"].to_numpy()
+    exc = excited(table["ax_true_mps2"].to_numpy(), table["ay_true_mps2"].to_numpy(), table["abs_active"].to_numpy(), mu)
+    return PreparedData(windows, mu.astype(np.float32)[ends], runs[ends], blocks[ends], t_s[ends], feature_set, exc[ends])
+
+
+def block_split(data: PreparedData, fold: int = SELECTION_FOLD) -> tuple[np.ndarray, np.ndarray]:
+    """(train, validation) window indices: validation is every block b with b % N_FOLDS == fold, in every run."""
+    groups = data.blocks % N_FOLDS
+    val = groups == fold
+    return np.flatnonzero(~val), np.flatnonzero(val)
+
+
+def run_folds(data: PreparedData, n_folds: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """K folds grouped by run: a run is never on both sides."""
+    return grouped_folds(data.runs, n_folds)
+
+
+@dataclass
+class FittedModel:
+    model_name: str
+    config: object
+    model: object
+    scaler: Scaler
+    result: TrainResult
+    interval: dict  # residual quantiles on validation: mu in [pred + q05, pred + q95]
+
+
+def fit(model_name: str, data: PreparedData, train_idx: np.ndarray, val_idx: np.ndarray, overrides: dict | None = None,
+        train_config: TrainConfig = TrainConfig()) -> FittedModel:
+    scaler = Scaler().fit(data.windows[train_idx])
+    x = scaler.transform(data.windows)
+    config = model_config(model_name, data.windows.shape[2], data.windows.shape[1], **(overrides or {}))
+    torch.manual_seed(train_config.seed)  # the initial weights, too, come from the seed
+    model = build_model(model_name, config)
+    result = Trainer(train_config).fit(model, x[train_idx], data.targets[train_idx], x[val_idx], data.targets[val_idx])
+    residual = data.targets[val_idx] - predict(model, x[val_idx])
+    interval = {"q05": float(np.quantile(residual, 0.05)), "q95": float(np.quantile(residual, 0.95)),
+                "calibrated_on": int(len(val_idx))}
+    return FittedModel(model_name, config, model, scaler, result, interval)
+
+
+def cross_validate(model_name: str, data: PreparedData, n_folds: int, overrides: dict | None = None,
+                   train_config: TrainConfig = TrainConfig()) -> list[float]:
+    """Validation RMSE of each of K folds grouped by run (each fold's model early-stops on its own validation runs)."""
+    return [fit(model_name, data, tr, va, overrides, train_config).result.best_val_rmse
+            for tr, va in run_folds(data, n_folds)]
+
+
+def save_fitted(path, fitted: FittedModel, feature_set: str, training: dict):
+    """Checkpoint with everything the estimator needs (roadgrip/estimators/learned.py reads it)."""
+    from roadgrip.features.windows import feature_columns
+    from roadgrip.training.checkpoint import save_checkpoint
+
+    meta = {
+        "estimator_name": fitted.model_name,
+        "feature_set": feature_set,
+        "features": list(feature_columns(feature_set)),
+        "window": fitted.config.window,
+        "scaler_mean": fitted.scaler.mean_,
+        "scaler_scale": fitted.scaler.scale_,
+        "interval": fitted.interval,
+        "training": {"best_val_rmse": fitted.result.best_val_rmse, "best_epoch": fitted.result.best_epoch,
+                     "epochs_run": fitted.result.epochs_run, **training},
+    }
+    return save_checkpoint(path, fitted.model_name, fitted.config, fitted.model, meta)
