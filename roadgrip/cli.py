@@ -203,7 +203,7 @@ def estimate(
 
     profile = VehicleParams.from_yaml(vehicle) if vehicle else PAPER_SUV
     estimator = load_estimator(model)
-    batch = read_telemetry(input, wheel_radius_m=profile.wheel_radius_m)
+    batch = read_telemetry(input, wheel_radius_m=profile.wheel_radius_m if vehicle else None)
     for warning in batch.warnings:
         console.print(f"[yellow]warning:[/] {warning}")
     ids = np.asarray(batch.table["vehicle_id"].to_pylist())

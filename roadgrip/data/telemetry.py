@@ -1,50 +1,62 @@
 """Reading and validating a telemetry file (wire format v1, DESIGN 3.1) for offline estimation (`roadgrip estimate`).
 
-`read_telemetry(path)` reads CSV, Parquet, NDJSON/JSONL (one object per line) or JSON (an array of objects) and hands the
-table to `validate_telemetry`, which returns a `TelemetryBatch`: the accepted rows in the schema's columns and types, sorted
-by (vehicle_id, timestamp_ms); one `Rejection` per refused row; a segment id per accepted row; and warnings.
+`read_telemetry(path)` reads CSV, Parquet, NDJSON/JSONL (one object per line) or JSON (an array of objects) and hands
+the table to `validate_telemetry`, which returns a `TelemetryBatch`: the accepted rows in the schema's columns and
+types, sorted by (vehicle_id, timestamp_ms); one `Rejection` per refused row; a segment id per accepted row; and
+warnings.
 
 Three kinds of problem, three answers:
 
-- a file that cannot be telemetry (unknown extension, missing columns, no rows, a column in the wrong unit): `ValueError`;
-- a bad row (a missing, non-numeric, NaN or infinite value, a value outside its physical range, an invalid vehicle_id,
-  a duplicated (vehicle_id, timestamp_ms)): the row is rejected, named with its column and value, and reading goes on;
+- a file that cannot be telemetry (unknown extension, missing columns, no rows, a column in the wrong unit):
+  `ValueError`;
+- a bad row (a missing, non-numeric, NaN or infinite value, a value outside its physical range, an invalid vehicle_id, a
+  duplicated (vehicle_id, timestamp_ms)): the row is rejected, named with its column and value, and reading goes on;
 - something a user should know about but that leaves the data usable (unsorted input, gaps, ignored columns): a warning.
 
 Row checks, in this order (a row is reported once, with its first fault): the row could be parsed; vehicle_id; the
-timestamp; the required columns in schema order (missing, not a number, NaN, infinite; the booleans true/false/1/0);
-the optional columns (NaN there means "absent" and becomes null); then the physical ranges of `RANGES`; then duplicates,
+timestamp; the required columns in schema order (missing, not a number, NaN, infinite; the booleans true/false/1/0); the
+optional columns (NaN there means "absent" and becomes null); then the physical ranges of `RANGES`; then duplicates,
 keeping the first row in file order. The unit checks (`_unit_problems`) run on the rows that pass the parsing checks and
 before the range checks, because a column in the wrong unit would otherwise lose exactly the rows that show it.
 
-Unit checks compare columns with each other instead of trusting magnitudes, since each signal alone is ambiguous (30 is a
-plausible speed in m/s and in km/h). All use medians or percentiles, so a few bad rows cannot trigger or mask them, and
-each needs enough moving or turning samples; without them the check is skipped with a warning, never guessed:
+Unit checks compare columns with each other instead of trusting magnitudes, since each signal alone is ambiguous (30 is
+a plausible speed in m/s and in km/h). All use medians, percentiles or a least-squares fit over many samples, so a few
+bad rows can neither trigger nor mask them; each needs enough moving (or turning) samples and is skipped without them,
+never guessed. They run vehicle by vehicle (a fleet's terminals need not agree). The limits were set on the paper preset
+and 750 random-preset runs (seeds 3, 5, 7, 11, 13), with and without their wheel radius: none raised a false alarm, and
+each wrong unit tested (speed in km/h or mph, wheel speeds in rpm or deg/s, yaw rate in deg/s, steering in degrees,
+accel_lon in g) was caught wherever the run had the motion that shows it: for speed and wheel speeds any moving run
+given its radius (without one, mph also needs some acceleration or wheels over 0.31 m), for yaw rate and steering a
+turning run.
 
-1. speed and wheel speeds: with `wheel_radius_m`, the median of speed / (wheel speed x radius) per wheel over moving
-   samples is about 1; each combination of speed unit (m/s, km/h, mph) and wheel unit (rad/s, rpm, deg/s) has its own
-   ratio (1, 3.6, 2.24, 0.105, 0.0175, 0.377, ...), at least a factor 1.6 apart, matched within a factor `UNIT_TOLERANCE`.
-   Without a radius, the implied radius speed / wheel speed must lie in `WHEEL_RADIUS_RANGE_M` (0.15-0.7 m: any road
-   vehicle); a larger one means a speed in km/h, a 9.55 or 57.3 times smaller one wheel speeds in rpm or deg/s.
-2. speed and longitudinal acceleration: the least-squares slope of d(speed)/dt on accel_lon between consecutive samples is
-   about 1 (3.6 for km/h, 9.81 for an accelerometer in g); used only when the slope is known within 10 %.
-   Simulated runs give 0.98-1.10 (paper and random presets).
-3. last resort for speed, when neither 1 nor 2 can be computed: a 99th percentile above 70 m/s (252 km/h).
+1. speed and wheel speeds. With `wheel_radius_m`: the median of speed / (wheel speed x radius) over moving samples is
+   about 1 (0.95-1.09 simulated); each pair of a speed unit (m/s, km/h, mph) and a wheel unit (rad/s, rpm, deg/s) has
+   its own ratio (1, 3.6, 2.24, 0.105, 0.0175, 0.377, ...), at least a factor 1.6 from any other, matched within a
+   factor `UNIT_TOLERANCE`; a ratio matching none is an error outside [0.5, 2] and a warning (check the radius) inside.
+   Without a radius: the implied radius speed / wheel speed must lie in `WHEEL_RADIUS_RANGE_M`, 0.15-0.7 m for any road
+   vehicle (0.29-0.43 m simulated); a larger one is a speed in km/h (or mph, when both would fit), a 9.55 or 57.3 times
+   smaller one wheel speeds in rpm or deg/s.
+2. speed and longitudinal acceleration: the least-squares slope of d(speed)/dt on accel_lon between consecutive samples
+   driving straight (|r| < 0.05 rad/s, |ay| < 1.5 m/s^2: in a skid d(vx)/dt = ax + vy r is far from ax) is about 1
+   (0.97-1.02 simulated), 3.6 for km/h, 2.24 for mph and 9.81 for an accelerometer in g; used only when the fit gives
+   the slope within 10 %, which needs a few m/s^2 of acceleration or braking.
+3. last resort for speed, when neither 1 nor 2 could be computed: a 99th percentile above 70 m/s (252 km/h) is km/h.
 4. yaw rate: ay = v r in steady driving, so p95(|v r|) / p95(|ay|) over samples above 5 m/s is about 1 in rad/s
-   (0.4-4.9 over 600 simulated runs, spins included) and about 57 in deg/s; above 12 means degrees, provided the car
-   turns (p95 |ay| >= 0.5 m/s^2) or the 99th percentile of |yaw rate| exceeds 1.5 rad/s (a lateral acceleration of
-   7.5 m/s^2 at 5 m/s, or more).
-5. steering-wheel angle: delta_sw = ratio (L + K v^2) kappa with kappa = r / v, so the median of |delta_sw| / |kappa| over
-   samples with |kappa| >= 0.002 1/m is 40-750 in rad (the high end: sliding on ice with full lock) and some 2300-5000 in
-   degrees; above 1500 means degrees. Also, a 95th percentile of |angle| beyond 15 rad (2.4 turns, past any steering
-   lock) means degrees.
+   (0.57-6.3 simulated when turning, spins included) and 57 times that in deg/s (32 or more); above `YAW_RATIO_LIMIT`
+   (12) means degrees, provided the car turns (p95 |ay| >= 0.5 m/s^2) or |yaw rate| has a 99th percentile above 1.5
+   rad/s, which at 5 m/s and more would be a lateral acceleration the accelerometer does not show.
+5. steering-wheel angle: delta_sw = i_s (L + K v^2) kappa with kappa = r / v, so the median of |delta_sw| / |kappa| over
+   samples with |kappa| >= 0.002 1/m is 37-750 m in rad (the high end: the paper's mu 0.1 circle at full lock) and about
+   2300-5000 m in degrees; above `STEER_RATIO_LIMIT` (1500) means degrees. So does a 95th percentile of |angle| beyond
+   15 rad, past any steering lock.
+   Checks 4 and 5 use the speed: unless check 1 or 2 confirmed its unit, their limits are multiplied by 2.24, the
+   largest speed error that can pass check 1 unseen (mph on wheels under 0.31 m).
 6. timestamp_ms: a median between 1e9 and 1e10 is seconds since the epoch, above 1e14 micro- or nanoseconds.
 """
 
 from __future__ import annotations
 
 import csv
-import io
 import json
 import math
 import re
@@ -93,15 +105,15 @@ DEG_PER_RAD = 180.0 / math.pi
 SPEED_UNITS = {"m/s": 1.0, "km/h": KMH_PER_MPS, "mph": MPH_PER_MPS}
 WHEEL_UNITS = {"rad/s": 1.0, "rpm": RPM_PER_RADPS, "deg/s": DEG_PER_RAD}
 ACCEL_UNITS = {"m/s^2": 1.0, "g": 1.0 / G_MPS2}
-FIXES = {"km/h": "divide it by 3.6", "mph": "multiply it by 0.44704", "rpm": "multiply it by 2 pi / 60",
-         "deg/s": "multiply it by pi / 180", "g": f"multiply it by {G_MPS2}", "deg": "multiply it by pi / 180"}
+FIXES = {"km/h": "divide by 3.6", "mph": "multiply by 0.44704", "rpm": "multiply by 2 pi / 60",
+         "deg/s": "multiply by pi / 180", "g": f"multiply by {G_MPS2}", "deg": "multiply by pi / 180"}
 UNIT_TOLERANCE = 1.2  # a ratio matches a unit within this factor; neighbouring units' ratios are >= 1.6 apart
 WHEEL_RADIUS_RANGE_M = (0.15, 0.7)  # small city cars to heavy trucks (a 315/80 R22.5 truck tire has 0.54 m)
 MIN_SAMPLES = 20  # samples a unit check needs
 MOVING_MPS = 5.0  # speed above which yaw rate and steering are compared with lateral motion
 MAX_PLAUSIBLE_SPEED_MPS = 70.0  # 252 km/h: a 99th percentile above this is km/h (last resort, see the module doc)
-YAW_RATIO_LIMIT = 12.0  # p95(|v r|) / p95(|ay|): 0.4-4.9 simulated in rad/s, x 57 in deg/s
-STEER_RATIO_LIMIT = 1500.0  # median |delta_sw| / |kappa| in metres: 40-750 simulated in rad, x 57 in degrees
+YAW_RATIO_LIMIT = 12.0  # p95(|v r|) / p95(|ay|): 0.57-6.3 simulated in rad/s when turning, x 57 in deg/s
+STEER_RATIO_LIMIT = 1500.0  # median |delta_sw| / |kappa| in metres: 37-750 simulated in rad, x 57 in degrees
 STEER_MIN_CURVATURE_PER_M = 0.002  # a 500 m radius: below it, sensor bias dominates the steering angle
 STEER_LOCK_RAD = 15.0
 
@@ -146,7 +158,8 @@ def read_telemetry(path: str | Path, *, max_gap_s: float = 0.25, wheel_radius_m:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FORMATS:
-        raise ValueError(f"unknown telemetry file extension {path.suffix!r} of {path}; expected one of {sorted(FORMATS)}")
+        raise ValueError(f"unknown telemetry file extension {path.suffix!r} of {path}; "
+                         f"expected one of {sorted(FORMATS)}")
     if not path.is_file():
         raise FileNotFoundError(f"telemetry file {path} does not exist")
     if path.stat().st_size == 0:
@@ -165,6 +178,8 @@ def validate_telemetry(table: pa.Table, *, source: str = "input", max_gap_s: flo
 # ---------------------------------------------------------------------------------------------------------- readers
 
 def _read_csv(path: Path):
+    """Arrow's reader; where it cannot (a row with the wrong number of fields, which it does not place; a value that
+    does not fit the type Arrow inferred from the first block), Python's csv module, every value a string."""
     invalid = []
     try:
         table = pacsv.read_csv(
@@ -173,21 +188,21 @@ def _read_csv(path: Path):
             convert_options=pacsv.ConvertOptions(column_types={"vehicle_id": pa.string()}, null_values=CSV_NULLS,
                                                  strings_can_be_null=True),
         )
-    except pa.ArrowInvalid as e:
-        raise ValueError(f"cannot read {path} as CSV: {e}") from None
-    if not invalid:
-        return table, np.arange(table.num_rows), []
-    # Arrow does not say which record a malformed row was; Python's csv module does, so read it again that way.
+        if not invalid:
+            return table, np.arange(table.num_rows), []
+    except pa.ArrowInvalid:
+        pass
     with open(path, newline="", encoding="utf-8-sig") as f:
         reader = csv.reader(f)
-        header = [h.strip() for h in next(reader)]
+        header = [h.strip() for h in next(reader, [])]
         records, rejections = [], []
         for i, fields in enumerate(reader):
             if len(fields) != len(header):
                 rejections.append(Rejection(i, None, None, "", f"row has {len(fields)} fields, the header has "
                                                                  f"{len(header)}"))
             else:
-                records.append((i, {h: (None if v.strip() in CSV_NULLS else v) for h, v in zip(header, fields)}))
+                values = [None if v.strip() in CSV_NULLS else v for v in fields]
+                records.append((i, dict(zip(header, values, strict=True))))
     return _records_table(records, rejections, header)
 
 
@@ -360,9 +375,9 @@ def _timestamps(table: pa.Table, faults: _Faults) -> tuple[np.ndarray, np.ndarra
         return ms, np.where(missing, np.nan, ms.astype(np.float64)), name
     if _is_string(arr.type):
         uniq, idx = _strings(arr)
-        parsed = np.array([_int_or_float(u) for u in uniq], dtype=object)[idx]
-        faults.add(np.equal(uniq[idx], None), name, f"missing value in {name}")
-        faults.add(np.equal(parsed, None), name, lambda i: f"{name} value {uniq[idx][i]!r} is not a number")
+        parsed, text = np.array([_int_or_float(u) for u in uniq], dtype=object)[idx], uniq[idx]
+        faults.add(np.equal(text, None), name, f"missing value in {name}")
+        faults.add(np.equal(parsed, None), name, lambda i: f"{name} value {text[i]!r} is not a number")
         values = np.array([np.nan if p is None else float(p) for p in parsed], dtype=np.float64)
     else:
         values = _numbers(arr, name, faults, required=True)
@@ -396,7 +411,7 @@ def _vehicle_ids(table: pa.Table, source: str, faults: _Faults, warnings: list[s
         arr = pc.cast(arr, pa.string())
     uniq, idx = _strings(arr)
     ids = uniq[idx]
-    valid = np.array([u is not None and VEHICLE_ID_RE.match(u) is not None for u in uniq])[idx]
+    valid = np.array([u is not None and VEHICLE_ID_RE.fullmatch(u) is not None for u in uniq])[idx]
     faults.add(np.equal(ids, None), "vehicle_id", "missing value in vehicle_id")
     faults.add(~valid, "vehicle_id", lambda i: f"vehicle_id {ids[i]!r} does not match {VEHICLE_ID_RE.pattern}")
     return ids
@@ -472,7 +487,8 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
         dup[1:] = (vehicle[order[1:]] == vehicle[order[:-1]]) & (ts[order[1:]] == ts[order[:-1]])
         mask = np.zeros(n, bool)
         mask[order[dup]] = True
-        faults.add(mask, time_column, lambda i: f"duplicate timestamp {ts[i]} for vehicle {vehicle[i]} (kept the first)")
+        faults.add(mask, time_column,
+                   lambda i: f"duplicate timestamp {ts[i]} for vehicle {vehicle[i]} (kept the first)")
         order = order[~dup]
 
     total = n + len(rejections)  # the rows of the table and the records that could not become rows
@@ -485,8 +501,8 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
     if rejections:
         warnings.append(f"rejected {len(rejections)} of {total} rows ({_summary(rejections)})")
 
-    out = _output_table(vehicle, ts, values, names, order)
-    segments, gap_warnings = _segments(vehicle[order], ts[order], max_gap_s)
+    out = _output_table(vehicle, ts, values, order)
+    segments, gap_warnings = _segments(vehicle[order], ts[order], max_gap_s, time_column)
     return TelemetryBatch(out, rejections, segments, warnings + gap_warnings, time_column)
 
 
@@ -516,7 +532,7 @@ def _summary(rejections: list[Rejection]) -> str:
         f"; e.g. row {rejections[0].row}: {rejections[0].reason}" if rejections else "")
 
 
-def _output_table(vehicle, ts, values, names, order) -> pa.Table:
+def _output_table(vehicle, ts, values, order) -> pa.Table:
     columns = []
     for col in TELEMETRY:
         if col.name == "vehicle_id":
@@ -531,7 +547,7 @@ def _output_table(vehicle, ts, values, names, order) -> pa.Table:
     return pa.Table.from_arrays(columns, schema=TELEMETRY_SCHEMA)
 
 
-def _segments(vehicle: np.ndarray, ts: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, list[str]]:
+def _segments(vehicle: np.ndarray, ts: np.ndarray, max_gap_s: float, time_column: str) -> tuple[np.ndarray, list[str]]:
     """A new segment at every new vehicle and after every gap longer than max_gap_s."""
     n = ts.size
     new_vehicle = np.ones(n, bool)
@@ -542,17 +558,19 @@ def _segments(vehicle: np.ndarray, ts: np.ndarray, max_gap_s: float) -> tuple[np
     segments = np.cumsum(new_vehicle | gap) - 1
     warnings = []
     if gap.any():
-        per_vehicle = []
-        for v in dict.fromkeys(vehicle[gap]):
+        vehicles = list(dict.fromkeys(vehicle[gap]))
+        details = []
+        for v in vehicles[:5]:
             g = np.flatnonzero(gap & (vehicle == v))
             longest = g[np.argmax(dt_ms[g])]
-            per_vehicle.append(f"{v}: {g.size} (longest {dt_ms[longest] / 1000:.3g} s before timestamp {ts[longest]})")
+            details.append(f"{v}: {g.size} (longest {dt_ms[longest] / 1000:.3g} s, before timestamp {ts[longest]})")
+        more = f" and {len(vehicles) - 5} more vehicles" if len(vehicles) > 5 else ""
         warnings.append(f"{int(gap.sum())} gap(s) longer than max_gap_s={max_gap_s:g} s split the data into "
-                        f"{int(segments[-1]) + 1} segments; {_few(per_vehicle)}")
+                        f"{int(segments[-1]) + 1} segments: {', '.join(details)}{more}")
     steps = dt_ms[~new_vehicle]
     if steps.size and np.median(steps) > max_gap_s * 1000.0:
         warnings.append(f"the median sampling interval, {np.median(steps) / 1000:.3g} s, exceeds max_gap_s="
-                        f"{max_gap_s:g} s: nearly every sample is its own segment (is t_s in milliseconds?)")
+                        f"{max_gap_s:g} s: nearly every sample is its own segment (check the unit of {time_column})")
     return segments.astype(np.int64), warnings
 
 
@@ -572,7 +590,7 @@ def _match(ratio: float, candidates: dict) -> object | None:
 
 
 class _UnitReport:
-    """Columns found in a wrong unit (grouped into one message per unit and kind of evidence), other errors, warnings."""
+    """Columns found in a wrong unit (one message per unit and evidence), other errors, and warnings."""
 
     def __init__(self):
         self.found: dict[tuple[str, str], list[str]] = {}  # (unit, evidence) -> columns
@@ -592,66 +610,59 @@ class _UnitReport:
 
 
 def _unit_problems(values, vehicle, ts, ts_raw, time_column, ok, max_gap_s, radius):
-    """(errors, warnings) of the unit checks of the module docstring, over the rows `ok` that parsed."""
-    report = _UnitReport()
+    """(errors, warnings) of the unit checks of the module docstring over the rows `ok` that parsed, vehicle by vehicle
+    (a fleet's terminals need not agree: one sending km/h among many sending m/s must not hide in a pooled median)."""
+    errors, warnings = [], []
     if time_column == "timestamp_ms" and ok.any():
         median = float(np.median(ts_raw[ok]))
         unit = ("seconds" if 1e9 <= median < 1e10 else "microseconds" if 1e14 <= median < 1e17
                 else "nanoseconds" if median >= 1e17 else None)
         if unit:
-            report.errors.append(f"column timestamp_ms looks like {unit} since the epoch, not milliseconds (median "
-                                 f"{median:.4g}, where milliseconds now are about 1.7e12); convert it")
-    if ok.sum() >= MIN_SAMPLES:
-        v = {k: a[ok] for k, a in values.items()}
-        speed_factor = _check_speed_and_wheels(v, vehicle[ok], ts[ok], max_gap_s, radius, report)
-        _check_yaw_and_steering(v, speed_factor, report)
-    return report.messages(), report.warnings
+            errors.append(f"column timestamp_ms looks like {unit} since the epoch, not milliseconds (median "
+                          f"{median:.4g}, where milliseconds now are about 1.7e12); convert it")
+    rows = np.flatnonzero(ok)
+    codes = _codes(vehicle[rows])
+    by_vehicle = rows[np.argsort(codes, kind="stable")]
+    groups = np.split(by_vehicle, np.flatnonzero(np.diff(np.sort(codes))) + 1) if rows.size else []
+    for group in groups:
+        if group.size < MIN_SAMPLES:
+            continue
+        report = _UnitReport()
+        v = {k: a[group] for k, a in values.items()}
+        speed = _check_speed_and_wheels(v, vehicle[group], ts[group], max_gap_s, radius, report)
+        if speed is not None:
+            _check_yaw_and_steering(v, *speed, report)
+        prefix = f"vehicle {vehicle[group[0]]}: " if len(groups) > 1 else ""
+        errors += [prefix + m for m in report.messages()]
+        warnings += [prefix + w for w in report.warnings]
+    return _capped(errors), _capped(warnings)
 
 
-def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitReport) -> float:
-    """Checks 1-3 of the module docstring; returns the factor of the speed column's unit (1 when m/s or unknown)."""
+def _capped(messages: list[str], k: int = 10) -> list[str]:
+    return messages[:k] + ([f"... and {len(messages) - k} more like these"] if len(messages) > k else [])
+
+
+def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitReport) -> tuple[float, bool] | None:
+    """Checks 1-3 of the module docstring. Returns (the factor of the speed column's unit, whether a check confirmed
+    it), the factor being 1 when nothing says otherwise; or None when the speed's unit is wrong but cannot be told."""
     speed = v["speed_mps"]
-    implied = {}  # wheel column -> median of speed / wheel speed over moving samples, in file units
-    for col in WHEEL_COLUMNS:
-        w = v[col]
-        moving = ((np.abs(speed) >= max(0.2 * np.percentile(np.abs(speed), 95), 1.0))
-                  & (np.abs(w) >= max(0.2 * np.percentile(np.abs(w), 95), 0.2)) & (np.sign(speed) == np.sign(w)))
-        if moving.sum() >= MIN_SAMPLES:
-            implied[col] = float(np.median(speed[moving] / w[moving]))
-    unchecked = [c for c in WHEEL_COLUMNS if c not in implied]
-    if unchecked:
-        report.warnings.append(f"too few moving samples to check the unit of {', '.join(unchecked)} against speed_mps")
+    implied = _implied_radii(speed, v, report)
+    speed_unit, evidence, wheel_units = None, "", {}
+    if radius is not None:
+        speed_unit, evidence, wheel_units = _units_from_radius(implied, radius, report)
 
-    speed_unit, evidence = None, ""
-    pairs = {(s, w): fs / fw for s, fs in SPEED_UNITS.items() for w, fw in WHEEL_UNITS.items()}
-    wheel_units = {}
-    if radius is not None:  # 1, with a radius: speed / (wheel speed x radius) names both units
-        for col, r in implied.items():
-            q = r / radius
-            wheel_units[col] = _match(q, pairs)
-            if wheel_units[col] is not None:
-                continue
-            text = f"speed_mps / ({col} x wheel_radius_m) over moving samples has median {q:.3g}, about 1 expected"
-            if 0.5 <= q <= 2.0:
-                report.warnings.append(f"{text}: check wheel_radius_m={radius:g} m")
-            else:
-                report.errors.append(f"{text}, and no unit of speed (m/s, km/h, mph) and wheel speed (rad/s, rpm, "
-                                     f"deg/s) explains it: check these columns and wheel_radius_m={radius:g} m")
-        votes = Counter(u for u in wheel_units.values() if u is not None).most_common(1)
-        if votes and votes[0][1] >= max(1, len(implied) // 2 + 1):
-            (speed_unit, wheel_unit), _ = votes[0]
-            q = np.median([implied[c] / radius for c, u in wheel_units.items() if u == (speed_unit, wheel_unit)])
-            evidence = (f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {q:.3g} (1 expected; "
-                        f"{pairs[speed_unit, wheel_unit]:.3g} for speed in {speed_unit}, wheel speeds in {wheel_unit})")
-
-    slope = _speed_slope(speed, v["accel_lon_mps2"], vehicle, ts, max_gap_s)  # 2: d(speed)/dt against accel_lon
+    slope = _speed_slope(v, vehicle, ts, max_gap_s)  # 2: d(speed)/dt against accel_lon
     if slope is not None:
-        if speed_unit is None:
-            match = _match(slope, {(s, a): fs / fa for s, fs in SPEED_UNITS.items() for a, fa in ACCEL_UNITS.items()})
-            if match is not None:
-                speed_unit = match[0]
-                evidence = (f"its rate of change is {slope:.3g} times accel_lon_mps2 (least-squares slope; 1 "
-                            f"expected, {SPEED_UNITS[speed_unit]:.3g} for {speed_unit})")
+        match = _match(slope, {(s, a): fs / fa for s, fs in SPEED_UNITS.items() for a, fa in ACCEL_UNITS.items()})
+        if speed_unit is None and match is not None:
+            speed_unit = match[0]
+            evidence = (f"its rate of change is {slope:.3g} times accel_lon_mps2 (least-squares slope; 1 "
+                        f"expected, {SPEED_UNITS[speed_unit]:.3g} for {speed_unit})")
+        elif speed_unit is not None and match is not None and match[0] != speed_unit:
+            report.errors.append(f"{evidence}, but the rate of change of speed_mps is {slope:.3g} times "
+                                 f"accel_lon_mps2, which says {match[0]}: check wheel_radius_m={radius:g} m and the "
+                                 "units of speed_mps and the wheel speeds")
+            return None
         accel_unit = _match(slope / SPEED_UNITS[speed_unit or "m/s"], {u: 1 / f for u, f in ACCEL_UNITS.items()})
         if accel_unit == "g":
             report.wrong_unit("accel_lon_mps2", "g", f"the rate of change of speed is {slope:.3g} times it "
@@ -661,48 +672,118 @@ def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitRepo
                                    "(least-squares slope, 1 expected): check the sign and unit of accel_lon_mps2")
 
     lo, hi = WHEEL_RADIUS_RANGE_M
-    if radius is None and implied and speed_unit is None:  # 1, without a radius: the implied radius
+    confirmed = speed_unit is not None
+    if not confirmed and radius is None and implied:  # 1, without a radius: too large an implied radius
         r = float(np.median(list(implied.values())))
-        if r > hi and lo <= r / KMH_PER_MPS <= hi:
-            speed_unit = "km/h"
-            evidence = (f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected; "
-                        f"{r / KMH_PER_MPS:.2g} m if speed_mps is km/h)")
-    if speed_unit is None and not implied and slope is None:  # 3: the last resort
+        fits = {u: r / SPEED_UNITS[u] for u in ("km/h", "mph") if lo <= r / SPEED_UNITS[u] <= hi}
+        text = f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected; " + " or ".join(
+            f"{x:.2g} m if it is {u}" for u, x in fits.items()) + ")"
+        if r > hi and len(fits) == 1:
+            speed_unit, evidence, confirmed = next(iter(fits)), text, True
+        elif r > hi and fits:
+            report.errors.append(f"column speed_mps looks like {' or '.join(fits)}, not m/s: {text}; convert it")
+            return None
+    if not confirmed and not implied and slope is None:  # 3: the last resort
         p99 = float(np.percentile(np.abs(speed), 99))
         if p99 > MAX_PLAUSIBLE_SPEED_MPS:
             speed_unit = "km/h"
             evidence = (f"its 99th percentile is {p99:.4g}, above {MAX_PLAUSIBLE_SPEED_MPS:g} m/s "
-                        f"({MAX_PLAUSIBLE_SPEED_MPS * KMH_PER_MPS:.0f} km/h), and no wheel speeds or accelerations "
-                        "could be compared with it")
+                        f"({MAX_PLAUSIBLE_SPEED_MPS * KMH_PER_MPS:.0f} km/h), and neither wheel speeds nor "
+                        "accelerations could be compared with it")
     if speed_unit not in (None, "m/s"):
         report.wrong_unit("speed_mps", speed_unit, evidence)
     speed_factor = SPEED_UNITS[speed_unit or "m/s"]
 
-    unexplained = []
-    for col, r in implied.items():  # the wheels' units, given the speed's
+    found: dict[str, dict[str, float]] = {}  # the wheels' units, given the speed's: unit -> {column: ratio}
+    unexplained = {}
+    for col, r in implied.items():
         if radius is not None:
             unit = wheel_units.get(col)
             if unit is not None and unit[0] == (speed_unit or "m/s") and unit[1] != "rad/s":
-                report.wrong_unit(col, unit[1], f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is "
-                                                f"{r / radius:.3g} (1 expected; {pairs[unit]:.3g} for {unit[1]})")
+                found.setdefault(unit[1], {})[col] = r / radius
             continue
         r = r / speed_factor
-        if lo <= r <= hi:
-            continue
-        unit = next((u for u, f in WHEEL_UNITS.items() if u != "rad/s" and lo <= r * f <= hi), None)
-        if unit is None:
-            unexplained.append(f"{col} {r:.3g} m")
+        if not lo <= r <= hi:
+            unit = next((u for u, f in WHEEL_UNITS.items() if lo <= r * f <= hi), None)
+            if unit is None:
+                unexplained[col] = r
+            else:
+                found.setdefault(unit, {})[col] = r
+    for unit, ratios in found.items():
+        x = float(np.median(list(ratios.values())))
+        if radius is not None:
+            evidence = (f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {x:.3g} (1 expected; "
+                        f"{speed_factor / WHEEL_UNITS[unit]:.3g} for {unit})")
         else:
-            report.wrong_unit(col, unit, f"speed / wheel speed implies a wheel radius of {r:.2g} m ({lo}-{hi} m "
-                                         f"expected; {r * WHEEL_UNITS[unit]:.2g} m for {unit})")
+            evidence = (f"speed / wheel speed implies a wheel radius of {x:.2g} m ({lo}-{hi} m expected; "
+                        f"{x * WHEEL_UNITS[unit]:.2g} m for {unit}{'' if confirmed else ', if speed_mps is m/s'})")
+        for col in ratios:
+            report.wrong_unit(col, unit, evidence)
     if unexplained:
-        report.errors.append(f"speed_mps / wheel speed implies wheel radii outside {lo}-{hi} m ({', '.join(unexplained)})"
-                             " that no unit of speed or wheel speed explains: check their units")
-    return speed_factor
+        r = float(np.median(list(unexplained.values()))) * speed_factor
+        combos = [f"speed in {s} with wheel speeds in {w}" for s, fs in SPEED_UNITS.items()
+                  for w, fw in WHEEL_UNITS.items() if (s, w) != ("m/s", "rad/s") and lo <= r * fw / fs <= hi
+                  and (not confirmed or s == (speed_unit or "m/s"))]
+        report.errors.append(
+            f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected for a road vehicle) "
+            f"for {', '.join(unexplained)}: check the units of speed_mps and the wheel speeds"
+            + (f" ({' or '.join(combos)} would explain it)" if combos else ""))
+        if not confirmed:
+            return None  # the speed itself may be wrong: leave the checks that use it alone
+    return speed_factor, confirmed
 
 
-def _check_yaw_and_steering(v, speed_factor: float, report: _UnitReport) -> None:
-    """Checks 4 and 5 of the module docstring."""
+def _moving_threshold(x: np.ndarray) -> float:
+    """|x| above which a sample counts as moving: a fifth of the 95th percentile, the same samples whatever the unit
+    (the slowest samples are where sensors misbehave: wheel-speed drop-out, quantisation, creeping at a stop), and at
+    least 1 in the file's unit, so that a parked car's noise is never taken for motion."""
+    return max(0.2 * float(np.percentile(np.abs(x), 95)), 1.0)
+
+
+def _implied_radii(speed: np.ndarray, v: dict, report: _UnitReport) -> dict[str, float]:
+    """Per wheel column, the median of speed / wheel speed over samples where both clearly move (file units)."""
+    implied = {}
+    for col in WHEEL_COLUMNS:
+        w = v[col]
+        moving = (np.abs(speed) >= _moving_threshold(speed)) & (np.abs(w) >= _moving_threshold(w)) & (
+            np.sign(speed) == np.sign(w))
+        if moving.sum() >= MIN_SAMPLES:
+            implied[col] = float(np.median(speed[moving] / w[moving]))
+    unchecked = [c for c in WHEEL_COLUMNS if c not in implied]
+    if unchecked:
+        report.warnings.append(f"too few moving samples to compare {', '.join(unchecked)} with speed_mps (units not "
+                               "verified)")
+    return implied
+
+
+def _units_from_radius(implied: dict[str, float], radius: float, report: _UnitReport):
+    """Check 1 with a radius: (speed unit or None, its evidence, wheel column -> (speed unit, wheel unit) or None)."""
+    pairs = {(s, w): fs / fw for s, fs in SPEED_UNITS.items() for w, fw in WHEEL_UNITS.items()}
+    units = {}
+    for col, r in implied.items():
+        q = r / radius
+        units[col] = _match(q, pairs)
+        if units[col] is None:
+            text = f"speed_mps / ({col} x wheel_radius_m) over moving samples has median {q:.3g}, about 1 expected"
+            if 0.5 <= q <= 2.0:
+                report.warnings.append(f"{text}: check wheel_radius_m={radius:g} m")
+            else:
+                report.errors.append(f"{text}, and no unit of speed (m/s, km/h, mph) and wheel speed (rad/s, rpm, "
+                                     f"deg/s) explains it: check these columns and wheel_radius_m={radius:g} m")
+    votes = Counter(u for u in units.values() if u is not None).most_common(1)
+    if not votes or votes[0][1] < len(implied) // 2 + 1:
+        return None, "", units
+    pair = votes[0][0]
+    q = float(np.median([implied[c] / radius for c, u in units.items() if u == pair]))
+    return pair[0], (f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {q:.3g} (1 expected; "
+                     f"{pairs[pair]:.3g} for speed in {pair[0]}, wheel speeds in {pair[1]})"), units
+
+
+def _check_yaw_and_steering(v, speed_factor: float, confirmed: bool, report: _UnitReport) -> None:
+    """Checks 4 and 5 of the module docstring. Both use the speed; unless a check confirmed its unit, their limits are
+    raised by the largest error that can pass unnoticed (mph read as m/s: with wheels under 0.31 m, the implied radius
+    stays plausible)."""
+    margin = 1.0 if confirmed else MPH_PER_MPS
     sw95 = float(np.percentile(np.abs(v["steering_wheel_angle_rad"]), 95))
     v_mps = v["speed_mps"] / speed_factor
     moving = v_mps > MOVING_MPS
@@ -713,7 +794,7 @@ def _check_yaw_and_steering(v, speed_factor: float, report: _UnitReport) -> None
         vr95 = float(np.percentile(np.abs(speed * r), 95))
         r99 = float(np.percentile(np.abs(r), 99))
         yaw_factor = 1.0
-        if ay95 > 0 and vr95 / ay95 > YAW_RATIO_LIMIT and (ay95 >= 0.5 or r99 > 1.5):
+        if ay95 > 0 and vr95 / ay95 > YAW_RATIO_LIMIT * margin and (ay95 >= 0.5 or r99 > 1.5):
             yaw_factor = DEG_PER_RAD
             report.wrong_unit("yaw_rate_radps", "deg/s",
                               f"speed x yaw rate is {vr95 / ay95:.3g} times the lateral acceleration (95th percentiles "
@@ -723,23 +804,29 @@ def _check_yaw_and_steering(v, speed_factor: float, report: _UnitReport) -> None
         curving = np.abs(kappa) >= STEER_MIN_CURVATURE_PER_M
         if curving.sum() >= MIN_SAMPLES:
             ratio = float(np.median(np.abs(v["steering_wheel_angle_rad"][moving][curving]) / np.abs(kappa[curving])))
-            if ratio > STEER_RATIO_LIMIT:
-                steer_evidence = (f"the median of |angle| / path curvature (yaw rate / speed) is {ratio:.4g} m, where "
-                                  f"steering ratio x wheelbase gives 40-750 m in rad")
+            if ratio > STEER_RATIO_LIMIT * margin:
+                steer_evidence = (f"the median of |angle| / path curvature (yaw rate / speed) is {ratio:.4g} m "
+                                  "(steering ratio x wheelbase, more when understeering: 37-750 m in rad)")
     if steer_evidence is None and sw95 > STEER_LOCK_RAD:
         steer_evidence = f"its 95th percentile of |angle| is {sw95:.4g}, past any steering lock (about 15 rad)"
     if steer_evidence:
         report.wrong_unit("steering_wheel_angle_rad", "deg", steer_evidence)
 
 
-def _speed_slope(speed, accel, vehicle, ts, max_gap_s) -> float | None:
-    """Least-squares slope of d(speed)/dt on accel_lon between consecutive moving samples of a vehicle, or None unless
-    it is positive and known within 10 % (enough samples and enough acceleration)."""
+def _speed_slope(v: dict, vehicle, ts, max_gap_s) -> float | None:
+    """Least-squares slope of d(speed)/dt on accel_lon between consecutive samples of a vehicle that move (see
+    `_moving_threshold`) straight, or None unless it is positive and known within 10 % (enough samples and enough
+    acceleration).
+
+    In the body frame d(vx)/dt = ax + vy r: the samples keep |r| < 0.05 rad/s and |ay| < 1.5 m/s^2 at both ends, where
+    vy r is negligible (in a skid it is not: a spinning car's vx falls at several g with ax near zero)."""
     order = np.lexsort((ts, _codes(vehicle)))
-    s, a, t, veh = speed[order], accel[order], ts[order], vehicle[order]
+    s, a, t, veh = v["speed_mps"][order], v["accel_lon_mps2"][order], ts[order], vehicle[order]
+    straight = (np.abs(v["yaw_rate_radps"][order]) < 0.05) & (np.abs(v["accel_lat_mps2"][order]) < 1.5)
     dt = np.diff(t) / 1000.0
-    moving = (np.abs(s[1:]) > 1.0) | (np.abs(s[:-1]) > 1.0)
-    pair = (veh[1:] == veh[:-1]) & (dt > 0) & (dt <= max_gap_s) & moving
+    fast = np.abs(s) >= _moving_threshold(s)
+    moving = fast[1:] & fast[:-1]
+    pair = (veh[1:] == veh[:-1]) & (dt > 0) & (dt <= max_gap_s) & moving & straight[1:] & straight[:-1]
     if pair.sum() < 30:
         return None
     x = 0.5 * (a[1:] + a[:-1])[pair]

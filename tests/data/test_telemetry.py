@@ -1,0 +1,433 @@
+import json
+import math
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+import pytest
+
+from roadgrip.data.schema import TELEMETRY_COLUMNS, WHEELS
+from roadgrip.data.telemetry import TelemetryBatch, read_telemetry, validate_telemetry
+from roadgrip.sim.presets import paper_scenarios, random_scenarios
+from roadgrip.sim.simulate import simulate
+from roadgrip.vehicle.params import PAPER_SUV
+
+T0_MS = 1_700_000_000_000
+RADIUS_M = 0.35
+WHEEL_COLUMNS = [f"wheel_speed_{w}_radps" for w in WHEELS]
+
+
+def drive(n=200, vehicle_id="v1", start_ms=T0_MS, dt_ms=100, seed=0, accel_mps2=1.5, curve_per_m=0.005,
+          v0_mps=8.0) -> dict:
+    """A consistent synthetic drive in SI units: accelerate then brake (a = dv/dt), straight then on a curve of
+    curvature `curve_per_m` (r = v kappa, ay = v r, steering wheel = 16 x 2.9 m x kappa), wheels rolling (v / R)."""
+    rng = np.random.default_rng(seed)
+    t_s = np.arange(n) * dt_ms / 1000.0
+    a = np.where(t_s < t_s[-1] / 2, accel_mps2, -accel_mps2)
+    v = v0_mps + np.concatenate([[0.0], np.cumsum(a[:-1]) * dt_ms / 1000.0])
+    kappa = np.where(t_s > 0.4 * t_s[-1], curve_per_m, 0.0)
+    r = v * kappa
+
+    def noisy(x, sigma):
+        return x + rng.normal(0.0, sigma, n)
+
+    return {
+        "vehicle_id": [vehicle_id] * n,
+        "timestamp_ms": start_ms + np.arange(n, dtype=np.int64) * dt_ms,
+        "latitude_deg": 38.04 + 1e-5 * np.arange(n),
+        "longitude_deg": np.full(n, 114.51),
+        "speed_mps": noisy(v, 0.02),
+        "accel_lon_mps2": noisy(a, 0.03),
+        "accel_lat_mps2": noisy(v * r, 0.03),
+        "yaw_rate_radps": noisy(r, 0.001),
+        "steering_wheel_angle_rad": noisy(16.0 * 2.9 * kappa, 0.003),
+        **{c: noisy(v / RADIUS_M, 0.02) for c in WHEEL_COLUMNS},
+        "abs_active": [False] * n,
+        "acc_active": [True] * (n // 2) + [False] * (n - n // 2),
+        "lateral_speed_mps": noisy(np.zeros(n), 0.01),
+    }
+
+
+def table_of(columns: dict) -> pa.Table:
+    return pa.table(columns)
+
+
+def with_column(table: pa.Table, name: str, values) -> pa.Table:
+    return table.set_column(table.column_names.index(name), name, pa.array(values))
+
+
+def scaled(table: pa.Table, names, factor: float) -> pa.Table:
+    for name in names:
+        table = table.set_column(table.column_names.index(name), name, pc.multiply(table[name], factor))
+    return table
+
+
+def rows_of(table: pa.Table) -> list[dict]:
+    return table.to_pylist()
+
+
+# ------------------------------------------------------------------------------------------------------ formats
+
+@pytest.fixture
+def clean():
+    return table_of(drive())
+
+
+def write(table: pa.Table, path, fmt: str):
+    if fmt == "csv":
+        pacsv.write_csv(table, path)
+    elif fmt == "parquet":
+        pq.write_table(table, path)
+    elif fmt in ("ndjson", "jsonl"):
+        path.write_text("".join(json.dumps(r) + "\n" for r in rows_of(table)))
+    else:
+        path.write_text(json.dumps(rows_of(table)))
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet", "ndjson", "jsonl", "json"])
+def test_each_format_reads_to_the_same_table(tmp_path, clean, fmt):
+    batch = read_telemetry(write(clean, tmp_path / f"drive.{fmt}", fmt), wheel_radius_m=RADIUS_M)
+    assert isinstance(batch, TelemetryBatch)
+    assert batch.table.column_names == list(TELEMETRY_COLUMNS)
+    assert batch.table.schema.field("timestamp_ms").type == pa.int64()
+    assert batch.table.schema.field("abs_active").type == pa.bool_()
+    assert batch.rejections == []
+    assert batch.table.num_rows == clean.num_rows
+    assert batch.table["timestamp_ms"].to_pylist() == clean["timestamp_ms"].to_pylist()
+    np.testing.assert_allclose(batch.table["speed_mps"].to_numpy(), clean["speed_mps"].to_numpy(), rtol=1e-12)
+    assert batch.table["acc_active"].to_pylist() == clean["acc_active"].to_pylist()
+    assert batch.segments.tolist() == [0] * clean.num_rows
+    assert batch.warnings == []
+
+
+def test_unknown_extension_and_missing_or_empty_files(tmp_path, clean):
+    with pytest.raises(ValueError, match=r"unknown telemetry file extension '\.xlsx'"):
+        read_telemetry(tmp_path / "drive.xlsx")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        read_telemetry(tmp_path / "absent.csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(ValueError, match="is empty"):
+        read_telemetry(tmp_path / "empty.csv")
+    (tmp_path / "header.csv").write_text(",".join(clean.column_names) + "\n")
+    with pytest.raises(ValueError, match="no rows"):
+        read_telemetry(tmp_path / "header.csv")
+    (tmp_path / "empty.json").write_text("[]")
+    with pytest.raises(ValueError, match="no rows"):
+        read_telemetry(tmp_path / "empty.json")
+    (tmp_path / "object.json").write_text('{"speed_mps": 1}')
+    with pytest.raises(ValueError, match="JSON array of objects"):
+        read_telemetry(tmp_path / "object.json")
+    write(clean.slice(0, 3), tmp_path / "lines.json", "ndjson")
+    with pytest.raises(ValueError, match="NDJSON"):
+        read_telemetry(tmp_path / "lines.json")
+
+
+def test_t_s_becomes_timestamp_ms_and_the_file_stem_names_the_vehicle(tmp_path, clean):
+    t_s = np.arange(clean.num_rows) * 0.1 + 0.0004  # round(t_s * 1000) drops the 0.4 ms
+    table = clean.drop(["vehicle_id", "timestamp_ms"]).append_column("t_s", pa.array(t_s))
+    batch = read_telemetry(write(table, tmp_path / "my car 7.csv", "csv"))
+    assert batch.time_column == "t_s"
+    assert batch.table["timestamp_ms"].to_pylist() == [round(x * 1000) for x in t_s]
+    assert set(batch.table["vehicle_id"].to_pylist()) == {"my_car_7"}
+    assert any("no vehicle_id column" in w and "my_car_7" in w for w in batch.warnings)
+
+
+# -------------------------------------------------------------------------------------------- columns and rows
+
+def test_missing_columns_are_all_named(clean):
+    with pytest.raises(ValueError) as err:
+        validate_telemetry(clean.drop(["speed_mps", "yaw_rate_radps", "wheel_speed_rr_radps"]))
+    for name in ("speed_mps", "yaw_rate_radps", "wheel_speed_rr_radps"):
+        assert name in str(err.value)
+    with pytest.raises(ValueError, match=r"timestamp_ms \(or t_s"):
+        validate_telemetry(clean.drop(["timestamp_ms"]))
+
+
+def test_optional_columns_may_be_absent_and_extras_are_ignored_with_one_warning(clean):
+    table = clean.drop(["latitude_deg", "longitude_deg", "lateral_speed_mps"])
+    table = table.append_column("mu", pa.array(np.full(table.num_rows, 0.8))).append_column(
+        "run_id", pa.array(["r1"] * table.num_rows))
+    batch = validate_telemetry(table)
+    assert batch.table.column_names == list(TELEMETRY_COLUMNS)
+    assert batch.table["latitude_deg"].null_count == table.num_rows
+    assert batch.table["lateral_speed_mps"].null_count == table.num_rows
+    extras = [w for w in batch.warnings if "ignored" in w]
+    assert len(extras) == 1 and "mu" in extras[0] and "run_id" in extras[0]
+
+
+def test_nan_and_infinite_values_reject_their_rows_naming_the_column(clean):
+    speed = clean["speed_mps"].to_numpy().copy()
+    yaw = clean["yaw_rate_radps"].to_numpy().copy()
+    speed[3], yaw[7], yaw[8] = np.nan, np.inf, -np.inf
+    lat = clean["latitude_deg"].to_numpy().copy()
+    lat[9] = np.nan  # an optional column: NaN means absent
+    table = with_column(with_column(with_column(clean, "speed_mps", speed), "yaw_rate_radps", yaw),
+                        "latitude_deg", lat)
+    batch = validate_telemetry(table)
+    assert [(r.row, r.column) for r in batch.rejections] == [(3, "speed_mps"), (7, "yaw_rate_radps"),
+                                                             (8, "yaw_rate_radps")]
+    assert batch.rejections[0].reason == "NaN in speed_mps"
+    assert batch.rejections[1].reason == "infinite value in yaw_rate_radps (inf)"
+    assert batch.rejections[0].vehicle_id == "v1" and batch.rejections[0].timestamp_ms == T0_MS + 300
+    assert batch.table.num_rows == clean.num_rows - 3
+    assert batch.table["latitude_deg"].null_count == 1
+    assert any("rejected 3 of 200 rows" in w for w in batch.warnings)
+
+
+def test_nan_inf_missing_and_text_in_a_csv_file(tmp_path, clean):
+    path = write(clean.slice(0, 40), tmp_path / "drive.csv", "csv")
+    lines = path.read_text().splitlines()
+    header = [h.strip('"') for h in lines[0].split(",")]
+    speed, accel, abs_col = header.index("speed_mps"), header.index("accel_lon_mps2"), header.index("abs_active")
+    edits = {1: (speed, "nan"), 2: (accel, "inf"), 3: (speed, ""), 4: (speed, "fast"), 5: (abs_col, "yes")}
+    for row, (col, value) in edits.items():
+        fields = lines[row + 1].split(",")
+        fields[col] = value
+        lines[row + 1] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    batch = read_telemetry(path)
+    assert [(r.row, r.column, r.reason) for r in batch.rejections] == [
+        (1, "speed_mps", "NaN in speed_mps"),
+        (2, "accel_lon_mps2", "infinite value in accel_lon_mps2 (inf)"),
+        (3, "speed_mps", "missing value in speed_mps"),
+        (4, "speed_mps", "speed_mps value 'fast' is not a number"),
+        (5, "abs_active", "abs_active value 'yes' is not a boolean (true/false or 1/0)"),
+    ]
+    assert batch.table.num_rows == 35
+
+
+def test_a_malformed_csv_row_or_json_line_is_rejected_and_the_rest_read(tmp_path, clean):
+    path = write(clean.slice(0, 30), tmp_path / "drive.csv", "csv")
+    lines = path.read_text().splitlines()
+    lines[3] = "v1,1700000000200"  # data row 2: two fields
+    path.write_text("\n".join(lines) + "\n")
+    batch = read_telemetry(path)
+    assert [(r.row, r.column) for r in batch.rejections] == [(2, "")]
+    assert "2 fields" in batch.rejections[0].reason
+    assert batch.table.num_rows == 29
+
+    records = rows_of(clean.slice(0, 30))
+    text = [json.dumps(r) for r in records]
+    text[4] = text[4][:-5]  # truncated
+    text[6] = "[1, 2]"
+    (tmp_path / "drive.ndjson").write_text("\n".join(text[:10]) + "\n\n" + "\n".join(text[10:]) + "\n")
+    batch = read_telemetry(tmp_path / "drive.ndjson")
+    assert [(r.row, r.column) for r in batch.rejections] == [(4, ""), (6, "")]
+    assert "not valid JSON" in batch.rejections[0].reason and "not a JSON object" in batch.rejections[1].reason
+    assert batch.table.num_rows == 28
+
+
+def test_booleans_accept_bool_01_and_true_false_text_only(tmp_path):
+    n = 8
+    columns = drive(n=n)
+    columns["abs_active"] = [True, False, 1, 0, "true", "FALSE", "1", "maybe"]
+    columns["acc_active"] = [0, 1, 0, 1, 0, 1, 2, 0]
+    path = tmp_path / "bools.json"
+    records = [{k: (v[i].item() if isinstance(v, np.ndarray) else v[i]) for k, v in columns.items()} for i in range(n)]
+    path.write_text(json.dumps(records))
+    batch = read_telemetry(path)
+    assert [(r.row, r.column) for r in batch.rejections] == [(6, "acc_active"), (7, "abs_active")]
+    assert "'maybe'" in batch.rejections[1].reason
+    assert batch.table["abs_active"].to_pylist() == [True, False, True, False, True, False]
+    assert batch.table["acc_active"].to_pylist() == [False, True, False, True, False, True]
+
+
+def test_values_outside_physical_ranges_reject_the_row():
+    columns = drive()
+    columns["speed_mps"][10] = 150.0
+    columns["yaw_rate_radps"][11] = -3.5
+    columns["wheel_speed_fl_radps"][12] = 400.0
+    columns["latitude_deg"][13] = 95.0
+    columns["longitude_deg"][14] = -181.0
+    columns["accel_lat_mps2"][15] = 31.0
+    batch = validate_telemetry(table_of(columns))
+    assert [(r.row, r.column) for r in batch.rejections] == [
+        (10, "speed_mps"), (11, "yaw_rate_radps"), (12, "wheel_speed_fl_radps"), (13, "latitude_deg"),
+        (14, "longitude_deg"), (15, "accel_lat_mps2")]
+    assert batch.rejections[0].reason == "speed_mps 150 outside [-5, 100] m/s"
+    assert batch.rejections[1].reason == "yaw_rate_radps -3.5 outside [-3, 3] rad/s"
+
+
+def test_bad_vehicle_ids_are_rejected():
+    columns = drive(n=40)
+    columns["vehicle_id"][1] = "bad id!"
+    columns["vehicle_id"][2] = "x" * 65
+    columns["vehicle_id"][3] = ""
+    columns["vehicle_id"][4] = None
+    columns["vehicle_id"][5] = "v1\n"
+    columns["vehicle_id"][6] = "car-7.b_2"  # valid: a second vehicle
+    batch = validate_telemetry(table_of(columns))
+    assert [(r.row, r.column) for r in batch.rejections] == [(i, "vehicle_id") for i in range(1, 6)]
+    assert batch.rejections[0].reason == "vehicle_id 'bad id!' does not match ^[A-Za-z0-9_.-]{1,64}$"
+    assert batch.rejections[3].reason == "missing value in vehicle_id"
+    assert batch.table["vehicle_id"].to_pylist().count("car-7.b_2") == 1
+
+
+# ------------------------------------------------------------------------------ order, duplicates, segments
+
+def test_duplicates_keep_the_first_and_unsorted_input_is_sorted_with_a_warning(clean):
+    rows = rows_of(clean.slice(0, 50))
+    dup = dict(rows[10], speed_mps=99.0)  # same vehicle and timestamp as row 10, later in the file
+    shuffled = rows[25:] + rows[:25] + [dup]
+    batch = validate_telemetry(pa.Table.from_pylist(shuffled, schema=clean.schema))
+    assert [(r.row, r.column, r.reason) for r in batch.rejections] == [
+        (50, "timestamp_ms", f"duplicate timestamp {T0_MS + 1000} for vehicle v1 (kept the first)")]
+    assert batch.table["timestamp_ms"].to_pylist() == [T0_MS + 100 * i for i in range(50)]
+    assert batch.table["speed_mps"][10].as_py() == rows[10]["speed_mps"]
+    assert any("not sorted by timestamp" in w and "v1" in w for w in batch.warnings)
+    assert batch.segments.tolist() == [0] * 50
+
+
+def test_gaps_split_segments_and_are_counted():
+    columns = drive(n=100)
+    keep = np.r_[0:30, 50:70, 71:100]  # a 2.1 s gap after sample 29 and a 0.2 s one after 69 (under 0.25 s)
+    table = table_of(columns).take(pa.array(keep))
+    batch = validate_telemetry(table)
+    assert batch.segments.tolist() == [0] * 30 + [1] * 49
+    gaps = [w for w in batch.warnings if "gap" in w]
+    assert len(gaps) == 1 and gaps[0].startswith("1 gap(s) longer than max_gap_s=0.25 s")
+    assert "v1: 1 (longest 2.1 s" in gaps[0]
+    assert validate_telemetry(table, max_gap_s=0.15).segments.max() == 2
+    assert validate_telemetry(table, max_gap_s=5.0).segments.max() == 0
+    with pytest.raises(ValueError, match="max_gap_s"):
+        validate_telemetry(table, max_gap_s=0.0)
+
+
+def test_interleaved_vehicles_get_their_own_segments():
+    a, b = drive(n=60, vehicle_id="b-car", seed=1), drive(n=60, vehicle_id="a-car", seed=2, start_ms=T0_MS + 50)
+    rows = []
+    for i in range(60):  # b then a, sample by sample: each vehicle is in order, the file is not sorted by vehicle
+        rows.append({k: (v[i].item() if isinstance(v, np.ndarray) else v[i]) for k, v in a.items()})
+        rows.append({k: (v[i].item() if isinstance(v, np.ndarray) else v[i]) for k, v in b.items()})
+    batch = validate_telemetry(pa.Table.from_pylist(rows))
+    assert batch.table["vehicle_id"].to_pylist() == ["a-car"] * 60 + ["b-car"] * 60
+    assert batch.segments.tolist() == [0] * 60 + [1] * 60
+    assert batch.table["timestamp_ms"].to_pylist()[:2] == [T0_MS + 50, T0_MS + 150]
+    assert not any("sorted" in w for w in batch.warnings), "interleaving is normal, not unsorted"
+
+
+def test_rejection_table_has_one_row_per_rejection():
+    columns = drive(n=40)
+    columns["speed_mps"][2] = np.nan
+    columns["vehicle_id"][5] = "no spaces"
+    batch = validate_telemetry(table_of(columns))
+    report = batch.rejection_table()
+    assert report.schema.names == ["row", "vehicle_id", "timestamp_ms", "column", "reason"]
+    assert report.to_pylist() == [
+        {"row": 2, "vehicle_id": "v1", "timestamp_ms": T0_MS + 200, "column": "speed_mps",
+         "reason": "NaN in speed_mps"},
+        {"row": 5, "vehicle_id": "no spaces", "timestamp_ms": T0_MS + 500, "column": "vehicle_id",
+         "reason": "vehicle_id 'no spaces' does not match ^[A-Za-z0-9_.-]{1,64}$"},
+    ]
+    empty = validate_telemetry(table_of(drive(n=40))).rejection_table()
+    assert empty.num_rows == 0 and empty.schema == report.schema
+
+
+def test_no_valid_rows_is_an_error():
+    columns = drive(n=30)
+    columns["speed_mps"] = np.full(30, np.nan)
+    with pytest.raises(ValueError, match=r"no valid rows.*all 30 were rejected.*speed_mps: 30"):
+        validate_telemetry(table_of(columns))
+
+
+# --------------------------------------------------------------------------------------------------- units
+
+@pytest.mark.parametrize("radius", [RADIUS_M, None])
+def test_speed_in_kmh_is_detected(clean, radius):
+    with pytest.raises(ValueError, match=r"column speed_mps looks like km/h, not m/s: .*divide by 3\.6"):
+        validate_telemetry(scaled(clean, ["speed_mps"], 3.6), wheel_radius_m=radius)
+
+
+def test_speed_in_kmh_without_radius_or_acceleration_is_still_caught():
+    steady = table_of(drive(accel_mps2=0.0, v0_mps=25.0))
+    with pytest.raises(ValueError, match=r"speed_mps looks like km/h or mph, not m/s: .*wheel radius of 1\.26 m"):
+        validate_telemetry(scaled(steady, ["speed_mps"], 3.6))
+    with pytest.raises(ValueError, match="column speed_mps looks like km/h"):
+        validate_telemetry(scaled(steady, ["speed_mps"], 3.6), wheel_radius_m=RADIUS_M)
+
+
+@pytest.mark.parametrize("radius", [RADIUS_M, None])
+def test_yaw_rate_in_degrees_per_second_is_detected(clean, radius):
+    with pytest.raises(ValueError, match=r"column yaw_rate_radps looks like degrees per second, not rad/s: .*"
+                                         r"99th percentile of \|yaw rate\| \d+.*convert it"):
+        validate_telemetry(scaled(clean, ["yaw_rate_radps"], 180.0 / math.pi), wheel_radius_m=radius)
+
+
+@pytest.mark.parametrize("radius", [RADIUS_M, None])
+@pytest.mark.parametrize(("factor", "unit"), [(60.0 / (2.0 * math.pi), "rpm"), (180.0 / math.pi, "degrees per second")])
+def test_wheel_speeds_in_rpm_or_degrees_are_detected(clean, radius, factor, unit):
+    with pytest.raises(ValueError, match=f"columns wheel_speed_fl_radps, wheel_speed_fr_radps, wheel_speed_rl_radps, "
+                                         f"wheel_speed_rr_radps look like {unit}, not rad/s"):
+        validate_telemetry(scaled(clean, WHEEL_COLUMNS, factor), wheel_radius_m=radius)
+
+
+def test_units_are_checked_vehicle_by_vehicle():
+    fine, kmh = table_of(drive(vehicle_id="fine")), table_of(drive(vehicle_id="kmh", seed=1))
+    fleet = pa.concat_tables([fine, scaled(kmh, ["speed_mps"], 3.6)])
+    with pytest.raises(ValueError, match=r"vehicle kmh: column speed_mps looks like km/h") as err:
+        validate_telemetry(fleet, wheel_radius_m=RADIUS_M)
+    assert "vehicle fine" not in str(err.value)
+
+
+def test_steering_in_degrees_accel_in_g_and_timestamps_in_seconds_are_detected(clean):
+    with pytest.raises(ValueError, match="column steering_wheel_angle_rad looks like degrees, not rad"):
+        validate_telemetry(scaled(clean, ["steering_wheel_angle_rad"], 180.0 / math.pi))
+    with pytest.raises(ValueError, match=r"column accel_lon_mps2 looks like g, not m/s\^2"):
+        validate_telemetry(scaled(clean, ["accel_lon_mps2"], 1.0 / 9.80665))
+    seconds = with_column(clean, "timestamp_ms", (clean["timestamp_ms"].to_numpy() / 1000.0))
+    with pytest.raises(ValueError, match="column timestamp_ms looks like seconds since the epoch"):
+        validate_telemetry(seconds)
+
+
+def test_a_wheel_radius_that_does_not_fit_is_an_error_or_a_warning(clean):
+    with pytest.raises(ValueError, match="no unit of speed .* explains it"):
+        validate_telemetry(clean, wheel_radius_m=0.745)  # ratio 0.47
+    with pytest.raises(ValueError, match=r"0\.234 for speed in mph, wheel speeds in rpm\), but the rate of change of "
+                                         r"speed_mps is 1\.\d+ times accel_lon_mps2, which says m/s"):
+        validate_telemetry(clean, wheel_radius_m=1.4)  # ratio 0.25, as mph and rpm would give
+    batch = validate_telemetry(clean, wheel_radius_m=0.5)  # ratio 0.7: a wrong profile, not a wrong unit
+    assert any("check wheel_radius_m=0.5 m" in w for w in batch.warnings)
+    with pytest.raises(ValueError, match="wheel_radius_m"):
+        validate_telemetry(clean, wheel_radius_m=0.0)
+
+
+def test_a_parked_car_passes_without_unit_checks():
+    columns = drive(n=100, accel_mps2=0.0, v0_mps=0.0)
+    batch = validate_telemetry(table_of(columns))
+    assert batch.rejections == []
+    assert any("too few moving samples" in w and "units not verified" in w for w in batch.warnings)
+
+
+# ------------------------------------------------------------------------------------------- simulated data
+
+@pytest.fixture(scope="module")
+def two_paper_runs():
+    return simulate(paper_scenarios()[:2])
+
+
+def test_a_clean_simulated_run_passes_with_no_rejections(two_paper_runs, tmp_path):
+    pq.write_table(two_paper_runs, tmp_path / "sim.parquet")
+    for batch in (validate_telemetry(two_paper_runs, wheel_radius_m=PAPER_SUV.wheel_radius_m),
+                  read_telemetry(tmp_path / "sim.parquet", wheel_radius_m=PAPER_SUV.wheel_radius_m),
+                  validate_telemetry(two_paper_runs)):
+        assert batch.rejections == []
+        assert batch.table.num_rows == two_paper_runs.num_rows
+        assert batch.table.schema.names == list(TELEMETRY_COLUMNS)
+        assert batch.segments.max() == 1, "two vehicles, no gaps"
+        assert len(batch.warnings) == 1 and "mu" in batch.warnings[0] and "run_id" in batch.warnings[0]
+
+
+def test_unit_checks_do_not_fire_on_the_paper_and_random_runs():
+    scenarios = paper_scenarios() + random_scenarios(runs=20, seed=3)
+    table = simulate(scenarios)
+    run_ids = table["run_id"]
+    for scenario in scenarios:
+        run = table.filter(pc.equal(run_ids, scenario.run_id))
+        for radius in (scenario.vehicle.wheel_radius_m, None):
+            batch = validate_telemetry(run, source=scenario.run_id, wheel_radius_m=radius)  # raises on a unit error
+            assert not any("check" in w or "units not verified" in w for w in batch.warnings), batch.warnings
+            if scenario.run_id.startswith("paper"):
+                assert batch.rejections == []

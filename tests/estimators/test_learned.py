@@ -1,0 +1,69 @@
+import json
+
+import numpy as np
+import pyarrow.compute as pc
+import pytest
+
+from roadgrip.estimators.base import ESTIMATE_SCHEMA
+from roadgrip.estimators.learned import LearnedEstimator, default_model_path, load_estimator
+from roadgrip.features.windows import segment_ids
+from roadgrip.sim.presets import paper_scenarios
+from roadgrip.sim.simulate import simulate
+from roadgrip.vehicle.params import PAPER_SUV
+
+
+@pytest.fixture(scope="module")
+def run_table():
+    table = simulate([s for s in paper_scenarios() if s.run_id == "paper-decreasing-circular-e2"])
+    return table
+
+
+def test_default_model_ships_with_how_it_was_trained():
+    estimator = load_estimator("default")
+    assert estimator.feature_set == "terminal" and estimator.window == 10
+    record = json.loads(default_model_path().with_suffix(".json").read_text())
+    assert record["command"].startswith("roadgrip train") and "--experiment 1" in record["command"]
+    assert record["training"]["data_seed"] == 0
+
+
+def test_batch_estimates_follow_the_contract(run_table):
+    estimator = load_estimator("default")
+    out = estimator.estimate_batch(run_table, segment_ids(run_table["run_id"].to_numpy()), PAPER_SUV)
+    assert out.schema == ESTIMATE_SCHEMA
+    assert out.num_rows == run_table.num_rows - estimator.window + 1, "one estimate per full window"
+    mu, lo, hi = (out[c].to_numpy() for c in ("mu", "mu_lower", "mu_upper"))
+    assert (lo <= mu).all() and (mu <= hi).all()
+    assert out["timestamp_ms"].to_numpy()[0] == run_table["timestamp_ms"].to_numpy()[estimator.window - 1]
+
+
+def test_streaming_gives_the_batch_numbers_and_its_state_survives_a_restart(run_table):
+    estimator = load_estimator("default")
+    batch = estimator.estimate_batch(run_table, np.zeros(run_table.num_rows), PAPER_SUV).to_pylist()
+    state = estimator.start(PAPER_SUV)
+    streamed = []
+    for k, sample in enumerate(run_table.to_pylist()):
+        if k == 200:  # save, throw away, restore: as a service restarting mid-stream
+            state = estimator.state_from_dict(json.loads(json.dumps(estimator.state_to_dict(state))))
+        estimate = estimator.update(state, sample)
+        if estimate is not None:
+            streamed.append(estimate.to_dict())
+    assert len(streamed) == len(batch)
+    for s, b in zip(streamed, batch):
+        assert s["timestamp_ms"] == b["timestamp_ms"] and s["excited"] == b["excited"]
+        assert s["mu"] == pytest.approx(b["mu"], abs=1e-5)
+
+
+def test_reset_restarts_the_window(run_table):
+    estimator = load_estimator("default")
+    state = estimator.start(PAPER_SUV)
+    samples = run_table.to_pylist()
+    assert [estimator.update(state, s) is None for s in samples[:10]] == [True] * 9 + [False]
+    estimator.reset(state)
+    assert estimator.update(state, samples[10]) is None
+
+
+def test_unknown_model_names_are_refused():
+    with pytest.raises(ValueError, match="--model must be a model file"):
+        load_estimator("ekf-magic")
+    with pytest.raises(FileNotFoundError):
+        LearnedEstimator.load("missing.pt")
