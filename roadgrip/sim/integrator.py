@@ -6,8 +6,9 @@ small operations of a step whatever the batch size, while a compiled loop runs o
 `prange` spreads the independent runs over the cores. See docs/SIMULATOR.md for the measurement.
 
 Integration (1 ms): explicit Euler for the body states, whose fastest mode at the speed floor is ~500 1/s; the wheel spins
-semi-implicitly, (J + dt k) d omega = dt (T_drive - R F_x - T_friction), with k = R dF_x/d omega from the tire model and the
-brake and rolling-resistance torques as Coulomb friction that can stop a wheel but never turn it backwards. The driver and
+semi-implicitly, (J + dt k) d omega = dt (T_drive - R F_x - T_friction), with k = R dF_x/d omega from the tire model (the
+secant to zero slip instead, when the tangent step would cross zero slip: on a saturated low-mu curve it would flip the
+slip's sign every step) and the brake and rolling-resistance torques as Coulomb friction that can stop a wheel but never turn it backwards. The driver and
 path follower run at 100 Hz, ABS and traction control at every step. Samples are taken every 100 ms.
 
 Load transfer (eq. 2) is quasi-static in the accelerations, which depend on the loads: an algebraic loop. Closing it with
@@ -61,6 +62,7 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
     dx = np.zeros(N_STATE)
     fz, sigma, alpha = np.zeros(4), np.zeros(4), np.zeros(4)
     fx, fy, wheel_k = np.zeros(4), np.zeros(4), np.zeros(4)
+    wheel_k_secant, hub_speed = np.zeros(4), np.zeros(4)
     mu_w, drive_t, brake_demand, brake_t = np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4)
     drive_now = np.zeros(4)
     abs_mode = np.zeros(4, dtype=np.int64)
@@ -109,7 +111,8 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
             mu_w[i] = mu_at(mu_tab, n_mu, mu_mode, station + xi, 1 if yi > 0 else 2)
         for i in range(4):
             drive_now[i] = drive_t[i] * tcs_factor
-        ax, ay = derivatives(x, delta, drive_now, mu_w, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k)
+        ax, ay = derivatives(x, delta, drive_now, mu_w, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
+                             wheel_k_secant, hub_speed)
         if step % n_sub == 0:
             row = out[step // n_sub]
             row[C_T], row[C_X], row[C_Y], row[C_PSI] = t, x[X], x[Y], x[PSI]
@@ -146,8 +149,12 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
             x[j] += dt * dx[j]
         # wheels: semi-implicit, brake and rolling resistance as Coulomb friction
         for i in range(4):
+            torque = drive_now[i] - radius * fx[i]
             den = vp[P_JW] + dt * wheel_k[i]
-            free = x[W0 + i] + dt * (drive_now[i] - radius * fx[i]) / den
+            free = x[W0 + i] + dt * torque / den
+            if (radius * free - hub_speed[i]) * (radius * x[W0 + i] - hub_speed[i]) < 0.0:  # would cross zero slip
+                den = vp[P_JW] + dt * wheel_k_secant[i]
+                free = x[W0 + i] + dt * torque / den
             friction = dt * (brake_t[i] + vp[P_FRR] * fz[i] * radius) / den
             if abs(free) <= friction:
                 x[W0 + i] = 0.0

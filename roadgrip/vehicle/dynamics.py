@@ -124,11 +124,13 @@ def wheel_loads(vp, ax, ay, phi, phid, fz_out):
 
 
 @njit(cache=True)
-def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k):
+def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
+                wheel_k_secant, hub_speed):
     """dx/dt of the body and the wheels' tire torques. Returns (a_x, a_y), the CoG accelerations in the body frame.
 
     Writes dx (N_STATE), and per wheel: fz (load, N), sigma (eq. 6), alpha (eq. 8, rad), fx/fy (tire force in the wheel
-    frame, N) and wheel_k (N m s/rad, >= 0: how fast the tire torque grows with the spin, for the implicit wheel step)."""
+    frame, N), wheel_k and wheel_k_secant (N m s/rad, >= 0: the tangent and secant growth of the tire torque with the
+    spin, for the implicit wheel step) and hub_speed (m/s along the wheel's heading)."""
     vx, vy, r, phi, phid = x[VX], x[VY], x[R], x[PHI], x[PHID]
     radius = vp[P_RW]
     wheel_loads(vp, ax_prev, ay_prev, phi, phid, fz)
@@ -148,8 +150,13 @@ def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, si
         tpi = tp[0] if i < 2 else tp[1]
         fx[i], fy[i] = tire_forces(tpi, sigma[i], alpha[i], fz[i], mu[i])
         fx_step, _ = tire_forces(tpi, sigma[i] + SLIP_FD_STEP, alpha[i], fz[i], mu[i])
-        dfx_dsigma = max((fx_step - fx[i]) / SLIP_FD_STEP, 0.0)
-        wheel_k[i] = radius * dfx_dsigma * slip_ratio_per_spin(wheel_speed, v_long, radius)
+        # stiffnesses for the implicit wheel step: the tangent, and the secant to zero slip (the integrator takes the
+        # secant when a tangent step would jump across the steep part of a saturated curve to the other side of zero)
+        per_spin = radius * slip_ratio_per_spin(wheel_speed, v_long, radius)
+        wheel_k[i] = max((fx_step - fx[i]) / SLIP_FD_STEP, 0.0) * per_spin
+        secant = fx[i] / sigma[i] if abs(sigma[i]) > SLIP_FD_STEP else 0.0
+        wheel_k_secant[i] = max(secant, wheel_k[i] / per_spin) * per_spin
+        hub_speed[i] = v_long
         fxb = fx[i] * c - fy[i] * s  # eq. 1: wheel frame to body frame
         fyb = fx[i] * s + fy[i] * c
         fx_body += fxb

@@ -185,11 +185,12 @@ def test_slip_ratio_per_spin_is_its_derivative(wheel_speed_mps, hub_speed_mps):
 def _derivatives_at(vehicle, x, delta=0.0, drive_torque=None, mu=0.9, ax_prev=0.0, ay_prev=0.0):
     tire = DugoffTire()
     tp = np.stack([tire.row(vehicle.tire_front), tire.row(vehicle.tire_rear)])
-    out = {k: np.zeros(4) for k in ("fz", "sigma", "alpha", "fx", "fy", "wheel_k")}
+    out = {k: np.zeros(4) for k in ("fz", "sigma", "alpha", "fx", "fy", "wheel_k", "wheel_k_secant", "hub_speed")}
     dx = np.zeros(N_STATE)
     torque = np.zeros(4) if drive_torque is None else np.asarray(drive_torque, dtype=float)
     ax, ay = derivatives(x, delta, torque, np.full(4, mu), pack_vehicle(vehicle), tp, ax_prev, ay_prev, dx,
-                         out["fz"], out["sigma"], out["alpha"], out["fx"], out["fy"], out["wheel_k"])
+                         out["fz"], out["sigma"], out["alpha"], out["fx"], out["fy"], out["wheel_k"],
+                         out["wheel_k_secant"], out["hub_speed"])
     return dx, ax, ay, out
 
 
