@@ -150,7 +150,8 @@ def train(
         "data_seed": manifest.get("seed"), "code_version": _code_version(), "seed": seed, "windows": len(train_idx),
         "cv_rmse": cv})
     console.print(f"wrote {out}: validation RMSE {fitted.result.best_val_rmse:.4f} after {fitted.result.epochs_run} "
-                  f"epochs; 90 % interval {fitted.interval['q05']:+.3f} / {fitted.interval['q95']:+.3f}")
+                  f"epochs; 90 % interval half-widths by excitation level "
+                  f"{', '.join(f'{lo:+.3f}/{hi:+.3f}' for lo, hi in zip(fitted.interval['q_low'], fitted.interval['q_high']))}")
 
 
 @app.command()

@@ -1,5 +1,7 @@
 import json
 
+import pytest
+from pyarrow.parquet import read_table
 from typer.testing import CliRunner
 
 from roadgrip.cli import app
@@ -31,3 +33,74 @@ def test_demo_runs_end_to_end(tmp_path):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "paper-decreasing-straight-e1.png").stat().st_size > 10_000
     assert read_dataset(tmp_path / "paper-dataset").num_rows == 8000
+
+
+def _paper_runs(condition):
+    import pyarrow.compute as pc
+
+    from roadgrip.sim.presets import paper_scenarios
+    from roadgrip.sim.simulate import simulate
+
+    table = simulate([s for s in paper_scenarios() if s.condition == condition])
+    return (table.filter(pc.equal(table["experiment"], 1)), table.filter(pc.equal(table["experiment"], 2)))
+
+
+def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
+    """The offline command and the benchmark see the same numbers: no skew between training and serving."""
+    import numpy as np
+    import pyarrow.csv as pacsv
+
+    from roadgrip.data.schema import TELEMETRY_COLUMNS
+    from roadgrip.evaluation.metrics import rmse
+    from roadgrip.training.fit import block_split, fit, prepare, save_fitted
+    from roadgrip.training.trainer import TrainConfig, predict
+
+    train, test = _paper_runs("decreasing")
+    data = prepare(train, "terminal")
+    fitted = fit("sa-cnn-lstm", data, *block_split(data), {}, TrainConfig(max_epochs=10))
+    test_data = prepare(test, "terminal")
+    benchmark_pred = predict(fitted.model, fitted.scaler.transform(test_data.windows))
+    benchmark_rmse = rmse(benchmark_pred, test_data.targets)
+    save_fitted(tmp_path / "m.pt", fitted, "terminal", {})
+    pacsv.write_csv(test.select(list(TELEMETRY_COLUMNS)), tmp_path / "run.csv")
+    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "run.csv"), "--model", str(tmp_path / "m.pt"),
+                                 "--out", str(tmp_path / "est.parquet")])
+    assert result.exit_code == 0, result.output
+    estimates = read_table(tmp_path / "est.parquet")
+    truth = {(v, t): m for v, t, m in zip(test["vehicle_id"].to_pylist(), test["timestamp_ms"].to_pylist(),
+                                          test["mu"].to_pylist())}
+    by_key = {(v, t): m for v, t, m in zip(estimates["vehicle_id"].to_pylist(), estimates["timestamp_ms"].to_pylist(),
+                                           estimates["mu"].to_pylist())}
+    t0 = test["timestamp_ms"].to_numpy()[0] - int(round(test["t_s"].to_numpy()[0] * 1000))
+    keys = [(f"sim-{run}", t0 + int(round(t * 1000))) for run, t in zip(test_data.runs, test_data.t_s)]
+    served = np.array([by_key[k] for k in keys])
+    assert served == pytest.approx(benchmark_pred, abs=1e-5)
+    assert rmse(served, [truth[k] for k in keys]) == pytest.approx(benchmark_rmse, abs=1e-6)
+
+
+def test_estimate_reports_bad_input_clearly(tmp_path):
+    import pyarrow.csv as pacsv
+
+    from roadgrip.data.schema import TELEMETRY_COLUMNS
+
+    _, test = _paper_runs("low")
+    test = test.select(list(TELEMETRY_COLUMNS))
+    pacsv.write_csv(test.drop_columns(["yaw_rate_radps"]), tmp_path / "missing.csv")
+    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o.csv")])
+    assert result.exit_code == 2 and "yaw_rate_radps" in result.output
+    assert not (tmp_path / "o.csv").exists()
+    speeds = test["speed_mps"].to_numpy().copy()
+    speeds[[50, 51]] = float("nan")
+    import pyarrow as pa
+
+    nan_table = test.set_column(test.schema.get_field_index("speed_mps"), "speed_mps", pa.array(speeds))
+    pacsv.write_csv(nan_table, tmp_path / "nan.csv")
+    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "nan.csv"), "--out", str(tmp_path / "o.csv")])
+    assert result.exit_code == 0, result.output
+    report = pacsv.read_csv(tmp_path / "o.rejections.csv")
+    assert report.num_rows == 2 and all("speed_mps" in r for r in report["reason"].to_pylist())
+    kmh = test.set_column(test.schema.get_field_index("speed_mps"), "speed_mps",
+                          pa.array(test["speed_mps"].to_numpy() * 3.6))
+    pacsv.write_csv(kmh, tmp_path / "kmh.csv")
+    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "kmh.csv"), "--out", str(tmp_path / "o2.csv")])
+    assert result.exit_code == 2 and "speed_mps" in result.output and "km/h" in result.output

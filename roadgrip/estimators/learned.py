@@ -10,18 +10,21 @@ import numpy as np
 import pyarrow as pa
 
 from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.calibration import interval, utilization_bin
 from roadgrip.estimators.excitation import excited
-from roadgrip.features.windows import Scaler, feature_columns, feature_matrix, make_windows
+from roadgrip.features.windows import (
+    TERMINAL_INPUTS, Scaler, feature_columns, feature_matrix, features_from_columns, make_windows,
+)
 from roadgrip.training.checkpoint import load_checkpoint
 from roadgrip.training.trainer import predict
-from roadgrip.vehicle.params import VehicleParams
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 DEFAULT_MODEL = "default"
 
 
 class LearnedEstimator(Estimator):
-    """Estimates mu at the last sample of each window of `window` samples; the interval is the model's residual
-    quantiles on its validation windows (a split-conformal 90 % band)."""
+    """Estimates mu at the last sample of each window of `window` samples; the 90 % interval is conformal, calibrated
+    by excitation level on data the model did not train on (roadgrip/estimators/calibration.py)."""
 
     def __init__(self, model, model_name: str, meta: dict):
         self.model = model
@@ -30,8 +33,9 @@ class LearnedEstimator(Estimator):
         self.name = meta.get("estimator_name", model_name)
         self.feature_set = meta["feature_set"]
         self.window = int(meta["window"])
+        self.inputs = set(TERMINAL_INPUTS) | set(feature_columns(self.feature_set))
         self.scaler = Scaler(meta["scaler_mean"], meta["scaler_scale"])
-        self.q05, self.q95 = float(meta["interval"]["q05"]), float(meta["interval"]["q95"])
+        self.calibration = meta["interval"]
 
     @classmethod
     def load(cls, path: str | Path) -> LearnedEstimator:
@@ -40,10 +44,11 @@ class LearnedEstimator(Estimator):
 
     def _estimates(self, windows: np.ndarray, accel_lon, accel_lat, abs_active):
         mu = predict(self.model, self.scaler.transform(windows)).astype(np.float64)
-        return mu, mu + self.q05, mu + self.q95, excited(accel_lon, accel_lat, abs_active, mu)
+        lower, upper = interval(mu, utilization_bin(accel_lon, accel_lat, abs_active, mu), self.calibration)
+        return mu, lower, upper, excited(accel_lon, accel_lat, abs_active, mu)
 
-    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
-        features = feature_matrix(table, self.feature_set)
+    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams = PAPER_SUV) -> pa.Table:
+        features = feature_matrix(table, self.feature_set, vehicle.wheel_radius_m, vehicle.steering_ratio)
         windows, ends = make_windows(features, np.asarray(segments), self.window)
         col = {c: table[c].to_numpy(zero_copy_only=False)[ends] for c in ("accel_lon_mps2", "accel_lat_mps2",
                                                                           "abs_active")}
@@ -56,11 +61,15 @@ class LearnedEstimator(Estimator):
             "estimator": [self.name] * len(ends),
         }, schema=ESTIMATE_SCHEMA)
 
-    def start(self, vehicle: VehicleParams | None = None):
-        return {"buffer": deque(maxlen=self.window)}
+    def start(self, vehicle: VehicleParams = PAPER_SUV):
+        return {"buffer": deque(maxlen=self.window), "wheel_radius_m": vehicle.wheel_radius_m,
+                "steering_ratio": vehicle.steering_ratio}
 
     def update(self, state, sample: dict) -> Estimate | None:
-        state["buffer"].append([float(sample[c]) for c in feature_columns(self.feature_set)])
+        row = features_from_columns({k: np.asarray([v], dtype=np.float64) for k, v in sample.items()
+                                     if k in self.inputs}, self.feature_set, state["wheel_radius_m"],
+                                    state["steering_ratio"])
+        state["buffer"].append(row[0].tolist())
         if len(state["buffer"]) < self.window:
             return None
         windows = np.asarray([state["buffer"]], dtype=np.float32)
@@ -73,10 +82,12 @@ class LearnedEstimator(Estimator):
         state["buffer"].clear()
 
     def state_to_dict(self, state) -> dict:
-        return {"buffer": [list(row) for row in state["buffer"]]}
+        return {"buffer": [list(row) for row in state["buffer"]], "wheel_radius_m": state["wheel_radius_m"],
+                "steering_ratio": state["steering_ratio"]}
 
     def state_from_dict(self, data: dict):
-        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window)}
+        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window),
+                "wheel_radius_m": data["wheel_radius_m"], "steering_ratio": data["steering_ratio"]}
 
 
 def default_model_path() -> Path:

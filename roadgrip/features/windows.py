@@ -11,16 +11,25 @@ import numpy as np
 import pyarrow as pa
 
 from roadgrip.data.schema import WHEELS
+from roadgrip.units import G_MPS2
+from roadgrip.vehicle.dynamics import SLIP_SPEED_FLOOR_MPS
 from roadgrip.validation import check_choice
 
 WHEEL_SPEEDS = tuple(f"wheel_speed_{w}_radps" for w in WHEELS)
+TERMINAL_INPUTS = ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad",
+                   "abs_active") + WHEEL_SPEEDS
 FEATURE_SETS = {
     # paper 3.3: yaw rate, longitudinal speed, lateral speed and the four wheel angular speeds
     "paper": ("yaw_rate_radps", "speed_mps", "lateral_speed_mps") + WHEEL_SPEEDS,
     # what a production terminal sends (DESIGN 3.1), without the lateral speed that only test vehicles measure
     "terminal": ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad")
     + WHEEL_SPEEDS,
+    # the terminal's signals made independent of the vehicle with its profile (DESIGN 3.2): slip ratios from wheel speeds
+    # and radius (eq. 6), accelerations and the yaw rate's centripetal part in g, the road-wheel angle, ABS
+    "physics": tuple(f"slip_ratio_{w}" for w in WHEELS)
+    + ("accel_lon_g", "accel_lat_g", "centripetal_g", "road_wheel_angle_rad", "speed_mps", "abs_active"),
 }
+PROFILE_FEATURE_SETS = {"physics"}  # feature sets that need the vehicle profile
 
 
 def feature_columns(feature_set: str) -> tuple[str, ...]:
@@ -28,13 +37,45 @@ def feature_columns(feature_set: str) -> tuple[str, ...]:
     return FEATURE_SETS[feature_set]
 
 
-def feature_matrix(table: pa.Table, feature_set: str) -> np.ndarray:
-    """(n_samples, n_features) float32 matrix of a feature set's columns; a missing column is an error naming it."""
-    columns = feature_columns(feature_set)
+def needs_vehicle(feature_set: str) -> bool:
+    feature_columns(feature_set)
+    return feature_set in PROFILE_FEATURE_SETS
+
+
+def feature_matrix(table: pa.Table, feature_set: str, wheel_radius_m=None, steering_ratio=None) -> np.ndarray:
+    """(n_samples, n_features) float32 matrix of a feature set; a missing column is an error naming it.
+
+    Feature sets that use the vehicle profile take its wheel radius and steering ratio, one value or one per row."""
+    columns = TERMINAL_INPUTS if needs_vehicle(feature_set) else feature_columns(feature_set)
     missing = [c for c in columns if c not in table.column_names]
     if missing:
         raise ValueError(f"feature set {feature_set!r} needs column(s) {missing}, which the data lacks")
-    return np.column_stack([table[c].to_numpy(zero_copy_only=False).astype(np.float32) for c in columns])
+    data = {c: table[c].to_numpy(zero_copy_only=False).astype(np.float64) for c in columns}
+    return features_from_columns(data, feature_set, wheel_radius_m, steering_ratio)
+
+
+def features_from_columns(data: dict, feature_set: str, wheel_radius_m=None, steering_ratio=None) -> np.ndarray:
+    """The feature matrix from column arrays (a table's, or one streamed sample's)."""
+    if not needs_vehicle(feature_set):
+        return np.column_stack([np.asarray(data[c], dtype=np.float32) for c in feature_columns(feature_set)])
+    if wheel_radius_m is None or steering_ratio is None:
+        raise ValueError(f"feature set {feature_set!r} needs the vehicle profile (wheel_radius_m, steering_ratio)")
+    speed = np.asarray(data["speed_mps"], dtype=np.float64)
+    derived = {f"slip_ratio_{w}": slip_ratio_array(np.asarray(data[f"wheel_speed_{w}_radps"]) * wheel_radius_m, speed)
+               for w in WHEELS}
+    derived["accel_lon_g"] = np.asarray(data["accel_lon_mps2"]) / G_MPS2
+    derived["accel_lat_g"] = np.asarray(data["accel_lat_mps2"]) / G_MPS2
+    derived["centripetal_g"] = np.asarray(data["yaw_rate_radps"]) * speed / G_MPS2
+    derived["road_wheel_angle_rad"] = np.asarray(data["steering_wheel_angle_rad"]) / steering_ratio
+    derived["speed_mps"] = speed
+    derived["abs_active"] = np.asarray(data["abs_active"], dtype=np.float64)
+    return np.column_stack([derived[c] for c in feature_columns(feature_set)]).astype(np.float32)
+
+
+def slip_ratio_array(wheel_speed_mps, hub_speed_mps):
+    """Eq. 6 over arrays, as roadgrip.vehicle.dynamics.slip_ratio does for one wheel in the compiled simulator."""
+    den = np.maximum(np.maximum(np.abs(wheel_speed_mps), np.abs(hub_speed_mps)), SLIP_SPEED_FLOOR_MPS)
+    return (wheel_speed_mps - hub_speed_mps) / den
 
 
 def segment_ids(*keys: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from roadgrip.sim.driver import SpeedProfile, SteerInput
-from roadgrip.sim.roads import MuProfile, Path
+from roadgrip.sim.roads import MU_MAX, MuProfile, Path
 from roadgrip.sim.scenario import Scenario
 from roadgrip.units import G_MPS2, kmh_to_mps
 from roadgrip.validation import check_choice
@@ -33,6 +33,7 @@ PAPER_ROADS = ("straight", "circular")
 RANDOM_MANOEUVRES = ("acceleration", "braking_abs", "braking_no_abs", "lane_change", "steady_curve", "sine_steer",
                      "cruise")
 PRESETS = ("paper", "random")
+TRAINING_VEHICLES = (PAPER_SUV, MIDSIZE_SEDAN)  # the random preset's vehicles; the compact hatchback is held out
 TYPICAL_WHEELBASE_M = 2.9  # to size steering inputs before the vehicle is drawn
 
 
@@ -74,9 +75,9 @@ def paper_scenarios(seed: int = 0) -> list[Scenario]:
     return scenarios
 
 
-def random_vehicle(rng: np.random.Generator, name: str) -> VehicleParams:
-    """A vehicle drawn around one of the shipped ones (ranges in docs/SIMULATOR.md)."""
-    base = PAPER_SUV if rng.random() < 0.5 else MIDSIZE_SEDAN
+def random_vehicle(rng: np.random.Generator, name: str, bases=TRAINING_VEHICLES) -> VehicleParams:
+    """A vehicle drawn around one of `bases` (ranges in docs/VEHICLES.md)."""
+    base = bases[int(rng.integers(len(bases)))]
     mass_scale = rng.uniform(0.85, 1.15)
     wheelbase = base.wheelbase_m * rng.uniform(0.95, 1.05)
     drive = str(rng.choice(["fwd", "rwd", "awd"]))
@@ -100,19 +101,35 @@ def _scaled_tire(tire: TireParams, scale: float) -> TireParams:
     return TireParams(tire.longitudinal_stiffness_per_load * scale, tire.cornering_stiffness_per_load_per_rad * scale)
 
 
-def random_mu(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """1 to 5 sections of mu in [0.1, 1.0] with steps (or ramps), sometimes split between the wheel tracks.
+def draw_mu(rng: np.random.Generator, bands, n: int) -> np.ndarray:
+    """n values uniform over the union of the bands [(lo, hi), ...]."""
+    bands = np.asarray(bands, dtype=np.float64)
+    widths = bands[:, 1] - bands[:, 0]
+    if bands.ndim != 2 or bands.shape[1] != 2 or (widths <= 0).any() or bands.min() < 0.0 or bands.max() > MU_MAX:
+        raise ValueError(f"mu bands must be (low, high) pairs with 0 <= low < high <= {MU_MAX}, got {bands.tolist()}")
+    u = rng.uniform(0.0, widths.sum(), n)
+    edges = np.cumsum(widths)
+    k = np.minimum(np.searchsorted(edges, u, side="right"), len(bands) - 1)
+    return bands[k, 0] + u - (edges[k] - widths[k])
+
+
+def random_mu(rng: np.random.Generator, bands=((0.1, 1.0),), ramps: bool = True) -> tuple[np.ndarray, np.ndarray,
+                                                                                            np.ndarray, str]:
+    """1 to 5 sections of mu drawn from the bands, with steps (or ramps), sometimes split between the wheel tracks
+    (the other track's mu drawn from the bands too). With ramps the mu between two sections passes through the gaps
+    between bands: a benchmark that holds bands out asks for steps only.
 
     Returns (section starts as fractions of the run's distance, mu left, mu right, interpolation mode)."""
     n = int(rng.integers(1, 6))
-    left = rng.uniform(0.1, 1.0, n)
+    left = draw_mu(rng, bands, n)
     right = left.copy()
     if rng.random() < 0.15:
-        right = np.clip(left * rng.uniform(0.3, 1.0, n), 0.1, 1.0)
+        right = draw_mu(rng, bands, n)
     starts = np.sort(rng.uniform(0.0, 1.0, n))
     starts[0] = 0.0
     starts = np.maximum.accumulate(starts + 1e-4 * np.arange(n))
-    return starts, left, right, str(rng.choice(["step", "linear"]))
+    mode = str(rng.choice(["step", "linear"]))
+    return starts, left, right, mode if ramps else "step"
 
 
 def random_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: float, mu_min: float):
@@ -175,8 +192,10 @@ def _braking_cycles(rng: np.random.Generator, duration_s: float) -> SpeedProfile
             speeds.append(target)
 
 
-def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_DURATION_S) -> list[Scenario]:
-    """Randomized vehicles, tire models, mu profiles and manoeuvres (see docs/SIMULATOR.md for the ranges)."""
+def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_DURATION_S, mu_bands=((0.1, 1.0),),
+                     vehicles=TRAINING_VEHICLES, prefix: str = "random", ramps: bool = True) -> list[Scenario]:
+    """Randomized vehicles (around `vehicles`), tire models, mu profiles (from `mu_bands`) and manoeuvres (see
+    docs/SIMULATOR.md for the ranges)."""
     if runs < 1:
         raise ValueError(f"random preset runs must be >= 1, got {runs!r}")
     scenarios = []
@@ -184,18 +203,18 @@ def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_D
     for k, run_seed in enumerate(_run_seeds(seed, runs)):
         rng = np.random.default_rng(run_seed)
         manoeuvre = RANDOM_MANOEUVRES[int(rng.integers(len(RANDOM_MANOEUVRES)))]
-        starts, mu_left, mu_right, mu_mode = random_mu(rng)
+        starts, mu_left, mu_right, mu_mode = random_mu(rng, mu_bands, ramps)
         speed, build_path, steer, abs_enabled = random_manoeuvre(
             rng, manoeuvre, duration_s, float(min(mu_left.min(), mu_right.min())))
         distance_m = speed.distance_m(duration_s)
         scenarios.append(Scenario(
-            run_id=f"random-{k:05d}",
+            run_id=f"{prefix}-{k:05d}",
             path=build_path(1.3 * distance_m + 300.0),
             mu=MuProfile(starts * distance_m, mu_left, mu_right, mu_mode),
             speed=speed,
             condition="random",
             road="curve" if manoeuvre == "steady_curve" else "straight",
-            vehicle=random_vehicle(rng, f"random-{k:05d}"),
+            vehicle=random_vehicle(rng, f"{prefix}-{k:05d}", vehicles),
             tire=tires[int(rng.integers(len(tires)))],
             steer=steer,
             duration_s=duration_s,

@@ -10,8 +10,9 @@ import pyarrow as pa
 import torch
 
 from roadgrip.features.folds import grouped_folds, time_blocks
+from roadgrip.estimators.calibration import calibrate, utilization_bin
 from roadgrip.estimators.excitation import excited
-from roadgrip.features.windows import Scaler, feature_matrix, make_windows, segment_ids
+from roadgrip.features.windows import Scaler, feature_matrix, make_windows, needs_vehicle, segment_ids
 from roadgrip.models.registry import build_model, model_config
 from roadgrip.training.trainer import Trainer, TrainConfig, TrainResult, predict
 
@@ -30,18 +31,31 @@ class PreparedData:
     t_s: np.ndarray  # (m,) time of each window's last sample
     feature_set: str
     excited: np.ndarray  # (m,) DESIGN 4 excitation of each window's last sample (true accelerations against true mu)
+    measured: np.ndarray  # (m, 3) measured accel_lon, accel_lat and abs_active at each window's last sample
 
 
-def prepare(table: pa.Table, feature_set: str, window: int = WINDOW) -> PreparedData:
-    """Windows of a simulation dataset, cut per (run, 2 s block), labelled with the true mu."""
-    features = feature_matrix(table, feature_set)
+def prepare(table: pa.Table, feature_set: str, window: int = WINDOW, vehicles: dict | None = None) -> PreparedData:
+    """Windows of a simulation dataset, cut per (run, 4 s block), labelled with the true mu.
+
+    `vehicles` maps the dataset's `vehicle` column to VehicleParams, for feature sets that use the profile."""
+    radius = ratio = None
+    if needs_vehicle(feature_set):
+        if vehicles is None:
+            raise ValueError(f"feature set {feature_set!r} needs the vehicles of the dataset (its manifest)")
+        names = table["vehicle"].to_pylist()
+        radius = np.array([vehicles[n].wheel_radius_m for n in names])
+        ratio = np.array([vehicles[n].steering_ratio for n in names])
+    features = feature_matrix(table, feature_set, radius, ratio)
     runs = np.asarray(table["run_id"].to_pylist())
     t_s = table["t_s"].to_numpy()
     blocks = time_blocks(t_s, BLOCK_S)
     windows, ends = make_windows(features, segment_ids(runs, blocks), window)
     mu = table["mu"].to_numpy()
     exc = excited(table["ax_true_mps2"].to_numpy(), table["ay_true_mps2"].to_numpy(), table["abs_active"].to_numpy(), mu)
-    return PreparedData(windows, mu.astype(np.float32)[ends], runs[ends], blocks[ends], t_s[ends], feature_set, exc[ends])
+    measured = np.column_stack([table[c].to_numpy(zero_copy_only=False).astype(np.float64)
+                                for c in ("accel_lon_mps2", "accel_lat_mps2", "abs_active")])
+    return PreparedData(windows, mu.astype(np.float32)[ends], runs[ends], blocks[ends], t_s[ends], feature_set,
+                        exc[ends], measured[ends])
 
 
 def block_split(data: PreparedData, fold: int = SELECTION_FOLD) -> tuple[np.ndarray, np.ndarray]:
@@ -63,7 +77,7 @@ class FittedModel:
     model: object
     scaler: Scaler
     result: TrainResult
-    interval: dict  # residual quantiles on validation: mu in [pred + q05, pred + q95]
+    interval: dict  # conformal calibration by utilization bin (roadgrip/estimators/calibration.py)
 
 
 def fit(model_name: str, data: PreparedData, train_idx: np.ndarray, val_idx: np.ndarray, overrides: dict | None = None,
@@ -74,10 +88,19 @@ def fit(model_name: str, data: PreparedData, train_idx: np.ndarray, val_idx: np.
     torch.manual_seed(train_config.seed)  # the initial weights, too, come from the seed
     model = build_model(model_name, config)
     result = Trainer(train_config).fit(model, x[train_idx], data.targets[train_idx], x[val_idx], data.targets[val_idx])
-    residual = data.targets[val_idx] - predict(model, x[val_idx])
-    interval = {"q05": float(np.quantile(residual, 0.05)), "q95": float(np.quantile(residual, 0.95)),
-                "calibrated_on": int(len(val_idx))}
-    return FittedModel(model_name, config, model, scaler, result, interval)
+    fitted = FittedModel(model_name, config, model, scaler, result, {})
+    fitted.interval = calibration_of(fitted, data, val_idx)
+    return fitted
+
+
+def calibration_of(fitted: FittedModel, data: PreparedData, idx: np.ndarray | None = None) -> dict:
+    """Conformal interval calibration of a fitted model on windows of `data` (all of them, or `idx`): held-out runs
+    are the honest choice; the validation blocks of the training runs are the fallback that `fit` uses."""
+    idx = np.arange(len(data.targets)) if idx is None else idx
+    pred = predict(fitted.model, fitted.scaler.transform(data.windows[idx]))
+    m = data.measured[idx]
+    bins = utilization_bin(m[:, 0], m[:, 1], m[:, 2] > 0.5, pred)
+    return calibrate(pred, data.targets[idx], bins) | {"calibrated_on": int(len(idx))}
 
 
 def cross_validate(model_name: str, data: PreparedData, n_folds: int, overrides: dict | None = None,

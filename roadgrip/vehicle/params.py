@@ -174,7 +174,42 @@ MIDSIZE_SEDAN = VehicleParams(
     tire_rear=TireParams(22.0, 21.0),
 )
 
-VEHICLES = {v.name: v for v in (PAPER_SUV, MIDSIZE_SEDAN)}
+COMPACT_HATCHBACK = VehicleParams(
+    name="compact-hatchback",
+    mass_kg=1250.0,
+    wheelbase_m=2.55,
+    cg_to_front_axle_m=0.97,
+    cg_height_m=0.52,
+    track_front_m=1.52,
+    track_rear_m=1.50,
+    wheel_radius_m=0.300,
+    steering_ratio=14.5,
+    drive="fwd",
+    front_drive_share=1.0,
+    yaw_inertia_kgm2=1750.0,
+    roll_inertia_kgm2=400.0,
+    unsprung_mass_kg=140.0,
+    roll_stiffness_front_nmprad=48000.0,
+    roll_stiffness_rear_nmprad=30000.0,
+    roll_damping_nmsprad=4000.0,
+    roll_center_height_front_m=0.07,
+    roll_center_height_rear_m=0.11,
+    wheel_inertia_kgm2=0.9,
+    brake_front_share=0.72,
+    max_drive_torque_nm=2600.0,
+    max_power_w=90000.0,
+    max_steer_rad=0.6,
+    drag_coefficient=0.31,
+    rolling_resistance=0.011,
+    length_m=4.28,
+    width_m=1.79,
+    height_m=1.46,
+    ground_clearance_m=0.14,
+    tire_front=TireParams(21.0, 15.0),
+    tire_rear=TireParams(21.0, 20.0),
+)
+
+VEHICLES = {v.name: v for v in (PAPER_SUV, MIDSIZE_SEDAN, COMPACT_HATCHBACK)}
 
 
 def vehicle_by_name(name: str) -> VehicleParams:

@@ -1,0 +1,108 @@
+"""`roadgrip bench estimate`: streaming throughput and per-update latency of the estimators, on one core.
+
+Each estimator is fed a stream of wire-format samples (dicts, as the cloud hands them over) of one simulated vehicle,
+the paper preset's run `paper-decreasing-circular-e2` repeated end to end (it starts and ends at standstill, so the
+repeats join smoothly; timestamps keep counting). `update` is timed call by call after a warm-up (which also
+triggers numba's compilation or cache load); torch is held to one thread while timing, so that the numbers are per core.
+The batch path (`estimate_batch` over the run) is timed too.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from roadgrip.estimators.base import Estimator
+
+BENCH_RUN = "paper-decreasing-circular-e2"
+WARMUP_UPDATES = 200
+DEFAULT_NAMES = ("ekf", "ukf", "default")
+
+
+def bench_estimator_by_name(name: str) -> Estimator:
+    """'ekf', 'ukf' (physics filters), 'fusion' (ekf + the default model), or anything `load_estimator` takes."""
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
+
+    if name in PHYSICS_ESTIMATORS:
+        return physics_estimator(name)
+    if name == "fusion":
+        from roadgrip.estimators.fusion import FusionEstimator
+
+        return FusionEstimator(physics_estimator("ekf"), load_estimator("default"))
+    return load_estimator(name)
+
+
+def _stream(n_updates: int):
+    """(samples as dicts, the run's table, its vehicle): n_updates samples of the bench run, repeated."""
+    from roadgrip.sim.presets import paper_scenarios
+    from roadgrip.sim.simulate import simulate
+
+    scenario = next(s for s in paper_scenarios() if s.run_id == BENCH_RUN)
+    table = simulate([scenario])
+    rows = table.select([c for c in table.column_names if c not in ("run_id", "condition", "road", "manoeuvre",
+                                                                     "vehicle", "tire_model")]).to_pylist()
+    span_ms = int(rows[-1]["timestamp_ms"] - rows[0]["timestamp_ms"]) + 100
+    samples = []
+    for k in range(n_updates):
+        sample = dict(rows[k % len(rows)])
+        sample["timestamp_ms"] += (k // len(rows)) * span_ms
+        samples.append(sample)
+    return samples, table, scenario.vehicle
+
+
+def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000) -> list[dict]:
+    """For each estimator name: streaming updates per second on one core, per-update latency (median and 99th
+    percentile, microseconds), and batch rows per second. `n_updates` timed updates each (at least 100)."""
+    if n_updates < 100:
+        raise ValueError(f"n_updates must be at least 100, got {n_updates!r}")
+    import torch
+
+    samples, table, vehicle = _stream(n_updates + WARMUP_UPDATES)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    results = []
+    try:
+        for name in names:
+            estimator = bench_estimator_by_name(name)
+            state = estimator.start(vehicle)
+            for sample in samples[:WARMUP_UPDATES]:
+                estimator.update(state, sample)
+            latencies = np.empty(n_updates)
+            clock = time.perf_counter_ns
+            start = clock()
+            for k, sample in enumerate(samples[WARMUP_UPDATES:]):
+                t0 = clock()
+                estimator.update(state, sample)
+                latencies[k] = clock() - t0
+            total_s = (clock() - start) / 1e9
+            segments = np.zeros(table.num_rows, dtype=np.int64)
+            estimator.estimate_batch(table, segments, vehicle)  # warm
+            t0 = time.perf_counter()
+            repeats = 5
+            for _ in range(repeats):
+                estimator.estimate_batch(table, segments, vehicle)
+            batch_s = (time.perf_counter() - t0) / repeats
+            results.append({
+                "estimator": name,
+                "updates": n_updates,
+                "updates_per_s": n_updates / total_s,
+                "latency_median_us": float(np.median(latencies)) / 1e3,
+                "latency_p99_us": float(np.percentile(latencies, 99)) / 1e3,
+                "batch_rows_per_s": table.num_rows / batch_s,
+                "threads": 1,
+            })
+    finally:
+        torch.set_num_threads(threads)
+    return results
+
+
+def format_bench(results: list[dict]) -> str:
+    """The results as a Markdown table."""
+    lines = ["| estimator | updates/s (1 core) | latency median (us) | latency p99 (us) | batch rows/s |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    for r in results:
+        lines.append(f"| {r['estimator']} | {r['updates_per_s']:,.0f} | {r['latency_median_us']:.1f} | "
+                     f"{r['latency_p99_us']:.1f} | {r['batch_rows_per_s']:,.0f} |")
+    return "\n".join(lines)

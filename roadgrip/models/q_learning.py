@@ -1,0 +1,390 @@
+"""Q-learning refinement of a trained model's output layer (paper 4, 4.4, eq. 13): the paper's "Improved SA-CNN-LSTM".
+
+A tabular Q-learning agent adjusts the weights w (1, d) and bias b (1,) of the model's last `nn.Linear` so that its predictions
+of mu stay in the physical range while staying accurate. The network below that layer is frozen: its output h (n, d) on the
+validation windows is captured once (`penultimate`), and any candidate layer is then evaluated as `h @ w.T + b` without
+re-running the network. Works for every model of the registry (and any module whose last `nn.Linear` gives the prediction).
+
+Environment (one step = one action on the current layer; an episode starts from the trained layer):
+
+| state part           | values                                                                     | default bins         |
+| -------------------- | -------------------------------------------------------------------------- | -------------------- |
+| out of range         | none, or (side: more below / more above) x (share of predictions out)     | 1 + 2 x 3 = 7        |
+|                      | share bins split at `share_edges`                                          | <1%, 1-10%, >=10%    |
+| accuracy             | RMSE / RMSE of the trained layer, split at `rmse_edges`                    | <0.9, 0.9-1, 1-1.1, >=1.1 |
+
+28 states by default; index = out_of_range_bin * n_accuracy_bins + accuracy_bin.
+
+| action  | effect on the predictions p = h @ w.T + b (m = mean of p over the data)       | on (w, b)                          |
+| ------- | ----------------------------------------------------------------------------- | ---------------------------------- |
+| keep    | none                                                                          | none                               |
+| raise   | p + bias_step                                                                 | b + bias_step                      |
+| lower   | p - bias_step                                                                 | b - bias_step                      |
+| narrow  | m + (1 - scale_step)(p - m): less spread, same mean                           | w k, b k + (1 - k) m, k = 1 - step |
+| widen   | m + (1 + scale_step)(p - m): more spread, same mean                           | same with k = 1 + step             |
+
+Objective (lower is better, mu units): J = accuracy_weight RMSE + share_weight share_out + excess_weight mean_excess, where
+share_out is the share of predictions outside `allowed_range` and mean_excess the mean over all samples of the distance outside
+it (0 inside). Reward r_{t+1} = J(before the action) - J(after): the improvement. Update: eq. 13,
+Q(s, a) <- Q(s, a) + beta [r + gamma max_a' Q(s', a') - Q(s, a)], epsilon-greedy with a decaying epsilon, from a seeded
+`numpy.random.Generator`. The step limit truncates an episode (it is not a terminal state), so the last step bootstraps too.
+
+Returned: after training, one greedy rollout (argmax Q, ties to the first action, so "keep" in unseen states) runs `steps`
+steps from the trained layer; the result is the layer with the lowest J among those it visited, the trained layer included. So
+J(after) <= J(before) always, and the trained layer comes back unchanged if the agent found nothing better.
+
+Choices beyond the paper's text, and why:
+- Actions scale the whole weight vector and shift the bias; they never change the direction of w. Per-weight actions would give
+  2d + 1 actions (65 for a 32-unit head), far too many for a tabular agent to explore, and changing w's direction without
+  gradients is a random search against what training already fitted. Scale and shift are exactly what moves predictions in or
+  out of a range: every reachable layer is an affine recalibration p' = k p + c of the trained output. (A direct search over
+  (k, c) would do as well; Q-learning is kept because it is the paper's method.)
+- Narrow/widen scale about the mean prediction, so that "shift" and "spread" are separate controls; a plain w * (1 +/- eps)
+  also moves the mean when the mean of h @ w.T is not zero.
+- The state knows on which side predictions leave the range: without it "raise" and "lower" are right in the same state.
+  A "shift toward the range centre" action is then redundant with raise/lower and is left out.
+- The reward is the improvement of one objective, so an episode's return telescopes to J(start) - J(end) (for gamma = 1):
+  maximizing return and minimizing J agree, and "keep" is worth 0, a natural stopping action.
+
+Simpler bounds compared with it in the tables: `clip(predictions, allowed_range)` here (clipping never increases the error of
+a sample whose true mu lies in the range), and a bounded output activation lo + (hi - lo) sigmoid(z), which is a model config
+option of `sa_cnn_lstm.py`. A model with such an activation after its last `nn.Linear` cannot be refined here (its layer output
+is not its prediction); `refine_model` refuses it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from roadgrip.validation import bounded, check_bounds
+
+# Real dry asphalt with good tires exceeds mu = 1.0: Burckhardt's dry-asphalt curve (c1 1.2801, c2 23.99, c3 0.52;
+# ../shared/reference/tire_surfaces.csv) peaks at 1.17 near 17 % slip. Below 0 is never physical.
+DEFAULT_ALLOWED_RANGE = (0.0, 1.2)
+ACTIONS = ("keep", "raise", "lower", "narrow", "widen")
+
+
+def _check_range(name, allowed_range):
+    if (not isinstance(allowed_range, (tuple, list)) or len(allowed_range) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in allowed_range)
+            or not allowed_range[0] < allowed_range[1]):
+        raise ValueError(f"{name} must be two finite numbers (lo, hi) with lo < hi, got {allowed_range!r}")
+
+
+def _check_edges(name, edges, low, high):
+    if (not isinstance(edges, tuple) or not edges
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and low < v <= high for v in edges)
+            or any(a >= b for a, b in zip(edges, edges[1:]))):
+        raise ValueError(f"{name} must be a non-empty increasing tuple of numbers in ({low}, {high}], got {edges!r}")
+
+
+@dataclass(frozen=True)
+class QConfig:
+    allowed_range: tuple[float, float] = DEFAULT_ALLOWED_RANGE  # (lo, hi), mu (dimensionless)
+    beta: float = field(default=0.1, metadata=bounded(0.0, 1.0, low_open=True, doc="learning rate of eq. 13"))
+    gamma: float = field(default=0.9, metadata=bounded(0.0, 1.0, doc="discount of eq. 13"))
+    epsilon: float = field(default=1.0, metadata=bounded(0.0, 1.0, doc="exploration rate of the first episode"))
+    epsilon_decay: float = field(default=0.98, metadata=bounded(0.0, 1.0, low_open=True, doc="factor per episode"))
+    epsilon_min: float = field(default=0.05, metadata=bounded(0.0, 1.0))
+    episodes: int = field(default=300, metadata=bounded(1, 1_000_000))
+    steps: int = field(default=40, metadata=bounded(1, 100_000, doc="actions per episode and in the greedy rollout"))
+    bias_step: float = field(default=0.01, metadata=bounded(0.0, 1.0, low_open=True, doc="mu per raise/lower"))
+    scale_step: float = field(default=0.02, metadata=bounded(0.0, 0.5, low_open=True, doc="relative, per narrow/widen"))
+    accuracy_weight: float = field(default=1.0, metadata=bounded(0.0, 1e6, doc="per unit of RMSE (mu)"))
+    # 1.0: one percent of the predictions out of range costs as much as 0.01 of RMSE.
+    share_weight: float = field(default=1.0, metadata=bounded(0.0, 1e6, doc="per unit share out of range"))
+    excess_weight: float = field(default=1.0, metadata=bounded(0.0, 1e6, doc="per mu of mean distance out of range"))
+    share_edges: tuple[float, ...] = (0.01, 0.1)
+    rmse_edges: tuple[float, ...] = (0.9, 1.0, 1.1)
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("episodes", "steps", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError(f"QConfig.{name} must be an int, got {value!r}")
+        check_bounds(self)
+        _check_range("QConfig.allowed_range", self.allowed_range)
+        if self.epsilon_min > self.epsilon:
+            raise ValueError(f"QConfig.epsilon_min must be <= epsilon ({self.epsilon}), got {self.epsilon_min!r}")
+        if self.accuracy_weight == self.share_weight == self.excess_weight == 0:
+            raise ValueError("QConfig.accuracy_weight, share_weight and excess_weight must not all be 0, got 0, 0, 0")
+        _check_edges("QConfig.share_edges", self.share_edges, 0.0, 1.0)
+        _check_edges("QConfig.rmse_edges", self.rmse_edges, 0.0, math.inf)
+
+    @property
+    def n_states(self) -> int:
+        return (1 + 2 * (len(self.share_edges) + 1)) * (len(self.rmse_edges) + 1)
+
+    def objective(self, metrics: RangeMetrics) -> float:
+        """J (lower is better): weighted RMSE, share out of range and mean distance out of range."""
+        return (self.accuracy_weight * metrics.rmse + self.share_weight * metrics.share_out_of_range
+                + self.excess_weight * metrics.mean_excess)
+
+
+@dataclass(frozen=True)
+class RangeMetrics:
+    """Accuracy and range of n predictions (mu units): RMSE and MAE (eq. 14), counts below/above the allowed range, and the
+    mean over all n samples of the distance outside it."""
+
+    n: int
+    rmse: float
+    mae: float
+    n_below: int
+    n_above: int
+    mean_excess: float
+
+    @property
+    def n_out_of_range(self) -> int:
+        return self.n_below + self.n_above
+
+    @property
+    def share_out_of_range(self) -> float:
+        return self.n_out_of_range / self.n if self.n else 0.0
+
+
+@dataclass
+class QResult:
+    w: np.ndarray  # (1, d) refined weights
+    b: np.ndarray  # (1,) refined bias
+    w_start: np.ndarray  # (1, d) trained weights
+    b_start: np.ndarray  # (1,)
+    actions: tuple[str, ...]  # greedy actions leading from the trained layer to the returned one
+    q_table: np.ndarray  # (n_states, len(ACTIONS))
+    history: list[dict]  # per episode: episode, epsilon, return, objective, rmse, share_out_of_range (at its end)
+    before: RangeMetrics
+    after: RangeMetrics
+
+
+def clip(predictions: np.ndarray, allowed_range: tuple[float, float] = DEFAULT_ALLOWED_RANGE) -> np.ndarray:
+    """The simplest bound: predictions clipped into [lo, hi]."""
+    _check_range("allowed_range", allowed_range)
+    return np.clip(np.asarray(predictions), *allowed_range)
+
+
+def range_metrics(predictions: np.ndarray, y: np.ndarray,
+                  allowed_range: tuple[float, float] = DEFAULT_ALLOWED_RANGE) -> RangeMetrics:
+    lo, hi = allowed_range
+    p, y = np.asarray(predictions, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if p.shape != y.shape or p.ndim != 1:
+        raise ValueError(f"predictions and y must be 1-D of the same length, got shapes {p.shape} and {y.shape}")
+    if len(p) == 0:
+        return RangeMetrics(0, 0.0, 0.0, 0, 0, 0.0)
+    error = p - y
+    below, above = np.maximum(lo - p, 0.0), np.maximum(p - hi, 0.0)
+    return RangeMetrics(n=len(p), rmse=float(np.sqrt(np.mean(error ** 2))), mae=float(np.mean(np.abs(error))),
+                        n_below=int(np.count_nonzero(below)), n_above=int(np.count_nonzero(above)),
+                        mean_excess=float(np.mean(below + above)))
+
+
+def q_update(q: np.ndarray, state: int, action: int, reward: float, next_state: int | None, beta: float, gamma: float,
+             terminal: bool = False) -> float:
+    """Eq. 13 in place; returns the new Q(s, a). A terminal step (the agent stopped) has no next state to bootstrap from."""
+    future = 0.0 if terminal else gamma * float(np.max(q[next_state]))
+    # eq. 13: Q(s_t, a_t) <- Q(s_t, a_t) + beta [r_{t+1} + gamma max_a Q(s_{t+1}, a) - Q(s_t, a_t)]
+    q[state, action] += beta * (reward + future - q[state, action])
+    return float(q[state, action])
+
+
+class QRefiner:
+    """Learns a Q table over output-layer adjustments (module docstring) and returns the best layer of a greedy rollout."""
+
+    def __init__(self, config: QConfig = QConfig()):
+        self.config = config
+
+    def fit(self, h_val: np.ndarray, y_val: np.ndarray, w: np.ndarray, b: np.ndarray) -> QResult:
+        """h_val (n, d): the output layer's input on the validation windows; y_val (n,) true mu; w (1, d), b (1,): the
+        trained layer."""
+        cfg = self.config
+        h, y, w, b = _check_fit_inputs(h_val, y_val, w, b)
+        head = _AffineHead(h @ w[0], y, cfg.allowed_range)  # every reachable layer predicts k (h @ w.T) + c, k > 0
+        start = (1.0, float(b[0]))
+        before = head.metrics(*start)
+        rmse_start = before.rmse
+        rng = np.random.default_rng(cfg.seed)
+        q = np.zeros((cfg.n_states, len(ACTIONS)))
+        history = []
+        for episode in range(cfg.episodes):
+            epsilon = max(cfg.epsilon_min, cfg.epsilon * cfg.epsilon_decay ** episode)
+            params, metrics = start, before
+            state, objective, total = self._state(params, metrics, head, rmse_start), cfg.objective(metrics), 0.0
+            for _ in range(cfg.steps):
+                if rng.random() < epsilon:
+                    action = int(rng.integers(len(ACTIONS)))
+                else:  # greedy, ties broken at random so that unseen states are explored
+                    action = int(rng.choice(np.flatnonzero(q[state] == q[state].max())))
+                if ACTIONS[action] == "keep":  # stop: accept the current layer
+                    q_update(q, state, action, 0.0, None, cfg.beta, cfg.gamma, terminal=True)
+                    break
+                params = self._act(action, params, head)
+                metrics = head.metrics(*params)
+                next_state, next_objective = self._state(params, metrics, head, rmse_start), cfg.objective(metrics)
+                reward = objective - next_objective
+                q_update(q, state, action, reward, next_state, cfg.beta, cfg.gamma)
+                state, objective, total = next_state, next_objective, total + reward
+            history.append({"episode": episode + 1, "epsilon": epsilon, "return": total, "objective": objective,
+                            "rmse": metrics.rmse, "share_out_of_range": metrics.share_out_of_range})
+        (scale, bias), actions = self._greedy_rollout(q, head, start, before)
+        self.q_table_ = q
+        self.result_ = QResult(w=scale * w, b=np.array([bias]), w_start=w.copy(), b_start=b.copy(), actions=actions,
+                               q_table=q, history=history,
+                               before=range_metrics(h @ w[0] + b[0], y, cfg.allowed_range),
+                               after=range_metrics(h @ (scale * w[0]) + bias, y, cfg.allowed_range))
+        return self.result_
+
+    def _greedy_rollout(self, q, head, start, before):
+        cfg = self.config
+        params, metrics = start, before
+        best = (cfg.objective(before), start, 0)
+        taken = []
+        for step in range(1, cfg.steps + 1):
+            action = int(np.argmax(q[self._state(params, metrics, head, before.rmse)]))  # ties: the first action, "keep"
+            if ACTIONS[action] == "keep":
+                break
+            taken.append(ACTIONS[action])
+            params = self._act(action, params, head)
+            metrics = head.metrics(*params)
+            if cfg.objective(metrics) < best[0]:
+                best = (cfg.objective(metrics), params, step)
+        _, params, n_steps = best
+        return params, tuple(taken[:n_steps])
+
+    def _act(self, action: int, params: tuple[float, float], head: _AffineHead) -> tuple[float, float]:
+        """(k, c) after one action, the predictions being k z + c."""
+        k, c = params
+        name = ACTIONS[action]
+        if name == "raise":
+            return k, c + self.config.bias_step
+        if name == "lower":
+            return k, c - self.config.bias_step
+        if name in ("narrow", "widen"):
+            factor = 1.0 - self.config.scale_step if name == "narrow" else 1.0 + self.config.scale_step
+            mean = k * head.z_mean + c
+            return factor * k, factor * c + (1.0 - factor) * mean  # m + f (p - m) = f k z + f c + (1 - f) m
+        return k, c
+
+    def _state(self, params, metrics: RangeMetrics, head: _AffineHead, rmse_start: float) -> int:
+        cfg = self.config
+        if metrics.n_out_of_range == 0:
+            out = 0
+        else:
+            side = 0 if metrics.n_below >= metrics.n_above else 1
+            share_bin = int(np.searchsorted(cfg.share_edges, metrics.share_out_of_range, side="right"))
+            out = 1 + side * (len(cfg.share_edges) + 1) + share_bin
+        ratio = metrics.rmse / rmse_start if rmse_start > 0 else (1.0 if metrics.rmse == 0 else math.inf)
+        accuracy_bin = int(np.searchsorted(cfg.rmse_edges, ratio, side="right"))
+        return out * (len(cfg.rmse_edges) + 1) + accuracy_bin
+
+
+class _AffineHead:
+    """Metrics of the predictions p = k z + c (k > 0) of n samples in O(log n) per (k, c), from the moments of z and y and
+    the sorted z with its prefix sums; MAE (not used by the agent) is left NaN."""
+
+    def __init__(self, z: np.ndarray, y: np.ndarray, allowed_range: tuple[float, float]):
+        self.lo, self.hi = allowed_range
+        self.z_mean, self.y_mean = float(np.mean(z)), float(np.mean(y))
+        dz, dy = z - self.z_mean, y - self.y_mean
+        self.var_z, self.cov_zy, self.var_y = float(np.mean(dz * dz)), float(np.mean(dz * dy)), float(np.mean(dy * dy))
+        self.z_sorted = np.sort(z)
+        self.prefix = np.concatenate([[0.0], np.cumsum(self.z_sorted)])  # prefix[i] = sum of the i smallest z
+
+    def metrics(self, k: float, c: float) -> RangeMetrics:
+        n = len(self.z_sorted)
+        # mean (p - y)^2 = k^2 var z - 2 k cov(z, y) + var y + (k mean z + c - mean y)^2
+        bias = k * self.z_mean + c - self.y_mean
+        mse = k * k * self.var_z - 2.0 * k * self.cov_zy + self.var_y + bias * bias
+        n_below = int(np.searchsorted(self.z_sorted, (self.lo - c) / k, side="left"))  # p < lo  <=>  z < (lo - c) / k
+        first_above = int(np.searchsorted(self.z_sorted, (self.hi - c) / k, side="right"))  # p > hi  <=>  z > (hi - c) / k
+        n_above = n - first_above
+        excess_below = n_below * (self.lo - c) - k * self.prefix[n_below]  # sum of lo - p over p < lo
+        excess_above = k * (self.prefix[n] - self.prefix[first_above]) - n_above * (self.hi - c)  # sum of p - hi over p > hi
+        return RangeMetrics(n=n, rmse=math.sqrt(max(mse, 0.0)), mae=math.nan, n_below=n_below, n_above=n_above,
+                            mean_excess=max(excess_below + excess_above, 0.0) / n)
+
+
+def output_layer(model: nn.Module) -> nn.Linear:
+    """The last `nn.Linear` of `model` in registration order (the output layer of every model in the registry)."""
+    last = None
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            last = module
+    if last is None:
+        raise ValueError(f"model {type(model).__name__} has no nn.Linear layer")
+    return last
+
+
+def penultimate(model: nn.Module, x: np.ndarray | torch.Tensor, batch_size: int = 4096) -> np.ndarray:
+    """(n, d) float64: the input of the output layer for windows x (n, T, F), eval mode, no gradients."""
+    return _head_io(model, x, batch_size)[0]
+
+
+def refine_model(model: nn.Module, x_val: np.ndarray, y_val: np.ndarray, config: QConfig = QConfig()) -> QResult:
+    """Fits a QRefiner on the model's validation windows and writes the refined weights and bias into its output layer, in
+    place. The result holds both the trained (w_start, b_start) and the refined (w, b) layer, and the metrics before and after."""
+    h, z, predictions = _head_io(model, x_val)
+    if not np.allclose(z, predictions, rtol=0.0, atol=1e-6):
+        raise ValueError(f"model {type(model).__name__} transforms the output of its last nn.Linear (a bounded activation?);"
+                         " the Q refiner adjusts a linear output layer only")
+    layer = output_layer(model)
+    result = QRefiner(config).fit(h, y_val, layer.weight.detach().cpu().numpy(), layer.bias.detach().cpu().numpy())
+    with torch.no_grad():
+        layer.weight.copy_(torch.as_tensor(result.w, dtype=layer.weight.dtype))
+        layer.bias.copy_(torch.as_tensor(result.b, dtype=layer.bias.dtype))
+    return result
+
+
+def _head_io(model: nn.Module, x, batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(h (n, d), layer output (n,), model prediction (n,)), float64, captured with a forward hook on the output layer."""
+    layer = output_layer(model)
+    if layer.out_features != 1:
+        raise ValueError(f"the output layer of {type(model).__name__} must have 1 output, got {layer.out_features}")
+    inputs, outputs = [], []
+
+    def hook(module, args, output):
+        inputs.append(args[0].detach())
+        outputs.append(output.detach())
+
+    x = torch.as_tensor(x, dtype=torch.float32)
+    handle = layer.register_forward_hook(hook)
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            predictions = [model(x[i : i + batch_size]).reshape(-1) for i in range(0, len(x), batch_size)]
+    finally:
+        handle.remove()
+        model.train(was_training)
+    if not predictions:
+        return np.zeros((0, layer.in_features)), np.zeros(0), np.zeros(0)
+    h, z = torch.cat(inputs), torch.cat(outputs)
+    if h.ndim != 2 or h.shape[0] != len(x):
+        raise ValueError(f"the output layer of {type(model).__name__} must see one vector per window, got inputs of shape "
+                         f"{tuple(h.shape)} for {len(x)} windows")
+    to_numpy = lambda t: t.cpu().numpy().astype(np.float64)  # noqa: E731
+    return to_numpy(h), to_numpy(z.reshape(-1)), to_numpy(torch.cat(predictions))
+
+
+def _check_fit_inputs(h, y, w, b):
+    h, y = np.asarray(h, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    w, b = np.asarray(w, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if h.ndim != 2 or h.shape[0] == 0:
+        raise ValueError(f"h_val must be (n, d) with n > 0, got shape {h.shape}")
+    if y.shape != (h.shape[0],):
+        raise ValueError(f"y_val must be ({h.shape[0]},) to match h_val, got shape {y.shape}")
+    if w.shape != (1, h.shape[1]):
+        raise ValueError(f"w must be (1, {h.shape[1]}) to match h_val, got shape {w.shape}")
+    if b.shape != (1,):
+        raise ValueError(f"b must be (1,), got shape {b.shape}")
+    for name, value in (("h_val", h), ("y_val", y), ("w", w), ("b", b)):
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{name} must be finite, got {np.count_nonzero(~np.isfinite(value))} non-finite value(s)")
+    return h, y, w, b
+
+
+__all__ = ["ACTIONS", "DEFAULT_ALLOWED_RANGE", "QConfig", "QRefiner", "QResult", "RangeMetrics", "clip", "output_layer",
+           "penultimate", "q_update", "range_metrics", "refine_model"]
