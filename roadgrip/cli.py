@@ -192,7 +192,7 @@ def evaluate(
 def estimate(
     input: Path = typer.Option(..., help="telemetry file: CSV, Parquet, NDJSON or JSON (wire format v1)"),
     out: Path = typer.Option(..., help="estimates file (.csv, .parquet or .ndjson)"),
-    model: str = typer.Option("default", help="model file (.pt) or name: default"),
+    model: str = typer.Option("default", help="model file (.pt) or name: default | ekf | ukf"),
     vehicle: Path = typer.Option(None, help="vehicle profile YAML (DESIGN 3.2); default: the paper's SUV"),
 ):
     """Offline estimates of mu (DESIGN 3.4) for every sample of a telemetry file that can be judged."""
@@ -220,6 +220,22 @@ def estimate(
         report = out.with_name(out.stem + ".rejections.csv")
         write_table(batch.rejection_table(), report)
         console.print(f"[yellow]{len(batch.rejections)} input row(s) rejected:[/] see {report}")
+
+
+@bench_app.command("estimate")
+@friendly_errors
+def bench_estimate_command(
+    estimators: list[str] = typer.Option(["ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"),
+    updates: int = typer.Option(20000, help="streamed updates per estimator"),
+):
+    """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
+    from roadgrip.estimators.bench import bench_estimators, format_bench
+    from roadgrip.sim.bench import machine_description
+
+    with console.status("benchmarking the estimators..."):
+        rows = bench_estimators(tuple(estimators), updates)
+    console.print(format_bench(rows))
+    console.print(f"machine: {machine_description()}")
 
 
 @bench_app.command("sim")

@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_REJECTED, M_RESTARTS, M_U, M_X, N_MEM, N_OUT, REJECT, STEP, KalmanEstimator, begin, cholesky,
+    M_P, M_REJECTED, M_RESTARTS, M_U, M_X, N_MEM, REJECT, STEP, KalmanEstimator, begin, cholesky,
     cholesky_solve, commit, matmul, matmul_bt, new_segment, output, symmetrize,
 )
 from roadgrip.estimators.vehicle_model import (
@@ -153,5 +153,3 @@ class EKFEstimator(KalmanEstimator):
     step_kernel = staticmethod(ekf_step)
     batch_kernel = staticmethod(ekf_batch)
 
-
-__all__ = ["EKFEstimator", "N_OUT", "ekf_batch", "ekf_step", "ekf_update"]

@@ -29,7 +29,7 @@ from numba import njit
 
 from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
 from roadgrip.estimators.vehicle_model import (
-    INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, N_Z, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
+    INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
     U_W0, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, initial_state, pack_model,
 )
 from roadgrip.vehicle.dynamics import P_STEER_RATIO
@@ -240,7 +240,7 @@ class FilterState:
 
 class KalmanEstimator(Estimator):
     """A Kalman filter on vehicle_model behind the estimator interface. A subclass names itself and gives its compiled
-    `step(mem, prm, smp, out)` and `batch(prm, samples, segments, out)` kernels.
+    `step_kernel(mem, prm, smp, out)` and `batch_kernel(prm, samples, segments, out, counters)`.
 
     Every sample gets an estimate, from the first one on (there the prior: mu_initial with a wide interval, not
     excited); a sample with a missing or non-finite value is rejected (counted in the state) and repeats the previous
@@ -271,18 +271,18 @@ class KalmanEstimator(Estimator):
 
     def update(self, state: FilterState, sample: dict) -> Estimate | None:
         smp = np.empty(N_S)
-        for k, column in enumerate(SAMPLE_COLUMNS):
-            try:
+        for k, column in enumerate(("vehicle_id",) + SAMPLE_COLUMNS):
+            if column not in sample:
+                raise ValueError(f"{self.name}: telemetry sample lacks the field {column!r}")
+            if k:
                 value = sample[column]
-            except KeyError:
-                raise ValueError(f"{self.name}: telemetry sample lacks the field {column!r}") from None
-            smp[k] = np.nan if value is None else float(value)
+                smp[k - 1] = np.nan if value is None else float(value)
         out = np.zeros(N_OUT)
         type(self).step_kernel(state.mem, state.prm, smp, out)
-        if out[O_VALID] == 0.0:
+        if out[O_VALID] == 0.0 or not np.isfinite(smp[S_T]):  # nothing to say yet, or no time to say it at
             return None
-        return Estimate(str(sample["vehicle_id"]), int(sample["timestamp_ms"]), float(out[O_MU]),
-                        float(out[O_LOWER]), float(out[O_UPPER]), bool(out[O_EXCITED]), self.name)
+        return Estimate(str(sample["vehicle_id"]), int(smp[S_T]), float(out[O_MU]), float(out[O_LOWER]),
+                        float(out[O_UPPER]), bool(out[O_EXCITED]), self.name)
 
     def reset(self, state: FilterState) -> None:
         new_segment(state.mem)

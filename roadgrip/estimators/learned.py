@@ -95,10 +95,16 @@ def default_model_path() -> Path:
 
 
 def load_estimator(spec: str | Path = DEFAULT_MODEL) -> Estimator:
-    """An estimator from a model file, or by name: 'default' is the model shipped in the package."""
+    """An estimator from a model file, or by name: 'default' is the model shipped in the package, 'ekf' and 'ukf' the
+    Kalman filters (roadgrip/estimators/physics.py)."""
+    from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
+
     if str(spec) == DEFAULT_MODEL:
         return LearnedEstimator.load(default_model_path())
+    if str(spec) in PHYSICS_ESTIMATORS:
+        return physics_estimator(str(spec))
     path = Path(spec)
     if path.suffix == ".pt" or path.exists():
         return LearnedEstimator.load(path)
-    raise ValueError(f"--model must be a model file (.pt) or one of ['{DEFAULT_MODEL}'], got {str(spec)!r}")
+    names = [DEFAULT_MODEL, *PHYSICS_ESTIMATORS]
+    raise ValueError(f"--model must be a model file (.pt) or one of {names}, got {str(spec)!r}")
