@@ -116,17 +116,24 @@ def train(
     condition: list[str] = typer.Option(None, help="train on these conditions only (repeatable)"),
     config: list[str] = typer.Option(None, help="model config override KEY=VALUE (repeatable)"),
     folds: int = typer.Option(0, help="also report K-fold cross-validation grouped by run (0: none)"),
+    calibration: Path = typer.Option(None, help="a dataset of held-out runs to calibrate the 90 % intervals on "
+                                                "(default: the validation blocks of the training runs)"),
+    stride: int = typer.Option(1, help="keep every STRIDE-th training window"),
+    batch_size: int = typer.Option(64, help="training batch size"),
+    max_epochs: int = typer.Option(100, help="training epochs at most (early stopping on validation)"),
+    patience: int = typer.Option(15, help="epochs without improvement before stopping"),
     seed: int = typer.Option(0, help="training seed"),
 ):
     """Train one model on a dataset and write its checkpoint."""
     import sys
 
-    from roadgrip.data.dataset import read_dataset, read_manifest
-    from roadgrip.training.fit import block_split, cross_validate, fit, prepare, save_fitted
+    from roadgrip.data.dataset import read_dataset, read_manifest, vehicles_from_manifest
+    from roadgrip.training.fit import block_split, calibration_of, cross_validate, fit, prepare, save_fitted, subset
     from roadgrip.training.trainer import TrainConfig
 
     manifest = read_manifest(data)
     table = read_dataset(data)
+    vehicles = vehicles_from_manifest(manifest)
     if experiment is not None:
         table = table.filter(pc.equal(table["experiment"], experiment))
     if condition:
@@ -134,8 +141,10 @@ def train(
     if table.num_rows == 0:
         raise ValueError(f"no rows left in {data} after the experiment/condition filters")
     overrides = _parse_config(config)
-    prepared = prepare(table, features)
-    train_config = TrainConfig(seed=seed)
+    prepared = prepare(table, features, vehicles=vehicles)
+    if stride > 1:
+        prepared = subset(prepared, np.arange(0, len(prepared.targets), stride))
+    train_config = TrainConfig(max_epochs=max_epochs, batch_size=batch_size, patience=patience, seed=seed)
     cv = []
     if folds:
         with console.status(f"{folds}-fold cross-validation grouped by run..."):
@@ -145,6 +154,9 @@ def train(
     with console.status(f"training {model} on {len(prepared.targets)} windows..."):
         train_idx, val_idx = block_split(prepared)
         fitted = fit(model, prepared, train_idx, val_idx, overrides, train_config)
+    if calibration is not None:
+        held_out = prepare(read_dataset(calibration), features, vehicles=vehicles_from_manifest(read_manifest(calibration)))
+        fitted.interval = calibration_of(fitted, held_out)
     save_fitted(out, fitted, features, {
         "command": "roadgrip " + " ".join(sys.argv[1:]), "dataset": str(data), "preset": manifest.get("preset"),
         "data_seed": manifest.get("seed"), "code_version": _code_version(), "seed": seed, "windows": len(train_idx),
@@ -157,22 +169,33 @@ def train(
 @app.command()
 @friendly_errors
 def evaluate(
-    benchmark: str = typer.Option(..., help="paper"),
+    benchmark: str = typer.Option(..., help="paper | generalization"),
     out: Path = typer.Option(..., help="output folder: metrics.csv, tables.md, figures"),
-    data: Path = typer.Option(None, help="a paper-preset dataset; default: simulate it (seed 0) into OUT/data"),
-    seed: int = typer.Option(0, help="training seed"),
+    data: Path = typer.Option(None, help="paper benchmark: a paper-preset dataset; default: simulate it (seed 0)"),
+    seed: int = typer.Option(0, help="seed of the data and the training"),
     workers: int = typer.Option(2, help="training processes in parallel"),
 ):
-    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8 (DESIGN 4)."""
+    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, or the generalization benchmark (DESIGN 4)."""
+    from roadgrip.validation import check_choice
+
+    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization"})
+    start = time.perf_counter()
+    if benchmark == "paper":
+        paths = _evaluate_paper(out, data, seed, workers)
+    else:
+        paths = _evaluate_generalization(out, seed, workers)
+    console.print(f"{benchmark} benchmark done in {time.perf_counter() - start:.0f} s: {out}")
+    for name, path in paths.items():
+        console.print(f"  {name}: {path}")
+
+
+def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> dict:
     from roadgrip.data.dataset import read_dataset
     from roadgrip.evaluation.paper import run_paper_benchmark
     from roadgrip.evaluation.report import write_report
-    from roadgrip.validation import check_choice
 
-    check_choice("evaluate", "benchmark", benchmark, {"paper"})
-    start = time.perf_counter()
     if data is None:
-        _simulate_dataset("paper", None, 0, out / "data", overwrite=True)
+        _simulate_dataset("paper", None, seed, out / "data", overwrite=True)
         data = out / "data"
     table = read_dataset(data)
     with Progress(TextColumn("[bold]training[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -181,10 +204,17 @@ def evaluate(
         metrics, predictions = run_paper_benchmark(
             table, seed=seed, workers=workers, progress=lambda done, total: progress.update(task, completed=done,
                                                                                             total=total))
-    paths = write_report(metrics, predictions, out)
-    console.print(f"paper benchmark done in {time.perf_counter() - start:.0f} s: {out}")
-    for name, path in paths.items():
-        console.print(f"  {name}: {path}")
+    return write_report(metrics, predictions, out)
+
+
+def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
+    from roadgrip.evaluation.generalization import run_generalization_benchmark
+    from roadgrip.evaluation.generalization_report import write_generalization_report
+
+    with console.status("generalization benchmark") as status:
+        metrics, predictions, _, _ = run_generalization_benchmark(
+            seed=seed, workers=workers, progress=lambda message: status.update(f"generalization benchmark: {message}"))
+    return write_generalization_report(metrics, predictions, out)
 
 
 @app.command()

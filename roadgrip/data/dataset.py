@@ -46,3 +46,10 @@ def read_manifest(dataset_dir: str | Path) -> dict:
 def read_dataset(dataset_dir: str | Path, columns: list[str] | None = None) -> pa.Table:
     read_manifest(dataset_dir)
     return pq.read_table(Path(dataset_dir) / SAMPLES_FILE, columns=columns)
+
+
+def vehicles_from_manifest(manifest: dict) -> dict:
+    """{vehicle name: VehicleParams} of every run of a simulated dataset (for features that use the vehicle profile)."""
+    from roadgrip.vehicle.params import VehicleParams
+
+    return {s["vehicle"]["name"]: VehicleParams.from_dict(s["vehicle"]) for s in manifest.get("scenarios", [])}

@@ -5,7 +5,11 @@ Protocol, for each feature set:
   for model selection made by interleaved 4 s blocks of time (every fifth block validates); test on the second experiment;
 - also one model per architecture trained on all five conditions' first experiments, tested on each condition's second;
 - every architecture gets the same search budget: SEARCH_BUDGET configs, the one with the lowest validation RMSE is kept;
-- reference row "Constant (training mean)": what a model that ignores its input scores, to show what the numbers mean.
+- reference row "Constant (training mean)": what a model that ignores its input scores, to show what the numbers mean;
+- the physics filters EKF and UKF (docs/ESTIMATORS.md), which need no training, on the same test samples;
+- "Improved SA-CNN-LSTM" (model sa-cnn-lstm-q): the selected SA-CNN-LSTM refined by Q-learning on its validation windows
+  (roadgrip/models/q_learning.py), beside "SA-CNN-LSTM (clipped)", the simplest bound; `out_of_range` counts predictions
+  outside the allowed range [0, 1.2].
 RMSE and MAE (eq. 14) over every test window (all samples with a full 1 s window behind them).
 """
 
@@ -14,6 +18,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing
 import time
+from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -22,14 +27,20 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from roadgrip.evaluation.metrics import mae, rmse
-from roadgrip.models.registry import DISPLAY_NAMES, MODELS, SEARCH_SPACES
+from roadgrip.evaluation.physics import PHYSICS_ROWS, physics_on_runs
+from roadgrip.models.q_learning import DEFAULT_ALLOWED_RANGE, QConfig, clip, refine_model
+from roadgrip.models.registry import DISPLAY_NAMES, PAPER_MODELS, SEARCH_SPACES
 from roadgrip.sim.presets import PAPER_CONDITIONS
 from roadgrip.training.fit import PreparedData, block_split, fit, prepare
 from roadgrip.training.trainer import TrainConfig, predict
+from roadgrip.vehicle.params import PAPER_SUV
 
 FEATURE_SETS = ("paper", "terminal")
 SCOPES = tuple(PAPER_CONDITIONS) + ("all",)
 CONSTANT = "Constant (training mean)"
+IMPROVED_BASE = "sa-cnn-lstm"
+IMPROVED = "Improved SA-CNN-LSTM"  # the paper's name; model sa-cnn-lstm-q: Q-learning on the selected SA-CNN-LSTM
+CLIPPED = "SA-CNN-LSTM (clipped)"  # the simplest bound, for comparison
 
 
 @dataclass
@@ -54,12 +65,17 @@ def _run_job(job: Job) -> dict:
     start = time.perf_counter()
     train_idx, val_idx = block_split(job.train)
     fitted = fit(job.model_name, job.train, train_idx, val_idx, job.overrides, TrainConfig(seed=job.seed))
-    return {
+    x_test = fitted.scaler.transform(job.test_windows)
+    result = {
         "scope": job.scope, "feature_set": job.feature_set, "model_name": job.model_name, "candidate": job.candidate,
         "overrides": job.overrides, "val_rmse": fitted.result.best_val_rmse, "best_epoch": fitted.result.best_epoch,
-        "test_pred": predict(fitted.model, fitted.scaler.transform(job.test_windows)),
-        "seconds": time.perf_counter() - start,
+        "test_pred": predict(fitted.model, x_test),
     }
+    if job.model_name == IMPROVED_BASE:  # the paper's Improved SA-CNN-LSTM: Q-learning on the validation windows
+        x_val = fitted.scaler.transform(job.train.windows[val_idx])
+        refine_model(fitted.model, x_val, job.train.targets[val_idx], QConfig(seed=job.seed))
+        result["test_pred_q"] = predict(fitted.model, x_test)
+    return result | {"seconds": time.perf_counter() - start}
 
 
 def _split(table: pa.Table, experiment: int, condition: str | None) -> pa.Table:
@@ -69,7 +85,7 @@ def _split(table: pa.Table, experiment: int, condition: str | None) -> pa.Table:
     return table.filter(mask)
 
 
-def run_paper_benchmark(table: pa.Table, models=tuple(MODELS), feature_sets=FEATURE_SETS, seed: int = 0,
+def run_paper_benchmark(table: pa.Table, models=PAPER_MODELS, feature_sets=FEATURE_SETS, seed: int = 0,
                         workers: int = 2, progress: Callable[[int, int], None] | None = None) -> tuple[list, pa.Table]:
     """(metrics rows, predictions table) of the paper protocol over a `paper` preset dataset."""
     tests = {(fs, c): prepare(_split(table, 2, c), fs) for fs in feature_sets for c in PAPER_CONDITIONS}
@@ -103,9 +119,14 @@ def run_paper_benchmark(table: pa.Table, models=tuple(MODELS), feature_sets=FEAT
             test = tests[(fs, c)]
             pred = r["test_pred"][offset : offset + len(test.targets)]
             offset += len(test.targets)
-            metrics.append(_row(c, DISPLAY_NAMES[name], fs, scope, pred, test,
-                                {"val_rmse": r["val_rmse"], "config": r["overrides"], "best_epoch": r["best_epoch"]}))
+            extra = {"val_rmse": r["val_rmse"], "config": r["overrides"], "best_epoch": r["best_epoch"]}
+            metrics.append(_row(c, DISPLAY_NAMES[name], fs, scope, pred, test, extra))
             predictions.append(_predictions(c, DISPLAY_NAMES[name], fs, scope, test, pred))
+            if "test_pred_q" in r:
+                pred_q = r["test_pred_q"][offset - len(test.targets) : offset]
+                for label, p in ((IMPROVED, pred_q), (CLIPPED, clip(pred, DEFAULT_ALLOWED_RANGE))):
+                    metrics.append(_row(c, label, fs, scope, p, test, extra))
+                    predictions.append(_predictions(c, label, fs, scope, test, p))
     for fs in feature_sets:
         for scope in SCOPES:
             train_mu = _split(table, 1, None if scope == "all" else scope)["mu"].to_numpy()
@@ -113,6 +134,15 @@ def run_paper_benchmark(table: pa.Table, models=tuple(MODELS), feature_sets=FEAT
                 test = tests[(fs, c)]
                 pred = np.full(len(test.targets), train_mu.mean(), dtype=np.float32)
                 metrics.append(_row(c, CONSTANT, fs, scope, pred, test, {}))
+    for name, display in PHYSICS_ROWS.items():
+        if "terminal" not in feature_sets:
+            break
+        for c in PAPER_CONDITIONS:
+            test = tests[("terminal", c)]
+            pred = physics_on_runs(name, _split(table, 2, c), defaultdict(lambda: PAPER_SUV), test)[0]
+            for scope in ("condition", "all"):
+                metrics.append(_row(c, display, "terminal", scope, pred, test, {}))
+                predictions.append(_predictions(c, display, "terminal", scope, test, pred))
     return metrics, pa.concat_tables(predictions)
 
 
@@ -121,6 +151,7 @@ def _row(condition, model, feature_set, scope, pred, test: PreparedData, extra) 
     return {"condition": condition, "model": model, "feature_set": feature_set,
             "trained_on": "all" if scope == "all" else "condition", "rmse": rmse(pred, true), "mae": mae(pred, true),
             "n": int(len(true)), "rmse_excited": rmse(pred[exc], true[exc]) if exc.any() else float("nan"),
+            "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
             "n_excited": int(exc.sum()), **extra}
 
 

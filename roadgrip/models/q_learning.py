@@ -1,74 +1,77 @@
 """Q-learning refinement of a trained model's output layer (paper 4, 4.4, eq. 13): the paper's "Improved SA-CNN-LSTM".
 
-A tabular Q-learning agent adjusts the weights w (1, d) and bias b (1,) of the model's last `nn.Linear` so that its predictions
-of mu stay in the physical range while staying accurate. The network below that layer is frozen: its output h (n, d) on the
-validation windows is captured once (`penultimate`), and a candidate layer is evaluated from it without re-running the network.
-Works for every model of the registry, and for any module whose last `nn.Linear` gives the prediction.
+A tabular Q-learning agent adjusts the weights w (1, d) and bias b (1,) of the model's last `nn.Linear` so that its
+predictions of mu stay in the physical range while staying accurate. The network below that layer is frozen: its output
+h (n, d) on the validation windows is captured once (`penultimate`), and a candidate layer is evaluated from it without
+re-running the network. Works for every model of the registry, and for any module whose last `nn.Linear` gives the
+prediction.
 
-Actions (p = h @ w.T + b the predictions, m their mean over the data; `scale_step` s, `bias_step` delta):
+Actions (p = h @ w.T + b the predictions, m their mean over the data; `scale_step` s, `bias_step` delta, f = 1 - s):
 
-| action | effect on p                         | on (w, b)                                 |
-| ------ | ----------------------------------- | ----------------------------------------- |
-| keep   | none; ends the episode (stop)        | none                                      |
-| raise  | p + delta                           | b + delta                                 |
-| lower  | p - delta                           | b - delta                                 |
-| narrow | m + f (p - m), f = 1 - s: less spread, same mean | w f, b f + (1 - f) m          |
-| widen  | m + (p - m) / f: undoes narrow      | w / f, b / f + (1 - 1 / f) m              |
+| action | effect on p                                 | on (w, b)                      |
+| ------ | ------------------------------------------- | ------------------------------ |
+| keep   | none; ends the episode (stop)               | none                           |
+| raise  | p + delta                                   | b + delta                      |
+| lower  | p - delta                                   | b - delta                      |
+| narrow | m + f (p - m): less spread, same mean       | w f, b f + (1 - f) m           |
+| widen  | m + (p - m) / f: more spread, undoes narrow | w / f, b / f + (1 - 1 / f) m   |
 
-So every reachable layer is w = k w_trained with k > 0 and some bias c: an affine recalibration k z + c of the trained output
-z = h @ w_trained.T, which `_AffineHead` evaluates in O(log n) from sorted z, prefix sums and the moments of z and y.
+So every reachable layer is w = k w_trained (k > 0) with some bias c: an affine recalibration k z + c of the trained
+output z = h @ w_trained.T, which `_AffineHead` evaluates in O(log n) from sorted z, prefix sums and moments of z and y.
 
 States (default 7 x 3 x 3 = 63; index = (range * 3 + level) * 3 + spread):
 
-| part   | values                                                                  | meaning                                 |
-| ------ | ----------------------------------------------------------------------- | --------------------------------------- |
-| range  | 0: all predictions in `allowed_range`; else 1 + side * B + share bin    | side 0: at least as many below as above, |
-|        | (B = len(share_edges) + 1 share bins, default <1 %, 1-10 %, >=10 %)     | 1: more above                           |
-| level  | mean(p) - mean(y) below -delta/2, within +/-delta/2, above delta/2      | 0 too low, 1 centred, 2 too high        |
-| spread | log(var p / cov(p, y)) below -l/2, within, above l/2, l = -log(1 - s)   | 0 too narrow, 1 matched, 2 too wide     |
+| part   | values                                                             | meaning                             |
+| ------ | ------------------------------------------------------------------ | ----------------------------------- |
+| range  | 0 if all predictions lie in `allowed_range`, else                  | side 0: at least as many below as   |
+|        | 1 + side * B + share bin; B = len(share_edges) + 1 bins of the     | above; side 1: more above           |
+|        | share out of range (default <1 %, 1-10 %, >=10 %)                  |                                     |
+| level  | mean(p) - mean(y) below -delta/2, within +/-delta/2, above delta/2 | 0 too low, 1 centred, 2 too high    |
+| spread | log(var p / cov(p, y)) below -l/2, within, above l/2; l = -log f   | 0 too narrow, 1 matched, 2 too wide |
 
-Reward and objective (lower J is better, mu units): J = accuracy_weight RMSE + share_weight share_out + excess_weight mean_excess,
-with share_out the share of predictions outside `allowed_range` and mean_excess the mean over all samples of the distance
-outside it (0 inside). r_{t+1} = J(before the action) - J(after): the improvement, so that an episode's return telescopes to
-J(start) - J(end) for gamma = 1 and "keep" (stop, terminal, reward 0) is worth taking exactly where nothing improves J.
-Update: eq. 13, Q(s, a) <- Q(s, a) + beta [r + gamma max_a' Q(s', a') - Q(s, a)]; epsilon-greedy with epsilon decaying per
-episode, from a seeded `numpy.random.Generator`; every episode starts from the trained layer and runs at most `steps` actions.
-The step limit truncates (it is not terminal), so the last step bootstraps.
+Objective (lower is better, mu units): J = accuracy_weight RMSE + share_weight share_out + excess_weight mean_excess,
+with share_out the share of predictions outside `allowed_range` and mean_excess the mean over all samples of the
+distance outside it (0 inside). Reward r_{t+1} = J(before the action) - J(after), the improvement: an episode's return
+telescopes to J(start) - J(end) for gamma = 1, and "keep" (stop: terminal, reward 0) is the best action exactly where
+nothing improves J. Update: eq. 13, Q(s, a) <- Q(s, a) + beta [r + gamma max_a' Q(s', a') - Q(s, a)]; epsilon-greedy,
+epsilon decaying per episode, from a seeded `numpy.random.Generator`; every episode starts from the trained layer and
+runs at most `steps` actions. The step limit truncates (it is not terminal), so the last step bootstraps.
 
-Returned (`QResult`): the layer with the lowest J among all layers the agent visited - in its training episodes and in one greedy
-rollout of the final Q table (argmax, ties to "keep") from the trained layer - the trained layer included, so that
-J(after) <= J(before) always and an unimprovable layer comes back unchanged. At equal J the earliest found wins, the greedy
-rollout being visited last. `actions` is the action sequence that leads from the trained layer to the returned one, `found_in`
-says where it was found, and `greedy` holds the metrics of the best layer of the greedy rollout alone.
+Returned (`QResult`): the layer with the lowest J among all layers the agent visited - in its training episodes and in
+one greedy rollout of the final Q table (argmax, ties to "keep") from the trained layer - the trained layer included.
+So J(after) <= J(before) always, and an unimprovable layer comes back unchanged. At equal J the earliest found wins (the
+greedy rollout comes last). `actions` leads from the trained layer to the returned one, `found_in` says where it was
+found, and `greedy` holds the metrics of the best layer of the greedy rollout alone.
 
-Choices beyond the paper's text and the first design, and why (numbers: 24 synthetic heads with mis-scaled and shifted
-outputs, 3 seeds each, regret = J(result) - J(best affine recalibration on a fine (k, c) grid)):
-- Actions scale the whole weight vector and shift the bias; they never change the direction of w. Per-weight actions would
-  give 2d + 1 actions (65 for a 32-unit head), far too many for a tabular agent, and changing the direction of w without
-  gradients is a random search against what training fitted. Scale and shift are what moves predictions into a range.
-- Narrow/widen scale about the mean prediction (a plain w (1 +/- s) also moves the mean when mean(h @ w.T) is not 0), and
-  widen divides by the factor that narrow multiplies with, so that the two undo each other exactly.
+Choices beyond the paper's text and the first design, and why. Numbers: 24 synthetic heads with mis-scaled and shifted
+outputs, 3 seeds each; a run "falls short" when its J exceeds that of the best affine recalibration (a fine grid over
+(k, c)) by more than 0.01.
+- Actions scale the whole weight vector and shift the bias; they never change the direction of w. Per-weight actions
+  give 2d + 1 actions (65 for a 32-unit head), far too many for a tabular agent, and turning w without gradients is a
+  random search against what training fitted. Scale and shift are what moves predictions into a range.
+- Narrow/widen scale about the mean prediction (a plain w (1 +/- s) also moves the mean when mean(h @ w.T) is not 0),
+  and widen divides by the factor that narrow multiplies with, so that the two undo each other exactly.
 - States: the range part knows on which side predictions leave it (without it "raise" and "lower" are right in the same
-  state, so a "shift toward the range centre" action is redundant and left out). The accuracy part says in which direction
-  the output is miscalibrated (mean too low/high, spread too narrow/wide; the dead bands are one action wide, so that the
-  optimum has a state of its own) instead of how large the RMSE is relative to the start: the size says that accuracy was
-  lost, not how to get it back. With share x RMSE-ratio states the greedy rollout ended more than 0.01 above the best
-  recalibration in 34 of 72 runs; with these states in 7 of 72.
-- gamma defaults to 0.3: a state covers many layers at different distances from the optimum, and values bootstrapped from it
-  mislead; greedy failures rose from 7 to 27 of 72 at gamma 0.9.
-- The result is the best layer visited in training as well as in the greedy rollout: with the greedy rollout alone 7 of 72
-  runs fell short by more than 0.01; with the best visited none did (largest regret 0.003, about one action's resolution).
-- "keep" ends the episode. As a self-loop it is worth gamma V(s), about as much as the best action, and the greedy rollout
-  stalled on it far from the optimum.
-The problem is two-dimensional and smooth, so a direct search over (k, c) would do as well; Q-learning is kept because it is
-the paper's method.
+  state; with it a "shift toward the range centre" action is redundant and left out). The accuracy part says in which
+  direction the output is miscalibrated (dead bands one action wide, so that the calibrated point has a state of its
+  own) instead of how large the RMSE is relative to the start, which says that accuracy was lost but not how to get it
+  back. With share x RMSE-ratio states the greedy rollout fell short in 34 of 72 runs; with these states in 7 of 72.
+- gamma defaults to 0.3: a state covers layers at different distances from the optimum, and values bootstrapped from it
+  mislead; at gamma 0.9 the greedy rollout fell short in 27 of 72 runs.
+- The result is the best layer visited in training as well as in the greedy rollout: the greedy rollout alone fell
+  short in 7 of 72 runs, the best visited in none (largest excess 0.003, about one action's resolution).
+- "keep" ends the episode. As a self-loop it is worth gamma V(s), about as much as the best action, and the greedy
+  rollout stalled on it far from the optimum.
+The problem is two-dimensional and smooth, so a direct search over (k, c) would do as well; Q-learning is kept because
+it is the paper's method.
 
-Simpler bounds to compare with in the tables: `clip(predictions, allowed_range)` (clipping never increases the error of a
-sample whose true mu lies in the range), and a bounded output activation lo + (hi - lo) sigmoid(z), a model config option of
-`sa_cnn_lstm.py`. A model with such an activation after its last `nn.Linear` cannot be refined here (the layer's output is not
-its prediction); `refine_model` refuses it.
+Simpler bounds to compare with in the tables: `clip(predictions, allowed_range)` (clipping never increases the error of
+a sample whose true mu lies in the range), and a bounded output activation lo + (hi - lo) sigmoid(z), a model config
+option of `sa_cnn_lstm.py`. On a head that is accurate but whose noise spills over the range edges, clipping wins (RMSE
+0.049 -> 0.048 with none out of range; the agent: 2.8 % -> 0.6 % out, RMSE 0.049 -> 0.056); on a mis-scaled head the
+agent wins (RMSE 0.22 -> 0.05, clipping 0.17). A model with an activation after its last `nn.Linear` cannot be refined
+here (the layer's output is not its prediction); `refine_model` refuses it.
 """
-
 from __future__ import annotations
 
 import math
@@ -131,7 +134,8 @@ class QConfig:
         edges = self.share_edges
         if (not isinstance(edges, tuple) or not edges or not all(_is_number(v) and 0 < v <= 1 for v in edges)
                 or any(a >= b for a, b in zip(edges, edges[1:]))):
-            raise ValueError(f"QConfig.share_edges must be a non-empty increasing tuple of numbers in (0, 1], got {edges!r}")
+            raise ValueError(f"QConfig.share_edges must be a non-empty increasing tuple of numbers in (0, 1], "
+                             f"got {edges!r}")
 
     @property
     def n_states(self) -> int:
@@ -145,8 +149,8 @@ class QConfig:
 
 @dataclass(frozen=True)
 class RangeMetrics:
-    """Accuracy and range of n predictions (mu units): RMSE and MAE (eq. 14), the counts below and above the allowed range,
-    and the mean over all n samples of the distance outside it."""
+    """Accuracy and range of n predictions (mu units): RMSE and MAE (eq. 14), the counts below and above the allowed
+    range, and the mean over all n samples of the distance outside it."""
 
     n: int
     rmse: float
@@ -173,7 +177,7 @@ class QResult:
     actions: tuple[str, ...]  # from the trained layer to the returned one
     found_in: str  # "trained layer", "episode N" or "greedy rollout"
     q_table: np.ndarray  # (n_states, len(ACTIONS))
-    history: list[dict]  # per episode: episode, epsilon, steps, return, objective, rmse, share_out_of_range (at its end)
+    history: list[dict]  # per episode: episode, epsilon, steps, return; objective, rmse, share_out_of_range at its end
     before: RangeMetrics  # trained layer
     after: RangeMetrics  # returned layer
     greedy: RangeMetrics  # best layer of the greedy rollout alone
@@ -203,7 +207,8 @@ def range_metrics(predictions: np.ndarray, y: np.ndarray,
 
 def q_update(q: np.ndarray, state: int, action: int, reward: float, next_state: int | None, beta: float, gamma: float,
              terminal: bool = False) -> float:
-    """Eq. 13 in place; returns the new Q(s, a). A terminal step (the agent stopped) has no next state to bootstrap from."""
+    """Eq. 13 in place; returns the new Q(s, a). A terminal step (the agent stopped) has no next state to bootstrap
+    from."""
     future = 0.0 if terminal else gamma * float(np.max(q[next_state]))
     # eq. 13: Q(s_t, a_t) <- Q(s_t, a_t) + beta [r_{t+1} + gamma max_a Q(s_{t+1}, a) - Q(s_t, a_t)]
     q[state, action] += beta * (reward + future - q[state, action])
@@ -217,8 +222,8 @@ class QRefiner:
         self.config = config
 
     def fit(self, h_val: np.ndarray, y_val: np.ndarray, w: np.ndarray, b: np.ndarray) -> QResult:
-        """h_val (n, d): the output layer's input on validation windows; y_val (n,): true mu; w (1, d), b (1,): the trained
-        layer. Sets `q_table_` and `result_`."""
+        """h_val (n, d): the output layer's input on validation windows; y_val (n,): true mu; w (1, d), b (1,): the
+        trained layer. Sets `q_table_` and `result_`."""
         cfg = self.config
         h, y, w, b = _check_fit_inputs(h_val, y_val, w, b)
         head = _AffineHead(h @ w[0], y, cfg.allowed_range)
@@ -250,7 +255,8 @@ class QRefiner:
                 if objective < best[0]:
                     best = (objective, params, tuple(taken), f"episode {episode}")
             history.append({"episode": episode, "epsilon": epsilon, "steps": len(taken), "return": total,
-                            "objective": objective, "rmse": metrics.rmse, "share_out_of_range": metrics.share_out_of_range})
+                            "objective": objective, "rmse": metrics.rmse,
+                            "share_out_of_range": metrics.share_out_of_range})
         greedy = self._greedy_rollout(q, head, start)
         if greedy[0] < best[0]:
             best = greedy
@@ -264,7 +270,8 @@ class QRefiner:
         return self.result_
 
     def _greedy_rollout(self, q, head, start):
-        """(J, params, actions, "greedy rollout") of the best layer (start included) on the greedy path of the Q table."""
+        """(J, params, actions, "greedy rollout") of the best layer (start included) on the greedy path of the Q
+        table."""
         cfg = self.config
         params, metrics, taken = start, head.metrics(*start), []
         best = (cfg.objective(metrics), start, (), "greedy rollout")
@@ -314,8 +321,8 @@ def _three_way(value: float, half_band: float) -> int:
 
 
 class _AffineHead:
-    """The predictions p = k z + c (k > 0) of n samples, z = h @ w_trained.T, summarized so that their metrics cost O(log n)
-    per (k, c): moments of z and y, and the sorted z with prefix sums. MAE (not used by the agent) is left NaN."""
+    """The predictions p = k z + c (k > 0) of n samples, z = h @ w_trained.T, summarized so that their metrics cost
+    O(log n) per (k, c): moments of z and y, and the sorted z with prefix sums. MAE (not used by the agent) is NaN."""
 
     def __init__(self, z: np.ndarray, y: np.ndarray, allowed_range: tuple[float, float]):
         self.lo, self.hi = allowed_range
@@ -329,7 +336,7 @@ class _AffineHead:
         return k * self.z_mean + c
 
     def log_spread_ratio(self, k: float) -> float:
-        """log(var p / cov(p, y)): > 0 where narrowing about the mean lowers the MSE (the predictions spread too wide)."""
+        """log(var p / cov(p, y)): > 0 where narrowing about the mean lowers the MSE (predictions spread too wide)."""
         if self.var_z <= 0.0:
             return 0.0  # constant predictions: narrow and widen change nothing
         if self.cov_zy <= 0.0:
@@ -342,10 +349,11 @@ class _AffineHead:
         offset = self.mean_prediction(k, c) - self.y_mean
         mse = k * k * self.var_z - 2.0 * k * self.cov_zy + self.var_y + offset * offset
         n_below = int(np.searchsorted(self.z_sorted, (self.lo - c) / k, side="left"))  # p < lo  <=>  z < (lo - c) / k
-        first_above = int(np.searchsorted(self.z_sorted, (self.hi - c) / k, side="right"))  # p > hi  <=>  z > (hi - c) / k
+        first_above = int(np.searchsorted(self.z_sorted, (self.hi - c) / k, side="right"))  # p > hi <=> z > (hi-c)/k
         n_above = n - first_above
         excess_below = n_below * (self.lo - c) - k * self.prefix[n_below]  # sum of lo - p over p < lo
-        excess_above = k * (self.prefix[n] - self.prefix[first_above]) - n_above * (self.hi - c)  # sum of p - hi over p > hi
+        # sum of p - hi over p > hi
+        excess_above = k * (self.prefix[n] - self.prefix[first_above]) - n_above * (self.hi - c)
         return RangeMetrics(n=n, rmse=math.sqrt(max(mse, 0.0)), mae=math.nan, n_below=n_below, n_above=n_above,
                             mean_excess=max(excess_below + excess_above, 0.0) / n)
 
@@ -367,8 +375,9 @@ def penultimate(model: nn.Module, x: np.ndarray | torch.Tensor, batch_size: int 
 
 
 def refine_model(model: nn.Module, x_val: np.ndarray, y_val: np.ndarray, config: QConfig = QConfig()) -> QResult:
-    """Fits a QRefiner on the model's validation windows and writes the refined weights and bias into its output layer, in
-    place. The result holds the trained (w_start, b_start) and refined (w, b) layers and the metrics before and after."""
+    """Fits a QRefiner on the model's validation windows and writes the refined weights and bias into its output layer,
+    in place. The result holds the trained (w_start, b_start) and refined (w, b) layers, and the metrics before and
+    after."""
     h, z, predictions = _head_io(model, x_val)
     if not np.allclose(z, predictions, rtol=0.0, atol=1e-6):
         raise ValueError(f"model {type(model).__name__} transforms the output of its last nn.Linear (a bounded "
@@ -382,7 +391,7 @@ def refine_model(model: nn.Module, x_val: np.ndarray, y_val: np.ndarray, config:
 
 
 def _head_io(model: nn.Module, x, batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(h (n, d), layer output (n,), model prediction (n,)), float64, captured with a forward hook on the output layer."""
+    """(h (n, d), layer output (n,), model prediction (n,)), float64, from a forward hook on the output layer."""
     layer = output_layer(model)
     if layer.out_features != 1 or layer.bias is None:
         raise ValueError(f"the output layer of {type(model).__name__} must have 1 output and a bias, got "
@@ -407,8 +416,8 @@ def _head_io(model: nn.Module, x, batch_size: int = 4096) -> tuple[np.ndarray, n
         return np.zeros((0, layer.in_features)), np.zeros(0), np.zeros(0)
     h, z = torch.cat(inputs), torch.cat(outputs)
     if h.ndim != 2 or h.shape[0] != len(x):
-        raise ValueError(f"the output layer of {type(model).__name__} must see one vector per window, got inputs of shape "
-                         f"{tuple(h.shape)} for {len(x)} windows")
+        raise ValueError(f"the output layer of {type(model).__name__} must see one vector per window, got inputs of "
+                         f"shape {tuple(h.shape)} for {len(x)} windows")
     return (h.cpu().numpy().astype(np.float64), z.reshape(-1).cpu().numpy().astype(np.float64),
             torch.cat(predictions).cpu().numpy().astype(np.float64))
 

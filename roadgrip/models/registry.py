@@ -11,7 +11,7 @@ from torch import nn
 from roadgrip.models.cnn import CNN, CNNConfig
 from roadgrip.models.convlstm import ConvLSTM, ConvLSTMConfig
 from roadgrip.models.dnn import DNN, DNNConfig
-from roadgrip.models.sa_cnn_lstm import SACNNLSTM, SACNNLSTMConfig
+from roadgrip.models.sa_cnn_lstm import SACNNLSTM, BoundedSACNNLSTMConfig, SACNNLSTMConfig
 from roadgrip.validation import check_choice
 
 MODELS = {
@@ -19,8 +19,11 @@ MODELS = {
     "cnn": (CNNConfig, CNN),
     "convlstm": (ConvLSTMConfig, ConvLSTM),
     "sa-cnn-lstm": (SACNNLSTMConfig, SACNNLSTM),
+    "sa-cnn-lstm-bounded": (BoundedSACNNLSTMConfig, SACNNLSTM),
 }
-DISPLAY_NAMES = {"dnn": "DNN", "cnn": "CNN", "convlstm": "ConvLSTM", "sa-cnn-lstm": "SA-CNN-LSTM"}
+PAPER_MODELS = ("dnn", "cnn", "convlstm", "sa-cnn-lstm")  # the architectures of the paper's tables
+DISPLAY_NAMES = {"dnn": "DNN", "cnn": "CNN", "convlstm": "ConvLSTM", "sa-cnn-lstm": "SA-CNN-LSTM",
+                 "sa-cnn-lstm-bounded": "SA-CNN-LSTM (bounded output)"}
 SEARCH_SPACES = {
     "dnn": [{"hidden": (32, 16)}, {"hidden": (64, 32)}, {"hidden": (128, 64)}],
     "cnn": [{"channels": (16, 16), "hidden": 16}, {"channels": (32, 32), "hidden": 32}, {"channels": (64, 64), "hidden": 64}],
@@ -29,6 +32,7 @@ SEARCH_SPACES = {
                     {"d_attention": 16, "channels": (32, 32), "lstm_hidden": 32},
                     {"d_attention": 32, "channels": (64, 64), "lstm_hidden": 64}],
 }
+SEARCH_SPACES["sa-cnn-lstm-bounded"] = SEARCH_SPACES["sa-cnn-lstm"]
 SEARCH_BUDGET = 3
 
 

@@ -19,6 +19,7 @@ class SACNNLSTMConfig:
     kernel: int = 3
     lstm_hidden: int = 32
     dropout: float = 0.1
+    output_range: tuple[float, float] | None = None  # bounded output activation lo + (hi - lo) sigmoid(z), or none
 
 
 class SelfAttention(nn.Module):
@@ -48,9 +49,21 @@ class SACNNLSTM(nn.Module):
         )
         self.lstm = nn.LSTM(c2, config.lstm_hidden, batch_first=True)
         self.head = nn.Sequential(nn.Dropout(config.dropout), nn.Linear(config.lstm_hidden, 1))
+        self.output_range = config.output_range
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         attended = torch.cat([x, self.attention(x)], dim=-1)  # (B, T, F + d): the input and its attended context
         features = self.conv(attended.transpose(1, 2)).transpose(1, 2)  # (B, T/2, C2)
         _, (h, _) = self.lstm(features)  # h: (1, B, H), the state after the last step
-        return self.head(h[-1]).squeeze(-1)
+        z = self.head(h[-1]).squeeze(-1)
+        if self.output_range is None:
+            return z
+        low, high = self.output_range
+        return low + (high - low) * torch.sigmoid(z)
+
+
+@dataclass(frozen=True)
+class BoundedSACNNLSTMConfig(SACNNLSTMConfig):
+    """SA-CNN-LSTM whose output activation keeps it in the allowed range (the simple alternative to Q-learning)."""
+
+    output_range: tuple[float, float] | None = (0.0, 1.2)

@@ -15,7 +15,7 @@ from roadgrip.sim.roads import MU_MAX, MuProfile, Path
 from roadgrip.sim.scenario import Scenario
 from roadgrip.units import G_MPS2, kmh_to_mps
 from roadgrip.validation import check_choice
-from roadgrip.vehicle.params import MIDSIZE_SEDAN, PAPER_SUV, TireParams, VehicleParams
+from roadgrip.vehicle.params import COMPACT_HATCHBACK, MIDSIZE_SEDAN, PAPER_SUV, TireParams, VehicleParams
 from roadgrip.vehicle.tires import BurckhardtTire, DugoffTire, MagicFormulaTire
 
 PAPER_DURATION_S = 40.0
@@ -32,7 +32,7 @@ PAPER_CONDITIONS = {
 PAPER_ROADS = ("straight", "circular")
 RANDOM_MANOEUVRES = ("acceleration", "braking_abs", "braking_no_abs", "lane_change", "steady_curve", "sine_steer",
                      "cruise")
-PRESETS = ("paper", "random")
+PRESETS = ("paper", "random", "generalization-train", "generalization-calibration", "generalization-test")
 TRAINING_VEHICLES = (PAPER_SUV, MIDSIZE_SEDAN)  # the random preset's vehicles; the compact hatchback is held out
 TYPICAL_WHEELBASE_M = 2.9  # to size steering inputs before the vehicle is drawn
 
@@ -225,10 +225,31 @@ def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_D
     return scenarios
 
 
+GENERALIZATION_TRAIN_MU_BANDS = ((0.1, 0.45), (0.55, 0.85))
+GENERALIZATION_TEST_MU_BANDS = ((0.45, 0.55), (0.85, 1.0))
+GENERALIZATION_RUNS = {"train": 160, "calibration": 40, "test": 40}
+
+
+def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None) -> list[Scenario]:
+    """The generalization benchmark's data (DESIGN 4): `train` and `calibration` runs on the sedan and the SUV with mu in
+    GENERALIZATION_TRAIN_MU_BANDS; `test` runs on the held-out compact hatchback with mu only in the held-out bands.
+    Steps only: ramps would pass through the held-out bands."""
+    check_choice("generalization", "part", part, set(GENERALIZATION_RUNS))
+    n = GENERALIZATION_RUNS[part] if runs is None else runs
+    offset = {"train": 0, "calibration": 1, "test": 2}[part]
+    if part == "test":
+        return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TEST_MU_BANDS, vehicles=(COMPACT_HATCHBACK,),
+                                prefix=part, ramps=False)
+    return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TRAIN_MU_BANDS, vehicles=TRAINING_VEHICLES,
+                            prefix=part, ramps=False)
+
+
 def preset_scenarios(preset: str, runs: int | None = None, seed: int = 0) -> list[Scenario]:
     check_choice("simulate", "preset", preset, set(PRESETS))
     if preset == "paper":
         if runs is not None and runs != 20:
             raise ValueError(f"the paper preset has exactly 20 runs (5 conditions x 2 roads x 2 experiments), got runs={runs}")
         return paper_scenarios(seed)
+    if preset.startswith("generalization-"):
+        return generalization_scenarios(preset.removeprefix("generalization-"), seed, runs)
     return random_scenarios(100 if runs is None else runs, seed)

@@ -3,7 +3,7 @@ and the calibration of the 90 % interval on the validation windows."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pyarrow as pa
@@ -56,6 +56,12 @@ def prepare(table: pa.Table, feature_set: str, window: int = WINDOW, vehicles: d
                                 for c in ("accel_lon_mps2", "accel_lat_mps2", "abs_active")])
     return PreparedData(windows, mu.astype(np.float32)[ends], runs[ends], blocks[ends], t_s[ends], feature_set,
                         exc[ends], measured[ends])
+
+
+def subset(data: PreparedData, idx: np.ndarray) -> PreparedData:
+    """The windows idx of a prepared data set."""
+    return replace(data, windows=data.windows[idx], targets=data.targets[idx], runs=data.runs[idx],
+                   blocks=data.blocks[idx], t_s=data.t_s[idx], excited=data.excited[idx], measured=data.measured[idx])
 
 
 def block_split(data: PreparedData, fold: int = SELECTION_FOLD) -> tuple[np.ndarray, np.ndarray]:

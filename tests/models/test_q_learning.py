@@ -1,17 +1,19 @@
+import re
+
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
-from roadgrip.models.q_learning import (ACTIONS, QConfig, QRefiner, _AffineHead, clip, output_layer, penultimate, q_update,
-                                        range_metrics, refine_model)
+from roadgrip.models.q_learning import (ACTIONS, QConfig, QRefiner, _AffineHead, clip, output_layer, penultimate,
+                                        q_update, range_metrics, refine_model)
 from roadgrip.models.registry import MODELS, build_model, model_config
 from roadgrip.training.trainer import predict
 
 
 def _linear_head(seed=0, n=2000, d=8, noise=0.05, stretch=1.0, shift=0.0, mu_low=0.05, mu_high=1.15):
-    """Features h whose first column carries mu with `noise`, the least-squares head (w, b) on them, then its output stretched
-    about its mean by `stretch` and moved by `shift` (mu)."""
+    """Features h whose first column carries mu with `noise`, the least-squares head (w, b) on them, then its output
+    stretched about its mean by `stretch` and moved by `shift` (mu)."""
     rng = np.random.default_rng(seed)
     h = rng.normal(size=(n, d))
     y = rng.uniform(mu_low, mu_high, n)
@@ -92,7 +94,8 @@ def test_the_returned_actions_lead_to_the_returned_layer():
     for name in result.actions:
         params = refiner._act(ACTIONS.index(name), params, head)
     assert np.allclose(params[0] * w, result.w) and params[1] == pytest.approx(result.b[0])
-    assert len(result.history) == refiner.config.episodes and result.q_table.shape == (refiner.config.n_states, len(ACTIONS))
+    assert len(result.history) == refiner.config.episodes
+    assert result.q_table.shape == (refiner.config.n_states, len(ACTIONS))
 
 
 def test_same_seed_same_result():
@@ -170,7 +173,7 @@ def test_clip_bounds_predictions():
     ("allowed_range", (1.2, 0.0)), ("allowed_range", (0.0,)), ("share_edges", (0.1, 0.01)), ("share_edges", (0.0, 0.1)),
 ])
 def test_bad_config_values_name_the_field_and_value(field, value):
-    with pytest.raises(ValueError, match=rf"QConfig\.{field} must .*got {value!r}".replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(ValueError, match=rf"QConfig\.{field} must .*got {re.escape(repr(value))}"):
         QConfig(**{field: value})
 
 
