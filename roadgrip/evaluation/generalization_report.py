@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+import pyarrow.csv as pacsv
 from matplotlib.figure import Figure
 
-from roadgrip.evaluation.report import write_metrics_csv
 
 COLUMNS = [
     ("model", "model", "{}"), ("feature_set", "features", "{}"),
@@ -76,7 +76,7 @@ def plot_run(predictions: pa.Table, run_id: str, models: list[str], path: Path) 
 def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_metrics_csv(metrics, out / "metrics.csv")
+    pacsv.write_csv(pa.Table.from_pylist(metrics), out / "metrics.csv")
     (out / "tables.md").write_text(generalization_markdown(metrics))
     best_learned = min((r for r in metrics if r["feature_set"] != "-"), key=lambda r: r["rmse_excited"])["model"]
     excited_share = {}

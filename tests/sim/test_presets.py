@@ -97,3 +97,22 @@ def test_preset_errors_name_the_problem():
         preset_scenarios("paper", runs=5)
     with pytest.raises(ValueError, match="runs must be >= 1, got 0"):
         preset_scenarios("random", runs=0)
+
+
+def test_generalization_presets_hold_out_mu_bands_and_a_vehicle():
+    from roadgrip.sim.presets import GENERALIZATION_TEST_MU_BANDS, generalization_scenarios
+
+    def in_bands(mu, bands):
+        return any(lo <= mu <= hi for lo, hi in bands)
+
+    train = generalization_scenarios("train", seed=0, runs=60) + generalization_scenarios("calibration", seed=0, runs=20)
+    test = generalization_scenarios("test", seed=0, runs=20)
+    for s in train:
+        assert s.mu.mode == "step"
+        assert not any(lo < m < hi for lo, hi in GENERALIZATION_TEST_MU_BANDS for m in np.r_[s.mu.mu_left, s.mu.mu_right])
+        assert not s.vehicle.name.startswith("test")
+    for s in test:
+        assert s.mu.mode == "step"
+        assert all(in_bands(m, GENERALIZATION_TEST_MU_BANDS) for m in np.r_[s.mu.mu_left, s.mu.mu_right])
+    assert {round(s.vehicle.wheelbase_m / 2.55, 1) for s in test} == {1.0}, "all around the compact hatchback"
+    assert not {s.run_id for s in train} & {s.run_id for s in test}
