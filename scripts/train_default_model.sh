@@ -5,8 +5,8 @@
 # benchmark's held-out calibration runs.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-model=${1:-MODEL_CHOSEN}
-features=${2:-FEATURES_CHOSEN}
+model=${1:-convlstm}
+features=${2:-physics}
 roadgrip simulate --preset generalization-train --seed 0 --out build/generalization-train --overwrite
 roadgrip simulate --preset generalization-calibration --seed 0 --out build/generalization-calibration --overwrite
 cmd=(roadgrip train --model "$model" --features "$features" --data build/generalization-train

@@ -45,20 +45,18 @@ def generalization_markdown(metrics: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_run(predictions: pa.Table, run_id: str, models: list[str], path: Path) -> Path:
-    """Truth, estimates and 90 % intervals of some estimators along one test run."""
+def plot_run(predictions: pa.Table, run_id: str, models: list[tuple[str, str]], path: Path) -> Path:
+    """Truth, estimates and 90 % intervals of some (model, feature set) estimators along one test run."""
     fig = Figure(figsize=(10, 3.2 * len(models)))
     axes = fig.subplots(len(models), 1, sharex=True, squeeze=False)[:, 0]
     run = predictions.filter(pc.equal(predictions["run_id"], run_id))
-    for ax, model in zip(axes, models):
-        rows = run.filter(pc.equal(run["model"], model))
+    for ax, (model, feature_set) in zip(axes, models):
+        rows = run.filter(pc.and_(pc.equal(run["model"], model), pc.equal(run["feature_set"], feature_set)))
         if rows.num_rows == 0:
             continue
-        first_fs = rows["feature_set"][0].as_py()
-        rows = rows.filter(pc.equal(rows["feature_set"], first_fs))
         t = rows["t_s"].to_numpy()
         ax.plot(t, rows["mu_true"].to_numpy(), color="k", lw=1.5, label="true mu")
-        ax.plot(t, rows["mu_pred"].to_numpy(), lw=1.0, label=f"{model} ({first_fs})")
+        ax.plot(t, rows["mu_pred"].to_numpy(), lw=1.0, label=f"{model} ({feature_set} features)")
         ax.fill_between(t, rows["mu_lower"].to_numpy(), rows["mu_upper"].to_numpy(), alpha=0.2, label="90 % interval")
         excited = rows["excited"].to_numpy()
         ax.scatter(t[excited], rows["mu_true"].to_numpy()[excited], s=6, color="r", label="excited samples", zorder=3)
@@ -78,11 +76,12 @@ def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_
     out.mkdir(parents=True, exist_ok=True)
     pacsv.write_csv(pa.Table.from_pylist(metrics), out / "metrics.csv")
     (out / "tables.md").write_text(generalization_markdown(metrics))
-    best_learned = min((r for r in metrics if r["feature_set"] != "-"), key=lambda r: r["rmse_excited"])["model"]
+    best = min((r for r in metrics if r["feature_set"] != "-"), key=lambda r: r["rmse_excited"])
     excited_share = {}
     for run_id in np.unique(predictions["run_id"].to_numpy(zero_copy_only=False)):
         run = predictions.filter(pc.equal(predictions["run_id"], run_id))
         excited_share[run_id] = float(run["excited"].to_numpy().mean())
     run_id = max(excited_share, key=excited_share.get)
-    figure = plot_run(predictions, run_id, [best_learned, "EKF"], out / "estimates_with_intervals.png")
+    figure = plot_run(predictions, run_id, [(best["model"], best["feature_set"]), ("EKF", "-")],
+                      out / "estimates_with_intervals.png")
     return {"metrics_csv": out / "metrics.csv", "tables_md": out / "tables.md", "figures": [figure]}

@@ -20,10 +20,11 @@ def run_table():
 
 def test_default_model_ships_with_how_it_was_trained():
     estimator = load_estimator("default")
-    assert estimator.feature_set == "terminal" and estimator.window == 10
+    assert estimator.feature_set == "physics" and estimator.window == 10
     record = json.loads(default_model_path().with_suffix(".json").read_text())
-    assert record["command"].startswith("roadgrip train") and "--experiment 1" in record["command"]
-    assert record["training"]["data_seed"] == 0
+    assert record["command"].startswith("roadgrip train") and "--calibration" in record["command"]
+    assert record["training"]["data_seed"] == 0 and record["training"]["preset"] == "generalization-train"
+    assert record["interval"]["method"] == "split conformal by utilization bin"
 
 
 def test_batch_estimates_follow_the_contract(run_table):
