@@ -294,7 +294,8 @@ def bench_sim_command(
 def demo(
     out: Path = typer.Option(Path("roadgrip-demo"), help="folder for the demo's dataset and figure"),
 ):
-    """The main job end to end on this machine: simulate the paper's data set and show what the road did to the car."""
+    """The main job end to end on this machine: simulate the paper's data set, show what the road did to the car, and
+    estimate mu from the telemetry alone."""
     from roadgrip.sim.plots import plot_run
 
     scenarios, table, wall = _simulate_dataset("paper", None, 0, out / "paper-dataset", overwrite=True)
@@ -312,3 +313,32 @@ def demo(
     console.print(summary)
     figure = plot_run(table, "paper-decreasing-straight-e1", out / "paper-decreasing-straight-e1.png")
     console.print(f"dataset: {out / 'paper-dataset'}\nfigure: {figure}")
+    _demo_estimates(table, out)
+
+
+def _demo_estimates(table, out: Path) -> None:
+    """Estimate mu on the decreasing road's test run with the physics filter and the shipped model, as a terminal's
+    telemetry would arrive, and say how close each came where the road made mu observable."""
+    from roadgrip.data.tables import write_table
+    from roadgrip.estimators.excitation import excited
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.evaluation.metrics import rmse
+    from roadgrip.vehicle.params import PAPER_SUV
+
+    run = table.filter(pc.equal(table["run_id"], "paper-decreasing-straight-e2"))
+    truth_excited = excited(run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy(),
+                            run["abs_active"].to_numpy(), run["mu"].to_numpy())
+    report = Table(title="mu estimated on paper-decreasing-straight-e2 (telemetry only)")
+    for name in ("estimator", "estimates", "RMSE where excited", "RMSE all", "share judged excited"):
+        report.add_column(name, justify="left" if name == "estimator" else "right")
+    for spec in ("ekf", "default"):
+        estimator = load_estimator(spec)
+        estimates = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), PAPER_SUV)
+        write_table(estimates, out / f"estimates-{estimator.name}.csv")
+        offset = run.num_rows - estimates.num_rows  # a windowed model starts when its first window is full
+        mu, true = estimates["mu"].to_numpy(), run["mu"].to_numpy()[offset:]
+        exc = truth_excited[offset:]
+        report.add_row(estimator.name, str(estimates.num_rows), f"{rmse(mu[exc], true[exc]):.3f}",
+                       f"{rmse(mu, true):.3f}", f"{estimates['excited'].to_numpy().mean():.0%}")
+    console.print(report)
+    console.print(f"estimates: {out}/estimates-*.csv")

@@ -7,7 +7,7 @@ from torch import nn
 
 from roadgrip.models.q_learning import (ACTIONS, QConfig, QRefiner, _AffineHead, clip, output_layer, penultimate,
                                         q_update, range_metrics, refine_model)
-from roadgrip.models.registry import MODELS, build_model, model_config
+from roadgrip.models.registry import PAPER_MODELS, build_model, model_config
 from roadgrip.training.trainer import predict
 
 
@@ -108,7 +108,7 @@ def test_same_seed_same_result():
     assert not np.array_equal(first.q_table, other.q_table)
 
 
-@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("name", sorted(PAPER_MODELS))
 def test_penultimate_times_the_output_layer_is_the_models_prediction(name):
     torch.manual_seed(0)
     model = build_model(name, model_config(name, n_features=9, window=10))
@@ -123,7 +123,7 @@ def test_penultimate_times_the_output_layer_is_the_models_prediction(name):
     np.testing.assert_allclose(h @ w.T[:, 0] + b[0], predict(model, x), atol=1e-5)
 
 
-@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("name", sorted(PAPER_MODELS))
 def test_refine_model_writes_the_refined_layer_into_the_model(name):
     torch.manual_seed(0)
     model = build_model(name, model_config(name, n_features=9, window=10))
@@ -140,6 +140,13 @@ def test_refine_model_writes_the_refined_layer_into_the_model(name):
     after = range_metrics(predict(model, x), y)
     assert after.n_out_of_range == result.after.n_out_of_range
     assert after.rmse == pytest.approx(result.after.rmse, abs=1e-5)
+
+
+def test_refine_model_refuses_the_bounded_sa_cnn_lstm():
+    model = build_model("sa-cnn-lstm-bounded", model_config("sa-cnn-lstm-bounded", n_features=9, window=10))
+    x = torch.randn(50, 10, 9).numpy()
+    with pytest.raises(ValueError):
+        refine_model(model, x, np.full(50, 0.5), QConfig(seed=0, episodes=5))
 
 
 def test_refine_model_refuses_an_output_that_is_transformed_after_the_last_linear():
