@@ -225,6 +225,18 @@ def new_segment(mem):
     mem[M_SNR] = 0.0
 
 
+@njit(cache=True)
+def run_batch(step, prm, samples, segments, out, counters):
+    """A filter's step kernel over the rows of one vehicle, restarting where the segment id changes."""
+    mem = np.zeros(N_MEM)
+    for k in range(samples.shape[0]):
+        if k > 0 and segments[k] != segments[k - 1]:
+            new_segment(mem)
+        step(mem, prm, samples[k], out[k])
+    counters[0] = mem[M_REJECTED]
+    counters[1] = mem[M_RESTARTS]
+
+
 # ------------------------------------------------------------------------------------------ estimator plumbing
 
 class FilterState:
@@ -240,7 +252,7 @@ class FilterState:
 
 class KalmanEstimator(Estimator):
     """A Kalman filter on vehicle_model behind the estimator interface. A subclass names itself and gives its compiled
-    `step_kernel(mem, prm, smp, out)` and `batch_kernel(prm, samples, segments, out, counters)`.
+    `step_kernel(mem, prm, smp, out)`, which `run_batch` also drives over a whole table.
 
     Every sample gets an estimate, from the first one on (there the prior: mu_initial with a wide interval, not
     excited); a sample with a missing or non-finite value is rejected (counted in the state) and repeats the previous
@@ -248,7 +260,6 @@ class KalmanEstimator(Estimator):
 
     name: str
     step_kernel = None
-    batch_kernel = None
 
     def __init__(self, tuning: FilterTuning | None = None, vehicle: VehicleParams | None = None):
         if tuning is not None and not isinstance(tuning, FilterTuning):
@@ -321,7 +332,8 @@ class KalmanEstimator(Estimator):
             raise ValueError(f"segments must give one id per row ({table.num_rows}), got shape {segments.shape}")
         out = np.zeros((table.num_rows, N_OUT))
         counters = np.zeros(2)
-        type(self).batch_kernel(pack_model(vehicle, self.tuning), samples, segments.astype(np.int64), out, counters)
+        run_batch(type(self).step_kernel, pack_model(vehicle, self.tuning), samples, segments.astype(np.int64), out,
+                  counters)
         return out, {"rejected": int(counters[0]), "restarts": int(counters[1])}
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:

@@ -29,8 +29,8 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_REJECTED, M_RESTARTS, M_U, M_X, N_MEM, REJECT, STEP, KalmanEstimator, begin, cholesky, cholesky_solve,
-    commit, matmul, matmul_bt, new_segment, output, symmetrize,
+    M_P, M_REJECTED, M_U, M_X, REJECT, STEP, KalmanEstimator, begin, cholesky, cholesky_solve,
+    commit, matmul, matmul_bt, output, symmetrize,
 )
 from roadgrip.estimators.vehicle_model import (
     MU, N_U, N_X, N_Z, T_MIN_SPEED, T_SNR, T_UKF_ALPHA, U_AX, U_AY, VX, loads_from_accel, measure, measurement_noise,
@@ -250,21 +250,8 @@ def ukf_step(mem, prm, smp, out):
     output(mem, prm, accepted, out)
 
 
-@njit(cache=True)
-def ukf_batch(prm, samples, segments, out, counters):
-    """ukf_step over the rows of one vehicle, restarting where the segment id changes."""
-    mem = np.zeros(N_MEM)
-    for k in range(samples.shape[0]):
-        if k > 0 and segments[k] != segments[k - 1]:
-            new_segment(mem)
-        ukf_step(mem, prm, samples[k], out[k])
-    counters[0] = mem[M_REJECTED]
-    counters[1] = mem[M_RESTARTS]
-
-
 class UKFEstimator(KalmanEstimator):
     """mu from an unscented Kalman filter on a vehicle + Dugoff tire model (docs/ESTIMATORS.md)."""
 
     name = "ukf"
     step_kernel = staticmethod(ukf_step)
-    batch_kernel = staticmethod(ukf_batch)
