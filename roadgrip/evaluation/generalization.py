@@ -73,9 +73,13 @@ def evaluate_predictions(model: str, feature_set: str, test: PreparedData, pred,
     judged = utilization_bin(m[:, 0], m[:, 1], m[:, 2] > 0.5, pred) == 2
     inside = (test.targets >= lower) & (test.targets <= upper)
     width = upper - lower
+    inner = exc & (test.targets < 0.7)  # the held-out band inside the trained range: interpolation
+    upper_band = exc & (test.targets >= 0.7)  # the band above it: extrapolation
     return {
         "model": model, "feature_set": feature_set,
         "rmse_excited": rmse(pred[exc], test.targets[exc]), "mae_excited": mae(pred[exc], test.targets[exc]),
+        "rmse_excited_045_055": rmse(pred[inner], test.targets[inner]) if inner.any() else float("nan"),
+        "rmse_excited_085_100": rmse(pred[upper_band], test.targets[upper_band]) if upper_band.any() else float("nan"),
         "rmse_all": rmse(pred, test.targets), "mae_all": mae(pred, test.targets),
         "coverage_all": float(inside.mean()), "coverage_excited": float(inside[exc].mean()),
         "coverage_not_excited": float(inside[~exc].mean()),

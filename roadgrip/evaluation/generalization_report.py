@@ -9,12 +9,15 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
 from matplotlib.figure import Figure
 
 
 COLUMNS = [
     ("model", "model", "{}"), ("feature_set", "features", "{}"),
     ("rmse_excited", "RMSE excited", "{:.3f}"), ("mae_excited", "MAE excited", "{:.3f}"),
+    ("rmse_excited_045_055", "RMSE excited, mu 0.45-0.55", "{:.3f}"),
+    ("rmse_excited_085_100", "RMSE excited, mu 0.85-1.0", "{:.3f}"),
     ("rmse_all", "RMSE all", "{:.3f}"), ("mae_all", "MAE all", "{:.3f}"),
     ("coverage_excited", "coverage excited", "{:.2f}"), ("coverage_not_excited", "coverage not excited", "{:.2f}"),
     ("coverage_all", "coverage all", "{:.2f}"), ("width_excited", "width excited", "{:.2f}"),
@@ -76,6 +79,7 @@ def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_
     out.mkdir(parents=True, exist_ok=True)
     pacsv.write_csv(pa.Table.from_pylist(metrics), out / "metrics.csv")
     (out / "tables.md").write_text(generalization_markdown(metrics))
+    pq.write_table(predictions, out / "predictions.parquet")
     best = min((r for r in metrics if r["feature_set"] != "-"), key=lambda r: r["rmse_excited"])
     excited_share = {}
     for run_id in np.unique(predictions["run_id"].to_numpy(zero_copy_only=False)):
@@ -84,4 +88,5 @@ def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_
     run_id = max(excited_share, key=excited_share.get)
     figure = plot_run(predictions, run_id, [(best["model"], best["feature_set"]), ("EKF", "-")],
                       out / "estimates_with_intervals.png")
-    return {"metrics_csv": out / "metrics.csv", "tables_md": out / "tables.md", "figures": [figure]}
+    return {"metrics_csv": out / "metrics.csv", "tables_md": out / "tables.md",
+            "predictions": out / "predictions.parquet", "figures": [figure]}
