@@ -38,7 +38,7 @@ def bench_sim(batch_runs: int = 256, seed: int = 0) -> list[dict]:
         (f"batch of {batch_runs} random runs, dynamics only", batch, simulate_truth),
         (f"batch of {batch_runs} random runs, dynamics + sensors", batch, simulate),
     ):
-        wall = min(_timed(lambda: fn(scenarios)) for _ in range(3))
+        wall = min(_timed(lambda fn=fn, scenarios=scenarios: fn(scenarios)) for _ in range(3))
         rows.append({"case": case, "runs": len(scenarios), "simulated_s": sum(s.duration_s for s in scenarios),
                      "wall_s": wall})
     for row in rows:

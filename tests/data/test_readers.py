@@ -3,12 +3,10 @@ import json
 import numpy as np
 import pyarrow as pa
 import pytest
+from telemetry_samples import RADIUS_M, rows_of, write
 
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.data.telemetry import TelemetryBatch, read_telemetry
-
-# the synthetic drive, its fixture and the file writer are shared with the validation tests
-from test_telemetry import RADIUS_M, clean, rows_of, write  # noqa: F401 (clean: a fixture)  # isort: skip
 
 
 @pytest.mark.parametrize("fmt", ["csv", "parquet", "ndjson", "jsonl", "json"])

@@ -3,14 +3,11 @@ import math
 import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
+from telemetry_samples import RADIUS_M, WHEEL_COLUMNS, drive, table_of, with_column
 
 from roadgrip.data.telemetry import validate_telemetry
 from roadgrip.sim.presets import paper_scenarios, random_scenarios
 from roadgrip.sim.simulate import simulate
-
-# the synthetic drive and its fixture are shared with the validation tests
-from test_telemetry import (  # noqa: F401 (clean: a fixture)  # isort: skip
-    RADIUS_M, WHEEL_COLUMNS, clean, drive, table_of, with_column)
 
 
 def scaled(table: pa.Table, names, factor: float) -> pa.Table:

@@ -1,7 +1,6 @@
 import json
 
 import numpy as np
-import pyarrow.compute as pc
 import pytest
 
 from roadgrip.estimators.base import ESTIMATE_SCHEMA
