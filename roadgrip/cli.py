@@ -42,8 +42,8 @@ def friendly_errors(fn):
 
 def _code_version() -> str:
     try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5, check=False,
-                             cwd=Path(__file__).parent).stdout.strip()
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                             check=False, cwd=Path(__file__).parent).stdout.strip()
     except OSError:
         sha = ""
     return f"{roadgrip.__version__}+{sha}" if sha else roadgrip.__version__
