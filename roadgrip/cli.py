@@ -243,6 +243,9 @@ def estimate(
         rows = np.flatnonzero(ids == vid)
         results.append(estimator.estimate_batch(batch.table.take(rows), batch.segments[rows], profile))
     estimates = pa.concat_tables(results) if results else ESTIMATE_SCHEMA.empty_table()
+    if batch.time_column == "t_s":  # DESIGN 3.4: the timestamp as the input had it
+        t_s = pc.divide(pc.cast(estimates["timestamp_ms"], pa.float64()), 1000.0)
+        estimates = estimates.set_column(estimates.schema.get_field_index("timestamp_ms"), "t_s", t_s)
     write_table(estimates, out)
     console.print(f"wrote {estimates.num_rows} estimates for {batch.table.num_rows} accepted samples of "
                   f"{len(set(ids.tolist()))} vehicle(s) to {out} ({estimator.name})")

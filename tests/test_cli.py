@@ -1,5 +1,6 @@
 import json
 
+import pyarrow.compute as pc
 import pytest
 from pyarrow.parquet import read_table
 from typer.testing import CliRunner
@@ -104,3 +105,20 @@ def test_estimate_reports_bad_input_clearly(tmp_path):
     pacsv.write_csv(kmh, tmp_path / "kmh.csv")
     result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "kmh.csv"), "--out", str(tmp_path / "o2.csv")])
     assert result.exit_code == 2 and "speed_mps" in result.output and "km/h" in result.output
+
+
+def test_estimate_keeps_the_inputs_time_column(tmp_path):
+    import pyarrow.csv as pacsv
+
+    from roadgrip.data.schema import TELEMETRY_COLUMNS
+
+    _, test = _paper_runs("high")
+    run = test.filter(pc.equal(test["run_id"], "paper-high-straight-e2"))
+    columns = [c for c in TELEMETRY_COLUMNS if c != "timestamp_ms"] + ["t_s"]
+    pacsv.write_csv(run.select(columns), tmp_path / "relative.csv")
+    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "relative.csv"), "--model", "ekf",
+                                 "--out", str(tmp_path / "est.csv")])
+    assert result.exit_code == 0, result.output
+    out = pacsv.read_csv(tmp_path / "est.csv")
+    assert "t_s" in out.column_names and "timestamp_ms" not in out.column_names
+    assert out["t_s"].to_pylist()[:3] == pytest.approx([0.0, 0.1, 0.2])
