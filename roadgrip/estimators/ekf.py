@@ -27,8 +27,8 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_REJECTED, M_U, M_X, REJECT, STEP, KalmanEstimator, begin, cholesky,
-    cholesky_solve, commit, matmul, matmul_bt, output, symmetrize,
+    M_P, M_U, M_X, REJECT, STEP, KalmanEstimator, accept_posterior, begin, cholesky, cholesky_solve, finish_step,
+    matmul, matmul_bt, output,
 )
 from roadgrip.estimators.vehicle_model import (
     MU, N_U, N_X, N_Z, T_MIN_SPEED, T_SNR, U_AX, U_AY, VX, loads_from_accel, measure, measurement_noise, mu_snr,
@@ -90,13 +90,7 @@ def ekf_update(prm, x_prior, P_prior, u, z, x_post, P_post, mu_allowed):
     KRK = np.empty((N_X, N_X))
     matmul_bt(KR, K, KRK)
     P_new += KRK
-    symmetrize(P_new)
-    check = np.empty((N_X, N_X))
-    if not (np.isfinite(x_new).all() and cholesky(P_new, check)):
-        return False, snr
-    x_post[:] = x_new
-    P_post[:, :] = P_new
-    return True, snr
+    return accept_posterior(x_new, P_new, x_post, P_post), snr
 
 
 @njit(cache=True)
@@ -128,10 +122,7 @@ def ekf_step(mem, prm, smp, out):
     P_post = np.empty((N_X, N_X))
     # at a (re)start mu is held: the first sample is spent on the speeds
     accepted, snr = ekf_update(prm, x_prior, P_prior, u, z, x_post, P_post, decision == STEP)
-    if not accepted:
-        mem[M_REJECTED] += 1.0
-    commit(mem, prm, smp, u, z, x_post, P_post, snr)
-    output(mem, prm, accepted, out)
+    finish_step(mem, prm, smp, u, z, x_post, P_post, accepted, snr, out)
 
 
 class EKFEstimator(KalmanEstimator):

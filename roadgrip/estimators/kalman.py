@@ -183,6 +183,27 @@ def begin(mem, prm, smp, u, z):
 
 
 @njit(cache=True)
+def accept_posterior(x_new, P_new, x_post, P_post):
+    """Symmetrize P+ and keep (x+, P+) only if x+ is finite and P+ positive definite (a Cholesky factor exists)."""
+    symmetrize(P_new)
+    check = np.empty(P_new.shape)
+    if not (np.isfinite(x_new).all() and cholesky(P_new, check)):
+        return False
+    x_post[:] = x_new
+    P_post[:, :] = P_new
+    return True
+
+
+@njit(cache=True)
+def finish_step(mem, prm, smp, u, z, x_post, P_post, accepted, snr, out):
+    """After an update: count a rejected one, commit the state (the prior when rejected) and write the estimate."""
+    if not accepted:
+        mem[M_REJECTED] += 1.0
+    commit(mem, prm, smp, u, z, x_post, P_post, snr)
+    output(mem, prm, accepted, out)
+
+
+@njit(cache=True)
 def commit(mem, prm, smp, u, z, x, P, snr):
     """Store the posterior (mu projected onto [MU_MIN, MU_MAX]) and this sample's inputs and time. A posterior that is
     not finite (which the update guards should make impossible) restarts the filter on this sample instead."""

@@ -29,8 +29,8 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_REJECTED, M_U, M_X, REJECT, STEP, KalmanEstimator, begin, cholesky, cholesky_solve,
-    commit, matmul, matmul_bt, output, symmetrize,
+    M_P, M_U, M_X, REJECT, STEP, KalmanEstimator, accept_posterior, begin, cholesky, cholesky_solve, finish_step,
+    matmul, matmul_bt, output, symmetrize,
 )
 from roadgrip.estimators.vehicle_model import (
     MU, N_U, N_X, N_Z, T_MIN_SPEED, T_SNR, T_UKF_ALPHA, U_AX, U_AY, VX, loads_from_accel, measure, measurement_noise,
@@ -213,13 +213,7 @@ def ukf_update(prm, x_prior, P_prior, u, z, x_post, P_post, mu_allowed):
     for a in range(N_X):
         for b in range(N_X):
             P_new[a, b] += P_prior[a, b] - KPxz[a, b] - KPxz[b, a]
-    symmetrize(P_new)
-    check = np.empty((N_X, N_X))
-    if not (np.isfinite(x_new).all() and cholesky(P_new, check)):
-        return False, snr
-    x_post[:] = x_new
-    P_post[:, :] = P_new
-    return True, snr
+    return accept_posterior(x_new, P_new, x_post, P_post), snr
 
 
 @njit(cache=True)
@@ -244,10 +238,7 @@ def ukf_step(mem, prm, smp, out):
     P_post = np.empty((N_X, N_X))
     # at a (re)start mu is held: the first sample is spent on the speeds
     accepted, snr = ukf_update(prm, x_prior, P_prior, u, z, x_post, P_post, decision == STEP)
-    if not accepted:
-        mem[M_REJECTED] += 1.0
-    commit(mem, prm, smp, u, z, x_post, P_post, snr)
-    output(mem, prm, accepted, out)
+    finish_step(mem, prm, smp, u, z, x_post, P_post, accepted, snr, out)
 
 
 class UKFEstimator(KalmanEstimator):
