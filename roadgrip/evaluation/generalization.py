@@ -11,9 +11,7 @@ samples, coverage and width of the 90 % interval, and the share of samples the e
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import copy
-import multiprocessing
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -29,16 +27,11 @@ from roadgrip.models.registry import DISPLAY_NAMES, PAPER_MODELS
 from roadgrip.sim.presets import generalization_scenarios
 from roadgrip.sim.simulate import simulate
 from roadgrip.training.fit import PreparedData, block_split, calibration_of, fit, prepare, subset
+from roadgrip.training.pool import training_pool
 from roadgrip.training.trainer import TrainConfig, predict
 
 WINDOW_STRIDE = 2  # every other training window: neighbours are nearly identical, and 2 cores are few
 TRAIN_CONFIG = TrainConfig(batch_size=256, max_epochs=60, patience=10)
-
-
-def _worker_init():
-    import torch
-
-    torch.set_num_threads(1)
 
 
 def _train_and_test(args) -> list[dict]:
@@ -105,8 +98,7 @@ def run_generalization_benchmark(seed: int = 0, models=PAPER_MODELS + ("sa-cnn-l
         tests[fs] = test
         jobs += [(name, fs, train, calibration, test, seed) for name in models]
     say(f"training {len(jobs)} models")
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with training_pool(workers) as pool:
         results = [row for rows in pool.map(_train_and_test, jobs) for row in rows]
     metrics, predictions, fitted = [], [], {}
     for r in results:

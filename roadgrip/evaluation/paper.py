@@ -16,7 +16,6 @@ RMSE and MAE (eq. 14) over every test window (all samples with a full 1 s window
 from __future__ import annotations
 
 import concurrent.futures as cf
-import multiprocessing
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -32,6 +31,7 @@ from roadgrip.models.q_learning import DEFAULT_ALLOWED_RANGE, QConfig, clip, ref
 from roadgrip.models.registry import DISPLAY_NAMES, PAPER_MODELS, SEARCH_SPACES
 from roadgrip.sim.presets import PAPER_CONDITIONS
 from roadgrip.training.fit import PreparedData, block_split, fit, prepare
+from roadgrip.training.pool import training_pool
 from roadgrip.training.trainer import TrainConfig, predict
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -53,12 +53,6 @@ class Job:
     train: PreparedData
     test_windows: np.ndarray
     seed: int
-
-
-def _worker_init():
-    import torch
-
-    torch.set_num_threads(1)
 
 
 def _run_job(job: Job) -> dict:
@@ -99,8 +93,7 @@ def run_paper_benchmark(table: pa.Table, models=PAPER_MODELS, feature_sets=FEATU
                 for k, overrides in enumerate(SEARCH_SPACES[name]):
                     jobs.append(Job(scope, fs, name, k, overrides, train, test_windows, seed))
     results = []
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with training_pool(workers) as pool:
         futures = [pool.submit(_run_job, job) for job in jobs]
         for done, future in enumerate(cf.as_completed(futures), 1):
             results.append(future.result())
