@@ -246,9 +246,12 @@ def new_segment(mem):
     mem[M_SNR] = 0.0
 
 
-@njit(cache=True)
+@njit
 def run_batch(step, prm, samples, segments, out, counters):
-    """A filter's step kernel over the rows of one vehicle, restarting where the segment id changes."""
+    """A filter's step kernel over the rows of one vehicle, restarting where the segment id changes.
+
+    Not cached on disk: its cache key holds the step kernel's dispatcher, which a later process cannot pickle again
+    when it adds the other filter's overload ("underlying object has vanished"); the kernels it calls are cached."""
     mem = np.zeros(N_MEM)
     for k in range(samples.shape[0]):
         if k > 0 and segments[k] != segments[k - 1]:
