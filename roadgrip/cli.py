@@ -255,6 +255,42 @@ def estimate(
         console.print(f"[yellow]{len(batch.rejections)} input row(s) rejected:[/] see {report}")
 
 
+@app.command()
+@friendly_errors
+def serve(
+    config: Path | None = typer.Option(None, help="settings file (YAML); environment variables ROADGRIP_* override it"),
+    host: str | None = typer.Option(None, help="HTTP listen address (default 127.0.0.1)"),
+    port: int | None = typer.Option(None, help="HTTP port (default 8000)"),
+    database_url: str | None = typer.Option(None, help="sqlite:///FILE or postgresql://... (default: SQLite in "
+                                                       "--data-dir)"),
+    mqtt: str | None = typer.Option(None, help="off | auto (start Mosquitto when installed) | managed | mqtt://host:port"),
+    data_dir: Path | None = typer.Option(None, help="folder for the database, broker files and the admin secret"),
+    estimator: str | None = typer.Option(None, help="ekf (default), ukf, default (learned) or a model file"),
+):
+    """The cloud platform: HTTP (and MQTT) ingest, per-vehicle estimation, storage, friction map, warnings."""
+    import logging
+
+    import uvicorn
+
+    from roadgrip.cloud.api import create_app
+    from roadgrip.cloud.service import CloudService
+    from roadgrip.cloud.settings import load_settings
+
+    settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
+                             estimator=estimator)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    service = CloudService(settings)
+    service.start()
+    try:
+        console.print(f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
+                      f"mqtt {service.mqtt_url or 'off'}")
+        console.print(f"admin secret: {settings.data_dir / 'admin-secret'}" if settings.admin_secret is None
+                      else "admin secret: from the settings")
+        uvicorn.run(create_app(service), host=settings.host, port=settings.port, log_level="warning")
+    finally:
+        service.stop()
+
+
 @bench_app.command("estimate")
 @friendly_errors
 def bench_estimate_command(

@@ -1,0 +1,213 @@
+"""The HTTP API (FastAPI; OpenAPI at /docs). Routes are thin: they authenticate, check the role, and call the service.
+
+Every call authenticates with HTTP Basic (name and secret; vehicles use their vehicle_id as name):
+
+| route | who | does |
+| --- | --- | --- |
+| POST /v1/vehicles | admin | register a vehicle with its profile (DESIGN 3.2); returns its secret once |
+| GET /v1/vehicles/{id} | admin, reader, the vehicle | its profile |
+| POST /v1/readers | admin | create a reader credential; returns its secret once |
+| DELETE /v1/credentials/{name} | admin | revoke a credential, at once |
+| POST /v1/telemetry | vehicle | ingest samples (DESIGN 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys) |
+| GET /v1/vehicles/{id}/estimates | admin, reader, the vehicle | estimates (DESIGN 3.4) over a time range |
+| GET /v1/map | admin, reader | the friction map as GeoJSON |
+| GET /v1/map/datex2 | admin, reader | the map as DATEX II v3 (RoadSurfaceConditionMeasurements, friction) |
+| GET /v1/warnings | admin, reader, vehicles | slippery-road warnings as DENMs |
+| GET /v1/health | anyone authenticated | storage, broker and pipeline state; 503 when storage is down |
+
+Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422
+when none was, 413 for an oversized body, 400 for a body that is not telemetry, 503 when storage is down (nothing
+was stored: retry).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Annotated
+
+from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPBasic, HTTPBasicCredentials
+from pydantic import BaseModel, Field
+
+from roadgrip.cloud.auth import AuthError
+from roadgrip.cloud.exports import datex2_xml
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.storage import Credential, StorageUnavailable
+from roadgrip.cloud.wire import PayloadError, parse_payload
+from roadgrip.data.telemetry import VEHICLE_ID_RE
+from roadgrip.vehicle.params import VEHICLES, VehicleParams, vehicle_by_name
+
+basic = HTTPBasic(description="name and secret (vehicles: vehicle_id and the secret from registration)")
+
+
+class VehicleRegistration(BaseModel):
+    vehicle_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-")
+    profile: str | dict = Field("paper-suv", description=f"a known vehicle ({', '.join(VEHICLES)}) or a profile "
+                                                         "mapping with the DESIGN 3.2 fields (SI)")
+
+
+class ReaderRegistration(BaseModel):
+    name: str = Field(pattern=VEHICLE_ID_RE.pattern)
+
+
+class Issued(BaseModel):
+    name: str
+    role: str
+    secret: str = Field(description="shown once; stored only hashed")
+    mqtt_url: str | None = None
+
+
+class IngestAnswer(BaseModel):
+    received: int
+    accepted: int
+    stored: int
+    duplicates: int
+    rejected: list[dict]
+
+
+def _caller(request: Request, auth: Annotated[HTTPBasicCredentials, Depends(basic)]) -> Credential:
+    try:
+        return request.app.state.service.auth.authenticate(auth.username, auth.password)
+    except AuthError:
+        raise HTTPException(401, "invalid credentials", headers={"WWW-Authenticate": "Basic"}) from None
+
+
+Caller = Annotated[Credential, Depends(_caller)]
+
+
+def create_app(service: CloudService) -> FastAPI:
+    app = FastAPI(title="roadgrip cloud", version="1",
+                  description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.")
+    app.state.service = service
+
+    def require(caller: Credential, *roles: str) -> None:
+        if caller.role not in roles:
+            raise HTTPException(403, f"a {caller.role} credential may not do this (needs {' or '.join(roles)})")
+
+    def may_read_vehicle(caller: Credential, vehicle_id: str) -> None:
+        if caller.role == "vehicle" and caller.vehicle_id != vehicle_id:
+            raise HTTPException(403, f"vehicle {caller.vehicle_id} may not read vehicle {vehicle_id}")
+
+    @app.exception_handler(StorageUnavailable)
+    async def storage_down(request: Request, exc: StorageUnavailable):
+        return JSONResponse({"detail": f"storage unavailable, nothing was stored: {exc}"}, status_code=503)
+
+    @app.post("/v1/vehicles", status_code=201, response_model=Issued)
+    def register_vehicle(body: VehicleRegistration, caller: Caller) -> Issued:
+        require(caller, "admin")
+        try:
+            profile = (vehicle_by_name(body.profile) if isinstance(body.profile, str)
+                       else VehicleParams.from_dict(body.profile))
+        except (ValueError, TypeError, KeyError) as exc:
+            raise HTTPException(422, f"profile: {exc}") from None
+        try:
+            secret = service.register_vehicle(body.vehicle_id, profile)
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return Issued(name=body.vehicle_id, role="vehicle", secret=secret, mqtt_url=service.mqtt_url)
+
+    @app.get("/v1/vehicles/{vehicle_id}")
+    def vehicle_profile(vehicle_id: str, caller: Caller) -> dict:
+        may_read_vehicle(caller, vehicle_id)
+        profile = service.storage.vehicle_profile(vehicle_id)
+        if profile is None:
+            raise HTTPException(404, f"no vehicle {vehicle_id!r}")
+        return {"vehicle_id": vehicle_id, "profile": profile}
+
+    @app.post("/v1/readers", status_code=201, response_model=Issued)
+    def register_reader(body: ReaderRegistration, caller: Caller) -> Issued:
+        require(caller, "admin")
+        try:
+            secret = service.register_reader(body.name)
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return Issued(name=body.name, role="reader", secret=secret, mqtt_url=service.mqtt_url)
+
+    @app.delete("/v1/credentials/{name}", status_code=204)
+    def revoke(name: str, caller: Caller) -> Response:
+        require(caller, "admin")
+        try:
+            found = service.revoke(name)
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        if not found:
+            raise HTTPException(404, f"no active credential {name!r}")
+        return Response(status_code=204)
+
+    @app.post("/v1/telemetry", response_model=IngestAnswer,
+              openapi_extra={"requestBody": {"required": True, "content": {
+                  "application/x-ndjson": {"schema": {"type": "string"}},
+                  "application/json": {"schema": {"oneOf": [{"type": "object"},
+                                                            {"type": "array", "items": {"type": "object"}}]}}}}})
+    async def ingest(request: Request, caller: Caller):
+        require(caller, "vehicle")
+        s = service.settings
+        declared = request.headers.get("content-length")
+        if declared is not None and declared.isdigit() and int(declared) > s.max_payload_bytes:
+            raise HTTPException(413, f"body of {declared} bytes exceeds the limit of {s.max_payload_bytes}")
+        body = await _read_limited(request, s.max_payload_bytes)
+        try:
+            samples, errors = parse_payload(body, content_type=request.headers.get("content-type"),
+                                            max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
+                                            now_ms=int(time.time() * 1000),
+                                            max_future_ms=int(s.max_future_s * 1000), vehicle_id=caller.vehicle_id)
+        except PayloadError as exc:
+            raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
+        rejected = [e.to_dict() for e in errors]
+        received = len(samples) + len(errors)
+        if not samples:
+            return JSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
+                                 "duplicates": 0, "rejected": rejected}, status_code=422)
+        try:
+            result = await asyncio.wrap_future(service.pipeline.submit(caller.vehicle_id, samples))
+        except StorageUnavailable as exc:
+            raise HTTPException(503, f"storage unavailable, nothing was stored: {exc}") from None
+        return IngestAnswer(received=received, accepted=len(samples), stored=result.stored,
+                            duplicates=result.duplicates, rejected=rejected)
+
+    @app.get("/v1/vehicles/{vehicle_id}/estimates")
+    def estimates(vehicle_id: str, caller: Caller,
+                  start_ms: Annotated[int | None, Query(ge=0, description="from (ms since epoch, inclusive)")] = None,
+                  end_ms: Annotated[int | None, Query(ge=0, description="to (ms since epoch, exclusive)")] = None,
+                  limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000) -> dict:
+        may_read_vehicle(caller, vehicle_id)
+        rows = service.storage.estimates(vehicle_id, start_ms, end_ms, limit)
+        return {"vehicle_id": vehicle_id, "estimates": rows}
+
+    @app.get("/v1/map")
+    def friction_map(caller: Caller) -> dict:
+        require(caller, "admin", "reader")
+        return service.friction_map.to_geojson(service.pipeline.now_ms())
+
+    @app.get("/v1/map/datex2", response_class=Response,
+             responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}})
+    def datex2(caller: Caller) -> Response:
+        require(caller, "admin", "reader")
+        now = service.pipeline.now_ms()
+        return Response(datex2_xml(service.friction_map.cells(now), now), media_type="application/xml")
+
+    @app.get("/v1/warnings")
+    def warnings(caller: Caller, active: bool = True) -> dict:
+        rows = service.storage.warnings(active_only=active)
+        return {"warnings": [row["message"] for row in rows]}
+
+    @app.get("/v1/health")
+    def health(caller: Caller) -> JSONResponse:
+        status = service.health()
+        return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)
+
+    return app
+
+
+async def _read_limited(request: Request, max_bytes: int) -> bytes:
+    """The body, refusing it (413) as soon as it passes max_bytes: a client that lies about its length (or streams
+    chunked) cannot make the service buffer more."""
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > max_bytes:
+            raise HTTPException(413, f"body exceeds the limit of {max_bytes} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)

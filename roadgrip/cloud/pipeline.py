@@ -1,0 +1,298 @@
+"""The per-vehicle streaming pipeline: validated samples in; telemetry and estimates stored, the map and warnings
+updated, estimates and warnings published.
+
+One worker thread runs a loop every `flush_interval_s`. Each round it takes everything submitted since the last round and:
+
+1. drops samples it has already stored (same vehicle_id and timestamp_ms: a repeated HTTP request or an MQTT
+   redelivery) and, inside the round, keeps the first of equal timestamps;
+2. puts each vehicle's new samples into that vehicle's reorder buffer and releases, in time order, the samples older than
+   the vehicle's newest by `reorder_window_s` (all of them once the vehicle has been silent that long): a sample that
+   arrives out of order within the window is estimated in its place;
+3. feeds the released samples to the vehicle's estimator (`roadgrip.estimators.base.Estimator`, the interface the offline
+   tools use). A gap longer than `max_gap_s` restarts the estimator (`reset`) rather than bridging it. A sample older
+   than one already estimated (later than the reorder window allowed) is stored but not estimated: counted as `late`;
+4. writes the round's new telemetry and its estimates in one transaction, idempotent on (vehicle_id, timestamp_ms);
+5. only then resolves the submitters' futures (HTTP answers, MQTT acks): an acknowledged sample is stored;
+6. adds the estimates to the friction map and the warning engine, stores warning changes, publishes estimates
+   (a JSON array per vehicle per round on its friction topic) and warning DENMs.
+
+If the database fails, the round's submitters get the exception (HTTP 503, MQTT no ack, so the broker redelivers) and
+their samples are forgotten, so that a retry is stored (estimation skips them as late: the estimator has seen them).
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+import logging
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+from roadgrip.cloud.friction_map import FrictionMap
+from roadgrip.cloud.mqtt import WARNINGS_TOPIC, friction_topic
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage import Storage
+from roadgrip.cloud.warning_engine import WarningEngine
+from roadgrip.estimators.base import Estimator
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+
+log = logging.getLogger(__name__)
+
+# How far back the pipeline remembers stored timestamps per vehicle, to answer repeats without the database.
+DEDUP_HORIZON_MS = 600_000
+
+
+@dataclass(frozen=True)
+class SubmitResult:
+    stored: int      # samples newly stored
+    duplicates: int  # samples already stored before (or twice in the submission)
+
+
+@dataclass
+class _Submission:
+    vehicle_id: str
+    samples: list[dict]
+    future: Future
+
+
+@dataclass
+class _VehicleStream:
+    state: object
+    pending: list = field(default_factory=list)   # heap of (timestamp_ms, seq, sample)
+    newest_ms: int = -1
+    last_estimated_ms: int | None = None
+    last_arrival_s: float = 0.0
+    stored: set = field(default_factory=set)      # timestamps stored within DEDUP_HORIZON_MS of newest_ms
+
+
+@dataclass
+class PipelineCounters:
+    submitted: int = 0
+    stored: int = 0
+    duplicates: int = 0
+    late: int = 0
+    restarts: int = 0
+    estimates: int = 0
+    rounds: int = 0
+    failed_rounds: int = 0
+    last_round_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        return dict(vars(self))
+
+
+class Pipeline:
+    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, friction_map: FrictionMap,
+                 warning_engine: WarningEngine, publish=None):
+        self.storage = storage
+        self.settings = settings
+        self.estimator = estimator
+        self.friction_map = friction_map
+        self.warning_engine = warning_engine
+        self.publish = publish  # callable(topic, payload bytes) or None
+        self.counters = PipelineCounters()
+        self._inbox: list[_Submission] = []
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._streams: dict[str, _VehicleStream] = {}
+        self._profiles: dict[str, VehicleParams] = {}
+        self._newest_data_ms = 0
+        self._seq = 0
+        self._forget: set[str] = set()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="roadgrip-pipeline", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Process what was submitted, then stop."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+
+    def submit(self, vehicle_id: str, samples: list[dict]) -> Future:
+        """Queue validated samples of one vehicle; the future resolves to a SubmitResult once they are stored."""
+        future: Future = Future()
+        if self._stop.is_set():
+            future.set_exception(RuntimeError("the pipeline is stopping"))
+            return future
+        with self._lock:
+            self._inbox.append(_Submission(vehicle_id, samples, future))
+        return future
+
+    @property
+    def backlog(self) -> int:
+        with self._lock:
+            return sum(len(s.samples) for s in self._inbox)
+
+    def forget_vehicle(self, vehicle_id: str) -> None:
+        """Start the vehicle afresh at the next round: its profile is read again (it changed) and its estimator
+        restarts."""
+        with self._lock:
+            self._forget.add(vehicle_id)
+
+    def now_ms(self) -> int:
+        if self.settings.map_clock == "data":
+            return self._newest_data_ms
+        return int(time.time() * 1000)
+
+    # ------------------------------------------------------------------------------------------------- the loop
+    def _run(self) -> None:
+        while True:
+            stopping = self._stop.is_set()
+            started = time.perf_counter()
+            try:
+                self.run_round(final=stopping)
+            except Exception:  # a bug must not kill the service's only worker: log it and go on
+                log.exception("pipeline round failed")
+            self.counters.last_round_s = time.perf_counter() - started
+            if stopping:
+                return
+            self._wake.wait(max(0.0, self.settings.flush_interval_s - (time.perf_counter() - started)))
+            self._wake.clear()
+
+    def run_round(self, final: bool = False) -> None:
+        with self._lock:
+            inbox, self._inbox = self._inbox, []
+            forget, self._forget = self._forget, set()
+        for vehicle_id in forget:
+            self._profiles.pop(vehicle_id, None)
+            self._streams.pop(vehicle_id, None)
+        now_s = time.monotonic()
+        results: list[tuple[_Submission, int, int]] = []
+        new_rows: list[dict] = []
+        new_keys: list[tuple[_VehicleStream, int]] = []
+        touched: set[str] = set()
+        for sub in inbox:
+            stream = self._stream(sub.vehicle_id)
+            seen_now: set[int] = set()
+            stored = duplicates = 0
+            for sample in sub.samples:
+                ts = sample["timestamp_ms"]
+                if ts in stream.stored or ts in seen_now:
+                    duplicates += 1
+                    continue
+                seen_now.add(ts)
+                stored += 1
+                new_rows.append(sample)
+                new_keys.append((stream, ts))
+                self._seq += 1
+                heapq.heappush(stream.pending, (ts, self._seq, sample))
+                stream.newest_ms = max(stream.newest_ms, ts)
+                stream.last_arrival_s = now_s
+            touched.add(sub.vehicle_id)
+            results.append((sub, stored, duplicates))
+            # a later submission in the same round sees this one's samples as already taken
+            stream.stored |= seen_now
+        estimates = self._release(now_s, final)
+        self.counters.rounds += 1
+        try:
+            if new_rows or estimates:
+                self.storage.write_batch(new_rows, estimates)
+        except Exception as exc:  # noqa: BLE001 (any failure: every submitter must get its answer)
+            self.counters.failed_rounds += 1
+            for stream, ts in new_keys:
+                stream.stored.discard(ts)
+            for sub, _, _ in results:
+                sub.future.set_exception(exc)
+            log.error("storing a round of %d samples failed: %s", len(new_rows), exc)
+            return
+        for sub, stored, duplicates in results:
+            self.counters.stored += stored
+            self.counters.duplicates += duplicates
+            self.counters.submitted += len(sub.samples)
+            sub.future.set_result(SubmitResult(stored, duplicates))
+        if new_rows:
+            self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in new_rows))
+        for vehicle_id in touched:
+            self._trim(self._streams[vehicle_id])
+        if estimates:
+            self.counters.estimates += len(estimates)
+            self._after_store(estimates)
+
+    # ------------------------------------------------------------------------------------------------- per vehicle
+    def _stream(self, vehicle_id: str) -> _VehicleStream:
+        stream = self._streams.get(vehicle_id)
+        if stream is None:
+            stream = _VehicleStream(self.estimator.start(self._profile(vehicle_id)))
+            self._streams[vehicle_id] = stream
+        return stream
+
+    def _profile(self, vehicle_id: str) -> VehicleParams:
+        params = self._profiles.get(vehicle_id)
+        if params is None:
+            profile = self.storage.vehicle_profile(vehicle_id)
+            params = PAPER_SUV if profile is None else VehicleParams.from_dict(profile)
+            self._profiles[vehicle_id] = params
+        return params
+
+    def _trim(self, stream: _VehicleStream) -> None:
+        """Remember DEDUP_HORIZON_MS of timestamps; an older repeat reaches the database, which skips it (and the
+        answer then counts it as stored)."""
+        if len(stream.stored) > 2 * DEDUP_HORIZON_MS // 100:
+            horizon = stream.newest_ms - DEDUP_HORIZON_MS
+            stream.stored = {t for t in stream.stored if t >= horizon}
+
+    def _release(self, now_s: float, final: bool) -> list[dict]:
+        window_ms = self.settings.reorder_window_s * 1000.0
+        gap_ms = self.settings.max_gap_s * 1000.0
+        estimates: list[dict] = []
+        for stream in self._streams.values():
+            if not stream.pending:
+                continue
+            quiet = final or now_s - stream.last_arrival_s >= self.settings.reorder_window_s
+            limit = stream.newest_ms if quiet else stream.newest_ms - window_ms
+            while stream.pending and stream.pending[0][0] <= limit:
+                ts, _, sample = heapq.heappop(stream.pending)
+                last = stream.last_estimated_ms
+                if last is not None and ts <= last:
+                    self.counters.late += 1
+                    continue
+                if last is not None and ts - last > gap_ms:
+                    self.estimator.reset(stream.state)
+                    self.counters.restarts += 1
+                stream.last_estimated_ms = ts
+                estimate = self.estimator.update(stream.state, sample)
+                if estimate is None:
+                    continue
+                row = estimate.to_dict()
+                lat, lon = sample.get("latitude_deg"), sample.get("longitude_deg")
+                row["latitude_deg"], row["longitude_deg"] = lat, lon
+                row["h3_cell"] = None if lat is None or lon is None else self.friction_map.cell_of(lat, lon)
+                estimates.append(row)
+        return estimates
+
+    # ------------------------------------------------------------------------------------------------- fan-out
+    def _after_store(self, estimates: list[dict]) -> None:
+        now_ms = self.now_ms()
+        self.friction_map.add(estimates)
+        events = self.warning_engine.update(estimates, now_ms)
+        for event in events:
+            denm = event.to_denm()
+            self.storage.put_warning(event.warning_id, event.cell, event.status, event.detection_ms,
+                                     event.updated_ms, denm)
+            log.warning("warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
+        if self.publish is None:
+            return
+        by_vehicle: dict[str, list[dict]] = {}
+        for row in estimates:
+            by_vehicle.setdefault(row["vehicle_id"], []).append(row)
+        for vehicle_id, rows in by_vehicle.items():
+            self.publish(friction_topic(vehicle_id), json.dumps([_estimate_message(r) for r in rows]).encode())
+        for event in events:
+            self.publish(WARNINGS_TOPIC, json.dumps(event.to_denm()).encode())
+
+
+ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",
+                   "latitude_deg", "longitude_deg", "h3_cell")
+
+
+def _estimate_message(row: dict) -> dict:
+    return {k: row[k] for k in ESTIMATE_FIELDS}

@@ -1,0 +1,205 @@
+"""The cloud service assembled from its parts: storage, credentials, the pipeline (estimation, map, warnings), the MQTT
+side (a broker given by URL, or a Mosquitto started here), and the HTTP API.
+
+    service = CloudService(load_settings())
+    service.start()          # storage opened, pipeline running, MQTT connected when configured
+    app = create_app(service) # roadgrip.cloud.api
+    ...
+    service.stop()
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import time
+from pathlib import Path
+from typing import Self
+
+from roadgrip.cloud.auth import ADMIN_NAME, Authenticator
+from roadgrip.cloud.broker import ManagedBroker, mosquitto_available
+from roadgrip.cloud.friction_map import FrictionMap
+from roadgrip.cloud.mqtt import MqttClient, errors_topic
+from roadgrip.cloud.pipeline import Pipeline
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
+from roadgrip.cloud.warning_engine import WarningEngine
+from roadgrip.cloud.wire import PayloadError, parse_payload
+from roadgrip.estimators.learned import load_estimator
+from roadgrip.vehicle.params import VehicleParams
+
+log = logging.getLogger(__name__)
+
+
+class CloudService:
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.storage: Storage | None = None
+        self.auth: Authenticator | None = None
+        self.pipeline: Pipeline | None = None
+        self.broker: ManagedBroker | None = None
+        self.mqtt: MqttClient | None = None
+        self.mqtt_url: str | None = None
+        self.admin_secret: str | None = None
+        self.friction_map = FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s)
+        self.warning_engine = WarningEngine(
+            resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
+            min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
+            pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
+            validity_s=settings.warning_validity_s, station_id=settings.station_id)
+        self.mqtt_rejected = 0
+
+    # ------------------------------------------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        s = self.settings
+        s.data_dir.mkdir(parents=True, exist_ok=True)
+        self.storage = open_storage(s.storage_url)
+        self.auth = Authenticator(self.storage)
+        self.admin_secret = s.admin_secret or self._stored_admin_secret()
+        self.auth.ensure_admin(self.admin_secret)
+        self._restore_map()
+        estimator = load_estimator(s.estimator)
+        self.pipeline = Pipeline(self.storage, s, estimator, self.friction_map, self.warning_engine,
+                                 publish=self._publish)
+        self.pipeline.start()
+        self._start_mqtt()
+        log.info("cloud started: storage %s, mqtt %s, estimator %s", self.storage, self.mqtt_url or "off",
+                 estimator.name)
+
+    def stop(self) -> None:
+        if self.mqtt is not None:
+            self.mqtt.close()
+            self.mqtt = None
+        if self.pipeline is not None:
+            self.pipeline.stop()
+            self.pipeline = None
+        if self.broker is not None:
+            self.broker.stop()
+            self.broker = None
+        if self.storage is not None:
+            self.storage.close()
+            self.storage = None
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _stored_admin_secret(self) -> str:
+        path = self.settings.data_dir / "admin-secret"
+        if path.is_file():
+            return path.read_text().strip()
+        secret = secrets.token_urlsafe(32)
+        path.touch(mode=0o600)
+        path.write_text(secret + "\n")
+        log.info("generated the admin secret in %s", path)
+        return secret
+
+    def _restore_map(self) -> None:
+        """After a restart the map starts from the stored estimates that are still young enough to count."""
+        since = int(time.time() * 1000) - int(self.settings.map_max_age_s * 1000)
+        if self.settings.map_clock == "data":
+            since = 0
+        rows = self.storage.estimates_since(since)
+        self.friction_map.add(rows)
+        log.info("restored the map from %d stored estimates", len(rows))
+
+    # ------------------------------------------------------------------------------------------------- MQTT
+    def _start_mqtt(self) -> None:
+        s = self.settings
+        mode = s.mqtt
+        if mode == "off":
+            return
+        if mode in ("auto", "managed"):
+            if not mosquitto_available():
+                if mode == "managed":
+                    raise RuntimeError("mqtt=managed but mosquitto is not installed: run "
+                                       "`bash scripts/install_system_deps.sh` or set mqtt to a broker URL")
+                log.warning("mosquitto is not installed: serving HTTP ingest only")
+                return
+            self.broker = ManagedBroker(Path(s.data_dir) / "mosquitto", port=s.mqtt_port)
+            self.broker.start()
+            self.mqtt_url = self.broker.url
+            username, password = self.broker.service_user, self.broker.service_password
+        else:
+            if not (s.mqtt_username and s.mqtt_password):
+                raise RuntimeError("mqtt is a broker URL: set mqtt_username and mqtt_password for the service's login")
+            self.mqtt_url = mode
+            username, password = s.mqtt_username, s.mqtt_password
+        self.mqtt = MqttClient(self.mqtt_url, username, password, client_id="roadgrip-cloud",
+                               on_telemetry=self._on_mqtt_telemetry)
+        self.mqtt.connect()
+
+    def _publish(self, topic: str, payload: bytes) -> None:
+        if self.mqtt is not None:
+            self.mqtt.publish(topic, payload)
+
+    def _on_mqtt_telemetry(self, vehicle_id: str, payload: bytes, ack) -> None:
+        """One MQTT message from a vehicle (the broker's ACL made sure it is that vehicle): parse, report rejections on
+        the vehicle's error topic, queue the valid samples, acknowledge once they are stored."""
+        try:
+            samples, errors = parse_payload(payload, now_ms=int(time.time() * 1000), vehicle_id=vehicle_id,
+                                            max_bytes=self.settings.max_payload_bytes,
+                                            max_samples=self.settings.max_samples_per_payload,
+                                            max_future_ms=int(self.settings.max_future_s * 1000))
+        except PayloadError as exc:
+            self._reject_mqtt(vehicle_id, [{"index": None, "field": exc.field, "reason": str(exc)}])
+            ack()
+            return
+        if errors:
+            self._reject_mqtt(vehicle_id, [e.to_dict() for e in errors])
+        if not samples:
+            ack()
+            return
+        future = self.pipeline.submit(vehicle_id, samples)
+        future.add_done_callback(lambda f: ack() if f.exception() is None else None)
+
+    def _reject_mqtt(self, vehicle_id: str, errors: list[dict]) -> None:
+        self.mqtt_rejected += len(errors)
+        log.warning("rejected %d sample(s) from vehicle %s over MQTT: %s", len(errors), vehicle_id,
+                    errors[0]["reason"])
+        self._publish(errors_topic(vehicle_id), json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
+
+    # ------------------------------------------------------------------------------------------------- registration
+    def register_vehicle(self, vehicle_id: str, profile: VehicleParams) -> str:
+        """Store the profile, create the vehicle's credential (HTTP and MQTT); returns its secret."""
+        if self.storage.credential(vehicle_id) is not None:
+            raise ValueError(f"vehicle_id {vehicle_id!r} is already registered")
+        self.storage.put_vehicle(vehicle_id, profile.to_dict())
+        secret = self.auth.create(vehicle_id, "vehicle", vehicle_id)
+        if self.broker is not None:
+            self.broker.set_user(vehicle_id, secret, "vehicle", vehicle_id)
+        self.pipeline.forget_vehicle(vehicle_id)
+        return secret
+
+    def register_reader(self, name: str) -> str:
+        if self.storage.credential(name) is not None:
+            raise ValueError(f"credential name {name!r} is already taken")
+        secret = self.auth.create(name, "reader")
+        if self.broker is not None:
+            self.broker.set_user(name, secret, "reader")
+        return secret
+
+    def revoke(self, name: str) -> bool:
+        if name == ADMIN_NAME:
+            raise ValueError("the admin credential cannot be revoked; change admin_secret instead")
+        revoked = self.auth.revoke(name)
+        if self.broker is not None:
+            self.broker.remove_user(name)
+        return revoked
+
+    def health(self) -> dict:
+        status = {"status": "ok", "storage": "ok", "mqtt": "off" if self.mqtt is None else
+                  ("connected" if self.mqtt.connected else "disconnected")}
+        try:
+            self.storage.ping()
+        except StorageUnavailable as exc:
+            status.update(status="unavailable", storage=str(exc))
+        if self.mqtt is not None and not self.mqtt.connected:
+            status["status"] = "degraded" if status["status"] == "ok" else status["status"]
+        status["pipeline"] = {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
+                              "mqtt_rejected": self.mqtt_rejected}
+        return status

@@ -1,0 +1,100 @@
+"""The cloud's configuration: one typed class, read from environment variables (prefix `ROADGRIP_`), a YAML file, and
+explicit arguments (highest first: arguments, environment, file, defaults).
+
+    ROADGRIP_DATABASE_URL=postgresql://user@host/db ROADGRIP_MQTT=auto roadgrip serve
+    roadgrip serve --config cloud.yaml
+
+Unknown keys in the file are errors, as are values outside their ranges (the message names the key).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import Field, ValidationError, field_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="ROADGRIP_", extra="forbid", frozen=True)
+
+    # where things live
+    data_dir: Path = Field(Path("roadgrip-data"), description="directory for the SQLite file, broker files and the "
+                                                              "generated admin secret")
+    database_url: str | None = Field(None, description="sqlite:///FILE or postgresql://...; default: SQLite in data_dir")
+    host: str = Field("127.0.0.1", description="HTTP listen address")
+    port: int = Field(8000, ge=0, le=65535, description="HTTP port (0: pick a free one)")
+
+    # MQTT: "off" (HTTP only), "auto" (start a Mosquitto when installed, else HTTP only), "managed" (start one, fail
+    # without it), or a broker URL mqtt://host:port with mqtt_username/mqtt_password for the service's own login.
+    mqtt: str = Field("off", description="off | auto | managed | mqtt://host:port")
+    mqtt_port: int = Field(0, ge=0, le=65535, description="port of the managed broker (0: pick a free one)")
+    mqtt_username: str | None = None
+    mqtt_password: str | None = None
+
+    # access
+    admin_secret: str | None = Field(None, min_length=16, description="the admin's secret; generated into "
+                                                                      "data_dir/admin-secret when absent")
+
+    # ingest and estimation
+    estimator: str = Field("ekf", description="estimator for every vehicle: ekf, ukf, default (the shipped learned "
+                                              "model) or a model file")
+    max_payload_bytes: int = Field(1_048_576, ge=1024, description="largest accepted body or MQTT message")
+    max_samples_per_payload: int = Field(10_000, ge=1)
+    max_future_s: float = Field(60.0, gt=0, description="samples further ahead of the server clock are refused")
+    max_gap_s: float = Field(0.25, gt=0, description="a longer gap between samples restarts the estimator")
+    reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
+                                                           "arrivals back in order before estimation")
+    flush_interval_s: float = Field(0.05, gt=0, le=5, description="the pipeline's batching period")
+
+    # map and warnings
+    h3_resolution: int = Field(10, ge=0, le=15)
+    map_half_life_s: float = Field(600.0, gt=0, description="an estimate's weight halves every half-life")
+    map_max_age_s: float = Field(3600.0, gt=0, description="older evidence leaves the map")
+    map_clock: Literal["wall", "data"] = Field("wall", description="age against the server clock, or against the "
+                                                                   "newest sample (replays of old logs)")
+    warning_threshold_mu: float = Field(0.4, gt=0, lt=2, description="a pass is low when its mu_upper lies below")
+    warning_min_low_passes: int = Field(2, ge=1, description="low passes (vehicles or repeated passes) to raise")
+    warning_min_dry_passes: int = Field(1, ge=1, description="dry passes after a warning to cancel it")
+    warning_pass_gap_s: float = Field(30.0, gt=0, description="a vehicle back in a cell after this is a new pass")
+    warning_min_excited_per_pass: int = Field(3, ge=1)
+    warning_validity_s: float = Field(600.0, gt=0, description="DENM validity; a warning not refreshed expires")
+    station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
+
+    @field_validator("mqtt")
+    @classmethod
+    def _mqtt_mode(cls, value: str) -> str:
+        if value in ("off", "auto", "managed") or value.startswith(("mqtt://", "tcp://")):
+            return value
+        raise ValueError(f"mqtt must be off, auto, managed or mqtt://host:port, got {value!r}")
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource):
+        return init_settings, env_settings, YamlConfigSettingsSource(settings_cls)
+
+    @property
+    def storage_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir / 'roadgrip.sqlite'}"
+
+
+def load_settings(config_file: str | Path | None = None, **overrides) -> Settings:
+    """Settings from explicit overrides (None values ignored), then the environment, then a YAML file, then defaults."""
+    settings_cls = Settings
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise ValueError(f"config file {path} does not exist")
+        loaded = yaml.safe_load(path.read_text())
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ValueError(f"config file {path} must hold a mapping of settings, got {type(loaded).__name__}")
+        settings_cls = type("FileSettings", (Settings,), {"model_config": {**Settings.model_config, "yaml_file": path}})
+    try:
+        return settings_cls(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
+                             for e in exc.errors())
+        raise ValueError(f"invalid settings: {problems}") from None

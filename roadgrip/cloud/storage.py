@@ -1,0 +1,408 @@
+"""The cloud platform's database: telemetry, estimates, vehicle profiles, credentials and warnings (DESIGN 3.6).
+
+One code path (SQLAlchemy Core) for two databases: an SQLite file by default (`sqlite:///PATH`: WAL journal,
+synchronous=NORMAL, foreign keys on, a busy timeout; one writer thread and many reader threads), PostgreSQL through
+psycopg 3 when given its URL (`postgresql://` or `postgresql+psycopg://`). `open_storage(url)` creates the tables that
+are missing and returns a `Storage`, whose methods are safe to call from several threads.
+
+| table | key | columns |
+| --- | --- | --- |
+| telemetry | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.TELEMETRY` (wire format v1, DESIGN 3.1), SI units |
+| estimates | vehicle_id, timestamp_ms | mu, mu_lower, mu_upper (the 90% interval), excited, estimator (DESIGN 3.4); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (below) |
+| vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
+| credentials | name | role (vehicle, reader or admin), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
+| warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
+
+Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
+`write_batch`, in one transaction, and a row whose (vehicle_id, timestamp_ms) is stored already is skipped: sending a
+batch twice stores it once. No foreign keys tie the tables together: a vehicle may send before its profile is stored.
+
+On PostgreSQL with the PostGIS extension available, estimates get a generated column `geom geometry(Point,4326)` (null
+where the position is) with a GiST index, for spatial queries by other tools; `Storage.postgis` says whether it is
+there. Without PostGIS everything else works the same.
+
+Failures to reach the database raise `StorageUnavailable`; bad arguments raise `ValueError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow as pa
+import sqlalchemy as sa
+from sqlalchemy import Column, Table, exc, func, select, text
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.engine import URL, Connection, Engine, make_url
+
+from roadgrip.data.schema import TELEMETRY
+
+log = logging.getLogger(__name__)
+
+ROLES = ("vehicle", "reader", "admin")
+ACTIVE = "active"  # the warning status that `warnings(active_only=True)` selects
+SQLITE_BUSY_TIMEOUT_MS = 10_000  # how long a writer waits for another one's lock before giving up
+CONNECT_TIMEOUT_S = 5  # PostgreSQL: how long to wait for the server before calling it unavailable
+KEY = ("vehicle_id", "timestamp_ms")
+
+
+class StorageUnavailable(RuntimeError):
+    """The database cannot be reached or used (server down, file not writable, locked for too long)."""
+
+
+@dataclass(frozen=True)
+class Credential:
+    name: str  # login name: a vehicle's id for vehicles, a free name for readers and admins
+    role: str  # one of ROLES
+    secret_hash: str
+    vehicle_id: str | None  # the vehicle a "vehicle" credential speaks for; None for the other roles
+    revoked: bool
+    created_ms: int
+
+
+def _sql_type(column):
+    """The SQL type of a telemetry schema column, from its pyarrow type."""
+    for is_type, sql_type in ((pa.types.is_string, sa.String), (pa.types.is_integer, sa.BigInteger),
+                              (pa.types.is_floating, sa.Float), (pa.types.is_boolean, sa.Boolean)):
+        if is_type(column.type):
+            return sql_type()
+    raise TypeError(f"telemetry column {column.name}: no SQL type for pyarrow type {column.type}")
+
+
+_JSON = sa.JSON().with_variant(postgresql.JSONB(), "postgresql")
+metadata = sa.MetaData()
+# sqlite_with_rowid=False: SQLite keeps the rows in key order, as PostgreSQL's index does, for range reads by vehicle.
+telemetry_table = Table(
+    "telemetry", metadata,
+    *(Column(c.name, _sql_type(c), nullable=not c.required) for c in TELEMETRY),
+    sa.PrimaryKeyConstraint(*KEY), sqlite_with_rowid=False)
+estimates_table = Table(
+    "estimates", metadata,
+    Column("vehicle_id", sa.String, nullable=False),
+    Column("timestamp_ms", sa.BigInteger, nullable=False),
+    Column("mu", sa.Float, nullable=False),
+    Column("mu_lower", sa.Float, nullable=False),
+    Column("mu_upper", sa.Float, nullable=False),
+    Column("excited", sa.Boolean, nullable=False),
+    Column("estimator", sa.String, nullable=False),
+    Column("latitude_deg", sa.Float),
+    Column("longitude_deg", sa.Float),
+    Column("h3_cell", sa.String),
+    sa.PrimaryKeyConstraint(*KEY), sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"), sqlite_with_rowid=False)
+vehicles_table = Table(
+    "vehicles", metadata,
+    Column("vehicle_id", sa.String, primary_key=True),
+    Column("profile", _JSON, nullable=False),
+    Column("updated_ms", sa.BigInteger, nullable=False))
+credentials_table = Table(
+    "credentials", metadata,
+    Column("name", sa.String, primary_key=True),
+    Column("role", sa.String, sa.CheckConstraint(f"role IN {ROLES}", name="ck_credentials_role"), nullable=False),
+    Column("secret_hash", sa.String, nullable=False),
+    Column("vehicle_id", sa.String),
+    Column("revoked", sa.Boolean, nullable=False),
+    Column("created_ms", sa.BigInteger, nullable=False))
+warnings_table = Table(
+    "warnings", metadata,
+    Column("warning_id", sa.String, primary_key=True),
+    Column("cell", sa.String, nullable=False),
+    Column("status", sa.String, nullable=False),
+    Column("detection_ms", sa.BigInteger, nullable=False),
+    Column("updated_ms", sa.BigInteger, nullable=False),
+    Column("message", _JSON, nullable=False))
+
+POSTGIS_DDL = (
+    ("ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
+     "GENERATED ALWAYS AS (ST_SetSRID(ST_MakePoint(longitude_deg, latitude_deg), 4326)) STORED"),
+    "CREATE INDEX IF NOT EXISTS ix_estimates_geom ON estimates USING GIST (geom)",
+)
+
+
+def _now_ms() -> int:
+    return time.time_ns() // 1_000_000
+
+
+def normalise_url(url: str) -> URL:
+    """`url` with its driver made explicit (sqlite+pysqlite, postgresql+psycopg); ValueError if it is not supported."""
+    try:
+        sa_url = make_url(url)
+    except exc.ArgumentError:
+        raise ValueError(f"storage URL {url.partition('://')[0]}://... is not a database URL: "
+                         "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE") from None
+    backend, _, driver = sa_url.drivername.partition("+")
+    if backend in ("postgresql", "postgres") and driver in ("", "psycopg"):
+        return sa_url.set(drivername="postgresql+psycopg")
+    if backend == "sqlite" and driver in ("", "pysqlite"):
+        if sa_url.database in (None, "", ":memory:"):
+            raise ValueError(f"storage URL {url!r}: SQLite storage needs a file, sqlite:///PATH")
+        return sa_url.set(drivername="sqlite+pysqlite")
+    raise ValueError(f"unsupported storage URL scheme {sa_url.drivername!r}: "
+                     "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE")
+
+
+@contextmanager
+def _reported(where: str) -> Iterator[None]:
+    """Turn the database's operational failures into StorageUnavailable and constraint violations into ValueError."""
+    try:
+        yield
+    except (exc.OperationalError, exc.InterfaceError, exc.DisconnectionError, exc.TimeoutError) as err:
+        raise StorageUnavailable(f"database {where} unavailable: {getattr(err, 'orig', None) or err}") from err
+    except exc.IntegrityError as err:
+        raise ValueError(f"rejected by database {where}: {err.orig}") from err
+
+
+def _sqlite_pragmas(dbapi_connection, connection_record) -> None:
+    cursor = dbapi_connection.cursor()
+    for pragma in ("journal_mode=WAL", "synchronous=NORMAL", "foreign_keys=ON",
+                   f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}"):
+        cursor.execute(f"PRAGMA {pragma}")
+    cursor.close()
+
+
+def _checked_rows(kind: str, rows: list[dict], table: Table) -> list[dict]:
+    """`rows` with every column of `table` present (absent nullable ones as None); ValueError for a missing required
+    key or an unknown one."""
+    columns = [c.name for c in table.columns]
+    allowed = set(columns)
+    required = {c.name for c in table.columns if not c.nullable}
+    checked = []
+    for i, row in enumerate(rows):
+        if row.keys() != allowed:
+            if unknown := row.keys() - allowed:
+                raise ValueError(f"{kind} row {i}: unknown keys {sorted(unknown)}; allowed: {columns}")
+            if missing := required - row.keys():
+                raise ValueError(f"{kind} row {i}: missing required keys {sorted(missing)}")
+            row = {c: row.get(c) for c in columns}
+        checked.append(row)
+    return checked
+
+
+def _check_limit(limit: int) -> None:
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        raise ValueError(f"limit must be a positive integer, got {limit!r}")
+
+
+class Storage:
+    """The tables above on one database; made by `open_storage`. Thread-safe: every call takes a pooled connection."""
+
+    def __init__(self, url: str, engine: Engine, postgis: bool):
+        self.url = url
+        self.dialect = engine.dialect.name
+        self.postgis = postgis
+        self._engine = engine
+        self._where = engine.url.render_as_string(hide_password=True)
+        self._insert = postgresql.insert if self.dialect == "postgresql" else sqlite.insert
+
+    def __repr__(self) -> str:
+        return f"Storage({self._where!r}, postgis={self.postgis})"
+
+    def close(self) -> None:
+        self._engine.dispose()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[Connection]:
+        with _reported(self._where), self._engine.begin() as conn:
+            yield conn
+
+    def _all(self, query) -> list[dict]:
+        with _reported(self._where), self._engine.connect() as conn:
+            return [dict(row) for row in conn.execute(query).mappings()]
+
+    def _scalar(self, query):
+        with _reported(self._where), self._engine.connect() as conn:
+            return conn.execute(query).scalar()
+
+    def ping(self) -> None:
+        """Raise StorageUnavailable unless the database answers."""
+        self._scalar(text("SELECT 1"))
+
+    # ------------------------------------------------------------------------------------ credentials and vehicles
+
+    def add_credential(self, name: str, role: str, secret_hash: str, vehicle_id: str | None = None) -> None:
+        """Store a new credential. A "vehicle" credential's name is its vehicle's id (vehicle_id defaults to it);
+        readers and admins have no vehicle_id. ValueError if `name` is taken."""
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"credential name must be a non-empty string, got {name!r}")
+        if role not in ROLES:
+            raise ValueError(f"credential role must be one of {ROLES}, got {role!r}")
+        if role == "vehicle":
+            vehicle_id = name if vehicle_id is None else vehicle_id
+            if vehicle_id != name:
+                raise ValueError(f"a vehicle credential is named by its vehicle's id: name {name!r}, "
+                                 f"vehicle_id {vehicle_id!r}")
+        elif vehicle_id is not None:
+            raise ValueError(f"a {role} credential has no vehicle_id, got {vehicle_id!r}")
+        row = {"name": name, "role": role, "secret_hash": secret_hash, "vehicle_id": vehicle_id, "revoked": False,
+               "created_ms": _now_ms()}
+        insert = self._insert(credentials_table).values(row).on_conflict_do_nothing()
+        with self._transaction() as conn:
+            added = conn.execute(insert.returning(credentials_table.c.name)).first()
+        if added is None:
+            raise ValueError(f"a credential named {name!r} exists already")
+
+    def credential(self, name: str) -> Credential | None:
+        rows = self._all(select(credentials_table).where(credentials_table.c.name == name))
+        return Credential(**rows[0]) if rows else None
+
+    def credentials(self) -> list[Credential]:
+        return [Credential(**row) for row in self._all(select(credentials_table).order_by(credentials_table.c.name))]
+
+    def revoke_credential(self, name: str) -> bool:
+        """Revoke credential `name`; True if it existed and was active."""
+        c = credentials_table.c
+        with self._transaction() as conn:
+            query = credentials_table.update().where(c.name == name, c.revoked.is_(False)).values(revoked=True)
+            return conn.execute(query).rowcount == 1
+
+    def set_secret_hash(self, name: str, secret_hash: str) -> None:
+        """Replace credential `name`'s secret hash (revoked or not); ValueError if there is no such credential."""
+        with self._transaction() as conn:
+            query = credentials_table.update().where(credentials_table.c.name == name)
+            if conn.execute(query.values(secret_hash=secret_hash)).rowcount != 1:
+                raise ValueError(f"no credential named {name!r}")
+
+    def put_vehicle(self, vehicle_id: str, profile: dict) -> None:
+        """Store (or replace) the profile of `vehicle_id`: a JSON-able dict of DESIGN 3.2 fields."""
+        if not isinstance(profile, dict):
+            raise TypeError(f"profile of vehicle {vehicle_id!r} must be a dict, got {type(profile).__name__}")
+        insert = self._insert(vehicles_table).values(vehicle_id=vehicle_id, profile=profile, updated_ms=_now_ms())
+        upsert = insert.on_conflict_do_update(
+            index_elements=["vehicle_id"],
+            set_={"profile": insert.excluded.profile, "updated_ms": insert.excluded.updated_ms})
+        with self._transaction() as conn:
+            conn.execute(upsert)
+
+    def vehicle_profile(self, vehicle_id: str) -> dict | None:
+        return self._scalar(select(vehicles_table.c.profile).where(vehicles_table.c.vehicle_id == vehicle_id))
+
+    def vehicle_ids(self) -> list[str]:
+        """The ids of the vehicles with a stored profile, sorted."""
+        return [row["vehicle_id"] for row in self._all(
+            select(vehicles_table.c.vehicle_id).order_by(vehicles_table.c.vehicle_id))]
+
+    # ------------------------------------------------------------------------------------ telemetry and estimates
+
+    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> tuple[int, int]:
+        """Store telemetry rows (keys: TELEMETRY's column names; optional ones may be None or absent) and estimate
+        rows (keys: the estimates table's columns; position and h3_cell may be None or absent) in one transaction.
+        Rows whose (vehicle_id, timestamp_ms) is stored already, or came earlier in the same list, are skipped.
+        Returns how many telemetry rows and how many estimates were newly stored."""
+        telemetry = _checked_rows("telemetry", telemetry, telemetry_table)
+        estimates = _checked_rows("estimate", estimates, estimates_table)
+        with self._transaction() as conn:
+            return self._insert_new(conn, telemetry_table, telemetry), self._insert_new(conn, estimates_table, estimates)
+
+    def _insert_new(self, conn: Connection, table: Table, rows: list[dict]) -> int:
+        if not rows:
+            return 0
+        # One multi-row INSERT per 1,000 rows (SQLAlchemy's "insertmanyvalues"); RETURNING yields the inserted rows
+        # only, which counts them on both databases.
+        query = self._insert(table).on_conflict_do_nothing(index_elements=KEY).returning(table.c.timestamp_ms)
+        return len(conn.execute(query, rows).all())
+
+    def _range(self, table: Table, vehicle_id: str, start_ms: int | None, end_ms: int | None, limit: int):
+        _check_limit(limit)
+        query = select(table).where(table.c.vehicle_id == vehicle_id)
+        if start_ms is not None:
+            query = query.where(table.c.timestamp_ms >= start_ms)
+        if end_ms is not None:
+            query = query.where(table.c.timestamp_ms < end_ms)
+        return self._all(query.order_by(table.c.timestamp_ms).limit(limit))
+
+    def estimates(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
+                  limit: int = 10000) -> list[dict]:
+        """The estimates of `vehicle_id` with start_ms <= timestamp_ms < end_ms (either bound may be None), oldest
+        first, at most `limit`."""
+        return self._range(estimates_table, vehicle_id, start_ms, end_ms, limit)
+
+    def estimates_since(self, since_ms: int, limit: int = 1_000_000) -> list[dict]:
+        """The estimates of all vehicles with timestamp_ms >= since_ms, oldest first, at most `limit`."""
+        _check_limit(limit)
+        c = estimates_table.c
+        return self._all(select(estimates_table).where(c.timestamp_ms >= since_ms)
+                         .order_by(c.timestamp_ms, c.vehicle_id).limit(limit))
+
+    def telemetry(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
+                  limit: int = 100000) -> list[dict]:
+        """The telemetry of `vehicle_id` with start_ms <= timestamp_ms < end_ms, oldest first, at most `limit`."""
+        return self._range(telemetry_table, vehicle_id, start_ms, end_ms, limit)
+
+    def counts(self) -> dict[str, int]:
+        """Rows in each table: telemetry, estimates, vehicles (with a profile), warnings."""
+        tables = {"telemetry": telemetry_table, "estimates": estimates_table, "vehicles": vehicles_table,
+                  "warnings": warnings_table}
+        query = select(*(select(func.count()).select_from(t).scalar_subquery().label(name)
+                         for name, t in tables.items()))
+        return self._all(query)[0]
+
+    def latest_timestamps(self) -> dict[str, int]:
+        """vehicle_id -> timestamp_ms of its newest stored telemetry row."""
+        c = telemetry_table.c
+        rows = self._all(select(c.vehicle_id, func.max(c.timestamp_ms).label("latest")).group_by(c.vehicle_id))
+        return {row["vehicle_id"]: row["latest"] for row in rows}
+
+    # ------------------------------------------------------------------------------------ warnings
+
+    def put_warning(self, warning_id: str, cell: str, status: str, detection_ms: int, updated_ms: int,
+                    message: dict) -> None:
+        """Store (or replace) warning `warning_id`; `message` is a JSON-able dict (the DENM-shaped warning)."""
+        if not isinstance(message, dict):
+            raise TypeError(f"message of warning {warning_id!r} must be a dict, got {type(message).__name__}")
+        insert = self._insert(warnings_table).values(warning_id=warning_id, cell=cell, status=status,
+                                                     detection_ms=detection_ms, updated_ms=updated_ms, message=message)
+        upsert = insert.on_conflict_do_update(
+            index_elements=["warning_id"],
+            set_={name: insert.excluded[name] for name in ("cell", "status", "detection_ms", "updated_ms", "message")})
+        with self._transaction() as conn:
+            conn.execute(upsert)
+
+    def warnings(self, active_only: bool = False) -> list[dict]:
+        """All warnings (or only those whose status is "active"), by detection time."""
+        c = warnings_table.c
+        query = select(warnings_table).order_by(c.detection_ms, c.warning_id)
+        return self._all(query.where(c.status == ACTIVE) if active_only else query)
+
+
+def _enable_postgis(engine: Engine, where: str) -> bool:
+    """Try to create the PostGIS extension; False (and a log line) where the server lacks it or forbids it."""
+    with engine.connect() as conn:  # a server that cannot be reached fails here, not as "no PostGIS"
+        try:
+            with conn.begin():
+                conn.execute(text("CREATE EXTENSION IF NOT EXISTS postgis"))
+            return True
+        except exc.DBAPIError as err:
+            if err.connection_invalidated:
+                raise
+            log.warning("PostGIS not available on %s, estimates get no geom column: %s", where, err.orig)
+            return False
+
+
+def open_storage(url: str) -> Storage:
+    """Open the database at `url` (sqlite:///PATH, postgresql://... or postgresql+psycopg://...) and create the
+    tables that are missing; the parent folder of an SQLite file is created too."""
+    sa_url = normalise_url(url)
+    where = sa_url.render_as_string(hide_password=True)
+    if sa_url.get_backend_name() == "sqlite":
+        try:
+            Path(sa_url.database).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise StorageUnavailable(f"database {where} unavailable: {err}") from err
+        engine = sa.create_engine(sa_url)
+        sa.event.listen(engine, "connect", _sqlite_pragmas)
+    else:
+        engine = sa.create_engine(sa_url, pool_pre_ping=True, connect_args={"connect_timeout": CONNECT_TIMEOUT_S})
+    try:
+        with _reported(where):
+            postgis = engine.dialect.name == "postgresql" and _enable_postgis(engine, where)
+            with engine.begin() as conn:
+                metadata.create_all(conn)
+                for statement in POSTGIS_DDL if postgis else ():
+                    conn.execute(text(statement))
+    except BaseException:
+        engine.dispose()
+        raise
+    return Storage(url, engine, postgis)

@@ -1,0 +1,1 @@
+"""Vehicles that talk to the cloud: simulated terminals and replays of recorded logs."""
