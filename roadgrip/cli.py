@@ -307,6 +307,56 @@ def bench_estimate_command(
     console.print(f"machine: {machine_description()}")
 
 
+@bench_app.command("ingest")
+@friendly_errors
+def bench_ingest_command(
+    vehicles: int = typer.Option(1000, min=1, help="simulated vehicles, each sending at 10 Hz"),
+    seconds: float = typer.Option(30.0, min=1.0, help="duration of each case"),
+    transport: list[str] = typer.Option(["mqtt", "http"], help="mqtt and/or http (repeatable)"),
+    http_batch: int = typer.Option(10, min=1, help="samples per HTTP request (10: a terminal posting once a second)"),
+    mqtt_batch: int = typer.Option(1, min=1, help="samples per MQTT message (1: every 100 ms)"),
+    database_url: str | None = typer.Option(None, help="PostgreSQL URL (default: SQLite in a scratch folder)"),
+    out: Path | None = typer.Option(None, help="write the results as JSON here"),
+):
+    """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
+    acknowledged and stored; beside it the broker and the database alone, measured in the same run."""
+    import json
+
+    from roadgrip.cloud.bench import IngestCase, broker_ceiling, database_ceiling, run_case, sample_bodies
+    from roadgrip.sim.bench import machine_description
+
+    for t in transport:
+        if t not in ("mqtt", "http"):
+            raise ValueError(f"--transport must be mqtt or http, got {t!r}")
+    with console.status("simulating the telemetry..."):
+        bodies = sample_bodies()
+    rows = []
+    for t in transport:
+        case = IngestCase(t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch)
+        with console.status(f"{t}: {vehicles} vehicles for {seconds:.0f} s..."):
+            rows.append(run_case(case, bodies, database_url, progress=lambda m: None))
+    ceilings = []
+    with console.status("the database alone..."):
+        ceilings.append(database_ceiling(bodies, database_url))
+    if "mqtt" in transport:
+        with console.status("the broker alone..."):
+            ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0)))
+    table = Table(title=f"roadgrip bench ingest: {vehicles} vehicles at 10 Hz")
+    for name in ("case", "batch", "offered/s", "sent", "acked", "stored", "lost", "estimates", "stored/s", "drain s"):
+        table.add_column(name, justify="left" if name == "case" else "right")
+    for r in rows:
+        table.add_row(r["case"], str(r["batch"]), f"{r['offered_per_s']:,.0f}", f"{r['sent']:,}",
+                      f"{r['acknowledged']:,}", f"{r['stored_rows']:,}", f"{r['lost']:,}", f"{r['estimate_rows']:,}",
+                      f"{r['stored_per_s_during_run']:,.0f}", f"{r['drain_s']:.1f}")
+    console.print(table)
+    for c in ceilings:
+        rate = c.get("rows_per_s", c.get("messages_per_s"))
+        console.print(f"ceiling, {c['case']}: {rate:,.0f} per s")
+    console.print(f"machine: {machine_description()}")
+    if out is not None:
+        out.write_text(json.dumps({"cases": rows, "ceilings": ceilings, "machine": machine_description()}, indent=1))
+
+
 @bench_app.command("sim")
 @friendly_errors
 def bench_sim_command(

@@ -94,19 +94,26 @@ def create_app(service: CloudService) -> FastAPI:
     async def storage_down(request: Request, exc: StorageUnavailable):
         return JSONResponse({"detail": f"storage unavailable, nothing was stored: {exc}"}, status_code=503)
 
-    @app.post("/v1/vehicles", status_code=201, response_model=Issued)
-    def register_vehicle(body: VehicleRegistration, caller: Caller) -> Issued:
+    @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued])
+    def register_vehicles(body: VehicleRegistration | list[VehicleRegistration], caller: Caller):
+        """One vehicle, or a list (a fleet at once: one broker reload); all or nothing."""
         require(caller, "admin")
+        batch = body if isinstance(body, list) else [body]
+        profiles = []
+        for k, item in enumerate(batch):
+            try:
+                profiles.append(vehicle_by_name(item.profile) if isinstance(item.profile, str)
+                                else VehicleParams.from_dict(item.profile))
+            except (ValueError, TypeError, KeyError) as exc:
+                where = "profile" if not isinstance(body, list) else f"[{k}].profile"
+                raise HTTPException(422, f"{where}: {exc}") from None
         try:
-            profile = (vehicle_by_name(body.profile) if isinstance(body.profile, str)
-                       else VehicleParams.from_dict(body.profile))
-        except (ValueError, TypeError, KeyError) as exc:
-            raise HTTPException(422, f"profile: {exc}") from None
-        try:
-            secret = service.register_vehicle(body.vehicle_id, profile)
+            issued = service.register_vehicles([(item.vehicle_id, p) for item, p in zip(batch, profiles)])
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
-        return Issued(name=body.vehicle_id, role="vehicle", secret=secret, mqtt_url=service.mqtt_url)
+        answers = [Issued(name=item.vehicle_id, role="vehicle", secret=secret, mqtt_url=service.mqtt_url)
+                   for item, secret in zip(batch, issued)]
+        return answers if isinstance(body, list) else answers[0]
 
     @app.get("/v1/vehicles/{vehicle_id}")
     def vehicle_profile(vehicle_id: str, caller: Caller) -> dict:

@@ -4,9 +4,11 @@ Three roles. A *vehicle* (login name = its vehicle_id) writes its own telemetry 
 (a road operator, a dashboard) reads estimates of every vehicle, the map and the warnings; the *admin* registers vehicles
 and readers and revokes credentials. The same name and secret work over HTTP (Basic authentication) and MQTT.
 
-Secrets are random (32 bytes, URL-safe) and never stored: the database holds an scrypt hash (RFC 7914; n=2^14, r=8,
-p=1, 16-byte salt). Checking scrypt costs ~40 ms, too slow for a vehicle posting every 100 ms, so a verified secret is
-remembered in memory by its SHA-256 (never its clear text) until the credential is revoked or its secret changes.
+Secrets are never stored, only hashed. The secrets the cloud issues are random (32 bytes, URL-safe: 256 bits), so a
+plain SHA-256 of them cannot be reversed by guessing and costs microseconds, which a fleet registering and posting
+every 100 ms needs (the practice of API tokens). The admin's secret may be chosen by a person, so it gets a slow,
+salted scrypt hash (RFC 7914; n=2^14, r=8, p=1: ~40 ms a check). A verified secret is remembered in memory by its SHA-256
+(never its clear text) until the credential is revoked or its secret changes, so scrypt runs once per admin session.
 """
 
 from __future__ import annotations
@@ -32,8 +34,13 @@ def new_secret() -> str:
     return secrets.token_urlsafe(32)
 
 
+def hash_token(secret: str) -> str:
+    """'sha256$hex' of an issued (random, 256-bit) secret."""
+    return "sha256$" + hashlib.sha256(secret.encode()).hexdigest()
+
+
 def hash_secret(secret: str, *, salt: bytes | None = None) -> str:
-    """'scrypt$n$r$p$salt$hash' with base64 salt and hash."""
+    """'scrypt$n$r$p$salt$hash' with base64 salt and hash, for secrets a person may have chosen."""
     salt = secrets.token_bytes(16) if salt is None else salt
     digest = hashlib.scrypt(secret.encode(), salt=salt, n=_SCRYPT_N, r=_SCRYPT_R, p=_SCRYPT_P, dklen=32)
     return "$".join(("scrypt", str(_SCRYPT_N), str(_SCRYPT_R), str(_SCRYPT_P), base64.b64encode(salt).decode(),
@@ -41,6 +48,8 @@ def hash_secret(secret: str, *, salt: bytes | None = None) -> str:
 
 
 def verify_secret(secret: str, stored: str) -> bool:
+    if stored.startswith("sha256$"):
+        return hmac.compare_digest(hash_token(secret), stored)
     try:
         scheme, n, r, p, salt, digest = stored.split("$")
         if scheme != "scrypt":
@@ -79,7 +88,7 @@ class Authenticator:
         if role not in ROLES:
             raise ValueError(f"role must be one of {ROLES}, got {role!r}")
         secret = new_secret()
-        self.storage.add_credential(name, role, hash_secret(secret), vehicle_id)
+        self.storage.add_credential(name, role, hash_token(secret), vehicle_id)
         return secret
 
     def revoke(self, name: str) -> bool:

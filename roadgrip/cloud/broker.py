@@ -219,6 +219,18 @@ class ManagedBroker:
     def set_user(self, name: str, password: str, role: str, vehicle_id: str | None = None) -> None:
         """Add a login, or replace one (password and role). A vehicle's login name is its vehicle_id (`vehicle_id`, if
         given, must equal `name`); a reader has none. Applies at once when the broker runs (see the module docstring)."""
+        self.set_users([(name, password, role, vehicle_id)])
+
+    def set_users(self, logins: list[tuple[str, str, str, str | None]]) -> None:
+        """`set_user` for many (name, password, role, vehicle_id) at once, with one reload: a fleet's registration.
+        All are checked before any is applied."""
+        new = {}
+        for name, password, role, vehicle_id in logins:
+            new[name] = self._checked_login(name, password, role, vehicle_id)
+        self._logins.update(new)
+        self._apply()
+
+    def _checked_login(self, name: str, password: str, role: str, vehicle_id: str | None) -> _Login:
         _check_name("name", name)
         if name == self.service_user:
             raise ValueError(f"name {name!r} is the service's own login")
@@ -230,8 +242,7 @@ class ManagedBroker:
                                  f"{vehicle_id!r}")
         elif vehicle_id is not None:
             raise ValueError(f"vehicle_id is for role 'vehicle' only, got {vehicle_id!r} for role {role!r}")
-        self._logins[name] = _Login(password_hash(password), role)
-        self._apply()
+        return _Login(password_hash(password), role)
 
     def remove_user(self, name: str) -> bool:
         """Revoke a login: new connections are refused and a live one is disconnected at once (when the broker runs).

@@ -33,6 +33,7 @@ import logging
 import queue
 import secrets
 import threading
+import time
 from collections.abc import Callable
 from typing import Self
 from urllib.parse import urlsplit
@@ -55,6 +56,8 @@ WARNINGS_TOPIC = "roadgrip/v1/warnings"
 VEHICLE_TOPIC_KINDS = ("telemetry", "friction", "errors")
 QOS = 1
 DEFAULT_PORT = 1883
+RECONNECT_MIN_DELAY_S = 0.25  # doubling after each failed attempt, up to the max
+RECONNECT_MAX_DELAY_S = 10.0
 
 TelemetryHandler = Callable[[str, bytes, Callable[[], None]], None]
 
@@ -119,10 +122,12 @@ class PublishRefused(RuntimeError):
 def connect_paho(url: str, username: str, password: str, *, client_id: str | None = None, timeout_s: float = 10,
                  clean_start: bool = True, properties: Properties | None = None,
                  manual_ack: bool = False) -> paho.Client:
-    """A paho client (MQTT 5) connected to `url` as `username`, its network loop running in paho's thread.
+    """A paho client (MQTT 5) connected to `url` as `username`, its network loop then running in paho's thread (which
+    reconnects by itself after a drop).
 
     Returns once the broker accepted the connection. Raises `BrokerRefused` when the CONNACK carries a failure, `OSError`
-    when nothing listens at `url`, `TimeoutError` when no CONNACK came within `timeout_s`; the client is stopped then.
+    when nothing listens at `url` or the connection closes before the CONNACK, `TimeoutError` when no CONNACK came within
+    `timeout_s`; the client is disconnected then.
     The caller owns the client: `client.disconnect(); client.loop_stop()` ends it."""
     host, port = parse_url(url)
     client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id or f"roadgrip-{secrets.token_hex(6)}",
@@ -137,15 +142,21 @@ def connect_paho(url: str, username: str, password: str, *, client_id: str | Non
             answered.set()
 
     client.on_connect = on_connect
+    client.reconnect_delay_set(RECONNECT_MIN_DELAY_S, RECONNECT_MAX_DELAY_S)
     client.connect(host, port, keepalive=30, clean_start=clean_start, properties=properties)
-    client.loop_start()
-    if not answered.wait(timeout_s):
-        _stop(client)
-        raise TimeoutError(f"no CONNACK from {url} within {timeout_s} s")
+    deadline = time.monotonic() + timeout_s
+    while not answered.is_set() and time.monotonic() < deadline:  # in this thread, until the CONNACK
+        if client.loop(timeout=0.05) != MQTTErrorCode.MQTT_ERR_SUCCESS:
+            break
     client.on_connect = None
-    if reply[0].is_failure:
-        _stop(client)
-        raise BrokerRefused(f"connect to {url} as {username!r}", reply[0])
+    if not reply or reply[0].is_failure:
+        client.disconnect()
+        if reply:
+            raise BrokerRefused(f"connect to {url} as {username!r}", reply[0])
+        if time.monotonic() < deadline:
+            raise ConnectionError(f"{url} closed the connection before its CONNACK")
+        raise TimeoutError(f"no CONNACK from {url} within {timeout_s} s")
+    client.loop_start()
     return client
 
 
@@ -181,7 +192,8 @@ class MqttClient:
     def __init__(self, url: str, username: str, password: str, client_id: str,
                  on_telemetry: TelemetryHandler | None = None, *, session_expiry_s: int = 86_400,
                  receive_maximum: int = 10_000, max_queued_messages: int = 100_000, keepalive_s: int = 30,
-                 reconnect_min_delay_s: float = 0.25, reconnect_max_delay_s: float = 10.0):
+                 reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
+                 reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S):
         self.host, self.port = parse_url(url)
         if not 1 <= receive_maximum <= 65_535:
             raise ValueError(f"receive_maximum must be in [1, 65535] (MQTT 5), got {receive_maximum}")

@@ -272,7 +272,7 @@ class Pipeline:
     # ------------------------------------------------------------------------------------------------- fan-out
     def _after_store(self, estimates: list[dict]) -> None:
         now_ms = self.now_ms()
-        self.friction_map.add(estimates)
+        self.friction_map.add(estimates, now_ms)
         events = self.warning_engine.update(estimates, now_ms)
         for event in events:
             denm = event.to_denm()

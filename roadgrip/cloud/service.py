@@ -164,16 +164,21 @@ class CloudService:
         self._publish(errors_topic(vehicle_id), json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
 
     # ------------------------------------------------------------------------------------------------- registration
-    def register_vehicle(self, vehicle_id: str, profile: VehicleParams) -> str:
-        """Store the profile, create the vehicle's credential (HTTP and MQTT); returns its secret."""
-        if self.storage.credential(vehicle_id) is not None:
-            raise ValueError(f"vehicle_id {vehicle_id!r} is already registered")
-        self.storage.put_vehicle(vehicle_id, profile.to_dict())
-        secret = self.auth.create(vehicle_id, "vehicle", vehicle_id)
+    def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:
+        """Store each profile and create each vehicle's credential (HTTP and MQTT, one broker reload for all);
+        returns their secrets. All or nothing when a vehicle_id is taken."""
+        ids = [vehicle_id for vehicle_id, _ in vehicles]
+        taken = sorted({v for v in ids if ids.count(v) > 1 or self.storage.credential(v) is not None})
+        if taken:
+            raise ValueError(f"vehicle_id(s) already registered or given twice: {', '.join(taken[:10])}")
+        secrets_ = []
+        for vehicle_id, profile in vehicles:
+            self.storage.put_vehicle(vehicle_id, profile.to_dict())
+            secrets_.append(self.auth.create(vehicle_id, "vehicle", vehicle_id))
+            self.pipeline.forget_vehicle(vehicle_id)
         if self.broker is not None:
-            self.broker.set_user(vehicle_id, secret, "vehicle", vehicle_id)
-        self.pipeline.forget_vehicle(vehicle_id)
-        return secret
+            self.broker.set_users([(v, s, "vehicle", v) for v, s in zip(ids, secrets_)])
+        return secrets_
 
     def register_reader(self, name: str) -> str:
         if self.storage.credential(name) is not None:

@@ -334,11 +334,14 @@ class WarningEngine:
                 self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
 
     def _sweep(self, now_ms: int) -> None:
-        """Forget cells with no warning whose evidence (low passes, last dry pass) is older than validity_s."""
+        """Forget cells with no warning whose evidence (low passes, last dry pass) is older than validity_s, and the
+        last judged pass of vehicles gone for as long."""
         horizon = now_ms - self.validity_s * 1000.0
         for cell in [c for c, s in self.cell_states_.items() if s.warning is None]:
             state = self.cell_states_[cell]
             state.low_passes = [p for p in state.low_passes if p.time_ms >= horizon]
             if not state.low_passes and state.last_dry_ms < horizon:
                 del self.cell_states_[cell]
+        for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:
+            del self.last_judged_ms_[vehicle]
         self.last_sweep_ms_ = now_ms

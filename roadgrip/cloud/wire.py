@@ -8,19 +8,22 @@ raises `PayloadError`, which carries the HTTP status to answer.
 The payload (`PayloadError` when a rule fails):
 - at most `max_bytes` (413, checked before anything is decoded); UTF-8 (a leading byte order mark is skipped);
 - content type `application/json`: one JSON object (one sample) or an array of samples; `application/x-ndjson`,
-  `application/jsonl` and their usual aliases (`NDJSON_TYPES`): one object per line, blank lines ignored; parameters such
-  as `; charset=utf-8` are ignored; any other type is refused (415). No content type (MQTT): an array when the first
-  non-blank character is `[`, else one object when the whole body parses as one, else NDJSON;
+  `application/jsonl` and their usual aliases (`NDJSON_TYPES`): one object per line, blank lines (nothing but spaces,
+  tabs, CR) ignored; parameters such as `; charset=utf-8` are ignored; any other type is refused (415). No content type
+  (MQTT): an array when the first non-blank character is `[`, else one object when the whole body parses as one, else
+  NDJSON;
 - a JSON document that does not parse or is neither an object nor an array is refused (we cannot tell where its samples
   start); in NDJSON a bad line is a `SampleError` for that line and the other lines are kept;
-- at least one sample (an empty body, only blank lines or `[]` are refused) and at most `max_samples` (413).
+- at least one sample (an empty body, only blank lines or `[]` are refused) and at most `max_samples` (413: the payload
+  is too large, in samples rather than bytes).
 
 Each sample (`SampleError`, with its first fault; `index` is its array index, or its line number - 1 in NDJSON):
 1. is a JSON object;
 2. has wire format v1 keys only (strict: an unknown key is an error naming it, with the close wire name when there is
    one; `t_s`, which files may use, is not accepted on the wire), or COVESA VSS keys (any key starting with "Vehicle."
    makes the sample VSS; `VSS` below maps them, converting units) with `timestamp_ms` and `vehicle_id` allowed as plain
-   keys beside them (VSS has no sample time). Other wire keys mixed with VSS keys are an error. Errors on a VSS sample
+   keys beside them (VSS has no sample time). Other wire keys mixed with VSS keys are an error (a key known to neither
+   is reported first, as unknown). Errors on a VSS sample
    name the VSS key that was sent and give its value and range in the VSS unit;
 3. has every required field (TELEMETRY required=True: all but latitude, longitude and lateral speed); a sample without
    vehicle_id takes the payload's authenticated vehicle when there is one;
@@ -132,13 +135,13 @@ def parse_payload(body: bytes, *, content_type: str | None = None, max_bytes: in
         raise PayloadError(f"payload of {len(body)} bytes exceeds the limit of {max_bytes} bytes", status=413)
     kind = _kind(content_type)
     try:
-        text = bytes(body).decode("utf-8")
+        text = body.decode("utf-8")
     except UnicodeDecodeError as e:
         raise PayloadError(f"payload is not UTF-8: {e.reason} at byte {e.start}") from None
     text = text.removeprefix("\ufeff")
     if not text.strip():
         raise PayloadError("empty payload: no samples")
-    docs, lines = _documents(text, kind, max_samples)
+    docs, numbers = _documents(text, kind, max_samples)
 
     check = _Checker(int(now_ms), int(max_future_ms), vehicle_id).check
     samples, errors = [], []
@@ -147,14 +150,14 @@ def parse_payload(body: bytes, *, content_type: str | None = None, max_bytes: in
             samples.append(check(doc))
         except _Refused as e:
             vid, ts = _identity(doc, vehicle_id)
-            errors.append(SampleError(lines[i] if lines else i, e.field, e.reason, vid, ts))
+            errors.append(SampleError(numbers[i] if numbers else i, e.field, e.reason, vid, ts))
     return samples, errors
 
 
 # ------------------------------------------------------------------------------------------------- the payload
 
 def _check_options(body, max_bytes, max_samples, now_ms, max_future_ms, vehicle_id) -> None:
-    if not isinstance(body, (bytes, bytearray, memoryview)):
+    if not isinstance(body, (bytes, bytearray)):
         raise TypeError(f"body must be bytes, got {type(body).__name__}")
     for name, value, low in (("max_bytes", max_bytes, 1), ("max_samples", max_samples, 1), ("now_ms", now_ms, 0),
                              ("max_future_ms", max_future_ms, 0)):
@@ -179,8 +182,8 @@ def _kind(content_type: str | None) -> str | None:
 
 
 def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, list[int] | None]:
-    """(one parsed value per sample, each one's index when it is not its position: NDJSON line numbers - 1). A bad
-    NDJSON line is a `_BadLine`."""
+    """(one parsed value per sample, each one's index when that is not its position: NDJSON line numbers - 1 when
+    blank lines were left out). A bad NDJSON line is a `_BadLine`."""
     if kind is None:
         if text.lstrip()[:1] == "[":
             kind = "json"
@@ -201,19 +204,21 @@ def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, lis
             raise PayloadError(f"payload is not valid JSON: {_json_failure(e)}") from None
         return _json_samples(doc, max_samples), None
 
-    lines = []
-    for i, line in enumerate(text.split("\n")):
-        line = line.strip(_JSON_SPACE)
-        if line:
-            lines.append((i, line))
+    lines = [line.strip(_JSON_SPACE) for line in text.split("\n")]
+    while lines and not lines[-1]:
+        lines.pop()
+    numbers = None  # line number - 1 of each line kept, when blank lines come before the last one
+    if not all(lines):
+        numbers = [i for i, line in enumerate(lines) if line]
+        lines = [lines[i] for i in numbers]
     if len(lines) > max_samples:
         raise PayloadError(f"payload holds {len(lines)} samples, more than the limit of {max_samples}", status=413)
     if not lines:
         raise PayloadError("empty payload: no samples")
-    docs = _lines_at_once(text, [line for _, line in lines])
+    docs = _lines_at_once(text, lines)
     if docs is None:
-        docs = [_line(i, line) for i, line in lines]
-    return docs, [i for i, _ in lines]
+        docs = [_line(numbers[k] if numbers else k, line) for k, line in enumerate(lines)]
+    return docs, numbers
 
 
 def _lines_at_once(text: str, lines: list[str]) -> list[dict] | None:
@@ -271,7 +276,6 @@ _WIRE_KEYS = frozenset(_SPEC)
 _REQUIRED = tuple(c.name for c in TELEMETRY if c.required)
 _REQUIRED_BUT_ID = frozenset(_REQUIRED) - {"vehicle_id"}
 _WIRE_TO_VSS = {s.wire: key for key, s in VSS.items()}
-_VSS_KEYS = tuple(VSS) + VSS_PLAIN_KEYS
 _VIN = "Vehicle.VehicleIdentification.VIN"
 
 
@@ -367,12 +371,12 @@ class _Checker:
                 continue
             if labels is None:
                 raise _Refused(name, f"missing required field '{name}'")
-            if name in _WIRE_TO_VSS and name != "vehicle_id":
-                raise _Refused(_WIRE_TO_VSS[name], f"missing required field '{_WIRE_TO_VSS[name]}'")
             if name == "vehicle_id":
                 raise _Refused(_VIN, f"missing required field '{_VIN}' (or 'vehicle_id')")
-            raise _Refused(name, f"missing required field '{name}' (VSS has no sample time: send timestamp_ms, "
-                                 "integer ms since the Unix epoch, beside the VSS keys)")
+            if name == "timestamp_ms":
+                raise _Refused(name, f"missing required field '{name}' (VSS has no sample time: send timestamp_ms, "
+                                     "integer ms since the Unix epoch, beside the VSS keys)")
+            raise _Refused(_WIRE_TO_VSS[name], f"missing required field '{_WIRE_TO_VSS[name]}'")
 
     def _vehicle(self, vid, labels: dict | None) -> None:
         label = (labels or {}).get("vehicle_id", "vehicle_id")
@@ -405,12 +409,12 @@ class _Checker:
 
 def _from_vss(doc: dict) -> tuple[dict, dict]:
     """A sample with a key outside wire format v1: (the sample in wire names and units, wire name -> the VSS key sent);
-    _Refused when it is not a VSS sample, or one with a key that does not belong."""
-    if not any(k.startswith("Vehicle.") for k in doc):
-        key = next(k for k in doc if k not in _WIRE_KEYS)
-        raise _Refused(_clip(key), _unknown(key, _WIRE_KEYS))
+    _Refused for a key that is neither a wire name nor a VSS key (first), or a wire key beside VSS keys."""
+    for key in doc:
+        if key not in _WIRE_KEYS and key not in VSS:
+            raise _Refused(_clip(key), _unknown(key, VSS if key.startswith("Vehicle.") else _WIRE_KEYS))
     sample, labels = {}, {}
-    for key, value in doc.items():
+    for key, value in doc.items():  # every key is a wire name or a VSS key, and one at least is VSS
         signal = VSS.get(key)
         if signal is not None:
             wire = signal.wire
@@ -422,11 +426,9 @@ def _from_vss(doc: dict) -> tuple[dict, dict]:
                     value = math.inf
         elif key in VSS_PLAIN_KEYS:
             wire = key
-        elif key in _WIRE_KEYS:
+        else:
             raise _Refused(key, f"wire field '{key}' mixed with VSS keys: a sample is either wire format v1 or VSS "
                                 f"(only {' and '.join(VSS_PLAIN_KEYS)} may stand beside VSS keys)")
-        else:
-            raise _Refused(_clip(key), _unknown(key, _VSS_KEYS))
         if wire in sample and sample[wire] != value:  # only vehicle_id beside Vehicle.VehicleIdentification.VIN
             vin, plain = (value, sample[wire]) if key == _VIN else (sample[wire], value)
             raise _Refused(_VIN, f"{_VIN} {_quote(vin)} and vehicle_id {_quote(plain)} differ: send one of them")
@@ -439,7 +441,7 @@ def _unknown(key: str, names) -> str:
         return ("unknown field 't_s': the wire format takes timestamp_ms (integer ms since the Unix epoch, UTC), "
                 "not t_s, which only files may use")
     close = difflib.get_close_matches(key, names, n=1) if len(key) <= 100 else []
-    return f"unknown field {_quote(key)}" + (f" (did you mean '{close[0]}'?)" if close else "")
+    return f"unknown field '{_clip(key)}'" + (f" (did you mean '{close[0]}'?)" if close else "")
 
 
 def _field_fault(name: str, value, labels: dict | None, doc: dict):

@@ -166,7 +166,8 @@ def test_a_revoked_credential_stops_at_once_and_secrets_are_stored_hashed(cloud)
     sample = wire_samples(patch_drive(0.9, 3), "car-r", START_MS)[:1]
     assert client.post("/v1/telemetry", json=sample, auth=auth).status_code == 200
     stored = service.storage.credential("car-r")
-    assert auth[1] not in stored.secret_hash and stored.secret_hash.startswith("scrypt$")
+    assert auth[1] not in stored.secret_hash and stored.secret_hash.startswith("sha256$")
+    assert service.storage.credential("admin").secret_hash.startswith("scrypt$")
     assert client.delete("/v1/credentials/car-r", auth=ADMIN).status_code == 204
     assert client.post("/v1/telemetry", json=sample, auth=auth).status_code == 401
     assert client.delete("/v1/credentials/admin", auth=ADMIN).status_code == 409

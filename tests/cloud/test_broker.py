@@ -8,6 +8,7 @@ import socket
 import stat
 import subprocess
 
+import broker_fixtures
 import pytest
 from broker_fixtures import wait_until
 
@@ -16,7 +17,7 @@ from roadgrip.cloud.mqtt import BrokerRefused, UserClient, VehicleClient
 
 HASH_RE = re.compile(r"^\$7\$101\$[A-Za-z0-9+/]{16}\$[A-Za-z0-9+/]{86}==$")  # 12-byte salt, 64-byte SHA-512
 
-pytest_plugins = ("broker_fixtures",)  # the managed_broker fixture
+managed_broker = broker_fixtures.managed_broker  # the fixture
 
 
 def mosquitto_passwd(path, user, password):
@@ -89,7 +90,6 @@ def test_remove_user_refuses_new_connections_and_drops_the_live_one(managed_brok
     managed_broker.set_user("car-2", "pw2", "vehicle")
     with VehicleClient(managed_broker.url, "car-1", "pw1").connect() as live, \
             VehicleClient(managed_broker.url, "car-2", "pw2").connect() as other:
-        live.paho.reconnect_delay_set(5, 5)  # keep paho's own reconnect attempts out of the picture
         assert managed_broker.remove_user("car-1")
         wait_until(lambda: not live.paho.is_connected(), what="car-1 disconnected")
         assert other.paho.is_connected()  # a reload leaves the other logins alone
@@ -103,7 +103,6 @@ def test_remove_user_refuses_new_connections_and_drops_the_live_one(managed_brok
 def test_changing_a_password_drops_the_live_connection(managed_broker):
     managed_broker.set_user("car-1", "old", "vehicle")
     with VehicleClient(managed_broker.url, "car-1", "old").connect() as live:
-        live.paho.reconnect_delay_set(5, 5)
         managed_broker.set_user("car-1", "new", "vehicle")
         wait_until(lambda: not live.paho.is_connected(), what="car-1 disconnected")
     with VehicleClient(managed_broker.url, "car-1", "new").connect():

@@ -3,6 +3,7 @@ the ACL as each side sees it, persistent sessions, manual acknowledgement and re
 
 import threading
 
+import broker_fixtures
 import paho.mqtt.client as paho
 import pytest
 from broker_fixtures import Inbox, wait_until
@@ -26,7 +27,7 @@ from roadgrip.cloud.mqtt import (
 
 NOT_AUTHORIZED = 0x87
 
-pytest_plugins = ("broker_fixtures",)  # the managed_broker fixture
+managed_broker = broker_fixtures.managed_broker  # the fixture
 
 
 def test_topics():

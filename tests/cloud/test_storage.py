@@ -120,7 +120,9 @@ def test_write_batch_counts_new_rows_and_skips_duplicates(storage):
     assert storage.write_batch(telemetry, estimates) == (1300, 1300)  # overlaps the first batch
     assert storage.write_batch(telemetry, estimates) == (0, 0)
     assert storage.write_batch([], []) == (0, 0)
-    assert storage.counts() == {"telemetry": 2500, "estimates": 2500, "vehicles": 0, "warnings": 0}
+    again = telemetry_row(timestamp_ms=T0_MS - 100)
+    assert storage.write_batch([again, again], [estimate_row(timestamp_ms=T0_MS - 100)] * 2) == (1, 1)  # one INSERT
+    assert storage.counts() == {"telemetry": 2501, "estimates": 2501, "vehicles": 0, "warnings": 0}
 
 
 def test_rows_come_back_as_written(storage):

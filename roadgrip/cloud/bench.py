@@ -1,0 +1,274 @@
+"""`roadgrip bench ingest`: vehicles at 10 Hz, end to end (ingest, estimate, stored), with counts that prove nothing was
+lost, and beside it the ceilings of the broker and the database alone, measured in the same run.
+
+Layout on one machine: the service runs as its own process (`roadgrip serve`, with its managed Mosquitto for MQTT);
+`workers` load-generator processes (this module's `_drive`) play the vehicles, each vehicle with its own credentials,
+sending a sample every 100 ms of wall-clock time (or `batch` samples every batch x 100 ms: a terminal that buffers);
+the bench then waits until the service has stored everything it acknowledged and reads the counts from the database.
+The load generators share the machine's cores with the service, so the figures are a floor for a service alone.
+
+Samples are real telemetry: a few simulated runs of the random preset, cycled over the vehicles, each vehicle's stream
+looping its run with timestamps that keep counting.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import secrets
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+from roadgrip.cloud.storage import open_storage
+from roadgrip.fleet.terminal import wire_samples
+
+SAMPLE_PERIOD_MS = 100
+
+
+@dataclass(frozen=True)
+class IngestCase:
+    transport: str        # "http" or "mqtt"
+    vehicles: int
+    seconds: float
+    batch: int            # samples per message
+    workers: int = 2
+    paced: bool = True    # False: send as fast as possible (the broker's ceiling)
+
+
+# ------------------------------------------------------------------------------------------------- telemetry
+def sample_bodies(runs: int = 8, seed: int = 0) -> list[list[str]]:
+    """Per simulated run, each sample as the JSON text of its fields minus vehicle_id and timestamp_ms (the load
+    generator writes those two in front: formatting a string is far cheaper than json.dumps per message)."""
+    from roadgrip.sim.presets import random_scenarios
+    from roadgrip.sim.simulate import simulate
+
+    table = simulate(random_scenarios(runs, seed))
+    bodies = []
+    for run_id in dict.fromkeys(table["run_id"].to_pylist()):
+        import pyarrow.compute as pc
+        run = table.filter(pc.equal(table["run_id"], run_id))
+        samples = wire_samples(run, "x", 0)
+        bodies.append([json.dumps({k: v for k, v in s.items() if k not in ("vehicle_id", "timestamp_ms")})[1:-1]
+                       for s in samples])
+    return bodies
+
+
+def _message(vehicle_id: str, timestamp_ms: int, body: str) -> str:
+    return f'{{"vehicle_id":"{vehicle_id}","timestamp_ms":{timestamp_ms},{body}}}'
+
+
+# ------------------------------------------------------------------------------------------------- load generator
+def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]], start_wall: float,
+           base_ms: int, offset: int, results) -> None:
+    """One load-generator process: its vehicles send `case.batch` samples each every batch x 100 ms until
+    case.seconds have passed; puts (sent, acknowledged, refused) on `results`."""
+    n_ticks = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch
+    sent = acked = refused = 0
+    if case.transport == "mqtt":
+        from roadgrip.cloud.mqtt import UserClient, telemetry_topic
+        clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
+        topics = [telemetry_topic(vid) for vid, _ in vehicles]
+        infos = []
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+        http = httpx.Client(base_url=target["http_url"], timeout=60.0,
+                            limits=httpx.Limits(max_connections=32, max_keepalive_connections=32))
+        pool = ThreadPoolExecutor(32)
+        futures = []
+
+        def post(vid: str, secret: str, body: str):
+            return http.post("/v1/telemetry", content=body, auth=(vid, secret),
+                             headers={"content-type": "application/x-ndjson"})
+    for tick in range(n_ticks):
+        wait = start_wall + tick * case.batch * SAMPLE_PERIOD_MS / 1000 - time.time()
+        if wait > 0 and (case.paced or tick == 0):
+            time.sleep(wait)
+        for i, (vid, secret) in enumerate(vehicles):
+            run = bodies[(offset + i) % len(bodies)]
+            first = tick * case.batch
+            lines = [_message(vid, base_ms + (first + j) * SAMPLE_PERIOD_MS, run[(first + j) % len(run)])
+                     for j in range(case.batch)]
+            payload = lines[0] if case.batch == 1 else ("[" + ",".join(lines) + "]")
+            if case.transport == "mqtt":
+                infos.append(clients[i].publish_nowait(topics[i], payload))
+            else:
+                futures.append(pool.submit(post, vid, secret, "\n".join(lines)))
+            sent += case.batch
+    if case.transport == "mqtt":
+        deadline = time.time() + 60
+        for info in infos:
+            info.wait_for_publish(max(0.0, deadline - time.time()))
+            if info.is_published():
+                acked += case.batch
+        refused = sum(c.refused for c in clients)
+        for c in clients:
+            c.close()
+    else:
+        for f in futures:
+            answer = f.result()
+            if answer.status_code == 200:
+                acked += answer.json()["accepted"]
+            else:
+                refused += case.batch
+        pool.shutdown()
+        http.close()
+    results.put((sent, acked - refused * case.batch if case.transport == "mqtt" else acked, refused))
+
+
+def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]],
+              base_ms: int) -> tuple[int, int, int, float]:
+    ctx = mp.get_context("spawn")
+    results = ctx.Queue()
+    start_wall = time.time() + 3.0  # time for every generator to connect first
+    share = -(-len(vehicles) // case.workers)
+    procs = [ctx.Process(target=_drive, args=(case, target, vehicles[k * share:(k + 1) * share], bodies, start_wall,
+                                              base_ms, k * share, results))
+             for k in range(case.workers) if vehicles[k * share:(k + 1) * share]]
+    for p in procs:
+        p.start()
+    totals = [results.get(timeout=case.seconds + 300) for _ in procs]
+    for p in procs:
+        p.join()
+    sent, acked, refused = (sum(t[k] for t in totals) for k in range(3))
+    return sent, acked, refused, start_wall
+
+
+# ------------------------------------------------------------------------------------------------- the service
+class _Service:
+    """`roadgrip serve` in its own process, in a scratch folder."""
+
+    def __init__(self, workdir: Path, mqtt: bool, database_url: str | None):
+        self.workdir = workdir
+        self.admin = ("admin", secrets.token_urlsafe(24))
+        self.port = _free_port()
+        env = {**os.environ, "ROADGRIP_ADMIN_SECRET": self.admin[1], "ROADGRIP_DATA_DIR": str(workdir),
+               "ROADGRIP_PORT": str(self.port), "ROADGRIP_MQTT": "managed" if mqtt else "off",
+               "ROADGRIP_MAP_CLOCK": "data"}
+        if database_url:
+            env["ROADGRIP_DATABASE_URL"] = database_url
+        self.log = open(workdir / "serve.log", "w")
+        self.process = subprocess.Popen([sys.executable, "-m", "roadgrip", "serve"], env=env, stdout=self.log,
+                                        stderr=subprocess.STDOUT)
+        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", auth=self.admin, timeout=120.0)
+        deadline = time.time() + 120
+        while True:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"roadgrip serve exited:\n{(workdir / 'serve.log').read_text()[-3000:]}")
+            try:
+                self.health()
+                break
+            except httpx.HTTPError:
+                if time.time() > deadline:
+                    raise RuntimeError("roadgrip serve did not answer within 120 s") from None
+                time.sleep(0.3)
+
+    def health(self) -> dict:
+        return self.http.get("/v1/health").raise_for_status().json()
+
+    def register(self, n: int) -> tuple[list[tuple[str, str]], str | None]:
+        body = [{"vehicle_id": f"bench-{i:05d}", "profile": "paper-suv"} for i in range(n)]
+        issued = self.http.post("/v1/vehicles", json=body).raise_for_status().json()
+        return [(c["name"], c["secret"]) for c in issued], issued[0]["mqtt_url"]
+
+    def stop(self) -> None:
+        self.http.close()
+        self.process.terminate()
+        try:
+            self.process.wait(30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+        self.log.close()
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None = None, progress=print) -> dict:
+    with tempfile.TemporaryDirectory(prefix="roadgrip-bench-") as tmp:
+        service = _Service(Path(tmp), case.transport == "mqtt", database_url)
+        try:
+            vehicles, mqtt_url = service.register(case.vehicles)
+            target = {"http_url": f"http://127.0.0.1:{service.port}", "mqtt_url": mqtt_url}
+            base_ms = int(time.time() * 1000) - int(case.seconds * 1000)  # the stream ends about now
+            progress(f"{case.transport}: {case.vehicles} vehicles x {case.seconds:.0f} s, batch {case.batch}")
+            sent, acked, refused, start_wall = _generate(case, target, vehicles, bodies, base_ms)
+            at_end = service.health()["pipeline"]
+            ended = time.time()
+            while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
+                pipeline = service.health()["pipeline"]
+                if pipeline["stored"] >= acked and pipeline["backlog"] == 0 or time.time() - ended > 120:
+                    break
+                time.sleep(0.2)
+            time.sleep(1.0)
+            pipeline = service.health()["pipeline"]
+            drain_s = time.time() - ended - 1.0
+            storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'roadgrip.sqlite'}")
+            counts = storage.counts()
+            storage.close()
+        finally:
+            service.stop()
+    duration = ended - start_wall
+    return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch,
+            "seconds": round(duration, 1), "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS,
+            "sent": sent, "acknowledged": acked, "refused": refused, "stored_rows": counts["telemetry"],
+            "estimate_rows": counts["estimates"], "lost": acked - counts["telemetry"],
+            "stored_per_s_during_run": at_end["stored"] / duration, "drain_s": round(drain_s, 2),
+            "failed_rounds": pipeline["failed_rounds"]}
+
+
+# ------------------------------------------------------------------------------------------------- ceilings
+def database_ceiling(bodies: list[list[str]], database_url: str | None = None, rows: int = 200_000) -> dict:
+    """Telemetry rows per second through Storage.write_batch alone, 1,000-row batches, a fresh database."""
+    samples = [json.loads(_message(f"db-{k % 1000:04d}", 1_700_000_000_000 + k * SAMPLE_PERIOD_MS,
+                                   bodies[k % len(bodies)][k % len(bodies[k % len(bodies)])])) for k in range(rows)]
+    with tempfile.TemporaryDirectory(prefix="roadgrip-bench-db-") as tmp:
+        storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'ceiling.sqlite'}")
+        started = time.perf_counter()
+        for k in range(0, rows, 1000):
+            storage.write_batch(samples[k:k + 1000], [])
+        elapsed = time.perf_counter() - started
+        stored = storage.counts()["telemetry"]
+        storage.close()
+    return {"case": f"database alone ({storage.dialect})", "rows": stored, "rows_per_s": stored / elapsed}
+
+
+def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, workers: int = 2) -> dict:
+    """QoS 1 telemetry messages per second through a managed Mosquitto alone, from the same load generator to one
+    subscriber that only counts them."""
+    import threading
+
+    from roadgrip.cloud.broker import ManagedBroker
+    from roadgrip.cloud.mqtt import TELEMETRY_SUBSCRIPTION, UserClient
+
+    with tempfile.TemporaryDirectory(prefix="roadgrip-bench-mqtt-") as tmp, ManagedBroker(Path(tmp)) as broker:
+        logins = [(f"raw-{i:05d}", secrets.token_urlsafe(16)) for i in range(vehicles)]
+        broker.set_users([(name, secret, "vehicle", name) for name, secret in logins])
+        received = [0]
+        lock = threading.Lock()
+        counter = UserClient(broker.url, broker.service_user, broker.service_password).connect()
+
+        def count(_client, _userdata, _message):
+            with lock:
+                received[0] += 1
+        counter.paho.on_message = count
+        counter.subscribe(TELEMETRY_SUBSCRIPTION)
+        case = IngestCase("mqtt", vehicles, seconds, 1, workers, paced=False)
+        sent, acked, _, start_wall = _generate(case, {"mqtt_url": broker.url}, logins, bodies, 0)
+        deadline = time.time() + 60
+        while received[0] < acked and time.time() < deadline:
+            time.sleep(0.05)
+        ended = time.time()
+        counter.close()
+    return {"case": "broker alone (mosquitto, QoS 1, unpaced)", "sent": sent, "acknowledged": acked,
+            "received": received[0], "messages_per_s": received[0] / (ended - start_wall)}
