@@ -340,18 +340,20 @@ def bench_ingest_command(
         ceilings.append(database_ceiling(bodies, database_url))
     if "mqtt" in transport:
         with console.status("the broker alone..."):
-            ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0)))
+            ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0), mqtt_batch))
     table = Table(title=f"roadgrip bench ingest: {vehicles} vehicles at 10 Hz")
-    for name in ("case", "batch", "offered/s", "sent", "acked", "stored", "lost", "estimates", "stored/s", "drain s"):
+    for name in ("case", "batch", "offered/s", "acked/s", "sent", "acked", "stored", "lost", "estimates",
+                 "stored/s e2e", "drain s", "service CPU s", "broker CPU s", "sustained"):
         table.add_column(name, justify="left" if name == "case" else "right")
     for r in rows:
-        table.add_row(r["case"], str(r["batch"]), f"{r['offered_per_s']:,.0f}", f"{r['sent']:,}",
-                      f"{r['acknowledged']:,}", f"{r['stored_rows']:,}", f"{r['lost']:,}", f"{r['estimate_rows']:,}",
-                      f"{r['stored_per_s_during_run']:,.0f}", f"{r['drain_s']:.1f}")
+        table.add_row(r["case"], str(r["batch"]), f"{r['offered_per_s']:,.0f}", f"{r['acked_per_s']:,.0f}",
+                      f"{r['sent']:,}", f"{r['acknowledged']:,}", f"{r['stored_rows']:,}", f"{r['lost']:,}",
+                      f"{r['estimate_rows']:,}", f"{r['stored_per_s']:,.0f}", f"{r['drain_s']:.1f}",
+                      f"{r['service_cpu_s']:.1f}", f"{r['broker_cpu_s']:.1f}", "yes" if r["sustained"] else "no")
     console.print(table)
     for c in ceilings:
-        rate = c.get("rows_per_s", c.get("messages_per_s"))
-        console.print(f"ceiling, {c['case']}: {rate:,.0f} per s")
+        rate = c.get("rows_per_s", c.get("samples_per_s"))
+        console.print(f"ceiling, {c['case']}: {rate:,.0f} samples per s")
     console.print(f"machine: {machine_description()}")
     if out is not None:
         out.write_text(json.dumps({"cases": rows, "ceilings": ceilings, "machine": machine_description()}, indent=1))

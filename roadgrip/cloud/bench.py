@@ -30,6 +30,9 @@ from roadgrip.cloud.storage import open_storage
 from roadgrip.fleet.terminal import wire_samples
 
 SAMPLE_PERIOD_MS = 100
+# paho-mqtt waits on its sockets with select(), which fails for file descriptors above 1023; each client holds three
+# (its socket and a wake-up pair), so one load-generator process drives at most this many MQTT vehicles.
+MQTT_CLIENTS_PER_PROCESS = 250
 
 
 @dataclass(frozen=True)
@@ -38,8 +41,12 @@ class IngestCase:
     vehicles: int
     seconds: float
     batch: int            # samples per message
-    workers: int = 2
+    workers: int = 2      # load-generator processes (MQTT: at least vehicles / MQTT_CLIENTS_PER_PROCESS)
     paced: bool = True    # False: send as fast as possible (the broker's ceiling)
+
+    def __post_init__(self):
+        if self.transport == "mqtt":
+            object.__setattr__(self, "workers", max(self.workers, -(-self.vehicles // MQTT_CLIENTS_PER_PROCESS)))
 
 
 # ------------------------------------------------------------------------------------------------- telemetry
@@ -119,11 +126,17 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
                 refused += case.batch
         pool.shutdown()
         http.close()
-    results.put((sent, acked - refused * case.batch if case.transport == "mqtt" else acked, refused))
+    done_at = time.time()  # the last acknowledgement is in
+    if case.transport == "mqtt":
+        acked -= refused * case.batch
+    results.put((sent, acked, refused, done_at))
 
 
 def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]],
-              base_ms: int) -> tuple[int, int, int, float]:
+              base_ms: int) -> dict:
+    """Run the load generators; counts of samples sent, acknowledged and refused, when sending started, and how long
+    until the last acknowledgement (longer than case.seconds when the generators or the service could not keep the
+    pace)."""
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     start_wall = time.time() + 3.0  # time for every generator to connect first
@@ -136,8 +149,9 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
     totals = [results.get(timeout=case.seconds + 300) for _ in procs]
     for p in procs:
         p.join()
-    sent, acked, refused = (sum(t[k] for t in totals) for k in range(3))
-    return sent, acked, refused, start_wall
+    return {"sent": sum(t[0] for t in totals), "acknowledged": sum(t[1] for t in totals),
+            "refused": sum(t[2] for t in totals), "start_wall": start_wall,
+            "acked_s": max(t[3] for t in totals) - start_wall}
 
 
 # ------------------------------------------------------------------------------------------------- the service
@@ -169,6 +183,14 @@ class _Service:
                     raise RuntimeError("roadgrip serve did not answer within 120 s") from None
                 time.sleep(0.3)
 
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds used so far by the service and by its broker (a child process), from /proc."""
+        used = {"service": _cpu_s(self.process.pid), "broker": 0.0}
+        children = Path(f"/proc/{self.process.pid}/task/{self.process.pid}/children")
+        if children.exists():
+            used["broker"] = sum(_cpu_s(int(pid)) for pid in children.read_text().split())
+        return used
+
     def health(self) -> dict:
         return self.http.get("/v1/health").raise_for_status().json()
 
@@ -187,6 +209,14 @@ class _Service:
         self.log.close()
 
 
+def _cpu_s(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
 def _free_port() -> int:
     import socket
     with socket.socket() as s:
@@ -202,29 +232,36 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             target = {"http_url": f"http://127.0.0.1:{service.port}", "mqtt_url": mqtt_url}
             base_ms = int(time.time() * 1000) - int(case.seconds * 1000)  # the stream ends about now
             progress(f"{case.transport}: {case.vehicles} vehicles x {case.seconds:.0f} s, batch {case.batch}")
-            sent, acked, refused, start_wall = _generate(case, target, vehicles, bodies, base_ms)
-            at_end = service.health()["pipeline"]
+            cpu_before = service.cpu_s()
+            load = _generate(case, target, vehicles, bodies, base_ms)
             ended = time.time()
             while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
                 pipeline = service.health()["pipeline"]
-                if pipeline["stored"] >= acked and pipeline["backlog"] == 0 or time.time() - ended > 120:
+                if pipeline["stored"] >= load["acknowledged"] and pipeline["backlog"] == 0:
                     break
-                time.sleep(0.2)
-            time.sleep(1.0)
+                if time.time() - ended > 300:
+                    break
+                time.sleep(0.1)
+            stored_at = time.time()
+            cpu_after = service.cpu_s()
+            time.sleep(1.0)  # the last reorder windows
             pipeline = service.health()["pipeline"]
-            drain_s = time.time() - ended - 1.0
             storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'roadgrip.sqlite'}")
             counts = storage.counts()
             storage.close()
         finally:
             service.stop()
-    duration = ended - start_wall
-    return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch,
-            "seconds": round(duration, 1), "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS,
-            "sent": sent, "acknowledged": acked, "refused": refused, "stored_rows": counts["telemetry"],
-            "estimate_rows": counts["estimates"], "lost": acked - counts["telemetry"],
-            "stored_per_s_during_run": at_end["stored"] / duration, "drain_s": round(drain_s, 2),
-            "failed_rounds": pipeline["failed_rounds"]}
+    e2e_s = stored_at - load["start_wall"]
+    return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch, "seconds": case.seconds,
+            "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS, "sent": load["sent"],
+            "acked_s": round(load["acked_s"], 2), "acked_per_s": load["acknowledged"] / load["acked_s"],
+            "acknowledged": load["acknowledged"], "refused": load["refused"], "stored_rows": counts["telemetry"],
+            "estimate_rows": counts["estimates"], "lost": load["acknowledged"] - counts["telemetry"],
+            "end_to_end_s": round(e2e_s, 2), "stored_per_s": counts["telemetry"] / e2e_s,
+            "drain_s": round(stored_at - ended, 2), "failed_rounds": pipeline["failed_rounds"],
+            "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
+            "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
+            "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
 
 
 # ------------------------------------------------------------------------------------------------- ceilings
@@ -243,32 +280,35 @@ def database_ceiling(bodies: list[list[str]], database_url: str | None = None, r
     return {"case": f"database alone ({storage.dialect})", "rows": stored, "rows_per_s": stored / elapsed}
 
 
-def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, workers: int = 2) -> dict:
-    """QoS 1 telemetry messages per second through a managed Mosquitto alone, from the same load generator to one
-    subscriber that only counts them."""
+def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch: int = 1, workers: int = 2) -> dict:
+    """QoS 1 telemetry messages per second through a managed Mosquitto alone, from the same load generator to the
+    service's MQTT client (`MqttClient`) with a handler that only counts and acknowledges them."""
     import threading
 
     from roadgrip.cloud.broker import ManagedBroker
-    from roadgrip.cloud.mqtt import TELEMETRY_SUBSCRIPTION, UserClient
+    from roadgrip.cloud.mqtt import MqttClient
 
     with tempfile.TemporaryDirectory(prefix="roadgrip-bench-mqtt-") as tmp, ManagedBroker(Path(tmp)) as broker:
         logins = [(f"raw-{i:05d}", secrets.token_urlsafe(16)) for i in range(vehicles)]
         broker.set_users([(name, secret, "vehicle", name) for name, secret in logins])
         received = [0]
         lock = threading.Lock()
-        counter = UserClient(broker.url, broker.service_user, broker.service_password).connect()
 
-        def count(_client, _userdata, _message):
+        def count(_vehicle_id: str, _payload: bytes, ack) -> None:
             with lock:
                 received[0] += 1
-        counter.paho.on_message = count
-        counter.subscribe(TELEMETRY_SUBSCRIPTION)
-        case = IngestCase("mqtt", vehicles, seconds, 1, workers, paced=False)
-        sent, acked, _, start_wall = _generate(case, {"mqtt_url": broker.url}, logins, bodies, 0)
+            ack()
+        counter = MqttClient(broker.url, broker.service_user, broker.service_password, "bench-counter",
+                             on_telemetry=count)
+        counter.connect()
+        case = IngestCase("mqtt", vehicles, seconds, batch, workers, paced=False)
+        load = _generate(case, {"mqtt_url": broker.url}, logins, bodies, 0)
         deadline = time.time() + 60
-        while received[0] < acked and time.time() < deadline:
+        while received[0] < load["acknowledged"] and time.time() < deadline:
             time.sleep(0.05)
         ended = time.time()
         counter.close()
-    return {"case": "broker alone (mosquitto, QoS 1, unpaced)", "sent": sent, "acknowledged": acked,
-            "received": received[0], "messages_per_s": received[0] / (ended - start_wall)}
+    elapsed = ended - load["start_wall"]
+    return {"case": f"broker alone (mosquitto, QoS 1, {batch} sample(s) a message, unpaced)", "batch": batch,
+            "sent": load["sent"], "acknowledged": load["acknowledged"], "messages_received": received[0],
+            "messages_per_s": received[0] / elapsed, "samples_per_s": received[0] * batch / elapsed}

@@ -190,7 +190,8 @@ class ManagedBroker:
             self._write_config()
             with open(self.workdir / "mosquitto.out", "ab") as out:
                 self._process = subprocess.Popen([executable, "-c", str(self.conf_path)], stdin=subprocess.DEVNULL,
-                                                 stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+                                                 stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                                 preexec_fn=_stop_with_parent)
             try:
                 self._wait_ready(timeout_s)
                 return
@@ -370,6 +371,17 @@ class ManagedBroker:
                 text = path.read_text(errors="replace").splitlines()[-lines:]
                 parts.append(f"--- {path.name}\n" + "\n".join(text))
         return "\n".join(parts) or "(no output)"
+
+
+def _stop_with_parent() -> None:
+    """In the broker's process before exec: SIGTERM when the process that started it dies (Linux), even by SIGKILL,
+    so that a killed service leaves no broker behind holding its port; on SIGTERM Mosquitto saves its persistence
+    file and exits. Linux ties this to the starting *thread*: start the broker from a thread that lives as long as
+    the service (the service starts it from its main thread)."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 def _write_private(path: Path, text: str) -> None:

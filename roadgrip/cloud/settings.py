@@ -47,7 +47,7 @@ class Settings(BaseSettings):
     max_gap_s: float = Field(0.25, gt=0, description="a longer gap between samples restarts the estimator")
     reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
                                                            "arrivals back in order before estimation")
-    flush_interval_s: float = Field(0.05, gt=0, le=5, description="the pipeline's batching period")
+    flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
 
     # map and warnings
     h3_resolution: int = Field(10, ge=0, le=15)
