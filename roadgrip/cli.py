@@ -169,19 +169,22 @@ def train(
 @app.command()
 @friendly_errors
 def evaluate(
-    benchmark: str = typer.Option(..., help="paper | generalization"),
+    benchmark: str = typer.Option(..., help="paper | generalization | real-vehicle"),
     out: Path = typer.Option(..., help="output folder: metrics.csv, tables.md, figures"),
     data: Path = typer.Option(None, help="paper benchmark: a paper-preset dataset; default: simulate it (seed 0)"),
     seed: int = typer.Option(0, help="seed of the data and the training"),
     workers: int = typer.Option(2, help="training processes in parallel"),
 ):
-    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, or the generalization benchmark (DESIGN 4)."""
+    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, or the paper's
+    Table 7 (real-vehicle test) in simulation (DESIGN 4)."""
     from roadgrip.validation import check_choice
 
-    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization"})
+    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle"})
     start = time.perf_counter()
     if benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
+    elif benchmark == "real-vehicle":
+        paths = _evaluate_real_vehicle(out, seed)
     else:
         paths = _evaluate_generalization(out, seed, workers)
     console.print(f"{benchmark} benchmark done in {time.perf_counter() - start:.0f} s: {out}")
@@ -205,6 +208,17 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
             table, seed=seed, workers=workers, progress=lambda done, total: progress.update(task, completed=done,
                                                                                             total=total))
     return write_report(metrics, predictions, out)
+
+
+def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
+    from roadgrip.evaluation.real_vehicle import run_real_vehicle_benchmark
+
+    with Progress(TextColumn("[bold]real-vehicle[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=console, transient=True) as progress:
+        task = progress.add_task("starting", total=None)
+        result = run_real_vehicle_benchmark(out, seed, progress=lambda done, total, message: progress.update(
+            task, completed=done, total=total, description=message))
+    return {k: v for k, v in result.items() if k not in ("metrics", "ratios")}
 
 
 def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
@@ -253,6 +267,37 @@ def estimate(
         report = out.with_name(out.stem + ".rejections.csv")
         write_table(batch.rejection_table(), report)
         console.print(f"[yellow]{len(batch.rejections)} input row(s) rejected:[/] see {report}")
+
+
+@app.command("import-log")
+@friendly_errors
+def import_log(
+    input: Path = typer.Argument(..., help="a recorded log: a file or folder that an importer recognises"),
+    out: Path = typer.Option(..., help="wire-format telemetry file to write (.csv, .parquet, .ndjson or .jsonl)"),
+    importer: str = typer.Option(None, help="importer name (default: the one that recognises INPUT): "
+                                            "wire | bmw-m8 | any installed through entry points"),
+    vehicle_id: str = typer.Option(None, help="vehicle_id of the samples (default: the importer's)"),
+    start_ms: int = typer.Option(None, help="timestamp of the first sample, ms since the Unix epoch (default: the "
+                                            "importer's)"),
+):
+    """Import a recorded log into wire format v1 (DESIGN 3.1), ready for `roadgrip estimate` or a replay."""
+    from roadgrip.data.tables import WRITERS, write_table
+    from roadgrip.fleet.importers import resolve_importer
+
+    if out.suffix.lower() not in WRITERS:
+        raise ValueError(f"--out must end in one of {list(WRITERS)}, got {out.name!r}")
+    chosen = resolve_importer(input, importer)
+    options = {k: v for k, v in (("vehicle_id", vehicle_id), ("start_ms", start_ms)) if v is not None}
+    with console.status(f"importing {input} ({chosen.name})..."):
+        table = chosen.load(input, **options)
+    write_table(table, out)
+    ts = table["timestamp_ms"].to_numpy()
+    vehicles = sorted(set(table["vehicle_id"].to_pylist()))
+    console.print(f"wrote {table.num_rows} samples of {len(vehicles)} vehicle(s) ({', '.join(vehicles[:5])}), "
+                  f"{(ts.max() - ts.min()) / 1000:.1f} s, to {out} (importer {chosen.name})")
+    for key, value in (table.schema.metadata or {}).items():
+        if key.startswith(b"roadgrip.") and key != b"roadgrip.importer":
+            console.print(f"  {key.decode()[len('roadgrip.'):]}: {value.decode()}")
 
 
 @app.command()
@@ -383,53 +428,59 @@ def bench_sim_command(
 @app.command()
 @friendly_errors
 def demo(
-    out: Path = typer.Option(Path("roadgrip-demo"), help="folder for the demo's dataset and figure"),
+    vehicles: int = typer.Option(12, min=1, max=300, help="vehicles in the fleet"),
+    speed: float = typer.Option(5.0, min=0.1, help="times real time"),
+    duration: float = typer.Option(100.0, min=10.0, help="simulated seconds of driving"),
+    seed: int = typer.Option(0, help="seed of the fleet's plan and sensors"),
+    mqtt: str = typer.Option("auto", help="auto (Mosquitto when installed, else HTTP) | off | managed"),
+    data_dir: Path | None = typer.Option(None, help="keep the cloud's data here (default: a temporary folder)"),
+    port: int = typer.Option(0, help="HTTP port (0: a free one)"),
+    keep_serving: bool = typer.Option(False, help="leave the cloud running after the summary (Ctrl-C stops it)"),
 ):
-    """The main job end to end on this machine: simulate the paper's data set, show what the road did to the car, and
-    estimate mu from the telemetry alone."""
-    from roadgrip.sim.plots import plot_run
+    """The main job end to end: start the cloud (and a broker when Mosquitto is installed), drive a small fleet over a
+    road network with icy, snowy and wet patches, and summarise the estimates and warnings the cloud produced."""
+    from roadgrip.fleet.demo import run_demo
 
-    scenarios, table, wall = _simulate_dataset("paper", None, 0, out / "paper-dataset", overwrite=True)
-    summary = Table(title=f"paper preset: {len(scenarios)} runs, {table.num_rows} samples, simulated in {wall:.1f} s")
-    for name in ("run", "road mu", "top speed km/h", "end speed km/h", "max |a_x| m/s^2", "ABS samples", "max |slip|"):
-        summary.add_column(name, justify="left" if name == "run" else "right", no_wrap=name == "run")
-    for s in scenarios:
-        run = table.filter(pc.equal(table["run_id"], s.run_id))
-        vx = run["vx_true_mps"].to_numpy()
-        slip = np.abs(np.column_stack([run[f"slip_ratio_{w}"].to_numpy() for w in ("fl", "fr", "rl", "rr")]))
-        mu = np.unique(run["mu"].to_numpy())
-        summary.add_row(s.run_id, "/".join(f"{m:.1f}" for m in mu), f"{vx.max() * 3.6:.0f}", f"{vx[-1] * 3.6:.0f}",
-                        f"{np.abs(run['ax_true_mps2'].to_numpy()).max():.2f}",
-                        str(int(run["abs_active"].to_numpy().sum())), f"{slip.max():.2f}")
-    console.print(summary)
-    figure = plot_run(table, "paper-decreasing-straight-e1", out / "paper-decreasing-straight-e1.png")
-    console.print(f"dataset: {out / 'paper-dataset'}\nfigure: {figure}")
-    _demo_estimates(table, out)
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console) as bar:
+        task = bar.add_task("simulating the fleet and starting the cloud", total=None)
 
+        def ready(url: str, dashboard: str) -> None:
+            bar.console.print(f"cloud: {url}/docs   dashboard: {dashboard}")
+            bar.update(task, description=f"{vehicles} vehicles driving at {speed:g}x real time (samples)")
 
-def _demo_estimates(table, out: Path) -> None:
-    """Estimate mu on the decreasing road's test run with the physics filter and the shipped model, as a terminal's
-    telemetry would arrive, and say how close each came where the road made mu observable."""
-    from roadgrip.data.tables import write_table
-    from roadgrip.estimators.excitation import excited
-    from roadgrip.estimators.learned import load_estimator
-    from roadgrip.evaluation.metrics import rmse
-    from roadgrip.vehicle.params import PAPER_SUV
-
-    run = table.filter(pc.equal(table["run_id"], "paper-decreasing-straight-e2"))
-    truth_excited = excited(run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy(),
-                            run["abs_active"].to_numpy(), run["mu"].to_numpy())
-    report = Table(title="mu estimated on paper-decreasing-straight-e2 (telemetry only)")
-    for name in ("estimator", "estimates", "RMSE where excited", "RMSE all", "share judged excited"):
-        report.add_column(name, justify="left" if name == "estimator" else "right")
-    for spec in ("ekf", "default"):
-        estimator = load_estimator(spec)
-        estimates = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), PAPER_SUV)
-        write_table(estimates, out / f"estimates-{estimator.name}.csv")
-        offset = run.num_rows - estimates.num_rows  # a windowed model starts when its first window is full
-        mu, true = estimates["mu"].to_numpy(), run["mu"].to_numpy()[offset:]
-        exc = truth_excited[offset:]
-        report.add_row(estimator.name, str(estimates.num_rows), f"{rmse(mu[exc], true[exc]):.3f}",
-                       f"{rmse(mu, true):.3f}", f"{estimates['excited'].to_numpy().mean():.0%}")
-    console.print(report)
-    console.print(f"estimates: {out}/estimates-*.csv")
+        report, cloud = run_demo(vehicles=vehicles, speed=speed, duration_s=duration, seed=seed, data_dir=data_dir,
+                                 port=port, mqtt=mqtt, on_ready=ready,
+                                 progress=lambda done, total: bar.update(task, completed=done, total=total))
+    try:
+        summary = Table(title=f"roadgrip demo: {report.vehicles} vehicles over {report.transport.upper()}")
+        summary.add_column("what")
+        summary.add_column("value", justify="right")
+        for name, value in (("samples sent", f"{report.samples_sent:,}"),
+                            ("telemetry stored", f"{report.telemetry_stored:,}"),
+                            ("estimates stored", f"{report.estimates_stored:,}"),
+                            ("share judged excited", f"{report.excited_share:.0%}"),
+                            ("streaming wall time", f"{report.stream_wall_s:.1f} s")):
+            summary.add_row(name, value)
+        console.print(summary)
+        warnings = Table(title=f"slippery-road warnings ({len(report.warnings)})")
+        for name in ("cell", "status", "reason", "latitude", "longitude", "evidence mu_upper", "passes", "vehicles",
+                     "nearest patch"):
+            warnings.add_column(name, justify="left" if name in ("cell", "status", "reason", "nearest patch")
+                                else "right")
+        for w in report.warnings:
+            warnings.add_row(w["cell"], w["status"], w["reason"], f"{w['latitude_deg']:.5f}",
+                             f"{w['longitude_deg']:.5f}", f"{w['mu_upper']:.2f}", str(w["n_passes"]),
+                             str(w["n_vehicles"]), f"{w['nearest_patch']} ({w['patch_distance_m']:.0f} m)")
+        console.print(warnings)
+        console.print("patches: " + ", ".join(f"{p['name']} (mu {p['mu']:.2f}, {p['radius_m']:.0f} m)"
+                                              for p in report.patches))
+        console.print(f"dashboard: {report.dashboard_url}")
+        if keep_serving:
+            console.print("serving until Ctrl-C")
+            while True:
+                time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        cloud.stop()

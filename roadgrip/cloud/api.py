@@ -32,6 +32,7 @@ from fastapi.security import HTTPBasic, HTTPBasicCredentials
 from pydantic import BaseModel, Field
 
 from roadgrip.cloud.auth import AuthError
+from roadgrip.cloud.dashboard import mount_dashboard
 from roadgrip.cloud.exports import datex2_xml
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.storage import Credential, StorageUnavailable
@@ -198,13 +199,14 @@ def create_app(service: CloudService) -> FastAPI:
     @app.get("/v1/warnings")
     def warnings(caller: Caller, active: bool = True) -> dict:
         rows = service.storage.warnings(active_only=active)
-        return {"warnings": [row["message"] for row in rows]}
+        return {"warnings": [row["message"]["denm"] for row in rows]}
 
     @app.get("/v1/health")
     def health(caller: Caller) -> JSONResponse:
         status = service.health()
         return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)
 
+    mount_dashboard(app, service)
     return app
 
 

@@ -44,6 +44,7 @@ The sessions of removed logins stay in the broker until they expire; nothing can
 from __future__ import annotations
 
 import base64
+import ctypes
 import hashlib
 import json
 import os
@@ -191,7 +192,7 @@ class ManagedBroker:
             with open(self.workdir / "mosquitto.out", "ab") as out:
                 self._process = subprocess.Popen([executable, "-c", str(self.conf_path)], stdin=subprocess.DEVNULL,
                                                  stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-                                                 preexec_fn=_stop_with_parent)
+                                                 preexec_fn=_stop_with_parent)  # noqa: PLW1509 (fork-safe)
             try:
                 self._wait_ready(timeout_s)
                 return
@@ -373,15 +374,17 @@ class ManagedBroker:
         return "\n".join(parts) or "(no output)"
 
 
+_LIBC = ctypes.CDLL(None, use_errno=True)  # looked up here, not in the forked child (no imports between fork and exec)
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
 def _stop_with_parent() -> None:
     """In the broker's process before exec: SIGTERM when the process that started it dies (Linux), even by SIGKILL,
     so that a killed service leaves no broker behind holding its port; on SIGTERM Mosquitto saves its persistence
     file and exits. Linux ties this to the starting *thread*: start the broker from a thread that lives as long as
-    the service (the service starts it from its main thread)."""
-    import ctypes
-
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    the service (the service starts it from its main thread). One foreign call, no locks taken: safe to run in the
+    child of a threaded process."""
+    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _write_private(path: Path, text: str) -> None:

@@ -286,6 +286,9 @@ class MqttClient:
             self._generation += 1  # acks of this connection are void
 
     def __enter__(self) -> Self:
+        """Connects (with the default timeout) unless `connect()` was called already."""
+        if self._client is None:
+            self.connect()
         return self
 
     def __exit__(self, *exc) -> None:
@@ -353,7 +356,7 @@ class MqttClient:
 class UserClient:
     """A plain connection as one login (MQTT 5, clean start), for vehicles, readers, tests and the fleet simulator.
 
-    `connect()` returns the client itself: `with UserClient(url, name, secret).connect() as c: ...`. `publish` waits for
+    `connect()` returns the client itself; `with UserClient(url, name, secret) as c:` connects too. `publish` waits for
     the PUBACK and raises `PublishRefused` when its reason code is a failure (Mosquitto 2.0 sends 0x87 for a topic
     outside the ACL); `publish_nowait` only queues and counts refusals in `refused`. Messages on the subscriptions made
     with `subscribe` land in `messages`, a queue of (topic, payload). `paho` is the underlying paho client."""
@@ -424,6 +427,9 @@ class UserClient:
             _stop(client)
 
     def __enter__(self) -> Self:
+        """Connects (with the default timeout) unless `connect()` was called already."""
+        if self.paho is None:
+            self.connect()
         return self
 
     def __exit__(self, *exc) -> None:

@@ -22,6 +22,7 @@ their samples are forgotten, so that a retry is stored (estimation skips them as
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import json
 import logging
@@ -275,9 +276,9 @@ class Pipeline:
         self.friction_map.add(estimates, now_ms)
         events = self.warning_engine.update(estimates, now_ms)
         for event in events:
-            denm = event.to_denm()
+            # the DENM for readers, the event itself to restore the engine after a restart
             self.storage.put_warning(event.warning_id, event.cell, event.status, event.detection_ms,
-                                     event.updated_ms, denm)
+                                     event.updated_ms, {"denm": event.to_denm(), "event": dataclasses.asdict(event)})
             log.warning("warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
         if self.publish is None:
             return

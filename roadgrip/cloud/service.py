@@ -24,7 +24,7 @@ from roadgrip.cloud.mqtt import MqttClient, errors_topic
 from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
-from roadgrip.cloud.warning_engine import WarningEngine
+from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
 from roadgrip.cloud.wire import PayloadError, parse_payload
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.vehicle.params import VehicleParams
@@ -99,13 +99,16 @@ class CloudService:
         return secret
 
     def _restore_map(self) -> None:
-        """After a restart the map starts from the stored estimates that are still young enough to count."""
+        """After a restart the map starts from the stored estimates that are still young enough to count, and the
+        warning engine from the active warnings."""
         since = int(time.time() * 1000) - int(self.settings.map_max_age_s * 1000)
         if self.settings.map_clock == "data":
             since = 0
         rows = self.storage.estimates_since(since)
         self.friction_map.add(rows)
-        log.info("restored the map from %d stored estimates", len(rows))
+        active = [WarningEvent(**row["message"]["event"]) for row in self.storage.warnings(active_only=True)]
+        self.warning_engine.restore(active)
+        log.info("restored the map from %d stored estimates and %d active warnings", len(rows), len(active))
 
     # ------------------------------------------------------------------------------------------------- MQTT
     def _start_mqtt(self) -> None:

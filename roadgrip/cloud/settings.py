@@ -63,6 +63,13 @@ class Settings(BaseSettings):
     warning_validity_s: float = Field(600.0, gt=0, description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
 
+    # dashboard
+    map_tiles_url: str | None = Field(None, pattern=r"^(https?://|/)",
+                                      description="base-map tile URL template (http, https or a path on this "
+                                                  "server) for the dashboard, e.g. "
+                                                  "https://tile.openstreetmap.org/{z}/{x}/{y}.png; none: no base map, "
+                                                  "the cells on a plain background")
+
     @field_validator("mqtt")
     @classmethod
     def _mqtt_mode(cls, value: str) -> str:

@@ -275,3 +275,24 @@ def test_a_slippery_patch_raises_a_warning_there_only_and_dry_passes_cancel_it(c
     every = client.get("/v1/warnings", params={"active": False}, auth=ADMIN).json()["warnings"]
     assert {w["roadgrip"]["cell"] for w in every} <= patch_cells()
     assert all(w["denm"]["management"].get("termination") == "isCancellation" for w in every)
+
+
+def test_a_restarted_service_keeps_its_map_and_active_warnings(storage_url, tmp_path):
+    settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="off", admin_secret=ADMIN[1],
+                        flush_interval_s=0.01, reorder_window_s=0.2, map_clock="data")
+    with CloudService(settings) as service, TestClient(create_app(service)) as client:
+        for vehicle_id, profile, seed in (("suv-w", "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):
+            auth = register(client, vehicle_id, profile)
+            post(client, auth, wire_samples(patch_drive(0.2, seed, profile), vehicle_id, START_MS), chunk=50)
+        auth = register(client, "far-away", "paper-suv")  # closes the passes on the patch
+        post(client, auth, wire_samples(patch_drive(0.9, 3), "far-away", START_MS + 120_000)[:5], chunk=50)
+        settle(service)
+        before = client.get("/v1/warnings", auth=ADMIN).json()["warnings"]
+        cells_before = {f["properties"]["cell"] for f in client.get("/v1/map", auth=ADMIN).json()["features"]}
+    assert before
+    with CloudService(settings) as service, TestClient(create_app(service)) as client:
+        assert client.get("/v1/warnings", auth=ADMIN).json()["warnings"] == before
+        assert {w.warning_id for w in service.warning_engine.active()} == {w["roadgrip"]["warning_id"]
+                                                                           for w in before}
+        assert {f["properties"]["cell"] for f in client.get("/v1/map", auth=ADMIN).json()["features"]} == \
+            cells_before

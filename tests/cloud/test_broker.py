@@ -7,6 +7,7 @@ import shutil
 import socket
 import stat
 import subprocess
+import sys
 
 import broker_fixtures
 import pytest
@@ -133,3 +134,24 @@ def test_start_fails_with_the_log_when_the_port_is_taken(tmp_path):
         with pytest.raises(RuntimeError, match="Address already in use"):
             broker.start(timeout_s=5)
         assert not broker.running
+
+
+def test_the_broker_stops_when_the_process_that_started_it_is_killed(tmp_path):
+    script = ("import sys, time; from pathlib import Path; from roadgrip.cloud.broker import ManagedBroker; "
+              "b = ManagedBroker(Path(sys.argv[1])); b.start(); print(b._process.pid, flush=True); time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        broker_pid = int(parent.stdout.readline())
+    finally:
+        parent.kill()  # SIGKILL: no stop(), no atexit
+        parent.wait()
+    wait_until(lambda: not _alive(broker_pid), what=f"mosquitto (pid {broker_pid}) gone")
+    assert "Saving in-memory database" in (tmp_path / "mosquitto.log").read_text()  # it got SIGTERM: a clean stop
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[1][0] != "Z"  # a zombie has exited
+    except FileNotFoundError:
+        return False

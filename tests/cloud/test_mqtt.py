@@ -84,8 +84,9 @@ def vehicle(broker, name):
 
 def test_service_receives_a_vehicles_telemetry_with_the_id_from_the_topic(fleet):
     inbox = Inbox()
-    with service(fleet, inbox) as svc, vehicle(fleet, "A") as a:
-        assert svc.connected
+    svc = MqttClient(fleet.url, fleet.service_user, fleet.service_password, "svc", on_telemetry=inbox)
+    with svc, VehicleClient(fleet.url, "A", "secret-A") as a:  # entering connects
+        assert svc.connected and a.paho.is_connected()
         a.publish_telemetry(b'{"n": 1}')
         assert inbox.payloads(1) == [("A", b'{"n": 1}')]
 

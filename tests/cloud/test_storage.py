@@ -175,6 +175,22 @@ def test_range_queries_are_half_open_ordered_and_per_vehicle(storage):
         storage.estimates("car-1", limit=0)
 
 
+def test_latest_estimates_are_each_vehicles_newest_row(storage):
+    for vehicle_id in ("car-1", "car-2", "car-3"):  # car-3 has a profile and no estimate yet
+        storage.put_vehicle(vehicle_id, {"mass_kg": 1500.0})
+    assert storage.latest_estimates() == []
+    storage.write_batch(*drive("car-1", 50))
+    storage.write_batch(*drive("car-2", 20, t0_ms=T0_MS + 50))
+    no_position = estimate_row("car-2", T0_MS + 9000, latitude_deg=None, longitude_deg=None, h3_cell=None)
+    storage.write_batch([], [no_position])
+    storage.write_batch([], [estimate_row("car-1", T0_MS - 100, mu=0.05)])  # arrives last, is oldest
+    latest = storage.latest_estimates()
+    assert latest == [storage.estimates("car-1")[-1], no_position]
+    assert latest[0]["timestamp_ms"] == T0_MS + 4900 and latest[0]["latitude_deg"] == 48.1
+    storage.write_batch([], [estimate_row("car-9", T0_MS + 10_000)])  # no profile: a vehicle never registered
+    assert [row["vehicle_id"] for row in storage.latest_estimates()] == ["car-1", "car-2"]
+
+
 def test_one_writer_and_several_readers_in_threads(storage):
     errors = []
 

@@ -1,0 +1,123 @@
+"""`roadgrip demo`, the main job end to end on one machine: the cloud (with its own Mosquitto when installed, else HTTP
+only), a small fleet that drives the generated network through its icy and snowy patches, and a summary of what the
+cloud made of it: samples, estimates, warnings and where, and the dashboard's URL."""
+
+from __future__ import annotations
+
+import socket
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import uvicorn
+
+from roadgrip.cloud.api import create_app
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.settings import Settings
+from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, stream
+from roadgrip.fleet.network import Network, generated_network
+from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, register_fleet
+
+
+@dataclass
+class DemoReport:
+    url: str
+    dashboard_url: str
+    transport: str
+    vehicles: int
+    samples_sent: int
+    telemetry_stored: int
+    estimates_stored: int
+    excited_share: float
+    stream_wall_s: float
+    warnings: list[dict] = field(default_factory=list)
+    patches: list[dict] = field(default_factory=list)
+
+
+class LocalCloud:
+    """A CloudService and its HTTP server (uvicorn in a thread) on 127.0.0.1."""
+
+    def __init__(self, settings: Settings):
+        self.service = CloudService(settings)
+        self.service.start()
+        config = uvicorn.Config(create_app(self.service), host=settings.host, port=settings.port,
+                                log_level="warning")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name="roadgrip-http", daemon=True)
+        self.thread.start()
+        deadline = time.time() + 30
+        while not self.server.started:
+            if time.time() > deadline or not self.thread.is_alive():
+                self.stop()
+                raise RuntimeError("the cloud's HTTP server did not start")
+            time.sleep(0.05)
+        self.url = f"http://{settings.host}:{settings.port}"
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+        self.service.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def settle(service: CloudService, timeout_s: float = 30.0) -> None:
+    """Wait until the pipeline has stored everything and released its reorder windows."""
+    deadline = time.time() + timeout_s
+    time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
+    while service.pipeline.backlog and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
+
+
+def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.0, seed: int = 0,
+             data_dir: Path | None = None, port: int = 0, mqtt: str = "auto", network: Network | None = None,
+             progress=None, on_ready=None) -> tuple[DemoReport, LocalCloud]:
+    """Start the cloud, drive the fleet, return the report and the still running cloud (the caller stops it)."""
+    network = network or generated_network()
+    data_dir = Path(tempfile.mkdtemp(prefix="roadgrip-demo-")) if data_dir is None else data_dir
+    settings = Settings(data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall")
+    plans = plan_fleet(network, vehicles, duration_s=duration_s, seed=seed, patch_braking_share=0.75, prefix="demo")
+    samples = simulate_fleet(plans, network)
+    cloud = LocalCloud(settings)
+    try:
+        secrets, mqtt_url = register_fleet(cloud.url, cloud.service.admin_secret,
+                                           [(p.vehicle_id, p.vehicle.name) for p in plans])
+        reader = f"dashboard-{int(time.time())}"
+        reader_secret = cloud.service.register_reader(reader)
+        dashboard = f"{cloud.url}/dashboard#{reader}:{reader_secret}"
+        if on_ready is not None:
+            on_ready(cloud.url, dashboard)
+        terminals = MqttTerminals(mqtt_url, secrets) if mqtt_url else HttpTerminals(cloud.url, secrets)
+        counts = stream(samples, terminals.send, speed=speed, batch=1 if mqtt_url else 10, progress=progress)
+        terminals.close()
+        settle(cloud.service)
+        storage = cloud.service.storage
+        rows = [r for p in plans for r in storage.estimates(p.vehicle_id, limit=100_000)]
+        report = DemoReport(
+            url=cloud.url, dashboard_url=dashboard, transport="mqtt" if mqtt_url else "http", vehicles=len(plans),
+            samples_sent=counts.sent, telemetry_stored=storage.counts()["telemetry"], estimates_stored=len(rows),
+            excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)), stream_wall_s=counts.wall_s,
+            warnings=[_where(w["message"]["event"], network) for w in storage.warnings(active_only=False)],
+            patches=[{"name": p.name, "surface": p.surface, "mu": p.mu, "east_m": p.east_m, "north_m": p.north_m,
+                      "radius_m": p.radius_m} for p in network.patches])
+    except BaseException:
+        cloud.stop()
+        raise
+    return report, cloud
+
+
+def _where(event: dict, network: Network) -> dict:
+    """The warning with the patch nearest to its cell's centre."""
+    import pymap3d
+
+    east, north, _ = pymap3d.geodetic2enu(event["latitude_deg"], event["longitude_deg"], 0.0, *network.origin, 0.0)
+    nearest = min(network.patches, key=lambda p: (p.east_m - east) ** 2 + (p.north_m - north) ** 2)
+    distance = float(((nearest.east_m - east) ** 2 + (nearest.north_m - north) ** 2) ** 0.5)
+    return {**event, "nearest_patch": nearest.name, "patch_distance_m": distance}

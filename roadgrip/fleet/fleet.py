@@ -1,0 +1,151 @@
+"""A fleet of simulated vehicles on a road network: plan their drives, simulate them, and stream their telemetry to the
+cloud at 10 Hz, in real time or faster.
+
+Each vehicle (kinds cycling over roadgrip.vehicle.params.VEHICLES) takes a road of the network, joins it at the road's
+cruising speed (vehicles on a network are moving: no standing start), and brakes now and then: a share of the vehicles
+brakes where a slippery patch lies on their road (a queue, a hazard ahead: the braking that makes the patch's
+adhesion observable), the others at random places. A braking is a deceleration of `BRAKE_MPS2` to 40 % of the cruising
+speed, then an acceleration back at `REACCELERATE_MPS2`.
+
+Time: the drives are simulated first (the simulator runs thousands of times faster than real time), then streamed.
+Sample k of every vehicle is sent at start + k x 100 ms / speed. Its timestamp is start + k x 100 ms - D (1 - 1/speed)
+with D the longest drive: live timestamps at speed 1, and never ahead of the sending clock when faster (a fast replay
+of a drive that just happened), so that the cloud's future-timestamp check holds.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow.compute as pc
+
+from roadgrip.fleet.network import Network, Road
+from roadgrip.fleet.terminal import wire_samples
+from roadgrip.sim.driver import SpeedProfile
+from roadgrip.sim.scenario import Scenario
+from roadgrip.sim.sensors import SensorModel
+from roadgrip.sim.simulate import simulate
+from roadgrip.vehicle.params import VEHICLES, VehicleParams
+
+BRAKE_MPS2 = 5.0  # a firm stop on a dry road; ABS works on a slippery one
+REACCELERATE_MPS2 = 1.5
+LOW_SPEED_SHARE = 0.4
+SAMPLE_PERIOD_MS = 100
+ROUTE_END_MARGIN_M = 20.0
+
+
+@dataclass(frozen=True)
+class VehiclePlan:
+    vehicle_id: str
+    vehicle: VehicleParams
+    road: Road
+    scenario: Scenario
+    brakes_at_m: tuple[float, ...]  # stations where braking starts
+
+
+def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: float,
+                   duration_s: float) -> tuple[SpeedProfile, float]:
+    """Cruise with brakings starting at the given stations; returns the profile and the duration that keeps the
+    vehicle on the road."""
+    low = LOW_SPEED_SHARE * cruise_mps
+    times, speeds = [0.0], [cruise_mps]
+    t, s = 0.0, 0.0
+    for station in sorted(brake_stations_m):
+        if station <= s:
+            continue
+        t += (station - s) / cruise_mps
+        brake_s = (cruise_mps - low) / BRAKE_MPS2
+        accel_s = (cruise_mps - low) / REACCELERATE_MPS2
+        times += [t, t + brake_s, t + brake_s + accel_s]
+        speeds += [cruise_mps, low, cruise_mps]
+        t += brake_s + accel_s
+        s = station + (cruise_mps + low) / 2 * (brake_s + accel_s)
+    end_t = t + max(0.0, length_m - ROUTE_END_MARGIN_M - s) / cruise_mps
+    duration = min(duration_s, end_t)
+    times.append(max(end_t, times[-1] + 1.0))
+    speeds.append(cruise_mps)
+    return SpeedProfile(np.array(times), np.array(speeds)), duration
+
+
+def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, seed: int = 0,
+               patch_braking_share: float = 0.5, prefix: str = "fleet") -> list[VehiclePlan]:
+    """Plan `vehicles` drives on the network: roads with a patch are taken twice as often as others (they are the
+    interesting ones), both directions alike."""
+    if vehicles < 1:
+        raise ValueError(f"vehicles must be >= 1, got {vehicles}")
+    if not 0.0 <= patch_braking_share <= 1.0:
+        raise ValueError(f"patch_braking_share must be in [0, 1], got {patch_braking_share}")
+    rng = np.random.default_rng(seed)
+    roads = [r for road in network.roads for r in (road, road.reversed())]
+    weights = np.array([2.0 if network.patch_stations(r) else 1.0 for r in roads])
+    kinds = list(VEHICLES.values())
+    plans = []
+    for k in range(vehicles):
+        road = roads[rng.choice(len(roads), p=weights / weights.sum())]
+        cruise = road.cruise_mps * rng.uniform(0.9, 1.05)
+        length = road.path.length_m
+        patches = network.patch_stations(road)
+        if patches and rng.random() < patch_braking_share:
+            first, last, _ = patches[rng.integers(len(patches))]
+            brakes = [first + min(10.0, (last - first) / 4)]
+        else:
+            brakes = sorted(rng.uniform(0.1 * length, 0.8 * length, size=rng.integers(1, 3)).tolist())
+        speed, duration = _speed_profile(cruise, brakes, length, duration_s)
+        vehicle = kinds[k % len(kinds)]
+        vehicle_id = f"{prefix}-{k:03d}"
+        scenario = Scenario(run_id=vehicle_id, path=road.path, mu=network.mu_profile(road), speed=speed,
+                            vehicle=vehicle, duration_s=max(1.0, math.floor(duration * 10) / 10),
+                            seed=int(rng.integers(2**31)), condition="fleet", road=road.name, manoeuvre="cruise-brake")
+        plans.append(VehiclePlan(vehicle_id, vehicle, road, scenario, tuple(brakes)))
+    return plans
+
+
+def simulate_fleet(plans: list[VehiclePlan], network: Network) -> dict[str, list[dict]]:
+    """Each vehicle's wire samples (timestamps from 0 ms: `stream` sets the clock)."""
+    sensors = SensorModel(origin_lat_deg=network.origin[0], origin_lon_deg=network.origin[1])
+    table = simulate([p.scenario for p in plans], sensors=sensors)
+    return {p.vehicle_id: wire_samples(table.filter(pc.equal(table["run_id"], p.vehicle_id)), p.vehicle_id, 0)
+            for p in plans}
+
+
+@dataclass
+class StreamCounts:
+    sent: int = 0
+    messages: int = 0
+    wall_s: float = 0.0
+
+
+def stream(samples: dict[str, list[dict]], send: Callable[[str, list[dict]], None], *, speed: float = 1.0,
+           batch: int = 1, clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
+           progress: Callable[[int, int], None] | None = None) -> StreamCounts:
+    """Send every vehicle's samples, `batch` at a time, on the 10 Hz timeline at `speed` times real time (module
+    docstring); `send(vehicle_id, samples)` delivers one message. Timestamps are rewritten to the sending clock."""
+    if not speed > 0:
+        raise ValueError(f"speed must be > 0, got {speed}")
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1, got {batch}")
+    longest = max(len(s) for s in samples.values())
+    start = clock()
+    start_ms = int(start * 1000) - int(longest * SAMPLE_PERIOD_MS * (1.0 - 1.0 / speed))
+    counts = StreamCounts()
+    for first in range(0, longest, batch):
+        due = start + (first + batch - 1) * SAMPLE_PERIOD_MS / 1000.0 / speed  # when the batch's last sample exists
+        wait = due - clock()
+        if wait > 0:
+            sleep(wait)
+        for vehicle_id, run in samples.items():
+            chunk = run[first:first + batch]
+            if not chunk:
+                continue
+            message = [{**s, "timestamp_ms": start_ms + (first + j) * SAMPLE_PERIOD_MS} for j, s in enumerate(chunk)]
+            send(vehicle_id, message)
+            counts.sent += len(message)
+            counts.messages += 1
+        if progress is not None:
+            progress(min(first + batch, longest), longest)
+    counts.wall_s = clock() - start
+    return counts
