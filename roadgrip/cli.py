@@ -475,6 +475,7 @@ def demo(
         console.print(warnings)
         console.print("patches: " + ", ".join(f"{p['name']} (mu {p['mu']:.2f}, {p['radius_m']:.0f} m)"
                                               for p in report.patches))
+        console.print(f"cloud log: {report.log_path}")
         console.print(f"dashboard: {report.dashboard_url}")
         if keep_serving:
             console.print("serving until Ctrl-C")

@@ -20,8 +20,9 @@ Rules
 3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (of two vehicles, or repeated passes
-   of one) later than its last dry pass and at most validity_s old. Only low passes in the cell itself count: a warning
-   never appears in a cell without them.
+   of one) later than its last dry pass and at most validity_s old. One vehicle's passes less than pass_gap_s apart
+   count once (`_independent`): GNSS noise along a cell border splits one visit into several passes. Only low
+   passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): min_dry_passes dry passes later than the detection cancel it. A dry pass also clears the
    cell's earlier low passes (rule 4 counts only low passes after the last dry one).
@@ -247,6 +248,19 @@ class WarningEngine:
         self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
         return finished
 
+    def _independent(self, low_passes: list[_LowPass]) -> int:
+        """Low passes that count as separate evidence: one vehicle's passes closer than pass_gap_s to each other are
+        one visit (a vehicle driving along a cell border, GNSS noise moving it in and out, makes several passes in
+        a few seconds; they are one observation, not repeated passes)."""
+        gap_ms = self.pass_gap_s * 1000.0
+        count, last_by_vehicle = 0, {}
+        for p in sorted(low_passes, key=lambda p: p.time_ms):
+            last = last_by_vehicle.get(p.vehicle_id)
+            if last is None or p.time_ms - last > gap_ms:
+                count += 1
+            last_by_vehicle[p.vehicle_id] = p.time_ms
+        return count
+
     def verdict(self, uppers: list[float], lowers: list[float]) -> str:
         """The verdict of a pass from the mu_upper and mu_lower of its excited estimates (rule 2)."""
         if len(uppers) < self.min_excited_per_pass:
@@ -282,7 +296,7 @@ class WarningEngine:
         state.low_passes = [p for p in state.low_passes if p.time_ms >= horizon]
         state.low_passes.append(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
         if warning is None:
-            if len(state.low_passes) >= self.min_low_passes:
+            if self._independent(state.low_passes) >= self.min_low_passes:
                 warning = state.warning = _Warning(f"{finished.cell}-{t}", t, self.next_action_sequence_number_)
                 self.next_action_sequence_number_ = (self.next_action_sequence_number_ + 1) % 65536
                 self.active_cells_.add(finished.cell)
@@ -299,7 +313,7 @@ class WarningEngine:
         if status == ACTIVE:
             evidence = state.low_passes
             mu_upper = statistics.median(p.mu_upper for p in evidence)
-            n_passes, n_vehicles = len(evidence), len({p.vehicle_id for p in evidence})
+            n_passes, n_vehicles = self._independent(evidence), len({p.vehicle_id for p in evidence})
         else:  # a cancellation reports the low-friction evidence the warning had
             previous = warning.last_event
             mu_upper, n_passes, n_vehicles = previous.mu_upper, previous.n_passes, previous.n_vehicles

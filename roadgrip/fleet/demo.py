@@ -4,6 +4,7 @@ cloud made of it: samples, estimates, warnings and where, and the dashboard's UR
 
 from __future__ import annotations
 
+import logging
 import socket
 import tempfile
 import threading
@@ -25,6 +26,7 @@ from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, register_flee
 class DemoReport:
     url: str
     dashboard_url: str
+    log_path: str
     transport: str
     vehicles: int
     samples_sent: int
@@ -82,8 +84,11 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
     """Start the cloud, drive the fleet, return the report and the still running cloud (the caller stops it)."""
     network = network or generated_network()
     data_dir = Path(tempfile.mkdtemp(prefix="roadgrip-demo-")) if data_dir is None else data_dir
+    data_dir.mkdir(parents=True, exist_ok=True)
+    _log_to(data_dir / "cloud.log")
     settings = Settings(data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall")
-    plans = plan_fleet(network, vehicles, duration_s=duration_s, seed=seed, patch_braking_share=0.75, prefix="demo")
+    plans = plan_fleet(network, vehicles, duration_s=duration_s, seed=seed, patch_braking_share=0.5,
+                       per_slippery_patch=2, prefix="demo")
     samples = simulate_fleet(plans, network)
     cloud = LocalCloud(settings)
     try:
@@ -101,7 +106,7 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
         storage = cloud.service.storage
         rows = [r for p in plans for r in storage.estimates(p.vehicle_id, limit=100_000)]
         report = DemoReport(
-            url=cloud.url, dashboard_url=dashboard, transport="mqtt" if mqtt_url else "http", vehicles=len(plans),
+            url=cloud.url, dashboard_url=dashboard, log_path=str(data_dir / "cloud.log"), transport="mqtt" if mqtt_url else "http", vehicles=len(plans),
             samples_sent=counts.sent, telemetry_stored=storage.counts()["telemetry"], estimates_stored=len(rows),
             excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)), stream_wall_s=counts.wall_s,
             warnings=[_where(w["message"]["event"], network) for w in storage.warnings(active_only=False)],
@@ -111,6 +116,16 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
         cloud.stop()
         raise
     return report, cloud
+
+
+def _log_to(path: Path) -> None:
+    """The cloud's log (warnings raised, rejections, ...) goes to a file: the terminal shows the summary."""
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logger = logging.getLogger("roadgrip")
+    logger.handlers = [handler]
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
 
 
 def _where(event: dict, network: Network) -> dict:

@@ -36,6 +36,7 @@ REACCELERATE_MPS2 = 1.5
 LOW_SPEED_SHARE = 0.4
 SAMPLE_PERIOD_MS = 100
 ROUTE_END_MARGIN_M = 20.0
+SLIPPERY_MU = 0.4  # a patch below this is what the warnings are for (the cloud's default threshold)
 
 
 @dataclass(frozen=True)
@@ -72,9 +73,13 @@ def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: f
 
 
 def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, seed: int = 0,
-               patch_braking_share: float = 0.5, prefix: str = "fleet") -> list[VehiclePlan]:
-    """Plan `vehicles` drives on the network: roads with a patch are taken twice as often as others (they are the
-    interesting ones), both directions alike."""
+               patch_braking_share: float = 0.5, per_slippery_patch: int = 0,
+               prefix: str = "fleet") -> list[VehiclePlan]:
+    """Plan `vehicles` drives on the network. First `per_slippery_patch` vehicles for each patch whose adhesion is
+    below SLIPPERY_MU and that a road reaches within the drive: they take such a road and brake on the patch (a demo
+    that must show a warning needs two observations of one patch). The others take any road, roads crossing a
+    patch twice as often (they are the interesting ones), and brake on a patch with probability
+    `patch_braking_share`, elsewhere otherwise."""
     if vehicles < 1:
         raise ValueError(f"vehicles must be >= 1, got {vehicles}")
     if not 0.0 <= patch_braking_share <= 1.0:
@@ -83,14 +88,28 @@ def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, se
     roads = [r for road in network.roads for r in (road, road.reversed())]
     weights = np.array([2.0 if network.patch_stations(r) else 1.0 for r in roads])
     kinds = list(VEHICLES.values())
-    plans = []
-    for k in range(vehicles):
+    assigned: list[tuple[Road, tuple[float, float] | None]] = []  # (road, patch stations to brake on)
+    for patch in network.patches:
+        if patch.mu >= SLIPPERY_MU:
+            continue
+        reach = [(r, (first, last)) for r in roads for first, last, p in network.patch_stations(r)
+                 if p is patch and first < r.cruise_mps * duration_s * 0.8]
+        for k in range(per_slippery_patch if reach else 0):
+            assigned.append(reach[k % len(reach)])
+    while len(assigned) < vehicles:
         road = roads[rng.choice(len(roads), p=weights / weights.sum())]
-        cruise = road.cruise_mps * rng.uniform(0.9, 1.05)
-        length = road.path.length_m
         patches = network.patch_stations(road)
         if patches and rng.random() < patch_braking_share:
             first, last, _ = patches[rng.integers(len(patches))]
+            assigned.append((road, (first, last)))
+        else:
+            assigned.append((road, None))
+    plans = []
+    for k, (road, patch_span) in enumerate(assigned[:vehicles]):
+        cruise = road.cruise_mps * rng.uniform(0.9, 1.05)
+        length = road.path.length_m
+        if patch_span is not None:
+            first, last = patch_span
             brakes = [first + min(10.0, (last - first) / 4)]
         else:
             brakes = sorted(rng.uniform(0.1 * length, 0.8 * length, size=rng.integers(1, 3)).tolist())

@@ -86,6 +86,19 @@ def test_set_user_rejects_bad_logins(tmp_path, args, match):
         ManagedBroker(tmp_path).set_user(*args)
 
 
+def test_set_users_checks_all_then_applies_them_in_one_reload(managed_broker):
+    with pytest.raises(ValueError, match="name must match"):
+        managed_broker.set_users([("car-1", "pw", "vehicle", None), ("bad/name", "pw", "vehicle", None)])
+    assert "car-1" not in managed_broker.users  # nothing applied
+    reloads = managed_broker.log_path.read_text().count("Reloading config.")
+    managed_broker.set_users([(f"car-{i}", f"pw{i}", "vehicle", f"car-{i}") for i in range(3)]
+                             + [("dash", "pw", "reader", None)])
+    assert managed_broker.log_path.read_text().count("Reloading config.") == reloads + 1
+    for i in range(3):
+        with VehicleClient(managed_broker.url, f"car-{i}", f"pw{i}").connect():
+            pass
+
+
 def test_remove_user_refuses_new_connections_and_drops_the_live_one(managed_broker):
     managed_broker.set_user("car-1", "pw1", "vehicle")
     managed_broker.set_user("car-2", "pw2", "vehicle")

@@ -242,3 +242,19 @@ def test_event_is_frozen():
                          validity_s=600.0, evidence_ms=T0_MS, action_sequence_number=0)
     with pytest.raises(AttributeError):
         event.status = "cancelled"
+
+
+def test_one_vehicle_in_and_out_of_a_cell_along_its_border_is_one_pass():
+    """GNSS noise on a road along a cell border: the vehicle alternates between two icy cells every few samples.
+    That is one visit of each cell, however many passes it splits into: no warning from one vehicle."""
+    engine = WarningEngine()
+    a, b = sorted(PATCH)[:2]
+    (lat_a, lon_a), (lat_b, lon_b) = h3.cell_to_latlng(a), h3.cell_to_latlng(b)
+    rows = []
+    for i in range(120):
+        lat, lon = (lat_a, lon_a) if (i // 5) % 2 == 0 else (lat_b, lon_b)
+        rows.append({"vehicle_id": "v", "timestamp_ms": T0_MS + 100 * i, "latitude_deg": lat, "longitude_deg": lon,
+                     "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3, "excited": True})
+    assert raised(stream(engine, rows)) == set()
+    assert raised(stream(engine, [{**r, "vehicle_id": "w", "timestamp_ms": r["timestamp_ms"] + 5_000}
+                                  for r in rows])) == {a, b}
