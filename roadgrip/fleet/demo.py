@@ -17,8 +17,9 @@ import uvicorn
 from roadgrip.cloud.api import create_app
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
-from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, stream
+from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
 from roadgrip.fleet.network import Network, generated_network
+from roadgrip.fleet.replay import replay
 from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, register_fleet
 
 
@@ -100,15 +101,22 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
         if on_ready is not None:
             on_ready(cloud.url, dashboard)
         terminals = MqttTerminals(mqtt_url, secrets) if mqtt_url else HttpTerminals(cloud.url, secrets)
-        counts = stream(samples, terminals.send, speed=speed, batch=1 if mqtt_url else 10, progress=progress)
+        total, sent = sum(len(run) for run in samples.values()), [0]
+
+        def send(batch: list[dict]) -> None:
+            terminals.send(batch[0]["vehicle_id"], batch)
+            sent[0] += len(batch)
+            if progress is not None:
+                progress(sent[0], total)
+        result = replay(timeline(samples, speed, time.time()), send, speed=speed, batch=1 if mqtt_url else 10)
         terminals.close()
         settle(cloud.service)
         storage = cloud.service.storage
         rows = [r for p in plans for r in storage.estimates(p.vehicle_id, limit=100_000)]
         report = DemoReport(
             url=cloud.url, dashboard_url=dashboard, log_path=str(data_dir / "cloud.log"), transport="mqtt" if mqtt_url else "http", vehicles=len(plans),
-            samples_sent=counts.sent, telemetry_stored=storage.counts()["telemetry"], estimates_stored=len(rows),
-            excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)), stream_wall_s=counts.wall_s,
+            samples_sent=result.samples, telemetry_stored=storage.counts()["telemetry"], estimates_stored=len(rows),
+            excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)), stream_wall_s=result.wall_s,
             warnings=[_where(w["message"]["event"], network) for w in storage.warnings(active_only=False)],
             patches=[{"name": p.name, "surface": p.surface, "mu": p.mu, "east_m": p.east_m, "north_m": p.north_m,
                       "radius_m": p.radius_m} for p in network.patches])

@@ -7,17 +7,16 @@ brakes where a slippery patch lies on their road (a queue, a hazard ahead: the b
 adhesion observable), the others at random places. A braking is a deceleration of `BRAKE_MPS2` to 40 % of the cruising
 speed, then an acceleration back at `REACCELERATE_MPS2`.
 
-Time: the drives are simulated first (the simulator runs thousands of times faster than real time), then streamed.
-Sample k of every vehicle is sent at start + k x 100 ms / speed. Its timestamp is start + k x 100 ms - D (1 - 1/speed)
-with D the longest drive: live timestamps at speed 1, and never ahead of the sending clock when faster (a fast replay
-of a drive that just happened), so that the cloud's future-timestamp check holds.
+Time: the drives are simulated first (the simulator runs thousands of times faster than real time), then sent by
+`roadgrip.fleet.replay.replay`, which paces samples by their timestamps: sample k of every vehicle goes out at
+start + k x 100 ms / speed. `timeline` gives it the timestamp start + k x 100 ms - D (1 - 1/speed), D the longest
+drive: live timestamps at speed 1, and never ahead of the sending clock when faster (a fast replay of a drive that
+just happened), so that the cloud's future-timestamp check holds.
 """
 
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,40 +130,12 @@ def simulate_fleet(plans: list[VehiclePlan], network: Network) -> dict[str, list
             for p in plans}
 
 
-@dataclass
-class StreamCounts:
-    sent: int = 0
-    messages: int = 0
-    wall_s: float = 0.0
-
-
-def stream(samples: dict[str, list[dict]], send: Callable[[str, list[dict]], None], *, speed: float = 1.0,
-           batch: int = 1, clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
-           progress: Callable[[int, int], None] | None = None) -> StreamCounts:
-    """Send every vehicle's samples, `batch` at a time, on the 10 Hz timeline at `speed` times real time (module
-    docstring); `send(vehicle_id, samples)` delivers one message. Timestamps are rewritten to the sending clock."""
+def timeline(samples: dict[str, list[dict]], speed: float, now_s: float) -> list[dict]:
+    """Every vehicle's samples (timestamps from 0) on one clock for `roadgrip.fleet.replay.replay` at `speed`: all
+    vehicles start now, and the timestamps are shifted as the module docstring says, so that none is ever ahead of
+    the clock that sends it (speed math.inf: the whole drive lies in the past)."""
     if not speed > 0:
         raise ValueError(f"speed must be > 0, got {speed}")
-    if batch < 1:
-        raise ValueError(f"batch must be >= 1, got {batch}")
-    longest = max(len(s) for s in samples.values())
-    start = clock()
-    start_ms = int(start * 1000) - int(longest * SAMPLE_PERIOD_MS * (1.0 - 1.0 / speed))
-    counts = StreamCounts()
-    for first in range(0, longest, batch):
-        due = start + (first + batch - 1) * SAMPLE_PERIOD_MS / 1000.0 / speed  # when the batch's last sample exists
-        wait = due - clock()
-        if wait > 0:
-            sleep(wait)
-        for vehicle_id, run in samples.items():
-            chunk = run[first:first + batch]
-            if not chunk:
-                continue
-            message = [{**s, "timestamp_ms": start_ms + (first + j) * SAMPLE_PERIOD_MS} for j, s in enumerate(chunk)]
-            send(vehicle_id, message)
-            counts.sent += len(message)
-            counts.messages += 1
-        if progress is not None:
-            progress(min(first + batch, longest), longest)
-    counts.wall_s = clock() - start
-    return counts
+    longest_ms = max(run[-1]["timestamp_ms"] for run in samples.values() if run) + SAMPLE_PERIOD_MS
+    start_ms = int(now_s * 1000) - int(longest_ms * (1.0 - 1.0 / speed))
+    return [{**s, "timestamp_ms": start_ms + s["timestamp_ms"]} for run in samples.values() for s in run]

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from roadgrip.data.telemetry import validate_telemetry
-from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, stream
+from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
 from roadgrip.fleet.network import generated_network
 from roadgrip.vehicle.params import VEHICLES
 
@@ -40,29 +42,19 @@ def test_simulated_fleet_telemetry_is_valid_wire_format():
     assert np.abs(lat - network.origin[0]).max() < 0.03  # within ~3 km of the origin
 
 
-class FakeClock:
-    def __init__(self):
-        self.now = 1_800_000_000.0
-
-    def time(self):
-        return self.now
-
-    def sleep(self, seconds):
-        self.now += seconds
-
-
-@pytest.mark.parametrize("speed", [1.0, 4.0])
-def test_streaming_keeps_the_10_hz_timeline_and_never_sends_the_future(speed):
-    clock = FakeClock()
-    runs = {"a": [{"vehicle_id": "a", "timestamp_ms": 0, "x": k} for k in range(30)],
-            "b": [{"vehicle_id": "b", "timestamp_ms": 0, "x": k} for k in range(20)]}
-    sent = []
-    counts = stream(runs, lambda vid, msg: sent.append((clock.now, vid, msg)), speed=speed, batch=5,
-                    clock=clock.time, sleep=clock.sleep)
-    assert counts.sent == 50 and counts.messages == 6 + 4
-    a = [s for _, vid, msg in sent if vid == "a" for s in msg]
-    assert [s["x"] for s in a] == list(range(30))
-    assert np.all(np.diff([s["timestamp_ms"] for s in a]) == 100)
-    for at, _, msg in sent:
-        assert max(s["timestamp_ms"] for s in msg) <= at * 1000 + 1e-6
-    assert counts.wall_s == pytest.approx(2.9 / speed, abs=1e-6)
+@pytest.mark.parametrize("speed", [1.0, 4.0, math.inf])
+def test_the_timeline_keeps_10_hz_and_never_runs_ahead_of_the_sending_clock(speed):
+    runs = {"a": [{"vehicle_id": "a", "timestamp_ms": 100 * k} for k in range(30)],
+            "b": [{"vehicle_id": "b", "timestamp_ms": 100 * k} for k in range(20)]}
+    now_s = 1_800_000_000.0
+    samples = timeline(runs, speed, now_s)
+    a = [s["timestamp_ms"] for s in samples if s["vehicle_id"] == "a"]
+    assert len(samples) == 50 and np.all(np.diff(a) == 100)
+    first = min(s["timestamp_ms"] for s in samples)
+    for s in samples:  # replay sends each sample (ts - first) / speed after it starts, at now_s
+        sent_ms = now_s * 1000 + (s["timestamp_ms"] - first) / speed
+        assert s["timestamp_ms"] <= sent_ms + 1e-6
+    if speed == 1.0:
+        assert first == now_s * 1000  # live
+    with pytest.raises(ValueError, match="speed"):
+        timeline(runs, 0.0, now_s)
