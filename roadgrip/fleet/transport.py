@@ -21,10 +21,11 @@ class FleetError(RuntimeError):
     """The cloud refused the fleet (registration, credentials, a rejected message)."""
 
 
-def register_fleet(base_url: str, admin_secret: str, vehicles: list[tuple[str, str]]) -> tuple[dict[str, str],
-                                                                                               str | None]:
-    """Register (vehicle_id, vehicle kind) pairs in one call; returns {vehicle_id: secret} and the broker's URL."""
-    body = [{"vehicle_id": vehicle_id, "profile": kind} for vehicle_id, kind in vehicles]
+def register_fleet(base_url: str, admin_secret: str,
+                   vehicles: list[tuple[str, str | dict]]) -> tuple[dict[str, str], str | None]:
+    """Register (vehicle_id, profile) pairs in one call, a profile being a known vehicle's name or a DESIGN 3.2
+    mapping; returns {vehicle_id: secret} and the broker's URL (None without one)."""
+    body = [{"vehicle_id": vehicle_id, "profile": profile} for vehicle_id, profile in vehicles]
     try:
         answer = httpx.post(f"{base_url}/v1/vehicles", json=body, auth=("admin", admin_secret), timeout=120.0)
     except httpx.HTTPError as exc:

@@ -41,7 +41,8 @@ ENTRY_POINT_GROUP = "roadgrip.importers"
 
 @runtime_checkable
 class Importer(Protocol):
-    """A recorded log's format (see the module docstring)."""
+    """A recorded log's format (see the module docstring). An importer that knows the logged vehicle may also have a
+    `profile() -> VehicleParams` method: `roadgrip fleet --replay` then registers the vehicle with it."""
 
     name: str
 

@@ -120,6 +120,10 @@ class BmwM8Importer:
 
     name = "bmw-m8"
 
+    def profile(self) -> VehicleParams:
+        """The vehicle of the log (optional importer method: `roadgrip fleet --replay` registers it with it)."""
+        return m8_profile()
+
     def detect(self, path: Path) -> bool:
         folder = _folder(Path(path))
         if folder is None:
