@@ -29,13 +29,6 @@ def test_bad_input_is_a_clear_error_and_writes_nothing(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
-def test_demo_runs_end_to_end(tmp_path):
-    result = runner.invoke(app, ["demo", "--out", str(tmp_path)])
-    assert result.exit_code == 0, result.output
-    assert (tmp_path / "paper-decreasing-straight-e1.png").stat().st_size > 10_000
-    assert read_dataset(tmp_path / "paper-dataset").num_rows == 8000
-
-
 def _paper_runs(condition):
     import pyarrow.compute as pc
 

@@ -14,6 +14,8 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | GET /v1/map/datex2 | admin, reader | the map as DATEX II v3 (RoadSurfaceConditionMeasurements, friction) |
 | GET /v1/warnings | admin, reader, vehicles | slippery-road warnings as DENMs |
 | GET /v1/health | anyone authenticated | storage, broker and pipeline state; 503 when storage is down |
+| GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate and position (roadgrip.cloud.dashboard) |
+| GET /dashboard | anyone (the page holds no data; it calls the API with a reader's credentials) | the live map |
 
 Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422
 when none was, 413 for an oversized body, 400 for a body that is not telemetry, 503 when storage is down (nothing
@@ -43,8 +45,11 @@ from roadgrip.vehicle.params import VEHICLES, VehicleParams, vehicle_by_name
 basic = HTTPBasic(description="name and secret (vehicles: vehicle_id and the secret from registration)")
 
 
+RESERVED_IDS = ("latest",)  # path segments of /v1/vehicles/... that are not vehicles
+
+
 class VehicleRegistration(BaseModel):
-    vehicle_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-")
+    vehicle_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-, not 'latest'")
     profile: str | dict = Field("paper-suv", description=f"a known vehicle ({', '.join(VEHICLES)}) or a profile "
                                                          "mapping with the DESIGN 3.2 fields (SI)")
 
@@ -100,6 +105,9 @@ def create_app(service: CloudService) -> FastAPI:
         """One vehicle, or a list (a fleet at once: one broker reload); all or nothing."""
         require(caller, "admin")
         batch = body if isinstance(body, list) else [body]
+        reserved = [item.vehicle_id for item in batch if item.vehicle_id in RESERVED_IDS]
+        if reserved:
+            raise HTTPException(422, f"vehicle_id {reserved[0]!r} is reserved (a route of the API)")
         profiles = []
         for k, item in enumerate(batch):
             try:

@@ -16,8 +16,11 @@ One worker thread runs a loop every `flush_interval_s`. Each round it takes ever
 6. adds the estimates to the friction map and the warning engine, stores warning changes, publishes estimates
    (a JSON array per vehicle per round on its friction topic) and warning DENMs.
 
-If the database fails, the round's submitters get the exception (HTTP 503, MQTT no ack, so the broker redelivers) and
-their samples are forgotten, so that a retry is stored (estimation skips them as late: the estimator has seen them).
+If the database is down (StorageUnavailable), the round is held and retried (backoff up to MAX_RETRY_S) before anything
+newer. HTTP submitters get StorageUnavailable at once (503: nothing acknowledged; their samples may still be written
+when the database is back, harmlessly, since storing is idempotent); MQTT messages stay unacknowledged and wait, as do
+the MQTT messages that arrive meanwhile; the broker stops sending once `receive_maximum` messages are unacknowledged,
+which bounds what the service holds. Nothing acknowledged is lost.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from dataclasses import dataclass, field
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage import Storage
+from roadgrip.cloud.storage import Storage, StorageUnavailable
 from roadgrip.cloud.warning_engine import WarningEngine
 from roadgrip.estimators.base import Estimator
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
@@ -43,6 +46,7 @@ log = logging.getLogger(__name__)
 
 # How far back the pipeline remembers stored timestamps per vehicle, to answer repeats without the database.
 DEDUP_HORIZON_MS = 600_000
+MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,17 @@ class _Submission:
     vehicle_id: str
     samples: list[dict]
     future: Future
+    retry: bool  # may wait while storage is down (MQTT: unacknowledged until stored)
+
+
+@dataclass
+class _Held:
+    """A round processed but not yet stored: written before anything newer."""
+
+    results: list  # (submission, stored, duplicates)
+    rows: list[dict]
+    estimates: list[dict]
+    touched: set[str]
 
 
 @dataclass
@@ -103,6 +118,9 @@ class Pipeline:
         self._newest_data_ms = 0
         self._seq = 0
         self._forget: set[str] = set()
+        self._held: _Held | None = None
+        self._failures = 0
+        self._retry_at = 0.0
         self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------------------------------------- lifecycle
@@ -118,14 +136,15 @@ class Pipeline:
             self._thread.join(timeout_s)
             self._thread = None
 
-    def submit(self, vehicle_id: str, samples: list[dict]) -> Future:
-        """Queue validated samples of one vehicle; the future resolves to a SubmitResult once they are stored."""
+    def submit(self, vehicle_id: str, samples: list[dict], *, retry: bool = False) -> Future:
+        """Queue validated samples of one vehicle; the future resolves to a SubmitResult once they are stored. While
+        storage is down it fails with StorageUnavailable, unless `retry`: then it waits until they are stored."""
         future: Future = Future()
         if self._stop.is_set():
             future.set_exception(RuntimeError("the pipeline is stopping"))
             return future
         with self._lock:
-            self._inbox.append(_Submission(vehicle_id, samples, future))
+            self._inbox.append(_Submission(vehicle_id, samples, future, retry))
         return future
 
     @property
@@ -166,10 +185,19 @@ class Pipeline:
         for vehicle_id in forget:
             self._profiles.pop(vehicle_id, None)
             self._streams.pop(vehicle_id, None)
+        if self._held is not None and not self._write_held():
+            self._refuse_or_keep(inbox, StorageUnavailable("storage is down; the service holds what it "
+                                                           "acknowledged until it is back"))
+            return
+        try:
+            for sub in inbox:  # every profile first: a storage failure here leaves nothing half done
+                self._profile(sub.vehicle_id)
+        except StorageUnavailable as exc:
+            self._refuse_or_keep(inbox, exc)
+            return
         now_s = time.monotonic()
         results: list[tuple[_Submission, int, int]] = []
         new_rows: list[dict] = []
-        new_keys: list[tuple[_VehicleStream, int]] = []
         touched: set[str] = set()
         for sub in inbox:
             stream = self._stream(sub.vehicle_id)
@@ -183,7 +211,6 @@ class Pipeline:
                 seen_now.add(ts)
                 stored += 1
                 new_rows.append(sample)
-                new_keys.append((stream, ts))
                 self._seq += 1
                 heapq.heappush(stream.pending, (ts, self._seq, sample))
                 stream.newest_ms = max(stream.newest_ms, ts)
@@ -192,31 +219,72 @@ class Pipeline:
             results.append((sub, stored, duplicates))
             # a later submission in the same round sees this one's samples as already taken
             stream.stored |= seen_now
-        estimates = self._release(now_s, final)
         self.counters.rounds += 1
+        self._held = _Held(results, new_rows, self._release(now_s, final), touched)
+        self._write_held()
+
+    def _write_held(self) -> bool:
+        """Write the held round (one transaction). On success resolve its submitters and fan out. When storage is
+        down, answer the submitters that cannot wait (HTTP: StorageUnavailable, retry) and keep the round for the
+        next try, after a backoff, while those that can (MQTT, unacknowledged until stored) wait. Any other failure
+        is a bug: every submitter gets it and the round is dropped (logged)."""
+        held = self._held
+        if time.monotonic() < self._retry_at:
+            return False
         try:
-            if new_rows or estimates:
-                self.storage.write_batch(new_rows, estimates)
-        except Exception as exc:  # noqa: BLE001 (any failure: every submitter must get its answer)
+            if held.rows or held.estimates:
+                self.storage.write_batch(held.rows, held.estimates)
+        except StorageUnavailable as exc:
             self.counters.failed_rounds += 1
-            for stream, ts in new_keys:
-                stream.stored.discard(ts)
-            for sub, _, _ in results:
-                sub.future.set_exception(exc)
-            log.error("storing a round of %d samples failed: %s", len(new_rows), exc)
-            return
-        for sub, stored, duplicates in results:
+            self._failures += 1
+            self._retry_at = time.monotonic() + min(MAX_RETRY_S, 0.1 * 2**self._failures)
+            for sub, _, _ in held.results:
+                if not sub.retry and not sub.future.done():
+                    sub.future.set_exception(exc)
+            if self._failures == 1:
+                log.error("storage is down, holding %d samples and retrying: %s", len(held.rows), exc)
+            return False
+        except Exception as exc:
+            self._held = None
+            self.counters.failed_rounds += 1
+            for sub, _, _ in held.results:
+                if not sub.future.done():
+                    sub.future.set_exception(exc)
+            log.exception("storing a round of %d samples failed; dropped", len(held.rows))
+            return True
+        if self._failures:
+            log.warning("storage is back after %d failed tries; wrote the %d samples held", self._failures,
+                        len(held.rows))
+        self._held, self._failures, self._retry_at = None, 0, 0.0
+        for sub, stored, duplicates in held.results:
             self.counters.stored += stored
             self.counters.duplicates += duplicates
             self.counters.submitted += len(sub.samples)
-            sub.future.set_result(SubmitResult(stored, duplicates))
-        if new_rows:
-            self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in new_rows))
-        for vehicle_id in touched:
+            if not sub.future.done():
+                sub.future.set_result(SubmitResult(stored, duplicates))
+        if held.rows:
+            self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in held.rows))
+        for vehicle_id in held.touched:
             self._trim(self._streams[vehicle_id])
-        if estimates:
-            self.counters.estimates += len(estimates)
-            self._after_store(estimates)
+        if held.estimates:
+            self.counters.estimates += len(held.estimates)
+            self._after_store(held.estimates)
+        return True
+
+    def _refuse_or_keep(self, inbox: list[_Submission], exc: Exception) -> None:
+        """While storage is down: refuse what cannot wait, keep (in order, ahead of newer ones) what can."""
+        keep = []
+        for sub in inbox:
+            if sub.retry:
+                keep.append(sub)
+            elif not sub.future.done():
+                sub.future.set_exception(exc)
+        with self._lock:
+            self._inbox = keep + self._inbox
+
+    @property
+    def storage_down(self) -> bool:
+        return self._held is not None and self._failures > 0
 
     # ------------------------------------------------------------------------------------------------- per vehicle
     def _stream(self, vehicle_id: str) -> _VehicleStream:

@@ -157,7 +157,7 @@ class CloudService:
         if not samples:
             ack()
             return
-        future = self.pipeline.submit(vehicle_id, samples)
+        future = self.pipeline.submit(vehicle_id, samples, retry=True)
         future.add_done_callback(lambda f: ack() if f.exception() is None else None)
 
     def _reject_mqtt(self, vehicle_id: str, errors: list[dict]) -> None:
@@ -206,6 +206,9 @@ class CloudService:
             self.storage.ping()
         except StorageUnavailable as exc:
             status.update(status="unavailable", storage=str(exc))
+        if self.pipeline.storage_down:
+            status.update(status="unavailable", storage=status["storage"] if status["storage"] != "ok"
+                          else "writes failing; retrying")
         if self.mqtt is not None and not self.mqtt.connected:
             status["status"] = "degraded" if status["status"] == "ok" else status["status"]
         status["pipeline"] = {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
