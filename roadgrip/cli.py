@@ -461,7 +461,14 @@ def bench_ingest_command(
     acknowledged and stored; beside it the broker and the database alone, measured in the same run."""
     import json
 
-    from roadgrip.cloud.bench import IngestCase, broker_ceiling, database_ceiling, run_case, sample_bodies
+    from roadgrip.cloud.bench import (
+        IngestCase,
+        broker_ceiling,
+        database_ceiling,
+        plot_timelines,
+        run_case,
+        sample_bodies,
+    )
     from roadgrip.sim.bench import machine_description
 
     for t in transport:
@@ -482,13 +489,17 @@ def bench_ingest_command(
             ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0), mqtt_batch))
     table = Table(title=f"roadgrip bench ingest: {vehicles} vehicles at 10 Hz")
     for name in ("case", "batch", "offered/s", "acked/s", "sent", "acked", "stored", "lost", "estimates",
-                 "stored/s e2e", "drain s", "service CPU s", "broker CPU s", "sustained"):
+                 "stored/s e2e", "drain s", "latency p50/p99 ms", "RSS MB", "service CPU s", "broker CPU s",
+                 "sustained"):
         table.add_column(name, justify="left" if name == "case" else "right")
     for r in rows:
+        latency = ("-" if r["latency_p50_ms"] is None
+                   else f"{r['latency_p50_ms']:,.0f} / {r['latency_p99_ms']:,.0f}")
         table.add_row(r["case"], str(r["batch"]), f"{r['offered_per_s']:,.0f}", f"{r['acked_per_s']:,.0f}",
                       f"{r['sent']:,}", f"{r['acknowledged']:,}", f"{r['stored_rows']:,}", f"{r['lost']:,}",
-                      f"{r['estimate_rows']:,}", f"{r['stored_per_s']:,.0f}", f"{r['drain_s']:.1f}",
-                      f"{r['service_cpu_s']:.1f}", f"{r['broker_cpu_s']:.1f}", "yes" if r["sustained"] else "no")
+                      f"{r['estimate_rows']:,}", f"{r['stored_per_s']:,.0f}", f"{r['drain_s']:.1f}", latency,
+                      f"{r['rss_mb_end']:,.0f}", f"{r['service_cpu_s']:.1f}", f"{r['broker_cpu_s']:.1f}",
+                      "yes" if r["sustained"] else "no")
     console.print(table)
     for c in ceilings:
         rate = c.get("rows_per_s", c.get("samples_per_s"))
@@ -496,6 +507,8 @@ def bench_ingest_command(
     console.print(f"machine: {machine_description()}")
     if out is not None:
         out.write_text(json.dumps({"cases": rows, "ceilings": ceilings, "machine": machine_description()}, indent=1))
+        console.print(f"results: {out}; memory, backlog and latency over time: "
+                      f"{plot_timelines(rows, out.with_suffix('.png'))}")
 
 
 @bench_app.command("sim")

@@ -25,6 +25,7 @@ was stored: retry).
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from typing import Annotated
 
@@ -36,6 +37,7 @@ from pydantic import BaseModel, Field
 from roadgrip.cloud.auth import AuthError
 from roadgrip.cloud.dashboard import mount_dashboard
 from roadgrip.cloud.exports import datex2_xml
+from roadgrip.cloud.ratelimit import RateLimiter
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.storage import Credential, StorageUnavailable
 from roadgrip.cloud.wire import PayloadError, parse_payload
@@ -46,6 +48,7 @@ basic = HTTPBasic(description="name and secret (vehicles: vehicle_id and the sec
 
 
 RESERVED_IDS = ("latest",)  # path segments of /v1/vehicles/... that are not vehicles
+MAX_MS = 2**63 - 1  # times are BIGINT columns: a larger bound would overflow the database driver (found by fuzzing)
 
 
 class VehicleRegistration(BaseModel):
@@ -65,12 +68,56 @@ class Issued(BaseModel):
     mqtt_url: str | None = None
 
 
+class Rejection(BaseModel):
+    """A refused sample (roadgrip.cloud.wire.SampleError)."""
+    index: int = Field(description="array index, or NDJSON line number - 1")
+    field: str | None = Field(description="the field at fault as sent (wire name or VSS key); null when the sample "
+                                          "is not an object")
+    reason: str
+    vehicle_id: str | None = None
+    timestamp_ms: int | None = None
+
+
 class IngestAnswer(BaseModel):
     received: int
     accepted: int
     stored: int
     duplicates: int
-    rejected: list[dict]
+    rejected: list[Rejection]
+
+
+class NoValidSample(IngestAnswer):
+    detail: str
+
+
+class Fault(BaseModel):
+    field: str | None = Field(description="the part of the request at fault (content_type), or null")
+    reason: str
+
+
+class ErrorAnswer(BaseModel):
+    """Every error: a sentence; for a telemetry body that cannot be read, the part at fault and why; for a request that
+    does not match this schema, FastAPI's list of problems."""
+    detail: str | Fault | list[dict]
+
+
+def _errors(*codes: int) -> dict:
+    """OpenAPI `responses` for these error statuses (`ErrorAnswer` bodies)."""
+    return {code: {"model": ErrorAnswer, "description": ERRORS[code]} for code in codes}
+
+
+ERRORS = {
+    400: "the body is not JSON / NDJSON telemetry",
+    401: "no credentials, or invalid ones (unknown, wrong secret, revoked)",
+    403: "this credential's role may not do this (a vehicle acting for another, a reader writing, ...)",
+    404: "no such vehicle or credential",
+    409: "the name is taken, or the credential cannot be revoked (the admin's)",
+    413: "the body is over max_payload_bytes or max_samples_per_payload, or holds more samples than the vehicle's "
+         "whole rate-limit burst",
+    415: "a content type other than JSON or NDJSON",
+    422: "the request does not match this schema",
+    503: "storage unavailable: nothing was stored, retry",
+}
 
 
 def _caller(request: Request, auth: Annotated[HTTPBasicCredentials, Depends(basic)]) -> Credential:
@@ -85,8 +132,13 @@ Caller = Annotated[Credential, Depends(_caller)]
 
 def create_app(service: CloudService) -> FastAPI:
     app = FastAPI(title="roadgrip cloud", version="1",
-                  description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.")
+                  description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
+                  responses=_errors(401, 403, 503))  # every route authenticates and reads storage
     app.state.service = service
+    # The service's limiter when it has one (its MQTT ingest draws on the same buckets), else one for HTTP alone.
+    limiter = getattr(service, "rate_limiter", None)
+    if limiter is None:
+        limiter = RateLimiter(service.settings.rate_limit_samples_per_s, service.settings.rate_limit_burst_s)
 
     def require(caller: Credential, *roles: str) -> None:
         if caller.role not in roles:
@@ -100,7 +152,7 @@ def create_app(service: CloudService) -> FastAPI:
     async def storage_down(request: Request, exc: StorageUnavailable):
         return JSONResponse({"detail": f"storage unavailable, nothing was stored: {exc}"}, status_code=503)
 
-    @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued])
+    @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued], responses=_errors(409, 422))
     def register_vehicles(body: VehicleRegistration | list[VehicleRegistration], caller: Caller):
         """One vehicle, or a list (a fleet at once: one broker reload); all or nothing."""
         require(caller, "admin")
@@ -124,7 +176,7 @@ def create_app(service: CloudService) -> FastAPI:
                    for item, secret in zip(batch, issued)]
         return answers if isinstance(body, list) else answers[0]
 
-    @app.get("/v1/vehicles/{vehicle_id}")
+    @app.get("/v1/vehicles/{vehicle_id}", responses=_errors(404))
     def vehicle_profile(vehicle_id: str, caller: Caller) -> dict:
         may_read_vehicle(caller, vehicle_id)
         profile = service.storage.vehicle_profile(vehicle_id)
@@ -132,7 +184,7 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(404, f"no vehicle {vehicle_id!r}")
         return {"vehicle_id": vehicle_id, "profile": profile}
 
-    @app.post("/v1/readers", status_code=201, response_model=Issued)
+    @app.post("/v1/readers", status_code=201, response_model=Issued, responses=_errors(409, 422))
     def register_reader(body: ReaderRegistration, caller: Caller) -> Issued:
         require(caller, "admin")
         try:
@@ -141,7 +193,7 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(409, str(exc)) from None
         return Issued(name=body.name, role="reader", secret=secret, mqtt_url=service.mqtt_url)
 
-    @app.delete("/v1/credentials/{name}", status_code=204)
+    @app.delete("/v1/credentials/{name}", status_code=204, responses=_errors(404, 409))
     def revoke(name: str, caller: Caller) -> Response:
         require(caller, "admin")
         try:
@@ -152,7 +204,12 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(404, f"no active credential {name!r}")
         return Response(status_code=204)
 
-    @app.post("/v1/telemetry", response_model=IngestAnswer,
+    @app.post("/v1/telemetry", response_model=IngestAnswer, responses={
+                  **_errors(400, 413, 415),
+                  422: {"model": NoValidSample, "description": "no valid sample: each rejection says why"},
+                  429: {"model": ErrorAnswer, "description": "the vehicle is over its rate limit: nothing stored",
+                        "headers": {"Retry-After": {"description": "seconds until the same request would pass",
+                                                    "schema": {"type": "integer"}}}}},
               openapi_extra={"requestBody": {"required": True, "content": {
                   "application/x-ndjson": {"schema": {"type": "string"}},
                   "application/json": {"schema": {"oneOf": [{"type": "object"},
@@ -173,6 +230,11 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
         rejected = [e.to_dict() for e in errors]
         received = len(samples) + len(errors)
+        decision = limiter.allow(caller.vehicle_id, received, time.monotonic())
+        if not decision.allowed:
+            if decision.retry_after_s == math.inf:
+                raise HTTPException(413, decision.reason)
+            raise HTTPException(429, decision.reason, headers={"Retry-After": str(math.ceil(decision.retry_after_s))})
         if not samples:
             return JSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
                                  "duplicates": 0, "rejected": rejected}, status_code=422)
@@ -185,8 +247,10 @@ def create_app(service: CloudService) -> FastAPI:
 
     @app.get("/v1/vehicles/{vehicle_id}/estimates")
     def estimates(vehicle_id: str, caller: Caller,
-                  start_ms: Annotated[int | None, Query(ge=0, description="from (ms since epoch, inclusive)")] = None,
-                  end_ms: Annotated[int | None, Query(ge=0, description="to (ms since epoch, exclusive)")] = None,
+                  start_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="from (ms since epoch, "
+                                                                                   "inclusive)")] = None,
+                  end_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="to (ms since epoch, "
+                                                                                 "exclusive)")] = None,
                   limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000) -> dict:
         may_read_vehicle(caller, vehicle_id)
         rows = service.storage.estimates(vehicle_id, start_ms, end_ms, limit)
@@ -209,7 +273,7 @@ def create_app(service: CloudService) -> FastAPI:
         rows = service.storage.warnings(active_only=active)
         return {"warnings": [row["message"]["denm"] for row in rows]}
 
-    @app.get("/v1/health")
+    @app.get("/v1/health", responses={503: {"description": "storage unavailable (the body says so, as for 200)"}})
     def health(caller: Caller) -> JSONResponse:
         status = service.health()
         return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)

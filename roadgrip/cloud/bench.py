@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import queue
 import secrets
 import subprocess
 import sys
@@ -93,7 +94,8 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
             return http.post("/v1/telemetry", content=body, auth=(vid, secret),
                              headers={"content-type": "application/x-ndjson"})
     for tick in range(n_ticks):
-        wait = start_wall + tick * case.batch * SAMPLE_PERIOD_MS / 1000 - time.time()
+        # a batch leaves when its last sample has been measured (timestamps are never ahead of the clock)
+        wait = start_wall + ((tick + 1) * case.batch - 1) * SAMPLE_PERIOD_MS / 1000 - time.time()
         if wait > 0:
             time.sleep(wait)
         for i, (vid, secret) in enumerate(vehicles):
@@ -132,20 +134,30 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
 
 
 def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]],
-              base_ms: int) -> dict:
+              on_tick=None) -> dict:
     """Run the load generators; counts of samples sent, acknowledged and refused, when sending started, and how long
     until the last acknowledgement (longer than case.seconds when the generators or the service could not keep the
     pace)."""
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
-    start_wall = time.time() + 3.0  # time for every generator to connect first
+    start_wall = time.time() + 3.0 + case.vehicles / 250  # time for every generator to connect first
+    base_ms = int(start_wall * 1000)  # live timestamps: sample k is due at start + k x 100 ms
     share = -(-len(vehicles) // case.workers)
     procs = [ctx.Process(target=_drive, args=(case, target, vehicles[k * share:(k + 1) * share], bodies, start_wall,
                                               base_ms, k * share, results))
              for k in range(case.workers) if vehicles[k * share:(k + 1) * share]]
     for p in procs:
         p.start()
-    totals = [results.get(timeout=case.seconds + 300) for _ in procs]
+    deadline = start_wall + case.seconds + 300
+    totals = []
+    while len(totals) < len(procs):
+        try:
+            totals.append(results.get(timeout=5.0))
+        except queue.Empty:
+            if time.time() > deadline:
+                raise TimeoutError("the load generators did not finish") from None
+            if on_tick is not None:
+                on_tick()
     for p in procs:
         p.join()
     return {"sent": sum(t[0] for t in totals), "acknowledged": sum(t[1] for t in totals),
@@ -166,7 +178,7 @@ class _Service:
                "ROADGRIP_MAP_CLOCK": "data"}
         if database_url:
             env["ROADGRIP_DATABASE_URL"] = database_url
-        self.log = open(workdir / "serve.log", "w")
+        self.log = open(workdir / "serve.log", "w")  # noqa: SIM115 (the server's output for its whole life)
         self.process = subprocess.Popen([sys.executable, "-m", "roadgrip", "serve"], env=env, stdout=self.log,
                                         stderr=subprocess.STDOUT)
         self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", auth=self.admin, timeout=120.0)
@@ -229,10 +241,17 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
         try:
             vehicles, mqtt_url = service.register(case.vehicles)
             target = {"http_url": f"http://127.0.0.1:{service.port}", "mqtt_url": mqtt_url}
-            base_ms = int(time.time() * 1000) - int(case.seconds * 1000)  # the stream ends about now
             progress(f"{case.transport}: {case.vehicles} vehicles x {case.seconds:.0f} s, batch {case.batch}")
             cpu_before = service.cpu_s()
-            load = _generate(case, target, vehicles, bodies, base_ms)
+            timeline = []
+            started = time.time()
+
+            def record() -> None:  # every 5 s: what a soak must show flat
+                h = service.health()
+                timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
+                                 "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
+                                 **h["pipeline"]["latency"]})
+            load = _generate(case, target, vehicles, bodies, on_tick=record)
             ended = time.time()
             while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
                 pipeline = service.health()["pipeline"]
@@ -244,7 +263,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             stored_at = time.time()
             cpu_after = service.cpu_s()
             time.sleep(1.0)  # the last reorder windows
-            pipeline = service.health()["pipeline"]
+            health = service.health()
+            pipeline = health["pipeline"]
             storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'roadgrip.sqlite'}")
             counts = storage.counts()
             storage.close()
@@ -260,6 +280,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "drain_s": round(stored_at - ended, 2), "failed_rounds": pipeline["failed_rounds"],
             "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
             "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
+            "latency_p50_ms": pipeline["latency"]["p50_ms"], "latency_p99_ms": pipeline["latency"]["p99_ms"],
+            "rss_mb_end": health["memory_rss_mb"], "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
 
 
@@ -302,7 +324,7 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
                              on_telemetry=count)
         counter.connect()
         case = IngestCase("mqtt", vehicles, seconds, batch, workers)
-        load = _generate(case, {"mqtt_url": broker.url}, logins, bodies, 0)
+        load = _generate(case, {"mqtt_url": broker.url}, logins, bodies)
         deadline = time.time() + 60
         while received[0] * batch < load["acknowledged"] and time.time() < deadline:
             time.sleep(0.05)
@@ -312,3 +334,32 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
     return {"case": f"broker alone (mosquitto, QoS 1, {batch} sample(s) a message)", "batch": batch,
             "sent": load["sent"], "acknowledged": load["acknowledged"], "messages_received": received[0],
             "messages_per_s": received[0] / elapsed, "samples_per_s": received[0] * batch / elapsed}
+
+
+def plot_timelines(rows: list[dict], path: Path) -> Path:
+    """Memory, backlog and latency over the run of each case: a soak must show them flat."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    for row in rows:
+        t = [p["t_s"] for p in row["timeline"]]
+        label = f"{row['case']}, {row['batch']} a message"
+        axes[0].plot(t, [p["rss_mb"] for p in row["timeline"]], label=label)
+        axes[1].plot(t, [p["backlog"] for p in row["timeline"]], label=label)
+        axes[2].plot(t, [p["p99_ms"] for p in row["timeline"]], label=f"{label}, p99")
+        axes[2].plot(t, [p["p50_ms"] for p in row["timeline"]], "--", label=f"{label}, p50")
+    axes[0].set_ylabel("service RSS, MB")
+    axes[1].set_ylabel("queued samples")
+    axes[2].set_ylabel("sample to stored\nestimate, ms")
+    axes[2].set_xlabel("time since the start, s")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"roadgrip bench ingest: {rows[0]['vehicles']} vehicles at 10 Hz")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -32,6 +32,16 @@ from roadgrip.vehicle.params import VehicleParams
 log = logging.getLogger(__name__)
 
 
+def _rss_mb() -> float | None:
+    """The process's resident memory (Linux /proc), MB."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    rss = [line for line in status.splitlines() if line.startswith("VmRSS:")]
+    return int(rss[0].split()[1]) / 1024.0 if rss else None
+
+
 class CloudService:
     def __init__(self, settings: Settings):
         self.settings = settings
@@ -212,5 +222,7 @@ class CloudService:
         if self.mqtt is not None and not self.mqtt.connected:
             status["status"] = "degraded" if status["status"] == "ok" else status["status"]
         status["pipeline"] = {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
-                              "mqtt_rejected": self.mqtt_rejected}
+                              "mqtt_rejected": self.mqtt_rejected,
+                              "latency": self.pipeline.latency_percentiles()}
+        status["memory_rss_mb"] = _rss_mb()
         return status

@@ -48,6 +48,13 @@ class Settings(BaseSettings):
     reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
                                                            "arrivals back in order before estimation")
     flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
+    rate_limit_samples_per_s: float = Field(50.0, ge=0, allow_inf_nan=False,
+                                            description="samples a vehicle may send per second, HTTP and MQTT "
+                                                        "together (5x the 10 Hz of a terminal); 0: no limit "
+                                                        "(roadgrip/cloud/ratelimit.py)")
+    rate_limit_burst_s: float = Field(10.0, gt=0, allow_inf_nan=False,
+                                      description="seconds of rate_limit_samples_per_s a vehicle may send at once "
+                                                  "after a quiet spell (the bucket's size)")
 
     # map and warnings
     h3_resolution: int = Field(10, ge=0, le=15)
