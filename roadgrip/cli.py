@@ -423,6 +423,8 @@ def serve(
     try:
         console.print(f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
                       f"mqtt {service.mqtt_url or 'off'}")
+        console.print(f"dashboard: http://{settings.host}:{settings.port}/dashboard (log in as a reader: "
+                      "POST /v1/readers with the admin secret)")
         console.print(f"admin secret: {settings.data_dir / 'admin-secret'}" if settings.admin_secret is None
                       else "admin secret: from the settings")
         uvicorn.run(create_app(service), host=settings.host, port=settings.port, log_level="warning")
