@@ -408,6 +408,8 @@ def serve(
 ):
     """The cloud platform: HTTP (and MQTT) ingest, per-vehicle estimation, storage, friction map, warnings."""
     import logging
+    import signal
+    import sys
 
     import uvicorn
 
@@ -418,6 +420,9 @@ def serve(
     settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
                              estimator=estimator)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # uvicorn answers SIGTERM by shutting down and raising it again with the default action, which would end the
+    # process before `service.stop()` (the last reorder windows, MQTT and storage closed): exit through Python instead
+    signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
     service = CloudService(settings)
     service.start()
     try:

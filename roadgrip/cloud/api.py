@@ -107,7 +107,7 @@ def _errors(*codes: int) -> dict:
 
 
 ERRORS = {
-    400: "the body is not JSON / NDJSON telemetry",
+    400: "a body that cannot be read (not JSON, not UTF-8; telemetry: not JSON / NDJSON samples)",
     401: "no credentials, or invalid ones (unknown, wrong secret, revoked)",
     403: "this credential's role may not do this (a vehicle acting for another, a reader writing, ...)",
     404: "no such vehicle or credential",
@@ -152,7 +152,7 @@ def create_app(service: CloudService) -> FastAPI:
     async def storage_down(request: Request, exc: StorageUnavailable):
         return JSONResponse({"detail": f"storage unavailable, nothing was stored: {exc}"}, status_code=503)
 
-    @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued], responses=_errors(409, 422))
+    @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued], responses=_errors(400, 409, 422))
     def register_vehicles(body: VehicleRegistration | list[VehicleRegistration], caller: Caller):
         """One vehicle, or a list (a fleet at once: one broker reload); all or nothing."""
         require(caller, "admin")
@@ -184,7 +184,7 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(404, f"no vehicle {vehicle_id!r}")
         return {"vehicle_id": vehicle_id, "profile": profile}
 
-    @app.post("/v1/readers", status_code=201, response_model=Issued, responses=_errors(409, 422))
+    @app.post("/v1/readers", status_code=201, response_model=Issued, responses=_errors(400, 409, 422))
     def register_reader(body: ReaderRegistration, caller: Caller) -> Issued:
         require(caller, "admin")
         try:

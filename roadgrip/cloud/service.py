@@ -27,7 +27,7 @@ from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
 from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
 from roadgrip.cloud.wire import PayloadError, parse_payload
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.vehicle.params import VehicleParams
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +40,18 @@ def _rss_mb() -> float | None:
         return None
     rss = [line for line in status.splitlines() if line.startswith("VmRSS:")]
     return int(rss[0].split()[1]) / 1024.0 if rss else None
+
+
+def _warm_up(estimator) -> None:
+    """One update on a made-up sample, so that compiling (or loading from numba's cache) the estimator's kernels
+    happens before the service says it is up, not in the pipeline's first round (~15 s cold)."""
+    state = estimator.start(PAPER_SUV)
+    sample = {"vehicle_id": "warm-up", "timestamp_ms": 0, "latitude_deg": None, "longitude_deg": None,
+              "speed_mps": 20.0, "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0,
+              "steering_wheel_angle_rad": 0.0, "abs_active": False, "acc_active": False, "lateral_speed_mps": None,
+              **{f"wheel_speed_{w}_radps": 20.0 / PAPER_SUV.wheel_radius_m for w in ("fl", "fr", "rl", "rr")}}
+    for k in range(12):  # a learned model's window fills before it estimates
+        estimator.update(state, {**sample, "timestamp_ms": 100 * k})
 
 
 class CloudService:
@@ -70,6 +82,7 @@ class CloudService:
         self.auth.ensure_admin(self.admin_secret)
         self._restore_map()
         estimator = load_estimator(s.estimator)
+        _warm_up(estimator)
         self.pipeline = Pipeline(self.storage, s, estimator, self.friction_map, self.warning_engine,
                                  publish=self._publish)
         self.pipeline.start()

@@ -1,0 +1,356 @@
+"""Helpers for the fault-injection tests (test_faults.py): simulated terminals that count what they sent and what was
+acknowledged, the service as a real process, a PostgreSQL cluster of its own that a test may stop and start, and the
+rows actually in the database.
+
+- `warm_estimator()`: numba's kernels compiled into its cache before anything is timed.
+- `drive_samples(vehicle_id, runs)`: `runs` simulated 30 s runs (tests/cloud/drives.py) one after the other, as wire
+  samples of one vehicle (10 Hz), starting 10 minutes ago (inside the service's max_future_s however long it streams).
+- `MqttTerminal`: a vehicle publishing over MQTT at QoS 1 through `UserClient.publish_nowait`, in a thread of its own,
+  `per_message` samples a message every `period_s`. paho keeps every QoS 1 message until its PUBACK and sends it again
+  after its own reconnect (also what it was handed while disconnected), so nothing is dropped on the vehicle's side.
+  *Acknowledged* = the broker answered PUBACK with a success code: the broker has it, not yet the service.
+- `HttpTerminal`: a vehicle posting `per_request` samples every `period_s` to POST /v1/telemetry, in a thread; a
+  request that fails to connect, is cut or answers 503 is sent again (every `retry_s`) until it gets 200, a 429 after
+  its Retry-After. *Acknowledged* = answered 200 (the service stored it).
+- `ServeProcess`: `python -m roadgrip serve` with ROADGRIP_* environment variables, started, killed (SIGKILL) and
+  started again on the same data directory and port.
+- `serving_http(service)`: the HTTP API of an in-process CloudService under uvicorn in a thread (real sockets, so a
+  503 is a real answer), as tests/cloud/test_dashboard.py does.
+- `PostgresCluster`: initdb into a temporary directory, start / stop (`pg_ctl stop -m fast`) / start again on the same
+  port; run as the `postgres` user when the tests run as root (initdb refuses root), as tests/cloud/conftest.py does.
+- `stored_keys(url, table)`: the (vehicle_id, timestamp_ms) of every row of `table`, read straight from the database.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import pwd
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import sqlalchemy as sa
+import uvicorn
+from drives import patch_drive
+
+from roadgrip.cloud.api import create_app
+from roadgrip.cloud.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.storage import normalise_url
+from roadgrip.estimators.learned import load_estimator
+from roadgrip.fleet.terminal import wire_samples
+from roadgrip.vehicle.params import PAPER_SUV
+
+PG_BIN = Path("/usr/lib/postgresql/15/bin")
+RUN_MS = 30_000  # one patch_drive run: 300 samples, 0 to 29,900 ms
+START_MS = int(time.time() * 1000) - 600_000
+
+Key = tuple[str, int]
+
+
+def drive_samples(vehicle_id: str, runs: int, start_ms: int = START_MS) -> list[dict]:
+    """`runs` simulated runs of one vehicle back to back (a dry one, then a slippery patch, ...), 10 Hz."""
+    samples = []
+    for k in range(runs):
+        samples += wire_samples(patch_drive(0.2 if k % 2 else 0.9, k), vehicle_id, start_ms + k * RUN_MS)
+    return samples
+
+
+def warm_estimator() -> float:
+    """Run one EKF update here, so that numba compiles its kernels into its on-disk cache (seconds: about 15 on a cold
+    cache) before a test times anything; the service, in this process or another, then loads them from the cache.
+    The seconds it took."""
+    started = time.perf_counter()
+    estimator = load_estimator("ekf")
+    estimator.update(estimator.start(PAPER_SUV), drive_samples("warm-up", 1)[0])
+    return time.perf_counter() - started
+
+
+def keys(samples: list[dict]) -> set[Key]:
+    return {(s["vehicle_id"], s["timestamp_ms"]) for s in samples}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.05) -> float:
+    """Poll until `predicate()` is true; the seconds it took. TimeoutError naming `what` after `timeout_s`."""
+    started = time.monotonic()
+    while not predicate():
+        if time.monotonic() - started > timeout_s:
+            raise TimeoutError(f"{what}: not within {timeout_s} s")
+        time.sleep(poll_s)
+    return time.monotonic() - started
+
+
+class _Paced(threading.Thread):
+    """Sends `samples` in chunks of `per_chunk`, chunk k not before start + k * period_s (a chunk that had to wait
+    for a retry delays the next ones, which then follow at once: the terminal's buffer drains)."""
+
+    def __init__(self, name: str, samples: list[dict], per_chunk: int, period_s: float):
+        super().__init__(name=name, daemon=True)
+        self.chunks = [samples[k:k + per_chunk] for k in range(0, len(samples), per_chunk)]
+        self.period_s = period_s
+        self.error: BaseException | None = None
+        self.started_at: float | None = None
+
+    def run(self) -> None:
+        self.started_at = time.monotonic()
+        try:
+            for k, chunk in enumerate(self.chunks):
+                time.sleep(max(0.0, self.started_at + k * self.period_s - time.monotonic()))
+                self.send(chunk)
+        except Exception as exc:  # noqa: BLE001 (kept and raised again by finish(), in the test's thread)
+            self.error = exc
+
+    def send(self, chunk: list[dict]) -> None:
+        raise NotImplementedError
+
+    def finish(self, timeout_s: float) -> None:
+        self.join(timeout_s)
+        if self.is_alive():
+            raise TimeoutError(f"{self.name} still sending after {timeout_s} s")
+        if self.error is not None:
+            raise self.error
+
+
+class MqttTerminal(_Paced):
+    """A vehicle over MQTT (module docstring). `sent`, `acknowledged()`, `refused`; `connection_log` holds
+    (monotonic time, connected) at every change the sending loop saw."""
+
+    def __init__(self, url: str, vehicle_id: str, secret: str, samples: list[dict], per_message: int,
+                 period_s: float):
+        super().__init__(f"mqtt-{vehicle_id}", samples, per_message, period_s)
+        self.client = UserClient(url, vehicle_id, secret).connect()
+        self.topic = telemetry_topic(vehicle_id)
+        self.messages: list[tuple[float, int, list[dict]]] = []  # (monotonic time, message id, samples)
+        self.connection_log: list[tuple[float, bool]] = [(time.monotonic(), True)]
+        # PUBACKs by message id, from paho's callback (chained to UserClient's): `MQTTMessageInfo.is_published()`
+        # raises for a message handed over while disconnected (rc NO_CONN), although paho sends it after the reconnect
+        self.pubacks: dict[int, bool] = {}  # message id -> success reason code
+        userclient_on_publish = self.client.paho.on_publish
+
+        def on_publish(client, userdata, mid, reason_code, properties):
+            self.pubacks[mid] = not reason_code.is_failure
+            userclient_on_publish(client, userdata, mid, reason_code, properties)
+
+        self.client.paho.on_publish = on_publish
+
+    def send(self, chunk: list[dict]) -> None:
+        connected = self.client.paho.is_connected()
+        if connected != self.connection_log[-1][1]:
+            self.connection_log.append((time.monotonic(), connected))
+        self.messages.append((time.monotonic(), self.client.publish_nowait(self.topic, json.dumps(chunk)).mid, chunk))
+
+    @property
+    def sent(self) -> list[dict]:
+        return [s for _, _, chunk in self.messages for s in chunk]
+
+    def acknowledged(self) -> list[dict]:
+        """Samples of the messages the broker acknowledged (PUBACK; refusals are counted in `refused`)."""
+        return [s for _, mid, chunk in self.messages if self.pubacks.get(mid) for s in chunk]
+
+    @property
+    def refused(self) -> int:
+        return self.client.refused
+
+    def all_acknowledged(self) -> bool:
+        return all(mid in self.pubacks for _, mid, _ in self.messages)
+
+    def sent_between(self, since_s: float, until_s: float) -> int:
+        """Samples handed to paho between two monotonic times."""
+        return sum(len(chunk) for t, _, chunk in self.messages if since_s <= t <= until_s)
+
+    def close(self) -> None:
+        self.client.close()
+
+
+class HttpTerminal(_Paced):
+    """A vehicle over HTTP (module docstring). `sent`, `acknowledged`, `duplicates`, and every answer in `answers`:
+    (monotonic time, status code or the transport error's name)."""
+
+    def __init__(self, base_url: str, vehicle_id: str, secret: str, samples: list[dict], per_request: int,
+                 period_s: float, retry_s: float = 0.25):
+        super().__init__(f"http-{vehicle_id}", samples, per_request, period_s)
+        self.http = httpx.Client(base_url=base_url, auth=(vehicle_id, secret), timeout=10.0)
+        self.retry_s = retry_s
+        self.sent: list[dict] = []
+        self.acknowledged: list[dict] = []
+        self.duplicates = 0  # samples a 200 called already stored (a retry of a request whose answer was lost or 503)
+        self.answers: list[tuple[float, int | str]] = []
+
+    def send(self, chunk: list[dict]) -> None:
+        self.sent += chunk
+        body = "\n".join(json.dumps(s) for s in chunk)
+        while True:
+            try:
+                answer = self.http.post("/v1/telemetry", content=body,
+                                        headers={"content-type": "application/x-ndjson"})
+            except httpx.TransportError as exc:  # refused, cut (the service killed), timed out
+                self.answers.append((time.monotonic(), type(exc).__name__))
+                time.sleep(self.retry_s)
+                continue
+            self.answers.append((time.monotonic(), answer.status_code))
+            if answer.status_code == 200:
+                self.acknowledged += chunk
+                self.duplicates += answer.json()["duplicates"]
+                return
+            if answer.status_code == 503:
+                time.sleep(self.retry_s)
+            elif answer.status_code == 429:
+                time.sleep(float(answer.headers.get("retry-after", 1)))
+            else:
+                raise AssertionError(f"{self.name}: unexpected answer {answer.status_code}: {answer.text[:300]}")
+
+    def count(self, answer: int | str, since_s: float = -math.inf, until_s: float = math.inf) -> int:
+        return sum(1 for t, a in self.answers if a == answer and since_s <= t <= until_s)
+
+    def close(self) -> None:
+        self.http.close()
+
+
+class ServeProcess:
+    """`python -m roadgrip serve` in its own process on 127.0.0.1:`port`, configured by the ROADGRIP_* variables in `env`
+    alone (those of the test's environment are left out); its output goes to `workdir`/serve.log (appended at every
+    start)."""
+
+    def __init__(self, workdir: Path, env: dict[str, str], admin: tuple[str, str]):
+        self.workdir = workdir
+        self.port = free_port()
+        self.admin = admin
+        inherited = {k: v for k, v in os.environ.items() if not k.startswith("ROADGRIP_")}  # only the test's settings
+        self.env = {**inherited, **env, "ROADGRIP_DATA_DIR": str(workdir), "ROADGRIP_PORT": str(self.port),
+                    "ROADGRIP_ADMIN_SECRET": admin[1]}
+        self.process: subprocess.Popen | None = None
+        self.http = httpx.Client(base_url=self.url, auth=admin, timeout=10.0)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout_s: float = 60) -> float:
+        """Start and return once GET /v1/health answers 200; the seconds that took."""
+        with open(self.workdir / "serve.log", "a") as log:
+            self.process = subprocess.Popen([sys.executable, "-m", "roadgrip", "serve"], env=self.env, stdout=log,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+
+        def up() -> bool:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"roadgrip serve exited ({self.process.returncode}):\n{self.log_tail()}")
+            try:
+                return self.http.get("/v1/health").status_code == 200
+            except httpx.TransportError:
+                return False
+
+        return wait_for(up, timeout_s, "roadgrip serve answering /v1/health")
+
+    def health(self) -> dict:
+        return self.http.get("/v1/health").json()
+
+    def kill(self) -> None:
+        """SIGKILL: no cleanup of any kind in the service."""
+        self.process.send_signal(signal.SIGKILL)
+        self.process.wait()
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.http.close()
+
+    def log_tail(self, chars: int = 4000) -> str:
+        path = self.workdir / "serve.log"
+        return path.read_text(errors="replace")[-chars:] if path.exists() else ""
+
+
+@contextlib.contextmanager
+def serving_http(service: CloudService):
+    """The service's HTTP API under uvicorn in a thread on 127.0.0.1 at a free port; yields its base URL."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        server = uvicorn.Server(uvicorn.Config(create_app(service), log_level="warning", lifespan="off"))
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+        thread.start()
+        wait_for(lambda: server.started or not thread.is_alive(), 30, "uvicorn starting")
+        if not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        try:
+            yield f"http://127.0.0.1:{sock.getsockname()[1]}"
+        finally:
+            server.should_exit = True
+            thread.join(timeout=30)
+
+
+class PostgresCluster:
+    """A PostgreSQL 15 cluster of its own on 127.0.0.1 at a free port (fixed for its life), trust authentication;
+    `url` is its database `roadgrip_faults`. `stop()` is `pg_ctl stop -m fast` (clients are disconnected at once),
+    `start()` starts it again on the same port."""
+
+    def __init__(self):
+        missing = [p.name for p in (PG_BIN / "initdb", PG_BIN / "pg_ctl") if not p.exists()]
+        if missing:
+            raise RuntimeError(f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): run "
+                               "`bash scripts/install_system_deps.sh`")
+        self.root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-faults-"))  # not under pytest's tmp: private to root
+        self._as_postgres: list[str] = []
+        if os.geteuid() == 0:  # initdb refuses to run as root
+            pw = pwd.getpwnam("postgres")
+            os.chown(self.root, pw.pw_uid, pw.pw_gid)
+            self._as_postgres = ["runuser", "-u", "postgres", "--"]
+        self.data = self.root / "data"
+        self.port = free_port()
+        self._pg(PG_BIN / "initdb", "-D", self.data, "-U", "postgres", "-A", "trust", "-E", "UTF8", "--locale=C")
+        (self.data / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
+        self.start()
+        self._pg(PG_BIN / "createdb", "-h", "127.0.0.1", "-p", str(self.port), "-U", "postgres", "roadgrip_faults")
+
+    @property
+    def url(self) -> str:
+        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/roadgrip_faults"
+
+    def start(self) -> None:
+        options = f"-c listen_addresses=127.0.0.1 -c port={self.port} -k {self.root} -c fsync=on"
+        self._pg(PG_BIN / "pg_ctl", "start", "-w", "-D", self.data, "-l", self.root / "server.log", "-o", options)
+
+    def stop(self) -> None:
+        self._pg(PG_BIN / "pg_ctl", "stop", "-w", "-m", "fast", "-D", self.data)
+
+    def close(self) -> None:
+        """Stop the server (if it runs) and delete its files."""
+        subprocess.run([*self._as_postgres, str(PG_BIN / "pg_ctl"), "stop", "-w", "-m", "immediate", "-D",
+                        str(self.data)], check=False, capture_output=True)
+        shutil.rmtree(self.root, ignore_errors=True)
+
+    def _pg(self, *args) -> None:
+        done = subprocess.run([*self._as_postgres, *map(str, args)], check=False, capture_output=True, text=True)
+        if done.returncode != 0:
+            log = (self.root / "server.log").read_text() if (self.root / "server.log").exists() else ""
+            raise RuntimeError(f"{Path(str(args[0])).name} failed: {done.stderr}\n{log[-2000:]}")
+
+
+def stored_keys(url: str, table: str) -> list[Key]:
+    """(vehicle_id, timestamp_ms) of every row of `table` ("telemetry" or "estimates"), with repeats if there were
+    any, read with a connection of its own."""
+    engine = sa.create_engine(normalise_url(url))
+    try:
+        with engine.connect() as conn:
+            return [(v, int(t)) for v, t in conn.execute(sa.text(f"SELECT vehicle_id, timestamp_ms FROM {table}"))]
+    finally:
+        engine.dispose()
