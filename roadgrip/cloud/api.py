@@ -19,20 +19,28 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 
 Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422
 when none was, 413 for an oversized body, 400 for a body that is not telemetry, 503 when storage is down (nothing
-was stored: retry).
+was stored: retry), 429 with Retry-After when the vehicle is over its rate limit (`roadgrip.cloud.ratelimit`, samples
+a second, valid or not; nothing stored), and 413 for more samples in one request than the limit's whole burst.
+Every error status of every route is declared in the OpenAPI document, with its body (`ErrorAnswer`); the schemathesis
+tests of tests/cloud/test_fuzz.py hold the API to it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import time
 from typing import Annotated
 
 from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response
+from fastapi import Path as PathParam
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBasic, HTTPBasicCredentials
 from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from roadgrip.cloud.auth import AuthError
 from roadgrip.cloud.dashboard import mount_dashboard
@@ -121,6 +129,8 @@ ERRORS = {
 
 
 def _caller(request: Request, auth: Annotated[HTTPBasicCredentials, Depends(basic)]) -> Credential:
+    if not VEHICLE_ID_RE.fullmatch(auth.username):  # no credential has such a name (PostgreSQL: a NUL was a 500)
+        raise HTTPException(401, "invalid credentials", headers={"WWW-Authenticate": "Basic"})
     try:
         return request.app.state.service.auth.authenticate(auth.username, auth.password)
     except AuthError:
@@ -128,6 +138,32 @@ def _caller(request: Request, auth: Annotated[HTTPBasicCredentials, Depends(basi
 
 
 Caller = Annotated[Credential, Depends(_caller)]
+VehicleId = Annotated[str, PathParam(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-")]
+
+
+def _unstorable_text(value, where: str) -> str | None:
+    """Where in a JSON-like value a string holds what PostgreSQL cannot store (a NUL character; a lone UTF-16
+    surrogate, which JSON's \\u escapes can carry), or None."""
+    if isinstance(value, str):
+        return where if "\x00" in value or any("\ud800" <= c <= "\udfff" for c in value) else None
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = _unstorable_text(key, f"{where} (a key)") or _unstorable_text(item, f"{where}.{key}")
+        if found is not None:
+            return found
+    return None
+
+
+def _escaped(rejection: dict) -> dict:
+    """A rejection whose texts (the field as sent, the reason quoting the value) hold lone surrogates, which JSON
+    escapes carry but UTF-8 cannot encode, with those written as \\udXXXX instead (they were a 500, found by fuzzing)."""
+    return {k: v.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(v, str) else v
+            for k, v in rejection.items()}
+
+
+class AsciiJSONResponse(JSONResponse):
+    def render(self, content) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
 
 
 def create_app(service: CloudService) -> FastAPI:
@@ -147,6 +183,16 @@ def create_app(service: CloudService) -> FastAPI:
     def may_read_vehicle(caller: Credential, vehicle_id: str) -> None:
         if caller.role == "vehicle" and caller.vehicle_id != vehicle_id:
             raise HTTPException(403, f"vehicle {caller.vehicle_id} may not read vehicle {vehicle_id}")
+
+    # Errors answer in ASCII JSON: they quote the input, and a lone surrogate that a JSON \ud800 escape put there
+    # cannot be written as UTF-8 (a 500, found by fuzzing: tests/cloud/test_fuzz.py).
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError):
+        return AsciiJSONResponse({"detail": jsonable_encoder(exc.errors())}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        return AsciiJSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=exc.headers)
 
     @app.exception_handler(StorageUnavailable)
     async def storage_down(request: Request, exc: StorageUnavailable):
@@ -168,6 +214,10 @@ def create_app(service: CloudService) -> FastAPI:
             except (ValueError, TypeError, KeyError) as exc:
                 where = "profile" if not isinstance(body, list) else f"[{k}].profile"
                 raise HTTPException(422, f"{where}: {exc}") from None
+            where = _unstorable_text(profiles[-1].to_dict(), "profile" if not isinstance(body, list)
+                                     else f"[{k}].profile")
+            if where is not None:
+                raise HTTPException(422, f"{where}: text with a NUL character or a lone surrogate cannot be stored")
         try:
             issued = service.register_vehicles([(item.vehicle_id, p) for item, p in zip(batch, profiles)])
         except ValueError as exc:
@@ -177,7 +227,7 @@ def create_app(service: CloudService) -> FastAPI:
         return answers if isinstance(body, list) else answers[0]
 
     @app.get("/v1/vehicles/{vehicle_id}", responses=_errors(404))
-    def vehicle_profile(vehicle_id: str, caller: Caller) -> dict:
+    def vehicle_profile(vehicle_id: VehicleId, caller: Caller) -> dict:
         may_read_vehicle(caller, vehicle_id)
         profile = service.storage.vehicle_profile(vehicle_id)
         if profile is None:
@@ -194,7 +244,7 @@ def create_app(service: CloudService) -> FastAPI:
         return Issued(name=body.name, role="reader", secret=secret, mqtt_url=service.mqtt_url)
 
     @app.delete("/v1/credentials/{name}", status_code=204, responses=_errors(404, 409))
-    def revoke(name: str, caller: Caller) -> Response:
+    def revoke(name: Annotated[str, PathParam(pattern=VEHICLE_ID_RE.pattern)], caller: Caller) -> Response:
         require(caller, "admin")
         try:
             found = service.revoke(name)
@@ -228,7 +278,7 @@ def create_app(service: CloudService) -> FastAPI:
                                             max_future_ms=int(s.max_future_s * 1000), vehicle_id=caller.vehicle_id)
         except PayloadError as exc:
             raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
-        rejected = [e.to_dict() for e in errors]
+        rejected = [_escaped(e.to_dict()) for e in errors]
         received = len(samples) + len(errors)
         decision = limiter.allow(caller.vehicle_id, received, time.monotonic())
         if not decision.allowed:
@@ -236,8 +286,8 @@ def create_app(service: CloudService) -> FastAPI:
                 raise HTTPException(413, decision.reason)
             raise HTTPException(429, decision.reason, headers={"Retry-After": str(math.ceil(decision.retry_after_s))})
         if not samples:
-            return JSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
-                                 "duplicates": 0, "rejected": rejected}, status_code=422)
+            return AsciiJSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
+                                      "duplicates": 0, "rejected": rejected}, status_code=422)
         try:
             result = await asyncio.wrap_future(service.pipeline.submit(caller.vehicle_id, samples))
         except StorageUnavailable as exc:
@@ -246,7 +296,7 @@ def create_app(service: CloudService) -> FastAPI:
                             duplicates=result.duplicates, rejected=rejected)
 
     @app.get("/v1/vehicles/{vehicle_id}/estimates")
-    def estimates(vehicle_id: str, caller: Caller,
+    def estimates(vehicle_id: VehicleId, caller: Caller,
                   start_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="from (ms since epoch, "
                                                                                    "inclusive)")] = None,
                   end_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="to (ms since epoch, "

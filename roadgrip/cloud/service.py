@@ -22,6 +22,7 @@ from roadgrip.cloud.broker import ManagedBroker, mosquitto_available
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import MqttClient, errors_topic
 from roadgrip.cloud.pipeline import Pipeline
+from roadgrip.cloud.ratelimit import RateLimiter
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
 from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
@@ -71,6 +72,7 @@ class CloudService:
             pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
             validity_s=settings.warning_validity_s, station_id=settings.station_id)
         self.mqtt_rejected = 0
+        self.rate_limiter = RateLimiter(settings.rate_limit_samples_per_s, settings.rate_limit_burst_s)
 
     # ------------------------------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -173,6 +175,11 @@ class CloudService:
                                             max_future_ms=int(self.settings.max_future_s * 1000))
         except PayloadError as exc:
             self._reject_mqtt(vehicle_id, [{"index": None, "field": exc.field, "reason": str(exc)}])
+            ack()
+            return
+        decision = self.rate_limiter.allow(vehicle_id, len(samples) + len(errors), time.monotonic())
+        if not decision.allowed:  # acknowledged all the same: the broker must not deliver it again
+            self._reject_mqtt(vehicle_id, [{"index": None, "field": None, "reason": decision.reason}])
             ack()
             return
         if errors:

@@ -87,7 +87,9 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
     data_dir = Path(tempfile.mkdtemp(prefix="roadgrip-demo-")) if data_dir is None else data_dir
     data_dir.mkdir(parents=True, exist_ok=True)
     _log_to(data_dir / "cloud.log")
-    settings = Settings(data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall")
+    # the fleet runs at `speed` times real time, so each vehicle sends `speed` times its 10 Hz: no per-vehicle limit
+    settings = Settings(data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall",
+                        rate_limit_samples_per_s=0)
     plans = plan_fleet(network, vehicles, duration_s=duration_s, seed=seed, patch_braking_share=0.5,
                        per_slippery_patch=2, prefix="demo")
     samples = simulate_fleet(plans, network)

@@ -19,7 +19,8 @@ runner = CliRunner()
 @pytest.fixture
 def cloud(tmp_path, monkeypatch):
     monkeypatch.setenv("ROADGRIP_ADMIN_SECRET", ADMIN_SECRET)
-    local = LocalCloud(Settings(data_dir=tmp_path, port=free_port(), mqtt="auto", admin_secret=ADMIN_SECRET))
+    local = LocalCloud(Settings(data_dir=tmp_path, port=free_port(), mqtt="auto", admin_secret=ADMIN_SECRET,
+                                rate_limit_samples_per_s=0))  # vehicles at 50x real time
     yield local
     local.stop()
 
