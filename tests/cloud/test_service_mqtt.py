@@ -4,10 +4,13 @@ on a real PostgreSQL."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import queue
 import time
 
 import pytest
+from drives import patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api import create_app
@@ -16,8 +19,6 @@ from roadgrip.cloud.mqtt import PublishRefused, UserClient, errors_topic, fricti
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.fleet.terminal import wire_samples
-
-from drives import patch_drive
 
 ADMIN = ("admin", "admin-secret-for-tests-0123456789")
 START_MS = int(time.time() * 1000) - 600_000
@@ -40,10 +41,8 @@ def register(client, vehicle_id: str) -> tuple[str, str, str]:
 def collect(messages, until, timeout_s: float = 20.0) -> list[tuple[str, bytes]]:
     got, deadline = [], time.time() + timeout_s
     while not until(got) and time.time() < deadline:
-        try:
+        with contextlib.suppress(queue.Empty):
             got.append(messages.get(timeout=0.1))
-        except Exception:  # queue.Empty
-            continue
     return got
 
 
@@ -72,9 +71,8 @@ def test_a_vehicle_cannot_publish_under_another_id(cloud):
     a_id, a_secret, url = register(client, "car-a")
     b_id, _, _ = register(client, "car-b")
     sample = wire_samples(patch_drive(0.9, 3), b_id, START_MS)[:1]
-    with UserClient(url, a_id, a_secret).connect() as car:
-        with pytest.raises(PublishRefused):
-            car.publish(telemetry_topic(b_id), json.dumps(sample))
+    with UserClient(url, a_id, a_secret).connect() as car, pytest.raises(PublishRefused):
+        car.publish(telemetry_topic(b_id), json.dumps(sample))
     time.sleep(0.3)
     assert service.storage.counts()["telemetry"] == 0
 
