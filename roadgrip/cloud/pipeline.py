@@ -114,6 +114,7 @@ class Pipeline:
         self.publish = publish  # callable(topic, payload bytes) or None
         self.counters = PipelineCounters()
         self._inbox: list[_Submission] = []
+        self._queued = 0
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -150,12 +151,17 @@ class Pipeline:
             return future
         with self._lock:
             self._inbox.append(_Submission(vehicle_id, samples, future, retry))
+            self._queued += len(samples)
         return future
 
     @property
     def backlog(self) -> int:
-        with self._lock:
-            return sum(len(s.samples) for s in self._inbox)
+        """Samples submitted and not yet taken by a round (O(1): the MQTT handler asks for every message)."""
+        return self._queued
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and not self._stop.is_set()
 
     def forget_vehicle(self, vehicle_id: str) -> None:
         """Start the vehicle afresh at the next round: its profile is read again (it changed) and its estimator
@@ -186,6 +192,7 @@ class Pipeline:
     def run_round(self, final: bool = False) -> None:
         with self._lock:
             inbox, self._inbox = self._inbox, []
+            self._queued = 0
             forget, self._forget = self._forget, set()
         for vehicle_id in forget:
             self._profiles.pop(vehicle_id, None)
@@ -296,6 +303,7 @@ class Pipeline:
                 sub.future.set_exception(exc)
         with self._lock:
             self._inbox = keep + self._inbox
+            self._queued += sum(len(sub.samples) for sub in keep)
 
     @property
     def storage_down(self) -> bool:

@@ -32,6 +32,12 @@ from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 log = logging.getLogger(__name__)
 
+# Samples the MQTT side may queue for the pipeline (10 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
+# so paho's network thread stops reading: TCP pushes back and the broker keeps the rest in the service's persistent
+# session, unacknowledged. (Mosquitto 2.0.11 did not stop at the client's Receive Maximum in the soak of
+# docs/RELIABILITY.md: the service queued 116,000 messages and its memory grew; this bound is the service's own.)
+MAX_MQTT_BACKLOG = 100_000
+
 
 def _rss_mb() -> float | None:
     """The process's resident memory (Linux /proc), MB."""
@@ -187,6 +193,8 @@ class CloudService:
         if not samples:
             ack()
             return
+        while self.pipeline.backlog > MAX_MQTT_BACKLOG and self.pipeline.running:
+            time.sleep(0.01)  # backpressure: paho reads no more until the pipeline has caught up (module docstring)
         future = self.pipeline.submit(vehicle_id, samples, retry=True)
         future.add_done_callback(lambda f: ack() if f.exception() is None else None)
 
