@@ -27,6 +27,7 @@ from pathlib import Path
 
 import httpx
 
+from roadgrip.cloud.broker import free_port
 from roadgrip.cloud.storage import open_storage
 from roadgrip.fleet.terminal import wire_samples
 
@@ -172,7 +173,7 @@ class _Service:
     def __init__(self, workdir: Path, mqtt: bool, database_url: str | None):
         self.workdir = workdir
         self.admin = ("admin", secrets.token_urlsafe(24))
-        self.port = _free_port()
+        self.port = free_port()
         env = {**os.environ, "ROADGRIP_ADMIN_SECRET": self.admin[1], "ROADGRIP_DATA_DIR": str(workdir),
                "ROADGRIP_PORT": str(self.port), "ROADGRIP_MQTT": "managed" if mqtt else "off",
                "ROADGRIP_MAP_CLOCK": "data"}
@@ -226,13 +227,6 @@ def _cpu_s(pid: int) -> float:
     except OSError:
         return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
-
-
-def _free_port() -> int:
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None = None, progress=print) -> dict:

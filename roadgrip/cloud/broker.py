@@ -119,7 +119,8 @@ def _check_name(field: str, name: str) -> None:
         raise ValueError(f"{field} must match {VEHICLE_ID_RE.pattern}, got {name!r}")
 
 
-def _free_port(host: str) -> int:
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on `host` now (the OS picks it; another process may still take it before it is bound)."""
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]
@@ -187,7 +188,7 @@ class ManagedBroker:
         pick_port = self.port == 0
         for attempt in range(3):  # a port picked free can be taken before mosquitto binds it
             if pick_port:
-                self.port = _free_port(self.host)
+                self.port = free_port(self.host)
             self._write_config()
             with open(self.workdir / "mosquitto.out", "ab") as out:
                 self._process = subprocess.Popen([executable, "-c", str(self.conf_path)], stdin=subprocess.DEVNULL,

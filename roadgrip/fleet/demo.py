@@ -5,7 +5,6 @@ cloud made of it: samples, estimates, warnings and where, and the dashboard's UR
 from __future__ import annotations
 
 import logging
-import socket
 import tempfile
 import threading
 import time
@@ -15,6 +14,7 @@ from pathlib import Path
 import uvicorn
 
 from roadgrip.cloud.api import create_app
+from roadgrip.cloud.broker import free_port
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
@@ -62,12 +62,6 @@ class LocalCloud:
         self.server.should_exit = True
         self.thread.join(10)
         self.service.stop()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def settle(service: CloudService, timeout_s: float = 30.0) -> None:

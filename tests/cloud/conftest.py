@@ -16,7 +16,6 @@ from __future__ import annotations
 import os
 import pwd
 import shutil
-import socket
 import subprocess
 import tempfile
 import uuid
@@ -26,15 +25,10 @@ import psycopg
 import pytest
 from sqlalchemy.engine import make_url
 
+from roadgrip.cloud.broker import free_port
 from roadgrip.cloud.storage import open_storage
 
 PG_BIN = Path("/usr/lib/postgresql/15/bin")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _admin_conninfo(url: str) -> str:
@@ -76,7 +70,7 @@ def postgres_url():
     pg(str(PG_BIN / "initdb"), "-D", str(data), "-U", "postgres", "-A", "trust", "-E", "UTF8", "--locale=C")
     # Trust, but only on the unix socket (in `root`, private to postgres) and on 127.0.0.1.
     (data / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
-    port = _free_port()
+    port = free_port()
     options = f"-c listen_addresses=127.0.0.1 -c port={port} -k {root} -c fsync=on"
     try:
         pg(str(PG_BIN / "pg_ctl"), "start", "-w", "-D", str(data), "-l", str(log), "-o", options)

@@ -44,6 +44,7 @@ import uvicorn
 from drives import patch_drive
 
 from roadgrip.cloud.api import create_app
+from roadgrip.cloud.broker import free_port
 from roadgrip.cloud.mqtt import UserClient, telemetry_topic
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.storage import normalise_url
@@ -78,12 +79,6 @@ def warm_estimator() -> float:
 
 def keys(samples: list[dict]) -> set[Key]:
     return {(s["vehicle_id"], s["timestamp_ms"]) for s in samples}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.05) -> float:

@@ -8,8 +8,9 @@ import pytest
 from typer.testing import CliRunner
 
 from roadgrip.cli import app
+from roadgrip.cloud.broker import free_port
 from roadgrip.cloud.settings import Settings
-from roadgrip.fleet.demo import LocalCloud, free_port, settle
+from roadgrip.fleet.demo import LocalCloud, settle
 
 ADMIN_SECRET = "fleet-test-admin-secret-0123"
 LOG = Path(__file__).resolve().parents[2] / "data" / "real" / "bmw_m8_braking"
