@@ -38,6 +38,7 @@ from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import metadata, normalise_url
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.estimators.learned import load_estimator
+from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 
 ADMIN = ("admin", "admin-secret-for-tests-0123456789")
@@ -78,11 +79,6 @@ def add_reader(client, name: str) -> tuple[str, str]:
 
 def samples_of(vehicle_id: str, n: int, start_ms: int = START_MS) -> list[dict]:
     return wire_samples(patch_drive(0.9, 3), vehicle_id, start_ms)[:n]
-
-
-def settle(service: CloudService) -> None:
-    wait_until(lambda: service.pipeline.backlog == 0, timeout_s=10, what="the pipeline's inbox empty")
-    time.sleep(service.settings.reorder_window_s + 5 * service.settings.flush_interval_s)
 
 
 def table_snapshot(service: CloudService) -> dict:

@@ -17,6 +17,7 @@ from roadgrip.cloud.api import create_app
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.estimators.learned import load_estimator
+from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import vehicle_by_name
 
@@ -50,15 +51,6 @@ def post(client, auth, samples, chunk: int = 10):
         assert answer.status_code == 200, answer.text
         answers.append(answer.json())
     return answers
-
-
-def settle(service: CloudService) -> None:
-    """Let the pipeline release what its reorder window still holds."""
-    time.sleep(service.settings.reorder_window_s + 0.1)
-    deadline = time.time() + 10
-    while service.pipeline.backlog and time.time() < deadline:
-        time.sleep(0.02)
-    time.sleep(3 * service.settings.flush_interval_s)
 
 
 def test_without_credentials_or_with_wrong_ones_everything_is_refused(cloud):
