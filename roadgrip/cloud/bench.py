@@ -54,13 +54,14 @@ class IngestCase:
 def sample_bodies(runs: int = 8, seed: int = 0) -> list[list[str]]:
     """Per simulated run, each sample as the JSON text of its fields minus vehicle_id and timestamp_ms (the load
     generator writes those two in front: formatting a string is far cheaper than json.dumps per message)."""
+    import pyarrow.compute as pc
+
     from roadgrip.sim.presets import random_scenarios
     from roadgrip.sim.simulate import simulate
 
     table = simulate(random_scenarios(runs, seed))
     bodies = []
     for run_id in dict.fromkeys(table["run_id"].to_pylist()):
-        import pyarrow.compute as pc
         run = table.filter(pc.equal(table["run_id"], run_id))
         samples = wire_samples(run, "x", 0)
         bodies.append([json.dumps({k: v for k, v in s.items() if k not in ("vehicle_id", "timestamp_ms")})[1:-1]

@@ -132,9 +132,7 @@ class CloudService:
     def _restore_map(self) -> None:
         """After a restart the map starts from the stored estimates that are still young enough to count, and the
         warning engine from the active warnings."""
-        since = int(time.time() * 1000) - int(self.settings.map_max_age_s * 1000)
-        if self.settings.map_clock == "data":
-            since = 0
+        since = 0 if self.settings.map_clock == "data" else int((time.time() - self.settings.map_max_age_s) * 1000)
         rows = self.storage.estimates_since(since)
         self.friction_map.add(rows)
         active = [WarningEvent(**row["message"]["event"]) for row in self.storage.warnings(active_only=True)]
