@@ -47,8 +47,10 @@ from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 log = logging.getLogger(__name__)
 
-# How far back the pipeline remembers stored timestamps per vehicle, to answer repeats without the database.
-DEDUP_HORIZON_MS = 600_000
+# How far back the pipeline remembers stored timestamps per vehicle, to answer repeats without the database: an MQTT
+# redelivery comes within seconds, an HTTP retry within a client's timeout. At most 2 x 600 timestamps a vehicle (about
+# 85 kB as a Python set), so that memory stops growing a minute or two into a stream.
+DEDUP_HORIZON_MS = 60_000
 LATENCY_WINDOW = 100_000  # estimates whose latency health() summarises
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
@@ -366,11 +368,14 @@ class Pipeline:
         now_ms = self.now_ms()
         self.friction_map.add(estimates, now_ms)
         events = self.warning_engine.update(estimates, now_ms)
-        for event in events:
-            # the DENM for readers, the event itself to restore the engine after a restart
-            self.storage.put_warning(event.warning_id, event.cell, event.status, event.detection_ms,
-                                     event.updated_ms, {"denm": event.to_denm(), "event": dataclasses.asdict(event)})
-            log.warning("warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
+        # the DENM for readers, the event itself to restore the engine after a restart; one transaction a round
+        self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
+                                    "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
+                                    "message": {"denm": e.to_denm(), "event": dataclasses.asdict(e)}}
+                                   for e in events])
+        for event in events:  # raised and ended at WARNING; a refresh (every low pass in a warned cell) at DEBUG
+            log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
+                    "warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
         if self.publish is None:
             return
         by_vehicle: dict[str, list[dict]] = {}

@@ -387,18 +387,25 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ warnings
 
-    def put_warning(self, warning_id: str, cell: str, status: str, detection_ms: int, updated_ms: int,
-                    message: dict) -> None:
-        """Store (or replace) warning `warning_id`; `message` is a JSON-able dict (the DENM-shaped warning)."""
-        if not isinstance(message, dict):
-            raise TypeError(f"message of warning {warning_id!r} must be a dict, got {type(message).__name__}")
-        insert = self._insert(warnings_table).values(warning_id=warning_id, cell=cell, status=status,
-                                                     detection_ms=detection_ms, updated_ms=updated_ms, message=message)
+    def put_warnings(self, rows: list[dict]) -> None:
+        """Store (or replace) warnings in one transaction: each row holds warning_id, cell, status, detection_ms,
+        updated_ms and message (a JSON-able dict, the DENM-shaped warning). Of rows with the same warning_id the last
+        one wins."""
+        latest = {}
+        for row in rows:
+            if not isinstance(row.get("message"), dict):
+                raise TypeError(f"message of warning {row.get('warning_id')!r} must be a dict, got "
+                                f"{type(row.get('message')).__name__}")
+            latest[row["warning_id"]] = row
+        if not latest:
+            return
+        rows = _checked_rows("warning", list(latest.values()), warnings_table)
+        insert = self._insert(warnings_table)
         upsert = insert.on_conflict_do_update(
             index_elements=["warning_id"],
             set_={name: insert.excluded[name] for name in ("cell", "status", "detection_ms", "updated_ms", "message")})
         with self._transaction() as conn:
-            conn.execute(upsert)
+            conn.execute(upsert, rows)
 
     def warnings(self, active_only: bool = False) -> list[dict]:
         """All warnings (or only those whose status is "active"), by detection time."""

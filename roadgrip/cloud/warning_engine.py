@@ -21,7 +21,7 @@ Rules
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (of two vehicles, or repeated passes
    of one) later than its last dry pass and at most validity_s old. One vehicle's passes less than pass_gap_s apart
-   count once (`_independent`): GNSS noise along a cell border splits one visit into several passes. Only low
+   count once (`_Evidence`): GNSS noise along a cell border splits one visit into several passes. Only low
    passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): min_dry_passes dry passes later than the detection cancel it. A dry pass also clears the
@@ -37,6 +37,7 @@ DENM ActionID sequenceNumber (0..65535), one per warning, kept through its updat
 
 from __future__ import annotations
 
+import bisect
 import math
 import statistics
 from collections.abc import Iterable
@@ -88,6 +89,75 @@ class _LowPass(NamedTuple):
     mu_upper: float  # median mu_upper of the pass's excited estimates
 
 
+class _Evidence:
+    """A cell's low passes (rule 4), oldest first, with what an event reports kept up to date as passes come and go: the
+    median of their mu_upper, how many of them count as independent, how many vehicles made them. A busy cell holds
+    thousands of passes within validity_s (a fleet queueing on an icy bridge), and every low pass there makes an event:
+    adding or dropping a pass costs a binary search and a list insert or delete, so an event costs about the same for 3
+    passes as for 3,000 (recounting them all per event made the service slower the longer it ran).
+
+    Independent passes (`independent`): one vehicle's passes closer than pass_gap_s to the one before are one visit (a
+    vehicle driving along a cell border, GNSS noise moving it in and out, makes several passes in a few seconds; they
+    are one observation, not repeated passes). Of each vehicle's passes in time order, the first counts, and each
+    later one that comes more than pass_gap_s after its predecessor."""
+
+    __slots__ = ("_by_vehicle", "_gap_ms", "_passes", "_uppers", "independent")
+
+    def __init__(self, gap_ms: float):
+        self._gap_ms = gap_ms
+        self._passes: list[_LowPass] = []  # in time order
+        self._uppers: list[float] = []  # their mu_upper, sorted
+        self._by_vehicle: dict[str, list[int]] = {}  # vehicle_id -> the times of its passes, sorted
+        self.independent = 0
+
+    def __len__(self) -> int:
+        return len(self._passes)
+
+    @property
+    def n_vehicles(self) -> int:
+        return len(self._by_vehicle)
+
+    def median_mu_upper(self) -> float:
+        u, n = self._uppers, len(self._uppers)
+        return u[n // 2] if n % 2 else (u[n // 2 - 1] + u[n // 2]) / 2  # as statistics.median
+
+    def _counts(self, earlier: int | None, t: int) -> bool:
+        return earlier is None or t - earlier > self._gap_ms
+
+    def add(self, p: _LowPass) -> None:
+        bisect.insort(self._passes, p)
+        bisect.insort(self._uppers, p.mu_upper)
+        times = self._by_vehicle.setdefault(p.vehicle_id, [])
+        i = bisect.bisect_right(times, p.time_ms)
+        before = times[i - 1] if i else None
+        if i < len(times):  # the vehicle's next pass now follows this one instead of `before`
+            after = times[i]
+            self.independent += self._counts(p.time_ms, after) - self._counts(before, after)
+        self.independent += self._counts(before, p.time_ms)
+        times.insert(i, p.time_ms)
+
+    def drop_older(self, time_ms: float, *, inclusive: bool = False) -> None:
+        """Forget the passes before `time_ms` (and at it, when inclusive): always the oldest ones."""
+        cut = (bisect.bisect_right if inclusive else bisect.bisect_left)(self._passes, time_ms, key=_time_of)
+        for p in self._passes[:cut]:
+            del self._uppers[bisect.bisect_left(self._uppers, p.mu_upper)]
+            times = self._by_vehicle[p.vehicle_id]
+            del times[0]  # the vehicle's oldest: it counted; its next one becomes the first, which counts
+            if times:
+                self.independent += not self._counts(p.time_ms, times[0])
+            else:
+                del self._by_vehicle[p.vehicle_id]
+            self.independent -= 1
+        del self._passes[:cut]
+
+    def clear(self) -> None:
+        self.drop_older(math.inf)
+
+
+def _time_of(p: _LowPass) -> int:
+    return p.time_ms
+
+
 class _Pass:
     __slots__ = ("cell", "first_ms", "last_ms", "lowers", "uppers", "vehicle_id")
 
@@ -118,8 +188,8 @@ class _Warning:
 class _CellState:
     __slots__ = ("last_dry_ms", "low_passes", "warning")
 
-    def __init__(self):
-        self.low_passes: list[_LowPass] = []
+    def __init__(self, gap_ms: float):
+        self.low_passes = _Evidence(gap_ms)
         self.last_dry_ms = _NEVER
         self.warning: _Warning | None = None
 
@@ -225,7 +295,7 @@ class WarningEngine:
         for event in events:
             if event.status != ACTIVE:
                 continue
-            state = self.cell_states_.setdefault(event.cell, _CellState())
+            state = self._cell(event.cell)
             if state.warning is not None and state.warning.last_event.updated_ms >= event.updated_ms:
                 continue
             warning = _Warning(event.warning_id, event.detection_ms, event.action_sequence_number,
@@ -234,8 +304,9 @@ class WarningEngine:
             warning.last_event = event
             state.warning = warning
             n_vehicles = max(1, event.n_vehicles)
-            state.low_passes = [_LowPass(event.evidence_ms, f"restored-{k % n_vehicles}", event.mu_upper)
-                                for k in range(max(1, event.n_passes))]
+            state.low_passes.clear()
+            for k in range(max(1, event.n_passes)):
+                state.low_passes.add(_LowPass(event.evidence_ms, f"restored-{k % n_vehicles}", event.mu_upper))
             self.active_cells_.add(event.cell)
             self.next_action_sequence_number_ = max(self.next_action_sequence_number_,
                                                     (event.action_sequence_number + 1) % 65536)
@@ -247,19 +318,6 @@ class WarningEngine:
         judged = self.last_judged_ms_.get(finished.vehicle_id, _NEVER)
         self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
         return finished
-
-    def _independent(self, low_passes: list[_LowPass]) -> int:
-        """Low passes that count as separate evidence: one vehicle's passes closer than pass_gap_s to each other are
-        one visit (a vehicle driving along a cell border, GNSS noise moving it in and out, makes several passes in
-        a few seconds; they are one observation, not repeated passes)."""
-        gap_ms = self.pass_gap_s * 1000.0
-        count, last_by_vehicle = 0, {}
-        for p in sorted(low_passes, key=lambda p: p.time_ms):
-            last = last_by_vehicle.get(p.vehicle_id)
-            if last is None or p.time_ms - last > gap_ms:
-                count += 1
-            last_by_vehicle[p.vehicle_id] = p.time_ms
-        return count
 
     def verdict(self, uppers: list[float], lowers: list[float]) -> str:
         """The verdict of a pass from the mu_upper and mu_lower of its excited estimates (rule 2)."""
@@ -277,14 +335,14 @@ class WarningEngine:
             return
         t = finished.last_ms
         validity_ms = self.validity_s * 1000.0
-        state = self.cell_states_.setdefault(finished.cell, _CellState())
+        state = self._cell(finished.cell)
         warning = state.warning
         if warning is not None and t >= warning.evidence_ms + validity_ms:  # it lapsed before this pass (rule 7)
             self._end(finished.cell, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
             warning = None
         if verdict == DRY:
             state.last_dry_ms = max(state.last_dry_ms, t)
-            state.low_passes = [p for p in state.low_passes if p.time_ms > t]
+            state.low_passes.drop_older(t, inclusive=True)
             if warning is not None and t > warning.detection_ms:
                 warning.dry_passes += 1
                 if warning.dry_passes >= self.min_dry_passes:
@@ -293,10 +351,10 @@ class WarningEngine:
         if t <= state.last_dry_ms:
             return  # superseded by a later dry pass (rule 4)
         horizon = max(now_ms, t) - validity_ms
-        state.low_passes = [p for p in state.low_passes if p.time_ms >= horizon]
-        state.low_passes.append(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
+        state.low_passes.drop_older(horizon)
+        state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
         if warning is None:
-            if self._independent(state.low_passes) >= self.min_low_passes:
+            if state.low_passes.independent >= self.min_low_passes:
                 warning = state.warning = _Warning(f"{finished.cell}-{t}", t, self.next_action_sequence_number_)
                 self.next_action_sequence_number_ = (self.next_action_sequence_number_ + 1) % 65536
                 self.active_cells_.add(finished.cell)
@@ -312,8 +370,7 @@ class WarningEngine:
         warning = state.warning
         if status == ACTIVE:
             evidence = state.low_passes
-            mu_upper = statistics.median(p.mu_upper for p in evidence)
-            n_passes, n_vehicles = self._independent(evidence), len({p.vehicle_id for p in evidence})
+            mu_upper, n_passes, n_vehicles = evidence.median_mu_upper(), evidence.independent, evidence.n_vehicles
         else:  # a cancellation reports the low-friction evidence the warning had
             previous = warning.last_event
             mu_upper, n_passes, n_vehicles = previous.mu_upper, previous.n_passes, previous.n_vehicles
@@ -337,7 +394,7 @@ class WarningEngine:
         state.warning = None
         self.active_cells_.discard(cell)
         if reason == EXPIRED:
-            state.low_passes = []  # its evidence is older than validity_s
+            state.low_passes.clear()  # its evidence is older than validity_s
 
     def _expire(self, now_ms: int, events: list[WarningEvent]) -> None:
         validity_ms = self.validity_s * 1000.0
@@ -347,13 +404,19 @@ class WarningEngine:
             if now_ms >= lapse_ms:
                 self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
 
+    def _cell(self, cell: str) -> _CellState:
+        state = self.cell_states_.get(cell)
+        if state is None:
+            state = self.cell_states_[cell] = _CellState(self.pass_gap_s * 1000.0)
+        return state
+
     def _sweep(self, now_ms: int) -> None:
         """Forget cells with no warning whose evidence (low passes, last dry pass) is older than validity_s, and the
         last judged pass of vehicles gone for as long."""
         horizon = now_ms - self.validity_s * 1000.0
         for cell in [c for c, s in self.cell_states_.items() if s.warning is None]:
             state = self.cell_states_[cell]
-            state.low_passes = [p for p in state.low_passes if p.time_ms >= horizon]
+            state.low_passes.drop_older(horizon)
             if not state.low_passes and state.last_dry_ms < horizon:
                 del self.cell_states_[cell]
         for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:

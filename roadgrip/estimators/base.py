@@ -10,7 +10,7 @@ telemetry batch (roadgrip/data/telemetry.py), the same numbers as streaming but 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import pyarrow as pa
 
@@ -40,7 +40,10 @@ class Estimate:
     estimator: str
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        # by hand: dataclasses.asdict deep-copies field by field, ten times slower (the cloud calls this 10,000 times a s)
+        return {"vehicle_id": self.vehicle_id, "timestamp_ms": self.timestamp_ms, "mu": self.mu,
+                "mu_lower": self.mu_lower, "mu_upper": self.mu_upper, "excited": self.excited,
+                "estimator": self.estimator}
 
 
 class Estimator(ABC):

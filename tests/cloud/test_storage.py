@@ -287,24 +287,33 @@ def test_vehicle_profiles_are_upserted(storage):
         storage.put_vehicle("car-3", "mass_kg: 1200")
 
 
+def warning_row(warning_id, cell, status, detection_ms, updated_ms, message):
+    return {"warning_id": warning_id, "cell": cell, "status": status, "detection_ms": detection_ms,
+            "updated_ms": updated_ms, "message": message}
+
+
 def test_warnings_are_upserted_and_filtered_by_status(storage):
     message = {"causeCode": 6, "subCauseCode": 0, "validityDuration_s": 600}
-    storage.put_warning("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS, message)
-    storage.put_warning("w2", "8a1f8d2a1b2ffff", "active", T0_MS + 10, T0_MS + 10, message)
-    storage.put_warning("w1", "8a1f8d2a1b27fff", "cancelled", T0_MS, T0_MS + 60_000, {**message, "cancelled": True})
+    storage.put_warnings([warning_row("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS, message)])
+    storage.put_warnings([warning_row("w2", "8a1f8d2a1b2ffff", "active", T0_MS + 10, T0_MS + 10, message),
+                          warning_row("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS + 30_000, message),
+                          warning_row("w1", "8a1f8d2a1b27fff", "cancelled", T0_MS, T0_MS + 60_000,
+                                      {**message, "cancelled": True})])  # the last of one warning's rows wins
     warnings = storage.warnings()
     assert [(w["warning_id"], w["status"], w["updated_ms"]) for w in warnings] == [
         ("w1", "cancelled", T0_MS + 60_000), ("w2", "active", T0_MS + 10)]
     assert warnings[0]["message"] == {**message, "cancelled": True}
     assert [w["warning_id"] for w in storage.warnings(active_only=True)] == ["w2"]
     assert storage.counts()["warnings"] == 2
+    with pytest.raises(TypeError, match="message of warning 'w3' must be a dict"):
+        storage.put_warnings([warning_row("w3", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS, "text")])
 
 
 def test_injection_strings_are_stored_as_data(storage):
     storage.add_credential(INJECTION, "reader", INJECTION)
     storage.put_vehicle(INJECTION, {INJECTION: INJECTION})
     storage.write_batch([telemetry_row(INJECTION)], [estimate_row(INJECTION, estimator=INJECTION)])
-    storage.put_warning(INJECTION, INJECTION, INJECTION, T0_MS, T0_MS, {"text": INJECTION})
+    storage.put_warnings([warning_row(INJECTION, INJECTION, INJECTION, T0_MS, T0_MS, {"text": INJECTION})])
     assert storage.credential(INJECTION).secret_hash == INJECTION
     assert storage.vehicle_profile(INJECTION) == {INJECTION: INJECTION}
     assert storage.estimates(INJECTION)[0]["estimator"] == INJECTION

@@ -3,12 +3,15 @@ cancelled by dry passes and expired, and their DENM."""
 
 import calendar
 import random
+import statistics
 
 import h3
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from roadgrip.cloud.exports import ITS_EPOCH_UNIX_MS, timestamp_its_ms
-from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
+from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent, _Evidence, _LowPass
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 LAT_DEG, LON0_DEG = 38.0, 114.5  # Hebei
@@ -258,3 +261,40 @@ def test_one_vehicle_in_and_out_of_a_cell_along_its_border_is_one_pass():
     assert raised(stream(engine, rows)) == set()
     assert raised(stream(engine, [{**r, "vehicle_id": "w", "timestamp_ms": r["timestamp_ms"] + 5_000}
                                   for r in rows])) == {a, b}
+
+
+def independent_passes(passes, gap_ms):
+    """Rule 4 recounted from scratch: of each vehicle's passes in time order, the first and every one more than
+    gap_ms after its predecessor."""
+    count, last_by_vehicle = 0, {}
+    for p in sorted(passes, key=lambda p: p.time_ms):
+        last = last_by_vehicle.get(p.vehicle_id)
+        count += last is None or p.time_ms - last > gap_ms
+        last_by_vehicle[p.vehicle_id] = p.time_ms
+    return count
+
+
+_operations = st.lists(st.one_of(
+    st.tuples(st.just("add"), st.integers(0, 600), st.sampled_from("abcd"), st.floats(0.0, 0.4)),
+    st.tuples(st.just("drop"), st.integers(0, 600), st.booleans())), max_size=60)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_operations)
+def test_evidence_kept_up_to_date_equals_a_recount_after_every_change(operations):
+    """The cell's evidence updated pass by pass (binary searches) reports what a recount of its passes reports."""
+    evidence, passes = _Evidence(gap_ms=30.0), []
+    for op in operations:
+        if op[0] == "add":
+            _, t, vehicle, mu_upper = op
+            evidence.add(_LowPass(t, vehicle, mu_upper))
+            passes.append(_LowPass(t, vehicle, mu_upper))
+        else:
+            _, t, inclusive = op
+            evidence.drop_older(t, inclusive=inclusive)
+            passes = [p for p in passes if (p.time_ms > t if inclusive else p.time_ms >= t)]
+        assert len(evidence) == len(passes)
+        assert evidence.independent == independent_passes(passes, 30.0)
+        assert evidence.n_vehicles == len({p.vehicle_id for p in passes})
+        if passes:
+            assert evidence.median_mu_upper() == statistics.median(p.mu_upper for p in passes)
