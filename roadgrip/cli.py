@@ -472,6 +472,7 @@ def bench_ingest_command(
         IngestCase,
         broker_ceiling,
         database_ceiling,
+        format_ingest,
         plot_timelines,
         run_case,
         sample_bodies,
@@ -494,20 +495,7 @@ def bench_ingest_command(
     if "mqtt" in transport:
         with console.status("the broker alone..."):
             ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0), mqtt_batch))
-    table = Table(title=f"roadgrip bench ingest: {vehicles} vehicles at 10 Hz")
-    for name in ("case", "batch", "offered/s", "acked/s", "sent", "acked", "stored", "lost", "estimates",
-                 "stored/s e2e", "drain s", "latency p50/p99 ms", "RSS MB", "service CPU s", "broker CPU s",
-                 "sustained"):
-        table.add_column(name, justify="left" if name == "case" else "right")
-    for r in rows:
-        latency = ("-" if r["latency_p50_ms"] is None
-                   else f"{r['latency_p50_ms']:,.0f} / {r['latency_p99_ms']:,.0f}")
-        table.add_row(r["case"], str(r["batch"]), f"{r['offered_per_s']:,.0f}", f"{r['acked_per_s']:,.0f}",
-                      f"{r['sent']:,}", f"{r['acknowledged']:,}", f"{r['stored_rows']:,}", f"{r['lost']:,}",
-                      f"{r['estimate_rows']:,}", f"{r['stored_per_s']:,.0f}", f"{r['drain_s']:.1f}", latency,
-                      f"{r['rss_mb_end']:,.0f}", f"{r['service_cpu_s']:.1f}", f"{r['broker_cpu_s']:.1f}",
-                      "yes" if r["sustained"] else "no")
-    console.print(table)
+    console.print(format_ingest(rows))
     for c in ceilings:
         rate = c.get("rows_per_s", c.get("samples_per_s"))
         console.print(f"ceiling, {c['case']}: {rate:,.0f} samples per s")

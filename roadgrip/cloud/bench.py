@@ -7,6 +7,14 @@ sending a sample every 100 ms of wall-clock time (or `batch` samples every batch
 the bench then waits until the service has stored everything it acknowledged and reads the counts from the database.
 The load generators share the machine's cores with the service, so the figures are a floor for a service alone.
 
+What a case reports, beside the rates: `lost` (acknowledged but not stored); `vehicles_stored_exactly`, the vehicles
+whose stored telemetry is exactly what they sent (the count, the first and the last timestamp match their stream, and
+the key (vehicle_id, timestamp_ms) is unique, so each sample is there once); the latency from a sample's timestamp to
+its stored estimate over the whole run (`latency_p50_ms`, `latency_p99_ms`: the service's histogram, 10 ms bins); every
+5 s a `timeline` point (stored, the service's queue, its RSS, the latency of the last 100,000 estimates); the memory
+over the run's second half (`memory_trend`); `sustained`: every acknowledgement within 5 % of the case's duration and
+everything stored within 2 s of the last one.
+
 Samples are real telemetry: a few simulated runs of the random preset, cycled over the vehicles, each vehicle's stream
 looping its run with timestamps that keep counting.
 """
@@ -32,6 +40,7 @@ from roadgrip.cloud.storage import open_storage
 from roadgrip.fleet.terminal import wire_samples
 
 SAMPLE_PERIOD_MS = 100
+MEMORY_FLAT_FRACTION = 0.05  # a soak's memory is flat when RSS grows by at most this over the run's second half
 # paho-mqtt waits on its sockets with select(), which fails for file descriptors above 1023; each client holds three
 # (its socket and a wake-up pair), so one load-generator process drives at most this many MQTT vehicles.
 MQTT_CLIENTS_PER_PROCESS = 250
@@ -163,7 +172,7 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
     for p in procs:
         p.join()
     return {"sent": sum(t[0] for t in totals), "acknowledged": sum(t[1] for t in totals),
-            "refused": sum(t[2] for t in totals), "start_wall": start_wall,
+            "refused": sum(t[2] for t in totals), "start_wall": start_wall, "base_ms": base_ms,
             "acked_s": max(t[3] for t in totals) - start_wall}
 
 
@@ -262,10 +271,14 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             pipeline = health["pipeline"]
             storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'roadgrip.sqlite'}")
             counts = storage.counts()
+            extent = storage.telemetry_extent()
             storage.close()
         finally:
             service.stop()
     e2e_s = stored_at - load["start_wall"]
+    per_vehicle = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch * case.batch
+    expected = (per_vehicle, load["base_ms"], load["base_ms"] + (per_vehicle - 1) * SAMPLE_PERIOD_MS)
+    since_start = pipeline["latency_since_start"]
     return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch, "seconds": case.seconds,
             "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS, "sent": load["sent"],
             "acked_s": round(load["acked_s"], 2), "acked_per_s": load["acknowledged"] / load["acked_s"],
@@ -275,9 +288,24 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "drain_s": round(stored_at - ended, 2), "failed_rounds": pipeline["failed_rounds"],
             "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
             "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
-            "latency_p50_ms": pipeline["latency"]["p50_ms"], "latency_p99_ms": pipeline["latency"]["p99_ms"],
-            "rss_mb_end": health["memory_rss_mb"], "timeline": timeline,
+            "vehicles_stored_exactly": sum(extent.get(vid) == expected for vid, _ in vehicles),
+            "latency_p50_ms": since_start["p50_ms"], "latency_p99_ms": since_start["p99_ms"],
+            "latency_over_max": since_start["over_max"], "rss_mb_end": health["memory_rss_mb"],
+            **memory_trend(timeline), "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
+
+
+def memory_trend(timeline: list[dict]) -> dict:
+    """The service's memory over the second half of a run: RSS at its start and end, the growth per minute, and
+    whether it is flat (grew by at most MEMORY_FLAT_FRACTION of the RSS at half-time)."""
+    points = [p for p in timeline if p["rss_mb"] is not None]
+    if len(points) < 4:
+        return {"rss_mb_half": None, "rss_growth_mb_per_min": None, "memory_flat": None}
+    half = min(points, key=lambda p: abs(p["t_s"] - points[-1]["t_s"] / 2))
+    end = points[-1]
+    growth = end["rss_mb"] - half["rss_mb"]
+    return {"rss_mb_half": half["rss_mb"], "rss_growth_mb_per_min": 60 * growth / (end["t_s"] - half["t_s"]),
+            "memory_flat": growth <= MEMORY_FLAT_FRACTION * half["rss_mb"]}
 
 
 # ------------------------------------------------------------------------------------------------- ceilings
@@ -329,6 +357,39 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
     return {"case": f"broker alone (mosquitto, QoS 1, {batch} sample(s) a message)", "batch": batch,
             "sent": load["sent"], "acknowledged": load["acknowledged"], "messages_received": received[0],
             "messages_per_s": received[0] / elapsed, "samples_per_s": received[0] * batch / elapsed}
+
+
+def format_ingest(rows: list[dict]):
+    """The cases side by side, a line per figure (a rich Table)."""
+    from rich.table import Table
+
+    def latency(r):
+        return "-" if r["latency_p50_ms"] is None else f"{r['latency_p50_ms']:,.0f} / {r['latency_p99_ms']:,.0f}"
+
+    lines = [
+        ("samples per message (MQTT) or request (HTTP)", lambda r: str(r["batch"])),
+        ("offered, samples/s", lambda r: f"{r['offered_per_s']:,.0f}"),
+        ("acknowledged, samples/s", lambda r: f"{r['acked_per_s']:,.0f}"),
+        ("sent / acknowledged / refused", lambda r: f"{r['sent']:,} / {r['acknowledged']:,} / {r['refused']:,}"),
+        ("stored / lost / estimates", lambda r: f"{r['stored_rows']:,} / {r['lost']:,} / {r['estimate_rows']:,}"),
+        ("vehicles stored exactly as sent", lambda r: f"{r['vehicles_stored_exactly']:,} of {r['vehicles']:,}"),
+        ("stored end to end, samples/s", lambda r: f"{r['stored_per_s']:,.0f}"),
+        ("stored after the last ack, s", lambda r: f"{r['drain_s']:.1f}"),
+        ("latency to stored estimate p50 / p99, ms", latency),
+        ("service RSS at half-time / end, MB", lambda r: f"{r['rss_mb_half'] or 0:,.0f} / {r['rss_mb_end']:,.0f}"),
+        ("RSS growth over the second half, MB/min", lambda r: "-" if r["rss_growth_mb_per_min"] is None
+         else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")),
+        ("CPU s: service / broker", lambda r: f"{r['service_cpu_s']:.1f} / {r['broker_cpu_s']:.1f}"),
+        ("sustained", lambda r: "yes" if r["sustained"] else "no"),
+    ]
+    table = Table(title=f"roadgrip bench ingest: {rows[0]['vehicles']:,} vehicles at 10 Hz, "
+                        f"{rows[0]['seconds']:.0f} s")
+    table.add_column("")
+    for r in rows:
+        table.add_column(r["case"], justify="right")
+    for name, show in lines:
+        table.add_row(name, *(show(r) for r in rows))
+    return table
 
 
 def plot_timelines(rows: list[dict], path: Path) -> Path:

@@ -31,13 +31,13 @@ import json
 import logging
 import threading
 import time
-from collections import deque
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from roadgrip.cloud.friction_map import FrictionMap
+from roadgrip.cloud.latency import LatencyRecorder
 from roadgrip.cloud.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable
@@ -51,7 +51,6 @@ log = logging.getLogger(__name__)
 # redelivery comes within seconds, an HTTP retry within a client's timeout. At most 2 x 600 timestamps a vehicle (about
 # 85 kB as a Python set), so that memory stops growing a minute or two into a stream.
 DEDUP_HORIZON_MS = 60_000
-LATENCY_WINDOW = 100_000  # estimates whose latency health() summarises
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
 
@@ -126,7 +125,7 @@ class Pipeline:
         self._seq = 0
         self._forget: set[str] = set()
         self._held: _Held | None = None
-        self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self.latency = LatencyRecorder()  # sample time to stored estimate
         self._failures = 0
         self._retry_at = 0.0
         self._thread: threading.Thread | None = None
@@ -283,17 +282,10 @@ class Pipeline:
         if held.estimates:
             self.counters.estimates += len(held.estimates)
             stored_ms = time.time() * 1000.0
-            self.latencies_ms.extend(stored_ms - e["timestamp_ms"] for e in held.estimates)
+            self.latency.add(stored_ms - np.fromiter((e["timestamp_ms"] for e in held.estimates), float,
+                                                     len(held.estimates)))
             self._after_store(held.estimates)
         return True
-
-    def latency_percentiles(self) -> dict[str, float | None]:
-        """Sample time (its timestamp_ms) to stored estimate, over the last LATENCY_WINDOW estimates, in ms."""
-        values = list(self.latencies_ms)
-        if not values:
-            return {"p50_ms": None, "p99_ms": None, "n": 0}
-        p50, p99 = (float(v) for v in np.percentile(values, [50, 99]))
-        return {"p50_ms": p50, "p99_ms": p99, "n": len(values)}
 
     def _refuse_or_keep(self, inbox: list[_Submission], exc: Exception) -> None:
         """While storage is down: refuse what cannot wait, keep (in order, ahead of newer ones) what can."""

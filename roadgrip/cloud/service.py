@@ -249,6 +249,7 @@ class CloudService:
             status["status"] = "degraded" if status["status"] == "ok" else status["status"]
         status["pipeline"] = {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
                               "mqtt_rejected": self.mqtt_rejected,
-                              "latency": self.pipeline.latency_percentiles()}
+                              "latency": self.pipeline.latency.recent(),
+                              "latency_since_start": self.pipeline.latency.since_start()}
         status["memory_rss_mb"] = _rss_mb()
         return status

@@ -379,6 +379,13 @@ class Storage:
                          for name, t in tables.items()))
         return self._all(query)[0]
 
+    def telemetry_extent(self) -> dict[str, tuple[int, int, int]]:
+        """vehicle_id -> (rows, first timestamp_ms, last timestamp_ms) of its stored telemetry."""
+        c = telemetry_table.c
+        rows = self._all(select(c.vehicle_id, func.count().label("n"), func.min(c.timestamp_ms).label("first"),
+                                func.max(c.timestamp_ms).label("last")).group_by(c.vehicle_id))
+        return {row["vehicle_id"]: (row["n"], row["first"], row["last"]) for row in rows}
+
     def latest_timestamps(self) -> dict[str, int]:
         """vehicle_id -> timestamp_ms of its newest stored telemetry row."""
         c = telemetry_table.c

@@ -171,6 +171,8 @@ def test_range_queries_are_half_open_ordered_and_per_vehicle(storage):
     assert [e["timestamp_ms"] for e in since] == sorted(e["timestamp_ms"] for e in since)
     assert {e["vehicle_id"] for e in storage.estimates_since(T0_MS, limit=3)} == {"car-1", "car-2"}
     assert storage.latest_timestamps() == {"car-1": T0_MS + 4900, "car-2": T0_MS + 50 + 1900}
+    assert storage.telemetry_extent() == {"car-1": (50, T0_MS, T0_MS + 4900),
+                                          "car-2": (20, T0_MS + 50, T0_MS + 50 + 1900)}
     with pytest.raises(ValueError, match="limit"):
         storage.estimates("car-1", limit=0)
 
