@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Self
 
-from roadgrip.cloud.auth import ADMIN_NAME, Authenticator
+from roadgrip.cloud.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.broker import ManagedBroker, mosquitto_available
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import MqttClient, errors_topic
@@ -205,18 +205,15 @@ class CloudService:
     # ------------------------------------------------------------------------------------------------- registration
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:
         """Store each profile and create each vehicle's credential (HTTP and MQTT, one broker reload for all);
-        returns their secrets. All or nothing when a vehicle_id is taken."""
-        ids = [vehicle_id for vehicle_id, _ in vehicles]
-        taken = sorted({v for v in ids if ids.count(v) > 1 or self.storage.credential(v) is not None})
-        if taken:
-            raise ValueError(f"vehicle_id(s) already registered or given twice: {', '.join(taken[:10])}")
-        secrets_ = []
-        for vehicle_id, profile in vehicles:
-            self.storage.put_vehicle(vehicle_id, profile.to_dict())
-            secrets_.append(self.auth.create(vehicle_id, "vehicle", vehicle_id))
+        returns their secrets. All or nothing (one transaction): ValueError when a vehicle_id is taken or given
+        twice."""
+        secrets_ = [new_secret() for _ in vehicles]
+        self.storage.register_vehicles([(vehicle_id, profile.to_dict(), hash_token(secret))
+                                        for (vehicle_id, profile), secret in zip(vehicles, secrets_)])
+        for vehicle_id, _ in vehicles:
             self.pipeline.forget_vehicle(vehicle_id)
         if self.broker is not None:
-            self.broker.set_users([(v, s, "vehicle", v) for v, s in zip(ids, secrets_)])
+            self.broker.set_users([(v, s, "vehicle", v) for (v, _), s in zip(vehicles, secrets_)])
         return secrets_
 
     def register_reader(self, name: str) -> str:

@@ -281,6 +281,35 @@ class Storage:
         with self._transaction() as conn:
             conn.execute(upsert)
 
+    def register_vehicles(self, vehicles: list[tuple[str, dict, str]]) -> None:
+        """For each (vehicle_id, profile, secret_hash): store the profile (replacing a stored one) and a new "vehicle"
+        credential named vehicle_id, all in one transaction, so that a failure part way leaves none of them stored
+        (nor a credential whose secret nobody received). ValueError, storing nothing, when a vehicle_id is given twice
+        or its credential name is taken."""
+        ids = [vehicle_id for vehicle_id, _, _ in vehicles]
+        twice = sorted({v for v in ids if ids.count(v) > 1}) if len(set(ids)) < len(ids) else []
+        if twice:
+            raise ValueError(f"vehicle_id(s) given twice: {', '.join(twice[:10])}")
+        for vehicle_id, profile, _ in vehicles:
+            if not isinstance(profile, dict):
+                raise TypeError(f"profile of vehicle {vehicle_id!r} must be a dict, got {type(profile).__name__}")
+        if not vehicles:
+            return
+        now_ms = _now_ms()
+        profiles = self._insert(vehicles_table)
+        profiles = profiles.on_conflict_do_update(
+            index_elements=["vehicle_id"],
+            set_={"profile": profiles.excluded.profile, "updated_ms": profiles.excluded.updated_ms})
+        credentials = self._insert(credentials_table).on_conflict_do_nothing().returning(credentials_table.c.name)
+        with self._transaction() as conn:
+            added = {row[0] for row in conn.execute(credentials, [
+                {"name": v, "role": "vehicle", "secret_hash": h, "vehicle_id": v, "revoked": False,
+                 "created_ms": now_ms} for v, _, h in vehicles])}
+            if len(added) < len(vehicles):  # raising rolls the transaction back
+                taken = [v for v in ids if v not in added]
+                raise ValueError(f"vehicle_id(s) already registered: {', '.join(taken[:10])}")
+            conn.execute(profiles, [{"vehicle_id": v, "profile": p, "updated_ms": now_ms} for v, p, _ in vehicles])
+
     def vehicle_profile(self, vehicle_id: str) -> dict | None:
         return self._scalar(select(vehicles_table.c.profile).where(vehicles_table.c.vehicle_id == vehicle_id))
 

@@ -276,6 +276,20 @@ def test_credentials_add_duplicate_revoke_and_rehash(storage):
         ("car-1", True, "hash-1"), ("dashboard", False, "hash-3")]
 
 
+def test_a_fleet_is_registered_all_or_nothing(storage):
+    storage.register_vehicles([("car-1", {"mass_kg": 1500.0}, "hash-1"), ("car-2", {"mass_kg": 1600.0}, "hash-2")])
+    assert storage.vehicle_profile("car-2") == {"mass_kg": 1600.0}
+    assert (storage.credential("car-1").role, storage.credential("car-1").secret_hash) == ("vehicle", "hash-1")
+    before = storage.counts()
+    with pytest.raises(ValueError, match="already registered: car-2"):  # car-3 comes first and is rolled back
+        storage.register_vehicles([("car-3", {"mass_kg": 1700.0}, "hash-3"), ("car-2", {"mass_kg": 1.0}, "h")])
+    with pytest.raises(ValueError, match="given twice: car-4"):
+        storage.register_vehicles([("car-4", {}, "h"), ("car-4", {}, "h")])
+    assert storage.credential("car-3") is None and storage.vehicle_profile("car-3") is None
+    assert storage.vehicle_profile("car-2") == {"mass_kg": 1600.0} and storage.counts() == before
+    assert [c.name for c in storage.credentials()] == ["car-1", "car-2"]
+
+
 def test_vehicle_profiles_are_upserted(storage):
     profile = {"mass_kg": 2335.0, "wheelbase_m": 3.008, "drive": "awd", "tires": {"radius_m": 0.37}}
     storage.put_vehicle("car-1", profile)
