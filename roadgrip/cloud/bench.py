@@ -89,6 +89,7 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
     case.seconds have passed; puts (sent, acknowledged, refused) on `results`."""
     n_ticks = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch
     sent = acked = refused = 0
+    lag_s = 0.0  # how late the most belated batch left: the generator itself falling behind
     if case.transport == "mqtt":
         from roadgrip.cloud.mqtt import UserClient, telemetry_topic
         clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
@@ -109,6 +110,8 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
         wait = start_wall + ((tick + 1) * case.batch - 1) * SAMPLE_PERIOD_MS / 1000 - time.time()
         if wait > 0:
             time.sleep(wait)
+        else:
+            lag_s = max(lag_s, -wait)
         for i, (vid, secret) in enumerate(vehicles):
             run = bodies[(offset + i) % len(bodies)]
             first = tick * case.batch
@@ -141,7 +144,7 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
     done_at = time.time()  # the last acknowledgement is in
     if case.transport == "mqtt":
         acked -= refused * case.batch
-    results.put((sent, acked, refused, done_at))
+    results.put((sent, acked, refused, done_at, lag_s))
 
 
 def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]],
@@ -173,6 +176,7 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
         p.join()
     return {"sent": sum(t[0] for t in totals), "acknowledged": sum(t[1] for t in totals),
             "refused": sum(t[2] for t in totals), "start_wall": start_wall, "base_ms": base_ms,
+            "generator_lag_max_s": max(t[4] for t in totals),
             "acked_s": max(t[3] for t in totals) - start_wall}
 
 
@@ -254,6 +258,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                 h = service.health()
                 timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
                                  "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
+                                 "slow_rounds": h["pipeline"]["slow_rounds"],
                                  **h["pipeline"]["latency"]})
             load = _generate(case, target, vehicles, bodies, on_tick=record)
             ended = time.time()
@@ -291,6 +296,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "vehicles_stored_exactly": sum(extent.get(vid) == expected for vid, _ in vehicles),
             "latency_p50_ms": since_start["p50_ms"], "latency_p99_ms": since_start["p99_ms"],
             "latency_over_max": since_start["over_max"], "rss_mb_end": health["memory_rss_mb"],
+            "slowest_round_s": round(pipeline["slowest_round_s"], 2), "slow_rounds": pipeline["slow_rounds"],
+            "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
             **memory_trend(timeline), "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
 
@@ -380,6 +387,8 @@ def format_ingest(rows: list[dict]):
         ("RSS growth over the second half, MB/min", lambda r: "-" if r["rss_growth_mb_per_min"] is None
          else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")),
         ("CPU s: service / broker", lambda r: f"{r['service_cpu_s']:.1f} / {r['broker_cpu_s']:.1f}"),
+        ("slowest pipeline round, s (rounds over 1 s)", lambda r: f"{r['slowest_round_s']:.2f} ({r['slow_rounds']})"),
+        ("load generator's worst lag, s", lambda r: f"{r['generator_lag_max_s']:.2f}"),
         ("sustained", lambda r: "yes" if r["sustained"] else "no"),
     ]
     table = Table(title=f"roadgrip bench ingest: {rows[0]['vehicles']:,} vehicles at 10 Hz, "

@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 # redelivery comes within seconds, an HTTP retry within a client's timeout. At most 2 x 600 timestamps a vehicle (about
 # 85 kB as a Python set), so that memory stops growing a minute or two into a stream.
 DEDUP_HORIZON_MS = 60_000
+SLOW_ROUND_S = 1.0  # a round slower than this is counted (health: pipeline.slow_rounds): the service stalled
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
 
@@ -99,6 +100,8 @@ class PipelineCounters:
     rounds: int = 0
     failed_rounds: int = 0
     last_round_s: float = 0.0
+    slowest_round_s: float = 0.0  # since start
+    slow_rounds: int = 0  # rounds that took longer than SLOW_ROUND_S
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -184,7 +187,9 @@ class Pipeline:
                 self.run_round(final=stopping)
             except Exception:  # a bug must not kill the service's only worker: log it and go on
                 log.exception("pipeline round failed")
-            self.counters.last_round_s = time.perf_counter() - started
+            took = self.counters.last_round_s = time.perf_counter() - started
+            self.counters.slowest_round_s = max(self.counters.slowest_round_s, took)
+            self.counters.slow_rounds += took > SLOW_ROUND_S
             if stopping:
                 return
             self._wake.wait(max(0.0, self.settings.flush_interval_s - (time.perf_counter() - started)))
