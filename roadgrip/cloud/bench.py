@@ -259,6 +259,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                 timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
                                  "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
                                  "slow_rounds": h["pipeline"]["slow_rounds"],
+                                 **{k: round(h["pipeline"][k], 2) for k in ("estimate_s", "write_s", "fanout_s")},
                                  **h["pipeline"]["latency"]})
             load = _generate(case, target, vehicles, bodies, on_tick=record)
             ended = time.time()

@@ -102,6 +102,10 @@ class PipelineCounters:
     last_round_s: float = 0.0
     slowest_round_s: float = 0.0  # since start
     slow_rounds: int = 0  # rounds that took longer than SLOW_ROUND_S
+    # seconds spent since start, by part of the round: where a stall went
+    estimate_s: float = 0.0  # reorder buffers and the estimator
+    write_s: float = 0.0     # the round's transaction (telemetry and estimates)
+    fanout_s: float = 0.0    # map, warnings (and their transaction), publishing
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -238,7 +242,10 @@ class Pipeline:
             # a later submission in the same round sees this one's samples as already taken
             stream.stored |= seen_now
         self.counters.rounds += 1
-        self._held = _Held(results, new_rows, self._release(now_s, final), touched)
+        started = time.perf_counter()
+        estimates = self._release(now_s, final)
+        self.counters.estimate_s += time.perf_counter() - started
+        self._held = _Held(results, new_rows, estimates, touched)
         self._write_held()
 
     def _write_held(self) -> bool:
@@ -249,6 +256,7 @@ class Pipeline:
         held = self._held
         if time.monotonic() < self._retry_at:
             return False
+        started = time.perf_counter()
         try:
             if held.rows or held.estimates:
                 self.storage.write_batch(held.rows, held.estimates)
@@ -270,6 +278,8 @@ class Pipeline:
                     sub.future.set_exception(exc)
             log.exception("storing a round of %d samples failed; dropped", len(held.rows))
             return True
+        finally:
+            self.counters.write_s += time.perf_counter() - started
         if self._failures:
             log.warning("storage is back after %d failed tries; wrote the %d samples held", self._failures,
                         len(held.rows))
@@ -289,7 +299,9 @@ class Pipeline:
             stored_ms = time.time() * 1000.0
             self.latency.add(stored_ms - np.fromiter((e["timestamp_ms"] for e in held.estimates), float,
                                                      len(held.estimates)))
+            started = time.perf_counter()
             self._after_store(held.estimates)
+            self.counters.fanout_s += time.perf_counter() - started
         return True
 
     def _refuse_or_keep(self, inbox: list[_Submission], exc: Exception) -> None:

@@ -83,6 +83,9 @@ def test_a_run_is_stored_and_estimated_like_the_offline_estimator_does(cloud):
     window = client.get("/v1/vehicles/suv-1/estimates", auth=auth,
                         params={"start_ms": START_MS + 1000, "end_ms": START_MS + 2000}).json()["estimates"]
     assert [e["timestamp_ms"] for e in window] == list(range(START_MS + 1000, START_MS + 2000, 100))
+    pipeline = client.get("/v1/health", auth=auth).json()["pipeline"]  # what a soak reads
+    assert pipeline["latency_since_start"]["n"] == pipeline["estimates"] >= len(got)
+    assert pipeline["estimate_s"] > 0 and pipeline["write_s"] > 0 and pipeline["fanout_s"] > 0
 
 
 def test_a_repeated_message_is_stored_once(cloud):
