@@ -384,7 +384,8 @@ def format_ingest(rows: list[dict]):
         ("stored end to end, samples/s", lambda r: f"{r['stored_per_s']:,.0f}"),
         ("stored after the last ack, s", lambda r: f"{r['drain_s']:.1f}"),
         ("latency to stored estimate p50 / p99, ms", latency),
-        ("service RSS at half-time / end, MB", lambda r: f"{r['rss_mb_half'] or 0:,.0f} / {r['rss_mb_end']:,.0f}"),
+        ("service RSS at half-time / end, MB",
+         lambda r: ("-" if r["rss_mb_half"] is None else f"{r['rss_mb_half']:,.0f}") + f" / {r['rss_mb_end']:,.0f}"),
         ("RSS growth over the second half, MB/min", lambda r: "-" if r["rss_growth_mb_per_min"] is None
          else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")),
         ("CPU s: service / broker", lambda r: f"{r['service_cpu_s']:.1f} / {r['broker_cpu_s']:.1f}"),

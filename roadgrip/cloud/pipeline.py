@@ -378,11 +378,12 @@ class Pipeline:
         now_ms = self.now_ms()
         self.friction_map.add(estimates, now_ms)
         events = self.warning_engine.update(estimates, now_ms)
+        denms = [event.to_denm() for event in events]
         # the DENM for readers, the event itself to restore the engine after a restart; one transaction a round
         self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
                                     "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
-                                    "message": {"denm": e.to_denm(), "event": dataclasses.asdict(e)}}
-                                   for e in events])
+                                    "message": {"denm": d, "event": dataclasses.asdict(e)}}
+                                   for e, d in zip(events, denms)])
         for event in events:  # raised and ended at WARNING; a refresh (every low pass in a warned cell) at DEBUG
             log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
                     "warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
@@ -393,8 +394,8 @@ class Pipeline:
             by_vehicle.setdefault(row["vehicle_id"], []).append(row)
         for vehicle_id, rows in by_vehicle.items():
             self.publish(friction_topic(vehicle_id), json.dumps([_estimate_message(r) for r in rows]).encode())
-        for event in events:
-            self.publish(WARNINGS_TOPIC, json.dumps(event.to_denm()).encode())
+        for denm in denms:
+            self.publish(WARNINGS_TOPIC, json.dumps(denm).encode())
 
 
 ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -274,12 +275,16 @@ class Storage:
         """Store (or replace) the profile of `vehicle_id`: a JSON-able dict of DESIGN 3.2 fields."""
         if not isinstance(profile, dict):
             raise TypeError(f"profile of vehicle {vehicle_id!r} must be a dict, got {type(profile).__name__}")
-        insert = self._insert(vehicles_table).values(vehicle_id=vehicle_id, profile=profile, updated_ms=_now_ms())
-        upsert = insert.on_conflict_do_update(
+        with self._transaction() as conn:
+            conn.execute(self._profile_upsert(),
+                         {"vehicle_id": vehicle_id, "profile": profile, "updated_ms": _now_ms()})
+
+    def _profile_upsert(self):
+        """INSERT of vehicle profiles that replaces a stored one (parameters: vehicle_id, profile, updated_ms)."""
+        insert = self._insert(vehicles_table)
+        return insert.on_conflict_do_update(
             index_elements=["vehicle_id"],
             set_={"profile": insert.excluded.profile, "updated_ms": insert.excluded.updated_ms})
-        with self._transaction() as conn:
-            conn.execute(upsert)
 
     def register_vehicles(self, vehicles: list[tuple[str, dict, str]]) -> None:
         """For each (vehicle_id, profile, secret_hash): store the profile (replacing a stored one) and a new "vehicle"
@@ -287,7 +292,7 @@ class Storage:
         (nor a credential whose secret nobody received). ValueError, storing nothing, when a vehicle_id is given twice
         or its credential name is taken."""
         ids = [vehicle_id for vehicle_id, _, _ in vehicles]
-        twice = sorted({v for v in ids if ids.count(v) > 1}) if len(set(ids)) < len(ids) else []
+        twice = sorted(v for v, n in Counter(ids).items() if n > 1)
         if twice:
             raise ValueError(f"vehicle_id(s) given twice: {', '.join(twice[:10])}")
         for vehicle_id, profile, _ in vehicles:
@@ -296,10 +301,6 @@ class Storage:
         if not vehicles:
             return
         now_ms = _now_ms()
-        profiles = self._insert(vehicles_table)
-        profiles = profiles.on_conflict_do_update(
-            index_elements=["vehicle_id"],
-            set_={"profile": profiles.excluded.profile, "updated_ms": profiles.excluded.updated_ms})
         credentials = self._insert(credentials_table).on_conflict_do_nothing().returning(credentials_table.c.name)
         with self._transaction() as conn:
             added = {row[0] for row in conn.execute(credentials, [
@@ -308,7 +309,8 @@ class Storage:
             if len(added) < len(vehicles):  # raising rolls the transaction back
                 taken = [v for v in ids if v not in added]
                 raise ValueError(f"vehicle_id(s) already registered: {', '.join(taken[:10])}")
-            conn.execute(profiles, [{"vehicle_id": v, "profile": p, "updated_ms": now_ms} for v, p, _ in vehicles])
+            conn.execute(self._profile_upsert(),
+                         [{"vehicle_id": v, "profile": p, "updated_ms": now_ms} for v, p, _ in vehicles])
 
     def vehicle_profile(self, vehicle_id: str) -> dict | None:
         return self._scalar(select(vehicles_table.c.profile).where(vehicles_table.c.vehicle_id == vehicle_id))
