@@ -3,16 +3,19 @@ updated, estimates and warnings published.
 
 One worker thread runs a loop every `flush_interval_s`. Each round it takes everything submitted since the last round and:
 
-1. drops samples it has already stored (same vehicle_id and timestamp_ms: a repeated HTTP request or an MQTT
-   redelivery) and, inside the round, keeps the first of equal timestamps;
+1. drops the samples it remembers storing (same vehicle_id and timestamp_ms: a repeated HTTP request or an MQTT
+   redelivery; it remembers the last DEDUP_HORIZON_MS of each vehicle) and, inside the round, keeps the first of equal
+   timestamps;
 2. puts each vehicle's new samples into that vehicle's reorder buffer and releases, in time order, the samples older than
    the vehicle's newest by `reorder_window_s` (all of them once the vehicle has been silent that long): a sample that
    arrives out of order within the window is estimated in its place;
 3. feeds the released samples to the vehicle's estimator (`roadgrip.estimators.base.Estimator`, the interface the offline
    tools use). A gap longer than `max_gap_s` restarts the estimator (`reset`) rather than bridging it. A sample older
    than one already estimated (later than the reorder window allowed) is stored but not estimated: counted as `late`;
-4. writes the round's new telemetry and its estimates in one transaction, idempotent on (vehicle_id, timestamp_ms);
-5. only then resolves the submitters' futures (HTTP answers, MQTT acks): an acknowledged sample is stored;
+4. writes the round's new telemetry and its estimates in one transaction, idempotent on (vehicle_id, timestamp_ms):
+   the database skips an older repeat, or one stored before a restart, and says which rows it inserted;
+5. only then resolves the submitters' futures (HTTP answers, MQTT acks) with those counts: an acknowledged sample is
+   stored, and counted as stored only when this submission stored it;
 6. adds the estimates to the friction map and the warning engine, stores warning changes, publishes estimates
    (a JSON array per vehicle per round on its friction topic) and warning DENMs.
 
@@ -47,11 +50,10 @@ from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 log = logging.getLogger(__name__)
 
-# How far back the pipeline remembers stored timestamps per vehicle, to answer repeats without the database. A repeat
-# older than what it remembers reaches the database, which skips it, but the answer counts it as stored: with 60 s
-# the fuzzing of tests/cloud/test_fuzz.py found such a wrong count, so it stays at 10 minutes (up to 12,000 a vehicle)
-# until the pipeline asks the database about repeats older than its memory (docs/RELIABILITY.md).
-DEDUP_HORIZON_MS = 600_000
+# How far back the pipeline remembers stored timestamps per vehicle, to drop repeats before estimating them. An older
+# repeat reaches the database, which skips it and says so (Storage.write_batch): the counts stay exact. The memory costs
+# up to 2 x 300 timestamps a vehicle (30 MB for 1,000 vehicles at 10 Hz).
+DEDUP_HORIZON_MS = 30_000
 SLOW_ROUND_S = 1.0  # a round slower than this is counted (health: pipeline.slow_rounds): the service stalled
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
@@ -74,8 +76,9 @@ class _Submission:
 class _Held:
     """A round processed but not yet stored: written before anything newer."""
 
-    results: list  # (submission, stored, duplicates)
+    results: list  # (submission, timestamps of its samples sent to the database)
     rows: list[dict]
+    late: list  # (vehicle_id, timestamp_ms) of samples behind what was estimated: not estimated
     estimates: list[dict]
     touched: set[str]
 
@@ -219,34 +222,32 @@ class Pipeline:
             self._refuse_or_keep(inbox, exc)
             return
         now_s = time.monotonic()
-        results: list[tuple[_Submission, int, int]] = []
+        results: list[tuple[_Submission, list[int]]] = []
         new_rows: list[dict] = []
         touched: set[str] = set()
         for sub in inbox:
             stream = self._stream(sub.vehicle_id)
             seen_now: set[int] = set()
-            stored = duplicates = 0
             for sample in sub.samples:
                 ts = sample["timestamp_ms"]
                 if ts in stream.stored or ts in seen_now:
-                    duplicates += 1
                     continue
                 seen_now.add(ts)
-                stored += 1
                 new_rows.append(sample)
                 self._seq += 1
                 heapq.heappush(stream.pending, (ts, self._seq, sample))
                 stream.newest_ms = max(stream.newest_ms, ts)
                 stream.last_arrival_s = now_s
             touched.add(sub.vehicle_id)
-            results.append((sub, stored, duplicates))
+            results.append((sub, list(seen_now)))
             # a later submission in the same round sees this one's samples as already taken
             stream.stored |= seen_now
         self.counters.rounds += 1
         started = time.perf_counter()
-        estimates = self._release(now_s, final)
+        late: list[tuple[str, int]] = []
+        estimates = self._release(now_s, final, late)
         self.counters.estimate_s += time.perf_counter() - started
-        self._held = _Held(results, new_rows, estimates, touched)
+        self._held = _Held(results, new_rows, late, estimates, touched)
         self._write_held()
 
     def _write_held(self) -> bool:
@@ -258,14 +259,15 @@ class Pipeline:
         if time.monotonic() < self._retry_at:
             return False
         started = time.perf_counter()
+        inserted: frozenset[tuple[str, int]] = frozenset()
         try:
             if held.rows or held.estimates:
-                self.storage.write_batch(held.rows, held.estimates)
+                inserted = self.storage.write_batch(held.rows, held.estimates).telemetry_keys
         except StorageUnavailable as exc:
             self.counters.failed_rounds += 1
             self._failures += 1
             self._retry_at = time.monotonic() + min(MAX_RETRY_S, 0.1 * 2**self._failures)
-            for sub, _, _ in held.results:
+            for sub, _ in held.results:
                 if not sub.retry and not sub.future.done():
                     sub.future.set_exception(exc)
             if self._failures == 1:
@@ -274,7 +276,9 @@ class Pipeline:
         except Exception as exc:
             self._held = None
             self.counters.failed_rounds += 1
-            for sub, _, _ in held.results:
+            for sub, timestamps in held.results:  # not stored: a later repeat must be taken
+                if sub.vehicle_id in self._streams:
+                    self._streams[sub.vehicle_id].stored.difference_update(timestamps)
                 if not sub.future.done():
                     sub.future.set_exception(exc)
             log.exception("storing a round of %d samples failed; dropped", len(held.rows))
@@ -285,15 +289,18 @@ class Pipeline:
             log.warning("storage is back after %d failed tries; wrote the %d samples held", self._failures,
                         len(held.rows))
         self._held, self._failures, self._retry_at = None, 0, 0.0
-        for sub, stored, duplicates in held.results:
+        for sub, timestamps in held.results:
+            stored = sum((sub.vehicle_id, ts) in inserted for ts in timestamps)
+            duplicates = len(sub.samples) - stored
             self.counters.stored += stored
             self.counters.duplicates += duplicates
             self.counters.submitted += len(sub.samples)
             if not sub.future.done():
                 sub.future.set_result(SubmitResult(stored, duplicates))
+        self.counters.late += sum(key in inserted for key in held.late)  # a repeat is a duplicate, not late
         if held.rows:
             self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in held.rows))
-        for vehicle_id in held.touched:
+        for vehicle_id in held.touched & self._streams.keys():  # a vehicle forgotten meanwhile starts afresh
             self._trim(self._streams[vehicle_id])
         if held.estimates:
             self.counters.estimates += len(held.estimates)
@@ -338,13 +345,13 @@ class Pipeline:
         return params
 
     def _trim(self, stream: _VehicleStream) -> None:
-        """Remember DEDUP_HORIZON_MS of timestamps; an older repeat reaches the database, which skips it (and the
-        answer then counts it as stored)."""
+        """Remember DEDUP_HORIZON_MS of timestamps; an older repeat reaches the database, which skips it."""
         if len(stream.stored) > 2 * DEDUP_HORIZON_MS // 100:
             horizon = stream.newest_ms - DEDUP_HORIZON_MS
             stream.stored = {t for t in stream.stored if t >= horizon}
 
-    def _release(self, now_s: float, final: bool) -> list[dict]:
+    def _release(self, now_s: float, final: bool, late: list[tuple[str, int]]) -> list[dict]:
+        """Estimate what the reorder buffers release; the samples behind what was estimated go to `late`."""
         window_ms = self.settings.reorder_window_s * 1000.0
         gap_ms = self.settings.max_gap_s * 1000.0
         estimates: list[dict] = []
@@ -357,7 +364,7 @@ class Pipeline:
                 ts, _, sample = heapq.heappop(stream.pending)
                 last = stream.last_estimated_ms
                 if last is not None and ts <= last:
-                    self.counters.late += 1
+                    late.append((sample["vehicle_id"], ts))
                     continue
                 if last is not None and ts - last > gap_ms:
                     self.estimator.reset(stream.state)

@@ -53,6 +53,18 @@ KEY = ("vehicle_id", "timestamp_ms")
 INSERT_SIZES = tuple(2**k for k in range(9, -1, -1))  # rows per INSERT statement; 512 x 17 parameters fit SQLite's limit
 
 
+@dataclass(frozen=True)
+class Written:
+    """What one `Storage.write_batch` newly stored."""
+
+    telemetry_keys: frozenset[tuple[str, int]]  # (vehicle_id, timestamp_ms) of each telemetry row inserted
+    estimates: int  # estimate rows inserted
+
+    @property
+    def telemetry(self) -> int:
+        return len(self.telemetry_keys)
+
+
 class StorageUnavailable(RuntimeError):
     """The database cannot be reached or used (server down, file not writable, locked for too long)."""
 
@@ -322,37 +334,39 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ telemetry and estimates
 
-    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> tuple[int, int]:
+    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
         """Store telemetry rows (keys: TELEMETRY's column names; optional ones may be None or absent) and estimate
         rows (keys: the estimates table's columns; position and h3_cell may be None or absent) in one transaction.
         Rows whose (vehicle_id, timestamp_ms) is stored already, or came earlier in the same list, are skipped.
-        Returns how many telemetry rows and how many estimates were newly stored. Values go to the database driver
-        as they are: Python str, int, float, bool (not 0/1 for the flags) or None."""
+        Returns what was newly stored (`Written`): the keys of the telemetry rows, the number of estimates. Values go
+        to the database driver as they are: Python str, int, float, bool (not 0/1 for the flags) or None."""
         telemetry = _checked_rows("telemetry", telemetry, telemetry_table)
         estimates = _checked_rows("estimate", estimates, estimates_table)
         with self._transaction() as conn:
-            return self._insert_new(conn, telemetry_table, telemetry), self._insert_new(conn, estimates_table, estimates)
+            keys = self._insert_new(conn, telemetry_table, telemetry)
+            return Written(frozenset(keys), len(self._insert_new(conn, estimates_table, estimates)))
 
-    def _insert_new(self, conn: Connection, table: Table, rows: list[dict]) -> int:
-        """Insert `rows`, skipping keys stored already; the number inserted (RETURNING names the inserted rows only).
+    def _insert_new(self, conn: Connection, table: Table, rows: list[dict]) -> list[tuple[str, int]]:
+        """Insert `rows`, skipping keys stored already; the keys inserted (RETURNING names the inserted rows only).
         Multi-row INSERTs of 512, 256, ..., 1 rows, each compiled once by SQLAlchemy for this database and then
         executed with its parameters as they are: the per-row work of `conn.execute(query, rows)` (SQLAlchemy's
         "insertmanyvalues") would halve the write rate."""
         columns = [c.name for c in table.columns]
-        new = start = 0
+        inserted = []
+        start = 0
         for size in INSERT_SIZES:
             while len(rows) - start >= size:
                 values = tuple([row[c] for row in rows[start:start + size] for c in columns])
-                new += len(conn.exec_driver_sql(self._insert_sql(table, size), values).all())
+                inserted += conn.exec_driver_sql(self._insert_sql(table, size), values).all()
                 start += size
-        return new
+        return [tuple(key) for key in inserted]
 
     def _insert_sql(self, table: Table, n_rows: int) -> str:
         if (table.name, n_rows) not in self._insert_sqls:
             names = [[f"r{i}_{c.name}" for c in table.columns] for i in range(n_rows)]
             values = [{c.name: sa.bindparam(name) for c, name in zip(table.columns, row)} for row in names]
             query = self._insert(table).values(values).on_conflict_do_nothing(index_elements=KEY)
-            compiled = query.returning(table.c.timestamp_ms).compile(dialect=self._engine.dialect)
+            compiled = query.returning(table.c.vehicle_id, table.c.timestamp_ms).compile(dialect=self._engine.dialect)
             if list(compiled.positiontup or ()) != [name for row in names for name in row]:
                 raise RuntimeError(f"{self.dialect}: INSERT parameters not in row order, cannot pass them flat")
             self._insert_sqls[(table.name, n_rows)] = compiled.string

@@ -3,6 +3,7 @@ real PostgreSQL (the `storage_url` fixture)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import xml.etree.ElementTree as ET
@@ -14,6 +15,7 @@ from drives import PATCH_M, patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api import create_app
+from roadgrip.cloud.pipeline import DEDUP_HORIZON_MS
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.estimators.learned import load_estimator
@@ -25,12 +27,18 @@ ADMIN = ("admin", "admin-secret-for-tests-0123456789")
 START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
 
 
-@pytest.fixture
-def cloud(storage_url, tmp_path):
+@contextlib.contextmanager
+def running_cloud(storage_url, tmp_path, **settings):
     settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="off", admin_secret=ADMIN[1],
-                        flush_interval_s=0.01, reorder_window_s=0.2, map_clock="data")
+                        flush_interval_s=0.01, reorder_window_s=0.2, map_clock="data", **settings)
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         yield service, client
+
+
+@pytest.fixture
+def cloud(storage_url, tmp_path):
+    with running_cloud(storage_url, tmp_path) as running:
+        yield running
 
 
 def register(client, vehicle_id: str, profile: str = "paper-suv") -> tuple[str, str]:
@@ -102,6 +110,21 @@ def test_a_repeated_message_is_stored_once(cloud):
     counts = service.storage.counts()
     assert counts["telemetry"] == 30
     assert counts["estimates"] == len(client.get("/v1/vehicles/car-2/estimates", auth=auth).json()["estimates"])
+
+
+def test_a_repeat_older_than_the_pipelines_memory_is_a_duplicate_not_stored_nor_late(storage_url, tmp_path):
+    with running_cloud(storage_url, tmp_path, rate_limit_samples_per_s=0) as (service, client):
+        auth = register(client, "car-5")
+        samples = [s for k in range(3) for s in wire_samples(patch_drive(0.9, k), "car-5", START_MS + 30_000 * k)]
+        assert (samples[-1]["timestamp_ms"] - samples[0]["timestamp_ms"]) > 2 * DEDUP_HORIZON_MS
+        post(client, auth, samples, chunk=100)
+        settle(service)
+        again = post(client, auth, samples[:30], chunk=30)[0]  # 90 s old: the pipeline forgot it, the database not
+        settle(service)
+        assert (again["stored"], again["duplicates"]) == (0, 30)
+        counters = service.pipeline.counters
+        assert (counters.stored, counters.duplicates, counters.late) == (len(samples), 30, 0)
+        assert service.storage.counts()["telemetry"] == len(samples)
 
 
 def test_out_of_order_samples_inside_the_window_give_the_in_order_estimates(cloud):

@@ -7,7 +7,7 @@ import pytest
 from sqlalchemy import text
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.storage import Credential, StorageUnavailable, open_storage
+from roadgrip.cloud.storage import Credential, StorageUnavailable, Written, open_storage
 from roadgrip.data.schema import TELEMETRY
 
 T0_MS = 1_767_225_600_000  # 2026-01-01T00:00:00Z
@@ -45,11 +45,15 @@ def closed_port():
         yield s.getsockname()[1]
 
 
+def counted(written: Written) -> tuple[int, int]:
+    return written.telemetry, written.estimates
+
+
 # -------------------------------------------------------------------------------------------- opening
 
 def test_opening_twice_keeps_the_schema_and_the_rows(storage_url):
     first = open_storage(storage_url)
-    assert first.write_batch(*drive("car-1", 10)) == (10, 10)
+    assert counted(first.write_batch(*drive("car-1", 10))) == (10, 10)
     first.close()
     second = open_storage(storage_url)
     assert second.dialect == make_url(storage_url).get_backend_name()
@@ -116,13 +120,24 @@ def test_ping_raises_storage_unavailable_once_the_server_refuses(postgres_url, p
 def test_write_batch_counts_new_rows_and_skips_duplicates(storage):
     telemetry, estimates = drive("car-1", 2500)  # past one 1,000-row INSERT
     duplicated = telemetry[:1200] + telemetry[1000:1100]  # repeats within one batch
-    assert storage.write_batch(duplicated, estimates[:1200] + estimates[:5]) == (1200, 1200)
-    assert storage.write_batch(telemetry, estimates) == (1300, 1300)  # overlaps the first batch
-    assert storage.write_batch(telemetry, estimates) == (0, 0)
-    assert storage.write_batch([], []) == (0, 0)
+    assert counted(storage.write_batch(duplicated, estimates[:1200] + estimates[:5])) == (1200, 1200)
+    assert counted(storage.write_batch(telemetry, estimates)) == (1300, 1300)  # overlaps the first batch
+    assert counted(storage.write_batch(telemetry, estimates)) == (0, 0)
+    assert counted(storage.write_batch([], [])) == (0, 0)
     again = telemetry_row(timestamp_ms=T0_MS - 100)
-    assert storage.write_batch([again, again], [estimate_row(timestamp_ms=T0_MS - 100)] * 2) == (1, 1)  # one INSERT
+    one_insert = storage.write_batch([again, again], [estimate_row(timestamp_ms=T0_MS - 100)] * 2)
+    assert counted(one_insert) == (1, 1)
     assert storage.counts() == {"telemetry": 2501, "estimates": 2501, "vehicles": 0, "warnings": 0}
+
+
+def test_write_batch_names_the_telemetry_rows_it_inserted(storage):
+    telemetry, estimates = drive("car-1", 600)
+    storage.write_batch(telemetry[100:300], estimates[100:300])
+    other = telemetry_row("car-2", T0_MS + 100)
+    written = storage.write_batch(telemetry + [other], estimates)
+    expected = {("car-1", r["timestamp_ms"]) for r in telemetry[:100] + telemetry[300:]} | {("car-2", T0_MS + 100)}
+    assert written.telemetry_keys == expected
+    assert written.estimates == 400
 
 
 def test_rows_come_back_as_written(storage):
@@ -131,7 +146,7 @@ def test_rows_come_back_as_written(storage):
     for optional in ("latitude_deg", "longitude_deg", "lateral_speed_mps"):
         del sparse[optional]  # absent means null
     estimate = estimate_row(latitude_deg=None, longitude_deg=None, h3_cell=None, excited=False)
-    assert storage.write_batch([row, sparse], [estimate]) == (2, 1)
+    assert counted(storage.write_batch([row, sparse], [estimate])) == (2, 1)
     assert storage.telemetry("car-1") == [row, {**sparse, "latitude_deg": None, "longitude_deg": None,
                                                 "lateral_speed_mps": None}]
     assert storage.estimates("car-1") == [estimate]
@@ -243,7 +258,7 @@ def test_without_postgis_everything_else_works(postgres_url, postgres_database_u
         admin.execute(f'ALTER DATABASE "{name}" OWNER TO "{role}"')
     storage = open_storage(make_url(postgres_database_url).set(username=role).render_as_string(False))
     assert not storage.postgis
-    assert storage.write_batch(*drive("car-1", 5)) == (5, 5)
+    assert counted(storage.write_batch(*drive("car-1", 5))) == (5, 5)
     assert len(storage.estimates("car-1")) == 5
     storage.close()
 
