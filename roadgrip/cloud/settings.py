@@ -48,6 +48,9 @@ class Settings(BaseSettings):
     reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
                                                            "arrivals back in order before estimation")
     flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
+    friction_publish_interval_s: float = Field(1.0, ge=0, le=60, description="each vehicle's estimates are published "
+                                                                         "together on its friction topic at most "
+                                                                         "this often (0: every round)")
     rate_limit_samples_per_s: float = Field(50.0, ge=0, allow_inf_nan=False,
                                             description="samples a vehicle may send per second, HTTP and MQTT "
                                                         "together (5x the 10 Hz of a terminal); 0: no limit "
