@@ -414,7 +414,7 @@ def serve(
     import uvicorn
 
     from roadgrip.cloud.api import create_app
-    from roadgrip.cloud.service import CloudService
+    from roadgrip.cloud.service import CloudService, tune_gc_for_serving
     from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
@@ -425,6 +425,7 @@ def serve(
     signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
     service = CloudService(settings)
     service.start()
+    tune_gc_for_serving()
     try:
         console.print(f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
                       f"mqtt {service.mqtt_url or 'off'}")

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
-import json
 import logging
 import threading
 import time
@@ -40,6 +39,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
+import orjson
 
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.latency import LatencyRecorder
@@ -264,10 +264,10 @@ class Pipeline:
         if time.monotonic() < self._retry_at:
             return False
         started = time.perf_counter()
-        inserted: frozenset[tuple[str, int]] = frozenset()
+        repeats: frozenset[tuple[str, int]] = frozenset()  # rows the database had already
         try:
             if held.rows or held.estimates:
-                inserted = self.storage.write_batch(held.rows, held.estimates).telemetry_keys
+                repeats = self.storage.write_batch(held.rows, held.estimates).already_stored
         except StorageUnavailable as exc:
             self.counters.failed_rounds += 1
             self._failures += 1
@@ -295,14 +295,14 @@ class Pipeline:
                         len(held.rows))
         self._held, self._failures, self._retry_at = None, 0, 0.0
         for sub, timestamps in held.results:
-            stored = sum((sub.vehicle_id, ts) in inserted for ts in timestamps)
+            stored = len(timestamps) - (sum((sub.vehicle_id, ts) in repeats for ts in timestamps) if repeats else 0)
             duplicates = len(sub.samples) - stored
             self.counters.stored += stored
             self.counters.duplicates += duplicates
             self.counters.submitted += len(sub.samples)
             if not sub.future.done():
                 sub.future.set_result(SubmitResult(stored, duplicates))
-        self.counters.late += sum(key in inserted for key in held.late)  # a repeat is a duplicate, not late
+        self.counters.late += sum(key not in repeats for key in held.late)  # a repeat is a duplicate, not late
         if held.rows:
             self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in held.rows))
         for vehicle_id in held.touched & self._streams.keys():  # a vehicle forgotten meanwhile starts afresh
@@ -402,7 +402,7 @@ class Pipeline:
         if self.publish is None:
             return
         for denm in denms:
-            self.publish(WARNINGS_TOPIC, json.dumps(denm).encode())
+            self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
         now_s = time.monotonic()
         for row in estimates:
             vehicle_id = row["vehicle_id"]
@@ -420,7 +420,7 @@ class Pipeline:
         due = [v for v, since in self._outbox_since.items() if final or since <= due_since]
         for vehicle_id in due:
             del self._outbox_since[vehicle_id]
-            self.publish(friction_topic(vehicle_id), json.dumps(self._outbox.pop(vehicle_id)).encode())
+            self.publish(friction_topic(vehicle_id), orjson.dumps(self._outbox.pop(vehicle_id)))
 
 
 ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",

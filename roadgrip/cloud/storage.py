@@ -26,7 +26,9 @@ Failures to reach the database raise `StorageUnavailable`; bad arguments raise `
 
 from __future__ import annotations
 
+import itertools
 import logging
+import operator
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -50,19 +52,21 @@ ACTIVE = "active"  # the warning status that `warnings(active_only=True)` select
 SQLITE_BUSY_TIMEOUT_MS = 10_000  # how long a writer waits for another one's lock before giving up
 CONNECT_TIMEOUT_S = 5  # PostgreSQL: how long to wait for the server before calling it unavailable
 KEY = ("vehicle_id", "timestamp_ms")
-INSERT_SIZES = tuple(2**k for k in range(9, -1, -1))  # rows per INSERT statement; 512 x 17 parameters fit SQLite's limit
+# rows per INSERT statement, largest first: 1,024 x 17 parameters fit SQLite's limit (32,766) and PostgreSQL's (65,535)
+INSERT_SIZES = tuple(2**k for k in range(10, -1, -1))
 
 
 @dataclass(frozen=True)
 class Written:
     """What one `Storage.write_batch` newly stored."""
 
-    telemetry_keys: frozenset[tuple[str, int]]  # (vehicle_id, timestamp_ms) of each telemetry row inserted
+    telemetry: int  # telemetry rows inserted
     estimates: int  # estimate rows inserted
+    already_stored: frozenset[tuple[str, int]]  # (vehicle_id, timestamp_ms) of telemetry rows stored before the call
 
-    @property
-    def telemetry(self) -> int:
-        return len(self.telemetry_keys)
+
+class _Repeats(Exception):
+    """Raised inside write_batch's first try, to roll it back: some telemetry rows were stored already."""
 
 
 class StorageUnavailable(RuntimeError):
@@ -213,7 +217,7 @@ class Storage:
         self._engine = engine
         self._where = engine.url.render_as_string(hide_password=True)
         self._insert = postgresql.insert if self.dialect == "postgresql" else sqlite.insert
-        self._insert_sqls: dict[tuple[str, int], str] = {}  # (table, rows) -> multi-row INSERT for this database
+        self._insert_sqls: dict[tuple[str, int, bool], str] = {}  # (table, rows, RETURNING) -> multi-row INSERT
 
     def __repr__(self) -> str:
         return f"Storage({self._where!r}, postgis={self.postgis})"
@@ -338,39 +342,62 @@ class Storage:
         """Store telemetry rows (keys: TELEMETRY's column names; optional ones may be None or absent) and estimate
         rows (keys: the estimates table's columns; position and h3_cell may be None or absent) in one transaction.
         Rows whose (vehicle_id, timestamp_ms) is stored already, or came earlier in the same list, are skipped.
-        Returns what was newly stored (`Written`): the keys of the telemetry rows, the number of estimates. Values go
-        to the database driver as they are: Python str, int, float, bool (not 0/1 for the flags) or None."""
+        Returns what was newly stored and which telemetry rows were stored before (`Written`). Values go to the
+        database driver as they are: Python str, int, float, bool (not 0/1 for the flags) or None.
+
+        Two tries at most. The first counts the rows each INSERT stored (`rowcount`); when every telemetry row was
+        new (the usual case) that is all. Otherwise it is rolled back and done again with RETURNING, which names the
+        rows inserted. RETURNING is not used at first because SQLite hands each returned row over in a step of its
+        own, releasing Python's interpreter lock around each: with another thread busy, each step then waits for
+        the lock (up to `sys.getswitchinterval()`, 5 ms), and 500-row INSERTs fell from 35,000 rows/s to 6,000
+        (`python scripts/sqlite_returning_gil.py`)."""
         telemetry = _checked_rows("telemetry", telemetry, telemetry_table)
         estimates = _checked_rows("estimate", estimates, estimates_table)
+        try:
+            with self._transaction() as conn:
+                stored = self._insert_new(conn, telemetry_table, telemetry)
+                if stored < len(telemetry):
+                    raise _Repeats
+                return Written(stored, self._insert_new(conn, estimates_table, estimates), frozenset())
+        except _Repeats:
+            pass
         with self._transaction() as conn:
-            keys = self._insert_new(conn, telemetry_table, telemetry)
-            return Written(frozenset(keys), len(self._insert_new(conn, estimates_table, estimates)))
+            inserted = set(self._insert_new(conn, telemetry_table, telemetry, returning=True))
+            return Written(len(inserted), self._insert_new(conn, estimates_table, estimates),
+                           frozenset(key for row in telemetry if (key := (row["vehicle_id"], row["timestamp_ms"]))
+                                     not in inserted))
 
-    def _insert_new(self, conn: Connection, table: Table, rows: list[dict]) -> list[tuple[str, int]]:
-        """Insert `rows`, skipping keys stored already; the keys inserted (RETURNING names the inserted rows only).
-        Multi-row INSERTs of 512, 256, ..., 1 rows, each compiled once by SQLAlchemy for this database and then
-        executed with its parameters as they are: the per-row work of `conn.execute(query, rows)` (SQLAlchemy's
+    def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
+        """Insert `rows`, skipping keys stored already: the number inserted, or with `returning` the keys inserted.
+        Multi-row INSERTs of INSERT_SIZES rows, each compiled once by SQLAlchemy for this database and then executed
+        with its parameters as they are: the per-row work of `conn.execute(query, rows)` (SQLAlchemy's
         "insertmanyvalues") would halve the write rate."""
-        columns = [c.name for c in table.columns]
-        inserted = []
+        values_of = operator.itemgetter(*(c.name for c in table.columns))
+        inserted, keys = 0, []
         start = 0
         for size in INSERT_SIZES:
             while len(rows) - start >= size:
-                values = tuple([row[c] for row in rows[start:start + size] for c in columns])
-                inserted += conn.exec_driver_sql(self._insert_sql(table, size), values).all()
+                values = tuple(itertools.chain.from_iterable(map(values_of, rows[start:start + size])))
+                result = conn.exec_driver_sql(self._insert_sql(table, size, returning), values)
+                if returning:
+                    keys += [tuple(key) for key in result.all()]
+                else:
+                    inserted += result.rowcount
                 start += size
-        return [tuple(key) for key in inserted]
+        return keys if returning else inserted
 
-    def _insert_sql(self, table: Table, n_rows: int) -> str:
-        if (table.name, n_rows) not in self._insert_sqls:
+    def _insert_sql(self, table: Table, n_rows: int, returning: bool) -> str:
+        if (table.name, n_rows, returning) not in self._insert_sqls:
             names = [[f"r{i}_{c.name}" for c in table.columns] for i in range(n_rows)]
             values = [{c.name: sa.bindparam(name) for c, name in zip(table.columns, row)} for row in names]
             query = self._insert(table).values(values).on_conflict_do_nothing(index_elements=KEY)
-            compiled = query.returning(table.c.vehicle_id, table.c.timestamp_ms).compile(dialect=self._engine.dialect)
+            if returning:
+                query = query.returning(table.c.vehicle_id, table.c.timestamp_ms)
+            compiled = query.compile(dialect=self._engine.dialect)
             if list(compiled.positiontup or ()) != [name for row in names for name in row]:
                 raise RuntimeError(f"{self.dialect}: INSERT parameters not in row order, cannot pass them flat")
-            self._insert_sqls[(table.name, n_rows)] = compiled.string
-        return self._insert_sqls[(table.name, n_rows)]
+            self._insert_sqls[(table.name, n_rows, returning)] = compiled.string
+        return self._insert_sqls[(table.name, n_rows, returning)]
 
     def _range(self, table: Table, vehicle_id: str, start_ms: int | None, end_ms: int | None, limit: int):
         _check_limit(limit)

@@ -130,14 +130,14 @@ def test_write_batch_counts_new_rows_and_skips_duplicates(storage):
     assert storage.counts() == {"telemetry": 2501, "estimates": 2501, "vehicles": 0, "warnings": 0}
 
 
-def test_write_batch_names_the_telemetry_rows_it_inserted(storage):
+def test_write_batch_names_the_telemetry_rows_stored_before(storage):
     telemetry, estimates = drive("car-1", 600)
-    storage.write_batch(telemetry[100:300], estimates[100:300])
+    assert storage.write_batch(telemetry[100:300], estimates[100:300]).already_stored == frozenset()
     other = telemetry_row("car-2", T0_MS + 100)
-    written = storage.write_batch(telemetry + [other], estimates)
-    expected = {("car-1", r["timestamp_ms"]) for r in telemetry[:100] + telemetry[300:]} | {("car-2", T0_MS + 100)}
-    assert written.telemetry_keys == expected
-    assert written.estimates == 400
+    written = storage.write_batch(telemetry + [other, other], estimates)  # the second try: RETURNING
+    assert written.already_stored == {("car-1", r["timestamp_ms"]) for r in telemetry[100:300]}
+    assert counted(written) == (401, 400)
+    assert storage.counts()["telemetry"] == 601
 
 
 def test_rows_come_back_as_written(storage):
