@@ -15,7 +15,7 @@ Files in the working directory (all but logins.json and mosquitto.db rewritten b
 
 Configuration: one listener on 127.0.0.1 only; no anonymous clients; persistence on (saved every `AUTOSAVE_INTERVAL_S`
 and on a clean stop, so a crash loses at most that much of the queued messages); up to `max_queued_messages` QoS 1
-messages queued per client beyond those in flight. `user` is set to the user running Python: started as root, Mosquitto
+messages queued per client beyond those in flight, up to MAX_INFLIGHT_MESSAGES in flight. `user` is set to the user running Python: started as root, Mosquitto
 would otherwise drop to the `mosquitto` user, which may not reach the working directory.
 
 Access rules (the ACL file), with the topics of `roadgrip.cloud.mqtt`; nothing else is allowed to anyone:
@@ -79,6 +79,11 @@ PBKDF2_ITERATIONS = 101  # mosquitto_passwd 2.0's default
 # Queued messages per client: one minute of a 1,000-vehicle fleet at 10 Hz, for the service (the one subscriber to all
 # telemetry) to restart without losing any. About 0.3 kB each in the broker's memory, so at most about 200 MB.
 MAX_QUEUED_MESSAGES = 1_000 * 10 * 60
+# QoS 1 messages a client may have unacknowledged, each way (`max_inflight_messages`; to MQTT 5 clients it is the
+# Receive Maximum of the CONNACK). Mosquitto's default, 20, caps the service's estimate messages at 20 a round trip:
+# 1,000 vehicles publish 1,000 a second, and in a soak paho's queue of unsent ones (and the RSS) grew whenever the broker
+# answered slower than 20 ms. The service's client is set to the same (roadgrip.cloud.mqtt.MqttClient, max_inflight).
+MAX_INFLIGHT_MESSAGES = 1_000
 AUTOSAVE_INTERVAL_S = 60
 STOP_TIMEOUT_S = 10.0
 RELOAD_LINE = "Reloading config."
@@ -292,6 +297,7 @@ class ManagedBroker:
             f"persistence_location {self.workdir}/",
             f"autosave_interval {AUTOSAVE_INTERVAL_S}",
             f"max_queued_messages {self.max_queued_messages}",
+            f"max_inflight_messages {MAX_INFLIGHT_MESSAGES}",
             f"log_dest file {self.log_path}",
             *(f"log_type {t}" for t in ("error", "warning", "notice", "information")),
             "log_timestamp_format %Y-%m-%dT%H:%M:%S",

@@ -176,6 +176,9 @@ class MqttClient:
       reconnect, with the DUP flag; the handler must therefore accept a message twice (the service keys telemetry by
       (vehicle_id, timestamp_ms)). Until acknowledged, a message holds one of `receive_maximum` slots: the broker sends
       at most that many unacknowledged messages (MQTT 5 Receive Maximum), then queues the rest.
+    - At most `max_inflight` of its own QoS 1 publishes unacknowledged (paho's `max_inflight_messages`, 20 by default,
+      which paho does not take from the broker's CONNACK): it must not exceed the broker's Receive Maximum (its
+      `max_inflight_messages`; an error is logged when it does). The rest wait in paho, `max_queued_messages` at most.
     - Automatic reconnects (`reconnect_delay_set`, from `reconnect_min_delay_s` doubling up to `reconnect_max_delay_s`),
       in paho's network thread (`loop_start`); after every (re)connect the client subscribes to
       `TELEMETRY_SUBSCRIPTION` again (when it has a handler), in case the broker lost the session.
@@ -191,7 +194,8 @@ class MqttClient:
 
     def __init__(self, url: str, username: str, password: str, client_id: str,
                  on_telemetry: TelemetryHandler | None = None, *, session_expiry_s: int = 86_400,
-                 receive_maximum: int = 10_000, max_queued_messages: int = 100_000, keepalive_s: int = 30,
+                 receive_maximum: int = 10_000, max_queued_messages: int = 100_000, max_inflight: int = 20,
+                 keepalive_s: int = 30,
                  reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
                  reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S):
         self.host, self.port = parse_url(url)
@@ -206,6 +210,7 @@ class MqttClient:
         self.session_expiry_s = session_expiry_s
         self.receive_maximum = receive_maximum
         self.max_queued_messages = max_queued_messages
+        self.max_inflight = max_inflight
         self.keepalive_s = keepalive_s
         self.reconnect_min_delay_s = reconnect_min_delay_s
         self.reconnect_max_delay_s = reconnect_max_delay_s
@@ -235,6 +240,7 @@ class MqttClient:
         client.username_pw_set(self.username, self._password)
         client.reconnect_delay_set(self.reconnect_min_delay_s, self.reconnect_max_delay_s)
         client.max_queued_messages_set(self.max_queued_messages)
+        client.max_inflight_messages_set(self.max_inflight)
         client.on_connect = self._on_connect
         client.on_subscribe = self._on_subscribe
         client.on_disconnect = self._on_disconnect
@@ -296,7 +302,7 @@ class MqttClient:
 
     # paho callbacks, all on paho's network thread
 
-    def _on_connect(self, client, _userdata, flags, reason_code, _properties):
+    def _on_connect(self, client, _userdata, flags, reason_code, properties):
         if reason_code.is_failure:
             log.warning("%s: connect to %s refused: %s", self.client_id, self.url, reason_code)
             if not self._ready.is_set():
@@ -306,6 +312,11 @@ class MqttClient:
         with self._lock:
             self._generation += 1
         log.info("%s: connected to %s (session present: %s)", self.client_id, self.url, flags.session_present)
+        allowed = getattr(properties, "ReceiveMaximum", 65_535)  # absent: the MQTT 5 default
+        if allowed < self.max_inflight:
+            log.error("%s: %s accepts %d unacknowledged publishes, this client sends up to %d (max_inflight): set "
+                      "the broker's max_inflight_messages to at least that", self.client_id, self.url, allowed,
+                      self.max_inflight)
         if self.on_telemetry is None:
             self._ready.set()
             return

@@ -20,7 +20,7 @@ from typing import Self
 import orjson
 
 from roadgrip.cloud.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
-from roadgrip.cloud.broker import ManagedBroker, mosquitto_available
+from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import MqttClient, errors_topic
 from roadgrip.cloud.pipeline import Pipeline
@@ -179,8 +179,10 @@ class CloudService:
                 raise RuntimeError("mqtt is a broker URL: set mqtt_username and mqtt_password for the service's login")
             self.mqtt_url = mode
             username, password = s.mqtt_username, s.mqtt_password
+        # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, paho's default of 20 (Mosquitto's too)
         self.mqtt = MqttClient(self.mqtt_url, username, password, client_id="roadgrip-cloud",
-                               on_telemetry=self._on_mqtt_telemetry)
+                               on_telemetry=self._on_mqtt_telemetry,
+                               max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else 20)
         self.mqtt.connect()
 
     def _publish(self, topic: str, payload: bytes) -> None:

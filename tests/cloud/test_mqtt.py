@@ -9,6 +9,7 @@ import pytest
 from broker_fixtures import Inbox, wait_until
 from paho.mqtt.enums import CallbackAPIVersion
 
+from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES
 from roadgrip.cloud.mqtt import (
     FRICTION_SUBSCRIPTION,
     TELEMETRY_SUBSCRIPTION,
@@ -89,6 +90,15 @@ def test_service_receives_a_vehicles_telemetry_with_the_id_from_the_topic(fleet)
         assert svc.connected and a.paho.is_connected()
         a.publish_telemetry(b'{"n": 1}')
         assert inbox.payloads(1) == [("A", b'{"n": 1}')]
+
+
+def test_the_broker_allows_max_inflight_messages_unacknowledged_and_the_client_checks_it(fleet, caplog):
+    # the broker's Receive Maximum is exactly MAX_INFLIGHT_MESSAGES: a client set to it passes the check, one more not
+    for max_inflight, complaint in ((MAX_INFLIGHT_MESSAGES, False), (MAX_INFLIGHT_MESSAGES + 1, True)):
+        caplog.clear()
+        with MqttClient(fleet.url, fleet.service_user, fleet.service_password, "svc", max_inflight=max_inflight) as svc:
+            assert svc._client.max_inflight_messages == max_inflight
+        assert any("unacknowledged publishes" in r.message for r in caplog.records) == complaint
 
 
 def test_a_vehicle_publishing_under_another_id_is_refused_and_never_reaches_the_service(fleet):
