@@ -34,11 +34,13 @@ from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 log = logging.getLogger(__name__)
 
-# Samples the MQTT side may queue for the pipeline (10 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
+# Samples the MQTT side may queue for the pipeline (2 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
 # so paho's network thread stops reading: TCP pushes back and the broker keeps the rest in the service's persistent
 # session, unacknowledged. (Mosquitto 2.0.11 did not stop at the client's Receive Maximum in the soak of
-# docs/RELIABILITY.md: the service queued 116,000 messages and its memory grew; this bound is the service's own.)
-MAX_MQTT_BACKLOG = 100_000
+# docs/RELIABILITY.md: the service queued 116,000 messages and its memory grew; this bound is the service's own.) It
+# also bounds a round: with 100,000 a service that fell behind ran rounds of 10 s and more, and each added its queue
+# to the RSS for good (the allocator keeps its peak), where the broker holds a waiting message in 0.3 kB.
+MAX_MQTT_BACKLOG = 20_000
 
 
 # The young generation's collection threshold (CPython's default: 700 allocations): the ingest path allocates about a
