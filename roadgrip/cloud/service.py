@@ -11,13 +11,12 @@ side (a broker given by URL, or a Mosquitto started here), and the HTTP API.
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import secrets
 import time
 from pathlib import Path
 from typing import Self
-
-import orjson
 
 from roadgrip.cloud.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
@@ -222,7 +221,8 @@ class CloudService:
         self.mqtt_rejected += len(errors)
         log.warning("rejected %d sample(s) from vehicle %s over MQTT: %s", len(errors), vehicle_id,
                     errors[0]["reason"])
-        self._publish(errors_topic(vehicle_id), orjson.dumps({"vehicle_id": vehicle_id, "rejected": errors}))
+        # json, not orjson: a reason quotes what was sent, which may hold a lone surrogate (escaped by json)
+        self._publish(errors_topic(vehicle_id), json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
 
     # ------------------------------------------------------------------------------------------------- registration
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:

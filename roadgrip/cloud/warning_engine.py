@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import operator
 import statistics
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -238,7 +239,7 @@ class WarningEngine:
         now_ms = int(now_ms)
         gap_ms = self.pass_gap_s * 1000.0
         rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
-        rows.sort(key=lambda r: (r["vehicle_id"], r["timestamp_ms"]))
+        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
         closed: list[_Pass] = []
         resolution = self.resolution
         to_cell = h3.latlng_to_cell

@@ -50,6 +50,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import orjson
 import pyarrow as pa
 
 from roadgrip.data.schema import TELEMETRY
@@ -189,14 +190,14 @@ def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, lis
             kind = "json"
         else:
             try:
-                doc = json.loads(text)
+                doc = _loads(text)
             except (ValueError, RecursionError):
                 kind = "ndjson"
             else:
                 return _json_samples(doc, max_samples), None
     if kind == "json":
         try:
-            doc = json.loads(text)
+            doc = _loads(text)
         except json.JSONDecodeError as e:
             hint = " (one object per line is NDJSON: send it as application/x-ndjson)" if e.msg == "Extra data" else ""
             raise PayloadError(f"payload is not valid JSON: {e.msg} at line {e.lineno} column {e.colno}{hint}") from None
@@ -221,6 +222,19 @@ def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, lis
     return docs, numbers
 
 
+def _loads(text: str):
+    """`json.loads(text)`, through orjson when orjson reads the text (13 us against json's 68 for a message of ten
+    samples); else json.loads itself,
+    so that what is accepted and every error stay json's: orjson refuses NaN and Infinity (which json reads and the
+    checks refuse by name), numbers beyond a double, lone surrogates, nesting past 1,024 levels. One difference is
+    left: an integer literal beyond 2^64 comes back from orjson as a float (from json as an int); every field refuses
+    such a value either way, the message then writes it as a float."""
+    try:
+        return orjson.loads(text)
+    except orjson.JSONDecodeError:
+        return json.loads(text)
+
+
 def _lines_at_once(text: str, lines: list[str]) -> list[dict] | None:
     """The lines parsed as one JSON array, about 20% faster than line by line (the parser reuses its key strings), or
     None when that is not sure to give each line its own value. It is when the array has as many elements as there are
@@ -229,7 +243,7 @@ def _lines_at_once(text: str, lines: list[str]) -> list[dict] | None:
     if _OBJECTS_IN_A_ROW.search(text):
         return None
     try:
-        docs = json.loads("[" + ",".join(lines) + "]")
+        docs = _loads("[" + ",".join(lines) + "]")
     except (ValueError, RecursionError):  # a bad line: each line on its own says which
         return None
     if len(docs) != len(lines) or not all(type(d) is dict for d in docs):
@@ -239,7 +253,7 @@ def _lines_at_once(text: str, lines: list[str]) -> list[dict] | None:
 
 def _line(i: int, line: str):
     try:
-        return json.loads(line)
+        return _loads(line)
     except (ValueError, RecursionError) as e:
         return _BadLine(f"line {i + 1} is not valid JSON ({_json_failure(e)}): {_clip(line)}")
 
