@@ -11,8 +11,8 @@ What a case reports, beside the rates: `lost` (acknowledged but not stored); `ve
 whose stored telemetry is exactly what they sent (the count, the first and the last timestamp match their stream, and
 the key (vehicle_id, timestamp_ms) is unique, so each sample is there once); the latency from a sample's timestamp to
 its stored estimate over the whole run (`latency_p50_ms`, `latency_p99_ms`: the service's histogram, 10 ms bins); every
-5 s a `timeline` point (stored, the service's queue, its RSS, the latency of the last 100,000 estimates); the memory
-over the run's second half (`memory_trend`); `sustained`: every acknowledgement within 5 % of the case's duration and
+5 s a `timeline` point (stored, the service's queue, its RSS, its publishes waiting for the broker, the latency of the
+last 100,000 estimates); the memory over the run's second half (`memory_trend`); `sustained`: every acknowledgement within 5 % of the case's duration and
 everything stored within 2 s of the last one.
 
 Samples are real telemetry: a few simulated runs of the random preset, cycled over the vehicles, each vehicle's stream
@@ -259,6 +259,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                 timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
                                  "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
                                  "slow_rounds": h["pipeline"]["slow_rounds"],
+                                 "mqtt_unacknowledged": h["pipeline"]["mqtt_unacknowledged"],
                                  **{k: round(h["pipeline"][k], 2) for k in ("estimate_s", "write_s", "fanout_s")},
                                  **h["pipeline"]["latency"]})
             load = _generate(case, target, vehicles, bodies, on_tick=record)
@@ -299,6 +300,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "latency_over_max": since_start["over_max"], "rss_mb_end": health["memory_rss_mb"],
             "slowest_round_s": round(pipeline["slowest_round_s"], 2), "slow_rounds": pipeline["slow_rounds"],
             "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
+            "estimate_messages_dropped": pipeline["estimate_messages_dropped"],
             **memory_trend(timeline), "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
 
@@ -391,6 +393,7 @@ def format_ingest(rows: list[dict]):
         ("CPU s: service / broker", lambda r: f"{r['service_cpu_s']:.1f} / {r['broker_cpu_s']:.1f}"),
         ("slowest pipeline round, s (rounds over 1 s)", lambda r: f"{r['slowest_round_s']:.2f} ({r['slow_rounds']})"),
         ("load generator's worst lag, s", lambda r: f"{r['generator_lag_max_s']:.2f}"),
+        ("estimate messages dropped (broker behind)", lambda r: f"{r['estimate_messages_dropped']:,}"),
         ("sustained", lambda r: "yes" if r["sustained"] else "no"),
     ]
     table = Table(title=f"roadgrip bench ingest: {rows[0]['vehicles']:,} vehicles at 10 Hz, "

@@ -221,6 +221,7 @@ class MqttClient:
         self._ready = threading.Event()  # the first connect went through (and its subscription)
         self._failure: BaseException | None = None
         self._subscribe_mid: int | None = None
+        self._unacknowledged = 0  # own QoS 1 publishes handed to paho and not yet acknowledged by the broker
 
     @property
     def connected(self) -> bool:
@@ -245,6 +246,7 @@ class MqttClient:
         client.on_subscribe = self._on_subscribe
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
+        client.on_publish = self._on_publish
         properties = Properties(PacketTypes.CONNECT)
         properties.SessionExpiryInterval = self.session_expiry_s
         properties.ReceiveMaximum = self.receive_maximum
@@ -279,7 +281,16 @@ class MqttClient:
         if info.rc == MQTTErrorCode.MQTT_ERR_QUEUE_SIZE:
             raise BufferError(f"{self.client_id}: {self.max_queued_messages} messages already wait to be published "
                               f"(max_queued_messages); {topic!r} dropped")
+        if qos > 0:
+            with self._lock:
+                self._unacknowledged += 1
         return info
+
+    @property
+    def unacknowledged(self) -> int:
+        """This client's QoS 1 publishes not yet acknowledged by the broker: in flight, or waiting in paho (which holds
+        them in memory, up to max_queued_messages) because the window is full or the connection down."""
+        return self._unacknowledged
 
     def close(self) -> None:
         """Disconnect (the broker keeps the session for `session_expiry_s`) and stop the network thread. Idempotent."""
@@ -330,6 +341,10 @@ class MqttClient:
             if not self._ready.is_set():
                 self._failure = BrokerRefused(f"subscribe to {TELEMETRY_SUBSCRIPTION}", reason_codes[0])
         self._ready.set()
+
+    def _on_publish(self, _client, _userdata, _mid, _reason_code, _properties):
+        with self._lock:
+            self._unacknowledged -= 1
 
     def _on_disconnect(self, _client, _userdata, _flags, reason_code, _properties):
         if self._client is not None:  # not our own close()

@@ -40,6 +40,11 @@ log = logging.getLogger(__name__)
 # also bounds a round: with 100,000 a service that fell behind ran rounds of 10 s and more, and each added its queue
 # to the RSS for good (the allocator keeps its peak), where the broker holds a waiting message in 0.3 kB.
 MAX_MQTT_BACKLOG = 20_000
+# Estimate messages (one per vehicle a second) the service lets wait for the broker before it drops new ones rather
+# than queue them (5 s of 1,000 vehicles). When the broker takes them slower than they come, paho would hold up to
+# max_queued_messages (100,000) of about 3 kB each in memory; in a soak where the service stalled its RSS grew by
+# 950 MB. The estimates stay stored and readable over HTTP; warnings and error reports are never dropped.
+MAX_UNACKNOWLEDGED_ESTIMATES = 5_000
 
 
 # The young generation's collection threshold (CPython's default: 700 allocations): the ingest path allocates about a
@@ -97,6 +102,7 @@ class CloudService:
             pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
             validity_s=settings.warning_validity_s, station_id=settings.station_id)
         self.mqtt_rejected = 0
+        self.estimate_messages_dropped = 0
         self.rate_limiter = RateLimiter(settings.rate_limit_samples_per_s, settings.rate_limit_burst_s)
 
     # ------------------------------------------------------------------------------------------------- lifecycle
@@ -187,8 +193,15 @@ class CloudService:
         self.mqtt.connect()
 
     def _publish(self, topic: str, payload: bytes) -> None:
-        if self.mqtt is not None:
-            self.mqtt.publish(topic, payload)
+        if self.mqtt is None:
+            return
+        if topic.rsplit("/", 1)[-1] == "friction" and self.mqtt.unacknowledged > MAX_UNACKNOWLEDGED_ESTIMATES:
+            self.estimate_messages_dropped += 1
+            if self.estimate_messages_dropped % 1000 == 1:
+                log.warning("%d estimate messages wait for the broker: dropped %d so far (the estimates are stored)",
+                            self.mqtt.unacknowledged, self.estimate_messages_dropped)
+            return
+        self.mqtt.publish(topic, payload)
 
     def _on_mqtt_telemetry(self, vehicle_id: str, payload: bytes, ack) -> None:
         """One MQTT message from a vehicle (the broker's ACL made sure it is that vehicle): parse, report rejections on
@@ -268,6 +281,8 @@ class CloudService:
             status["status"] = "degraded" if status["status"] == "ok" else status["status"]
         status["pipeline"] = {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
                               "mqtt_rejected": self.mqtt_rejected,
+                              "mqtt_unacknowledged": None if self.mqtt is None else self.mqtt.unacknowledged,
+                              "estimate_messages_dropped": self.estimate_messages_dropped,
                               "latency": self.pipeline.latency.recent(),
                               "latency_since_start": self.pipeline.latency.since_start()}
         status["memory_rss_mb"] = _rss_mb()

@@ -101,6 +101,14 @@ def test_the_broker_allows_max_inflight_messages_unacknowledged_and_the_client_c
         assert any("unacknowledged publishes" in r.message for r in caplog.records) == complaint
 
 
+def test_the_service_client_counts_its_publishes_until_the_broker_acknowledges_them(fleet):
+    with service(fleet) as svc:
+        for k in range(50):
+            svc.publish(WARNINGS_TOPIC, f"w{k}")
+        assert 0 < svc.unacknowledged <= 50
+        wait_until(lambda: svc.unacknowledged == 0, what="every PUBACK")
+
+
 def test_a_vehicle_publishing_under_another_id_is_refused_and_never_reaches_the_service(fleet):
     """MQTT 5: PUBACK 0x87 (PublishRefused). MQTT 3.1.1: a plain PUBACK, so the publisher believes it went through;
     either way the service never sees it (the sentinel that follows arrives alone)."""

@@ -13,11 +13,13 @@ import pytest
 from drives import patch_drive
 from fastapi.testclient import TestClient
 
+from roadgrip.cloud import service as service_module
 from roadgrip.cloud.api import create_app
 from roadgrip.cloud.broker import mosquitto_available
 from roadgrip.cloud.mqtt import PublishRefused, UserClient, errors_topic, friction_topic, telemetry_topic
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 
 ADMIN = ("admin", "admin-secret-for-tests-0123456789")
@@ -64,6 +66,22 @@ def test_a_run_published_over_mqtt_comes_back_as_estimates_everywhere(cloud):
     from_api = client.get(f"/v1/vehicles/{vehicle_id}/estimates", auth=(vehicle_id, secret)).json()["estimates"]
     assert [e["timestamp_ms"] for e in from_api] == sorted(e["timestamp_ms"] for e in estimates)
     assert len(service.storage.estimates(vehicle_id)) == len(samples)
+
+
+def test_estimate_messages_are_dropped_not_queued_while_the_broker_is_behind(cloud, monkeypatch):
+    service, client = cloud
+    monkeypatch.setattr(service_module, "MAX_UNACKNOWLEDGED_ESTIMATES", -1)  # as if the broker never caught up
+    vehicle_id, secret, url = register(client, "slow-car")
+    samples = wire_samples(patch_drive(0.2, 1), vehicle_id, START_MS)[:100]
+    with UserClient(url, vehicle_id, secret).connect() as car:
+        car.subscribe(friction_topic(vehicle_id))
+        car.publish(telemetry_topic(vehicle_id), json.dumps(samples))
+        settle(service)
+        time.sleep(2 * service.settings.friction_publish_interval_s)
+        assert car.messages.empty()
+    assert len(service.storage.estimates(vehicle_id)) == len(samples)  # stored all the same
+    health = client.get("/v1/health", auth=(vehicle_id, secret)).json()["pipeline"]
+    assert health["estimate_messages_dropped"] >= 1 and health["mqtt_unacknowledged"] == 0
 
 
 def test_a_vehicle_cannot_publish_under_another_id(cloud):
