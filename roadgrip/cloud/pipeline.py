@@ -13,13 +13,12 @@ One worker thread runs a loop every `flush_interval_s`. Each round it takes ever
    tools use). A gap longer than `max_gap_s` restarts the estimator (`reset`) rather than bridging it. A sample older
    than one already estimated (later than the reorder window allowed) is stored but not estimated: counted as `late`;
 4. writes the round's new telemetry and its estimates in one transaction, idempotent on (vehicle_id, timestamp_ms):
-   the database skips an older repeat, or one stored before a restart, and says which rows it inserted;
+   the database skips an older repeat, or one stored before a restart, and names the rows it had already;
 5. only then resolves the submitters' futures (HTTP answers, MQTT acks) with those counts: an acknowledged sample is
    stored, and counted as stored only when this submission stored it;
 6. adds the estimates to the friction map and the warning engine, stores warning changes, publishes warning DENMs at
    once and each vehicle's estimates as a JSON array on its friction topic, one message per
-   `friction_publish_interval_s` (its oldest estimate waits at most that long; a tenth of the messages of one per
-   round at the default 1 s and 0.1 s).
+   `friction_publish_interval_s` (its oldest estimate waits at most that long; was one per round with estimates).
 
 If the database is down (StorageUnavailable), the round is held and retried (backoff up to MAX_RETRY_S) before anything
 newer. HTTP submitters get StorageUnavailable at once (503: nothing acknowledged; their samples may still be written

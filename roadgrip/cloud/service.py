@@ -42,8 +42,9 @@ log = logging.getLogger(__name__)
 MAX_MQTT_BACKLOG = 20_000
 # Estimate messages (one per vehicle a second) the service lets wait for the broker before it drops new ones rather
 # than queue them (5 s of 1,000 vehicles). When the broker takes them slower than they come, paho would hold up to
-# max_queued_messages (100,000) of about 3 kB each in memory; in a soak where the service stalled its RSS grew by
-# 950 MB. The estimates stay stored and readable over HTTP; warnings and error reports are never dropped.
+# max_queued_messages (100,000) in memory, several kB each (ten estimates): run d of docs/RELIABILITY.md grew by 950 MB
+# in a stall; run e, with this bound, stayed level at 606 MB until its stall. The estimates stay stored and readable
+# over HTTP; warnings and error reports are never dropped.
 MAX_UNACKNOWLEDGED_ESTIMATES = 5_000
 
 
@@ -198,7 +199,8 @@ class CloudService:
         if topic.rsplit("/", 1)[-1] == "friction" and self.mqtt.unacknowledged > MAX_UNACKNOWLEDGED_ESTIMATES:
             self.estimate_messages_dropped += 1
             if self.estimate_messages_dropped % 1000 == 1:
-                log.warning("%d estimate messages wait for the broker: dropped %d so far (the estimates are stored)",
+                log.warning("%d publishes wait for the broker: dropped %d estimate messages so far (the estimates are "
+                            "stored)",
                             self.mqtt.unacknowledged, self.estimate_messages_dropped)
             return
         self.mqtt.publish(topic, payload)
