@@ -12,8 +12,8 @@ whose stored telemetry is exactly what they sent (the count, the first and the l
 the key (vehicle_id, timestamp_ms) is unique, so each sample is there once); the latency from a sample's timestamp to
 its stored estimate over the whole run (`latency_p50_ms`, `latency_p99_ms`: the service's histogram, 10 ms bins); every
 5 s a `timeline` point (stored, the service's queue, its RSS, its publishes waiting for the broker, the latency of the
-last 100,000 estimates); the memory over the run's second half (`memory_trend`); `sustained`: every acknowledgement within 5 % of the case's duration and
-everything stored within 2 s of the last one.
+last 100,000 estimates); the memory over the run's second half (`memory_trend`); `sustained`: every acknowledgement
+within 5 % of the case's duration and everything stored within 2 s of the last one.
 
 Samples are real telemetry: a few simulated runs of the random preset, cycled over the vehicles, each vehicle's stream
 looping its run with timestamps that keep counting.

@@ -15,8 +15,9 @@ Files in the working directory (all but logins.json and mosquitto.db rewritten b
 
 Configuration: one listener on 127.0.0.1 only; no anonymous clients; persistence on (saved every `AUTOSAVE_INTERVAL_S`
 and on a clean stop, so a crash loses at most that much of the queued messages); up to `max_queued_messages` QoS 1
-messages queued per client beyond those in flight, up to MAX_INFLIGHT_MESSAGES in flight. `user` is set to the user running Python: started as root, Mosquitto
-would otherwise drop to the `mosquitto` user, which may not reach the working directory.
+messages queued per client beyond those in flight, up to MAX_INFLIGHT_MESSAGES in flight. `user` is set to the user
+running Python: started as root, Mosquitto would otherwise drop to the `mosquitto` user, which may not reach the
+working directory.
 
 Access rules (the ACL file), with the topics of `roadgrip.cloud.mqtt`; nothing else is allowed to anyone:
 

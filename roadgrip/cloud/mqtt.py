@@ -58,6 +58,7 @@ QOS = 1
 DEFAULT_PORT = 1883
 RECONNECT_MIN_DELAY_S = 0.25  # doubling after each failed attempt, up to the max
 RECONNECT_MAX_DELAY_S = 10.0
+DEFAULT_MAX_INFLIGHT = 20  # own QoS 1 publishes unacknowledged at once: paho's default, and Mosquitto's Receive Maximum
 
 TelemetryHandler = Callable[[str, bytes, Callable[[], None]], None]
 
@@ -194,7 +195,8 @@ class MqttClient:
 
     def __init__(self, url: str, username: str, password: str, client_id: str,
                  on_telemetry: TelemetryHandler | None = None, *, session_expiry_s: int = 86_400,
-                 receive_maximum: int = 10_000, max_queued_messages: int = 100_000, max_inflight: int = 20,
+                 receive_maximum: int = 10_000, max_queued_messages: int = 100_000,
+                 max_inflight: int = DEFAULT_MAX_INFLIGHT,
                  keepalive_s: int = 30,
                  reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
                  reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S):

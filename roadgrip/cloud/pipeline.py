@@ -137,8 +137,8 @@ class Pipeline:
         self._seq = 0
         self._forget: set[str] = set()
         self._held: _Held | None = None
-        self._outbox: dict[str, list[dict]] = {}  # vehicle -> estimate messages not yet published
-        self._outbox_since: dict[str, float] = {}  # vehicle -> when its oldest one was queued (monotonic s)
+        # vehicle -> (when its oldest unpublished estimate was queued, monotonic s; the estimate messages)
+        self._outbox: dict[str, tuple[float, list[dict]]] = {}
         self.latency = LatencyRecorder()  # sample time to stored estimate
         self._failures = 0
         self._retry_at = 0.0
@@ -404,11 +404,7 @@ class Pipeline:
             self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
         now_s = time.monotonic()
         for row in estimates:
-            vehicle_id = row["vehicle_id"]
-            if vehicle_id not in self._outbox:
-                self._outbox[vehicle_id] = []
-                self._outbox_since[vehicle_id] = now_s
-            self._outbox[vehicle_id].append(_estimate_message(row))
+            self._outbox.setdefault(row["vehicle_id"], (now_s, []))[1].append(_estimate_message(row))
 
     def _publish_due(self, final: bool) -> None:
         """Publish the estimates of each vehicle whose oldest unpublished one waited friction_publish_interval_s
@@ -416,10 +412,9 @@ class Pipeline:
         if not self._outbox:
             return
         due_since = time.monotonic() - self.settings.friction_publish_interval_s
-        due = [v for v, since in self._outbox_since.items() if final or since <= due_since]
+        due = [v for v, (since, _) in self._outbox.items() if final or since <= due_since]
         for vehicle_id in due:
-            del self._outbox_since[vehicle_id]
-            self.publish(friction_topic(vehicle_id), orjson.dumps(self._outbox.pop(vehicle_id)))
+            self.publish(friction_topic(vehicle_id), orjson.dumps(self._outbox.pop(vehicle_id)[1]))
 
 
 ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",

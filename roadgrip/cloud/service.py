@@ -21,7 +21,7 @@ from typing import Self
 from roadgrip.cloud.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
 from roadgrip.cloud.friction_map import FrictionMap
-from roadgrip.cloud.mqtt import MqttClient, errors_topic
+from roadgrip.cloud.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic
 from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.ratelimit import RateLimiter
 from roadgrip.cloud.settings import Settings
@@ -49,7 +49,8 @@ MAX_UNACKNOWLEDGED_ESTIMATES = 5_000
 
 
 # The young generation's collection threshold (CPython's default: 700 allocations): the ingest path allocates about a
-# dozen containers a sample (dicts, tuples, futures), so at 10,000 samples/s the default collects some 170 times a second.
+# dozen containers a sample (dicts, tuples, futures), so at 10,000 samples/s the default collects some 170 times a
+# second.
 SERVING_GC_THRESHOLD = 50_000
 
 
@@ -187,10 +188,10 @@ class CloudService:
                 raise RuntimeError("mqtt is a broker URL: set mqtt_username and mqtt_password for the service's login")
             self.mqtt_url = mode
             username, password = s.mqtt_username, s.mqtt_password
-        # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, paho's default of 20 (Mosquitto's too)
+        # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, Mosquitto's default
         self.mqtt = MqttClient(self.mqtt_url, username, password, client_id="roadgrip-cloud",
                                on_telemetry=self._on_mqtt_telemetry,
-                               max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else 20)
+                               max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT)
         self.mqtt.connect()
 
     def _publish(self, topic: str, payload: bytes) -> None:
@@ -199,9 +200,8 @@ class CloudService:
         if topic.rsplit("/", 1)[-1] == "friction" and self.mqtt.unacknowledged > MAX_UNACKNOWLEDGED_ESTIMATES:
             self.estimate_messages_dropped += 1
             if self.estimate_messages_dropped % 1000 == 1:
-                log.warning("%d publishes wait for the broker: dropped %d estimate messages so far (the estimates are "
-                            "stored)",
-                            self.mqtt.unacknowledged, self.estimate_messages_dropped)
+                log.warning("%d publishes wait for the broker: dropped %d estimate messages so far (the estimates "
+                            "are stored)", self.mqtt.unacknowledged, self.estimate_messages_dropped)
             return
         self.mqtt.publish(topic, payload)
 

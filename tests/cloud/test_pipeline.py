@@ -1,5 +1,5 @@
-"""The streaming pipeline on its own (real SQLite storage, the EKF, the map and the warning engine): what it publishes on
-the vehicles' friction topics, and how often."""
+"""The streaming pipeline on its own (real SQLite storage, the EKF, the map and the warning engine): what it publishes
+on the vehicles' friction topics, and how often."""
 
 from __future__ import annotations
 
