@@ -414,7 +414,8 @@ def serve(
     import uvicorn
 
     from roadgrip.cloud.api import create_app
-    from roadgrip.cloud.service import CloudService, tune_gc_for_serving
+    from roadgrip.cloud.process import tune_gc_for_serving
+    from roadgrip.cloud.service import CloudService
     from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
@@ -463,6 +464,8 @@ def bench_ingest_command(
     http_batch: int = typer.Option(10, min=1, help="samples per HTTP request (10: a terminal posting once a second)"),
     mqtt_batch: int = typer.Option(1, min=1, help="samples per MQTT message (1: every 100 ms)"),
     database_url: str | None = typer.Option(None, help="PostgreSQL URL (default: SQLite in a scratch folder)"),
+    ingest_processes: int = typer.Option(0, min=0, help="the service's ingest processes (0: ingest in the service's "
+                                                        "own process; docs/CLOUD.md)"),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
 ):
     """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
@@ -487,7 +490,8 @@ def bench_ingest_command(
         bodies = sample_bodies()
     rows = []
     for t in transport:
-        case = IngestCase(t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch)
+        case = IngestCase(t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch,
+                          ingest_processes=ingest_processes)
         with console.status(f"{t}: {vehicles} vehicles for {seconds:.0f} s..."):
             rows.append(run_case(case, bodies, database_url, progress=lambda m: None))
     ceilings = []

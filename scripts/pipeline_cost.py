@@ -1,5 +1,5 @@
 """CPU per sample of the cloud's ingest path over a long stream, in one process, without a broker or a network: every
-message goes through the service's MQTT handler (`CloudService._on_mqtt_telemetry`: parse, rate limit, queue), then the
+message goes through the service's MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/ingest.py: parse, rate limit, queue), then the
 pipeline (estimate, store in SQLite, map, warnings) as fast as it goes. A cost that grows with the stream's length shows
 here within minutes, where the 10-minute soak of `roadgrip bench ingest` would only show the service falling behind.
 
@@ -14,7 +14,8 @@ import tempfile
 import time
 
 from roadgrip.cloud.bench import _message, sample_bodies
-from roadgrip.cloud.service import CloudService, _rss_mb, tune_gc_for_serving
+from roadgrip.cloud.process import rss_mb, tune_gc_for_serving
+from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import load_settings
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -45,7 +46,7 @@ def main():
                 run = bodies[i % len(bodies)]
                 lines = [_message(vehicle, base_ms + (10 * second + j) * 100, run[(10 * second + j) % len(run)])
                          for j in range(10)]
-                service._on_mqtt_telemetry(vehicle, ("[" + ",".join(lines) + "]").encode(), ack)
+                service.ingest.mqtt_message(vehicle, ("[" + ",".join(lines) + "]").encode(), ack)
                 sent += 1
             while acked[0] < sent - 2 * args.vehicles:  # at most two seconds of telemetry in flight
                 time.sleep(0.005)
@@ -53,8 +54,8 @@ def main():
                 samples = REPORT_EVERY_S * args.vehicles * 10
                 now_wall, now_cpu = time.perf_counter(), time.process_time()
                 print(f"{second + 1:5d} s of telemetry: {samples / (now_wall - wall):7,.0f} samples/s, "
-                      f"{1e6 * (now_cpu - cpu) / samples:5.1f} us CPU a sample, RSS {_rss_mb():,.0f} MB, "
-                      f"{service.pipeline.counters.estimates:,} estimates", flush=True)
+                      f"{1e6 * (now_cpu - cpu) / samples:5.1f} us CPU a sample, RSS {rss_mb():,.0f} MB, "
+                      f"{service.ingest.pipeline.counters.estimates:,} estimates", flush=True)
                 wall, cpu = now_wall, now_cpu
         service.stop()
 

@@ -45,8 +45,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from roadgrip.cloud.auth import AuthError
 from roadgrip.cloud.dashboard import mount_dashboard
 from roadgrip.cloud.exports import datex2_xml
-from roadgrip.cloud.ratelimit import RateLimiter
+from roadgrip.cloud.ingest import RateLimited
 from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.shards import IngestUnavailable
 from roadgrip.cloud.storage import Credential, StorageUnavailable
 from roadgrip.cloud.wire import PayloadError, parse_payload
 from roadgrip.data.telemetry import VEHICLE_ID_RE
@@ -171,10 +172,6 @@ def create_app(service: CloudService) -> FastAPI:
                   description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
                   responses=_errors(401, 403, 503))  # every route authenticates and reads storage
     app.state.service = service
-    # The service's limiter when it has one (its MQTT ingest draws on the same buckets), else one for HTTP alone.
-    limiter = getattr(service, "rate_limiter", None)
-    if limiter is None:
-        limiter = RateLimiter(service.settings.rate_limit_samples_per_s, service.settings.rate_limit_burst_s)
 
     def require(caller: Credential, *roles: str) -> None:
         if caller.role not in roles:
@@ -280,18 +277,19 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
         rejected = [_escaped(e.to_dict()) for e in errors]
         received = len(samples) + len(errors)
-        decision = limiter.allow(caller.vehicle_id, received, time.monotonic())
-        if not decision.allowed:
-            if decision.retry_after_s == math.inf:
-                raise HTTPException(413, decision.reason)
-            raise HTTPException(429, decision.reason, headers={"Retry-After": str(math.ceil(decision.retry_after_s))})
+        try:  # the rate limit first (all received count), then the samples stored
+            result = await asyncio.wrap_future(service.ingest.submit(caller.vehicle_id, samples, received))
+        except RateLimited as exc:
+            if exc.retry_after_s == math.inf:
+                raise HTTPException(413, exc.reason) from None
+            raise HTTPException(429, exc.reason, headers={"Retry-After": str(math.ceil(exc.retry_after_s))}) from None
+        except StorageUnavailable as exc:
+            raise HTTPException(503, f"storage unavailable, nothing was stored: {exc}") from None
+        except IngestUnavailable as exc:
+            raise HTTPException(503, str(exc)) from None
         if not samples:
             return AsciiJSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
                                       "duplicates": 0, "rejected": rejected}, status_code=422)
-        try:
-            result = await asyncio.wrap_future(service.pipeline.submit(caller.vehicle_id, samples))
-        except StorageUnavailable as exc:
-            raise HTTPException(503, f"storage unavailable, nothing was stored: {exc}") from None
         return IngestAnswer(received=received, accepted=len(samples), stored=result.stored,
                             duplicates=result.duplicates, rejected=rejected)
 
@@ -309,13 +307,13 @@ def create_app(service: CloudService) -> FastAPI:
     @app.get("/v1/map")
     def friction_map(caller: Caller) -> dict:
         require(caller, "admin", "reader")
-        return service.friction_map.to_geojson(service.pipeline.now_ms())
+        return service.friction_map.to_geojson(service.fanout.now_ms())
 
     @app.get("/v1/map/datex2", response_class=Response,
              responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}})
     def datex2(caller: Caller) -> Response:
         require(caller, "admin", "reader")
-        now = service.pipeline.now_ms()
+        now = service.fanout.now_ms()
         return Response(datex2_xml(service.friction_map.cells(now), now), media_type="application/xml")
 
     @app.get("/v1/warnings")

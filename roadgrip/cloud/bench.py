@@ -53,6 +53,7 @@ class IngestCase:
     seconds: float
     batch: int            # samples per message
     workers: int = 2      # load-generator processes (MQTT: at least vehicles / MQTT_CLIENTS_PER_PROCESS)
+    ingest_processes: int = 0  # the service's setting (roadgrip/cloud/shards.py); 0: ingest in its own process
 
     def __post_init__(self):
         if self.transport == "mqtt":
@@ -184,13 +185,13 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
 class _Service:
     """`roadgrip serve` in its own process, in a scratch folder."""
 
-    def __init__(self, workdir: Path, mqtt: bool, database_url: str | None):
+    def __init__(self, workdir: Path, mqtt: bool, database_url: str | None, ingest_processes: int = 0):
         self.workdir = workdir
         self.admin = ("admin", secrets.token_urlsafe(24))
         self.port = free_port()
         env = {**os.environ, "ROADGRIP_ADMIN_SECRET": self.admin[1], "ROADGRIP_DATA_DIR": str(workdir),
                "ROADGRIP_PORT": str(self.port), "ROADGRIP_MQTT": "managed" if mqtt else "off",
-               "ROADGRIP_MAP_CLOCK": "data"}
+               "ROADGRIP_MAP_CLOCK": "data", "ROADGRIP_INGEST_PROCESSES": str(ingest_processes)}
         if database_url:
             env["ROADGRIP_DATABASE_URL"] = database_url
         self.log = open(workdir / "serve.log", "w")  # noqa: SIM115 (the server's output for its whole life)
@@ -210,11 +211,16 @@ class _Service:
                 time.sleep(0.3)
 
     def cpu_s(self) -> dict[str, float]:
-        """CPU seconds used so far by the service and by its broker (a child process), from /proc."""
+        """CPU seconds used so far by the service (with its ingest processes) and by its broker (a child process
+        too), from /proc."""
         used = {"service": _cpu_s(self.process.pid), "broker": 0.0}
         children = Path(f"/proc/{self.process.pid}/task/{self.process.pid}/children")
-        if children.exists():
-            used["broker"] = sum(_cpu_s(int(pid)) for pid in children.read_text().split())
+        for pid in children.read_text().split() if children.exists() else []:
+            try:
+                broker = Path(f"/proc/{pid}/comm").read_text().strip() == "mosquitto"
+            except OSError:
+                continue
+            used["broker" if broker else "service"] += _cpu_s(int(pid))
         return used
 
     def health(self) -> dict:
@@ -245,7 +251,7 @@ def _cpu_s(pid: int) -> float:
 
 def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None = None, progress=print) -> dict:
     with tempfile.TemporaryDirectory(prefix="roadgrip-bench-") as tmp:
-        service = _Service(Path(tmp), case.transport == "mqtt", database_url)
+        service = _Service(Path(tmp), case.transport == "mqtt", database_url, case.ingest_processes)
         try:
             vehicles, mqtt_url = service.register(case.vehicles)
             target = {"http_url": f"http://127.0.0.1:{service.port}", "mqtt_url": mqtt_url}
@@ -287,7 +293,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
     expected = (per_vehicle, load["base_ms"], load["base_ms"] + (per_vehicle - 1) * SAMPLE_PERIOD_MS)
     since_start = pipeline["latency_since_start"]
     return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch, "seconds": case.seconds,
-            "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS, "sent": load["sent"],
+            "ingest_processes": case.ingest_processes, "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS, "sent": load["sent"],
             "acked_s": round(load["acked_s"], 2), "acked_per_s": load["acknowledged"] / load["acked_s"],
             "acknowledged": load["acknowledged"], "refused": load["refused"], "stored_rows": counts["telemetry"],
             "estimate_rows": counts["estimates"], "lost": load["acknowledged"] - counts["telemetry"],
@@ -378,6 +384,7 @@ def format_ingest(rows: list[dict]):
 
     lines = [
         ("samples per message (MQTT) or request (HTTP)", lambda r: str(r["batch"])),
+        ("ingest processes (0: in the service's)", lambda r: str(r.get("ingest_processes", 0))),
         ("offered, samples/s", lambda r: f"{r['offered_per_s']:,.0f}"),
         ("acknowledged, samples/s", lambda r: f"{r['acked_per_s']:,.0f}"),
         ("sent / acknowledged / refused", lambda r: f"{r['sent']:,} / {r['acknowledged']:,} / {r['refused']:,}"),
@@ -386,7 +393,7 @@ def format_ingest(rows: list[dict]):
         ("stored end to end, samples/s", lambda r: f"{r['stored_per_s']:,.0f}"),
         ("stored after the last ack, s", lambda r: f"{r['drain_s']:.1f}"),
         ("latency to stored estimate p50 / p99, ms", latency),
-        ("service RSS at half-time / end, MB",
+        ("service RSS (with its ingest processes) at half-time / end, MB",
          lambda r: ("-" if r["rss_mb_half"] is None else f"{r['rss_mb_half']:,.0f}") + f" / {r['rss_mb_end']:,.0f}"),
         ("RSS growth over the second half, MB/min", lambda r: "-" if r["rss_growth_mb_per_min"] is None
          else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")),

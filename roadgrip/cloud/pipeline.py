@@ -16,9 +16,9 @@ One worker thread runs a loop every `flush_interval_s`. Each round it takes ever
    the database skips an older repeat, or one stored before a restart, and names the rows it had already;
 5. only then resolves the submitters' futures (HTTP answers, MQTT acks) with those counts: an acknowledged sample is
    stored, and counted as stored only when this submission stored it;
-6. adds the estimates to the friction map and the warning engine, stores warning changes, publishes warning DENMs at
-   once and each vehicle's estimates as a JSON array on its friction topic, one message per
-   `friction_publish_interval_s` (its oldest estimate waits at most that long; was one per round with estimates).
+6. hands the round's estimates to what follows (`StoredSink`): in the service's process the fan-out
+   (roadgrip/cloud/fanout.py: the map, warnings, publishing); in an ingest process, the channel to it
+   (roadgrip/cloud/shards.py).
 
 If the database is down (StorageUnavailable), the round is held and retried (backoff up to MAX_RETRY_S) before anything
 newer. HTTP submitters get StorageUnavailable at once (503: nothing acknowledged; their samples may still be written
@@ -29,23 +29,18 @@ which bounds what the service holds. Nothing acknowledged is lost.
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import logging
 import threading
 import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Protocol
 
-import numpy as np
-import orjson
+import h3
 
-from roadgrip.cloud.friction_map import FrictionMap
-from roadgrip.cloud.latency import LatencyRecorder
-from roadgrip.cloud.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable
-from roadgrip.cloud.warning_engine import WarningEngine
 from roadgrip.estimators.base import Estimator
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
@@ -57,6 +52,16 @@ log = logging.getLogger(__name__)
 DEDUP_HORIZON_MS = 30_000
 SLOW_ROUND_S = 1.0  # a round slower than this is counted (health: pipeline.slow_rounds): the service stalled
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
+
+
+class StoredSink(Protocol):
+    """Where a pipeline's stored rounds go (roadgrip/cloud/fanout.py `Fanout`, or an ingest process's channel)."""
+
+    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
+        """A round was stored at `stored_ms` (ms since epoch) with these estimates; its newest sample's timestamp."""
+
+    def tick(self, final: bool) -> None:
+        """Called after every round (`final`: the last one, the pipeline stops)."""
 
 
 @dataclass(frozen=True)
@@ -110,21 +115,17 @@ class PipelineCounters:
     # seconds spent since start, by part of the round: where a stall went
     estimate_s: float = 0.0  # reorder buffers and the estimator
     write_s: float = 0.0     # the round's transaction (telemetry and estimates)
-    fanout_s: float = 0.0    # map, warnings (and their transaction), publishing
 
     def to_dict(self) -> dict:
         return dict(vars(self))
 
 
 class Pipeline:
-    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, friction_map: FrictionMap,
-                 warning_engine: WarningEngine, publish=None):
+    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, sink: StoredSink):
         self.storage = storage
         self.settings = settings
         self.estimator = estimator
-        self.friction_map = friction_map
-        self.warning_engine = warning_engine
-        self.publish = publish  # callable(topic, payload bytes) or None
+        self.sink = sink
         self.counters = PipelineCounters()
         self._inbox: list[_Submission] = []
         self._queued = 0
@@ -137,9 +138,6 @@ class Pipeline:
         self._seq = 0
         self._forget: set[str] = set()
         self._held: _Held | None = None
-        # vehicle -> (when its oldest unpublished estimate was queued, monotonic s; the estimate messages)
-        self._outbox: dict[str, tuple[float, list[dict]]] = {}
-        self.latency = LatencyRecorder()  # sample time to stored estimate
         self._failures = 0
         self._retry_at = 0.0
         self._thread: threading.Thread | None = None
@@ -184,11 +182,6 @@ class Pipeline:
         with self._lock:
             self._forget.add(vehicle_id)
 
-    def now_ms(self) -> int:
-        if self.settings.map_clock == "data":
-            return self._newest_data_ms
-        return int(time.time() * 1000)
-
     # ------------------------------------------------------------------------------------------------- the loop
     def _run(self) -> None:
         while True:
@@ -196,7 +189,7 @@ class Pipeline:
             started = time.perf_counter()
             try:
                 self.run_round(final=stopping)
-                self._publish_due(final=stopping)
+                self.sink.tick(final=stopping)
             except Exception:  # a bug must not kill the service's only worker: log it and go on
                 log.exception("pipeline round failed")
             took = self.counters.last_round_s = time.perf_counter() - started
@@ -306,14 +299,9 @@ class Pipeline:
             self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in held.rows))
         for vehicle_id in held.touched & self._streams.keys():  # a vehicle forgotten meanwhile starts afresh
             self._trim(self._streams[vehicle_id])
-        if held.estimates:
-            self.counters.estimates += len(held.estimates)
-            stored_ms = time.time() * 1000.0
-            self.latency.add(stored_ms - np.fromiter((e["timestamp_ms"] for e in held.estimates), float,
-                                                     len(held.estimates)))
-            started = time.perf_counter()
-            self._after_store(held.estimates)
-            self.counters.fanout_s += time.perf_counter() - started
+        self.counters.estimates += len(held.estimates)
+        if held.rows or held.estimates:
+            self.sink.stored(held.estimates, time.time() * 1000.0, self._newest_data_ms)
         return True
 
     def _refuse_or_keep(self, inbox: list[_Submission], exc: Exception) -> None:
@@ -358,6 +346,7 @@ class Pipeline:
         """Estimate what the reorder buffers release; the samples behind what was estimated go to `late`."""
         window_ms = self.settings.reorder_window_s * 1000.0
         gap_ms = self.settings.max_gap_s * 1000.0
+        resolution = self.settings.h3_resolution
         estimates: list[dict] = []
         for stream in self._streams.values():
             if not stream.pending:
@@ -380,46 +369,6 @@ class Pipeline:
                 row = estimate.to_dict()
                 lat, lon = sample.get("latitude_deg"), sample.get("longitude_deg")
                 row["latitude_deg"], row["longitude_deg"] = lat, lon
-                row["h3_cell"] = None if lat is None or lon is None else self.friction_map.cell_of(lat, lon)
+                row["h3_cell"] = None if lat is None or lon is None else h3.latlng_to_cell(lat, lon, resolution)
                 estimates.append(row)
         return estimates
-
-    # ------------------------------------------------------------------------------------------------- fan-out
-    def _after_store(self, estimates: list[dict]) -> None:
-        now_ms = self.now_ms()
-        self.friction_map.add(estimates, now_ms)
-        events = self.warning_engine.update(estimates, now_ms)
-        denms = [event.to_denm() for event in events]
-        # the DENM for readers, the event itself to restore the engine after a restart; one transaction a round
-        self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
-                                    "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
-                                    "message": {"denm": d, "event": dataclasses.asdict(e)}}
-                                   for e, d in zip(events, denms)])
-        for event in events:  # raised and ended at WARNING; a refresh (every low pass in a warned cell) at DEBUG
-            log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
-                    "warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
-        if self.publish is None:
-            return
-        for denm in denms:
-            self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
-        now_s = time.monotonic()
-        for row in estimates:
-            self._outbox.setdefault(row["vehicle_id"], (now_s, []))[1].append(_estimate_message(row))
-
-    def _publish_due(self, final: bool) -> None:
-        """Publish the estimates of each vehicle whose oldest unpublished one waited friction_publish_interval_s
-        (all of them when `final`)."""
-        if not self._outbox:
-            return
-        due_since = time.monotonic() - self.settings.friction_publish_interval_s
-        due = [v for v, (since, _) in self._outbox.items() if final or since <= due_since]
-        for vehicle_id in due:
-            self.publish(friction_topic(vehicle_id), orjson.dumps(self._outbox.pop(vehicle_id)[1]))
-
-
-ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",
-                   "latitude_deg", "longitude_deg", "h3_cell")
-
-
-def _estimate_message(row: dict) -> dict:
-    return {k: row[k] for k in ESTIMATE_FIELDS}

@@ -48,6 +48,9 @@ class Settings(BaseSettings):
     reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
                                                            "arrivals back in order before estimation")
     flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
+    ingest_processes: int = Field(0, ge=0, le=64, description="processes that parse, estimate and store the "
+                                                          "vehicles' telemetry, each for its share of the vehicles "
+                                                          "(0: the service's own process; roadgrip/cloud/shards.py)")
     friction_publish_interval_s: float = Field(1.0, ge=0, le=60, description="each vehicle's estimates are published "
                                                                          "together on its friction topic at most "
                                                                          "this often (0: every round)")

@@ -68,7 +68,7 @@ def settle(service: CloudService, timeout_s: float = 30.0) -> None:
     """Wait until the pipeline has stored everything and released its reorder windows."""
     deadline = time.time() + timeout_s
     time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
-    while service.pipeline.backlog and time.time() < deadline:
+    while service.ingest.backlog and time.time() < deadline:
         time.sleep(0.05)
     time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
 

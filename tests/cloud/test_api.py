@@ -122,7 +122,7 @@ def test_a_repeat_older_than_the_pipelines_memory_is_a_duplicate_not_stored_nor_
         again = post(client, auth, samples[:30], chunk=30)[0]  # 90 s old: the pipeline forgot it, the database not
         settle(service)
         assert (again["stored"], again["duplicates"]) == (0, 30)
-        counters = service.pipeline.counters
+        counters = service.ingest.pipeline.counters
         assert (counters.stored, counters.duplicates, counters.late) == (len(samples), 30, 0)
         assert service.storage.counts()["telemetry"] == len(samples)
 
@@ -144,7 +144,7 @@ def test_out_of_order_samples_inside_the_window_give_the_in_order_estimates(clou
             and time.time() < deadline:
         time.sleep(0.05)
     np.testing.assert_allclose([e["mu"] for e in got], offline["mu"].to_numpy(), atol=1e-9)
-    assert service.pipeline.counters.late == 0
+    assert service.ingest.pipeline.counters.late == 0
 
 
 def test_a_gap_restarts_the_estimator_and_a_late_sample_is_stored_not_estimated(cloud):
@@ -155,10 +155,10 @@ def test_a_gap_restarts_the_estimator_and_a_late_sample_is_stored_not_estimated(
     post(client, auth, before)
     post(client, auth, after)
     settle(service)
-    assert service.pipeline.counters.restarts == 1
+    assert service.ingest.pipeline.counters.restarts == 1
     post(client, auth, [samples[55]], chunk=1)  # arrives seconds late, behind estimated samples
     settle(service)
-    assert service.pipeline.counters.late == 1
+    assert service.ingest.pipeline.counters.late == 1
     assert service.storage.counts()["telemetry"] == 91
 
 

@@ -81,7 +81,7 @@ def _settle(service: CloudService) -> None:
     """Let the pipeline release what its reorder window still holds."""
     time.sleep(service.settings.reorder_window_s + 0.1)
     deadline = time.monotonic() + 10
-    while service.pipeline.backlog and time.monotonic() < deadline:
+    while service.ingest.backlog and time.monotonic() < deadline:
         time.sleep(0.02)
     time.sleep(3 * service.settings.flush_interval_s)
 

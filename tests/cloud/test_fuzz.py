@@ -5,7 +5,7 @@ tested on SQLite and PostgreSQL elsewhere (test_storage.py, test_api.py), hostil
 | --- | --- | --- |
 | schemathesis: each operation of /openapi.json, positive and negative data, as the admin, a vehicle, a reader and nobody | SCHEMA_EXAMPLES x 88 = 5,280 | never a 5xx; status codes, content types, bodies and headers as the OpenAPI declares them; no 2xx without valid credentials (also probed by removing or spoiling them); data outside the schema refused |
 | HTTP ingest: any JSON, valid samples with one field set to any JSON, any bytes, NDJSON with junk lines | INGEST_EXAMPLES x 4 = 2,400 | never a 5xx; each rejection has its index, field or null and a reason; the rows stored are exactly the answer's `stored`; every valid sample is stored as sent |
-| MQTT handler (`CloudService._on_mqtt_telemetry`): any JSON, valid samples with one field mutated, any bytes | MQTT_EXAMPLES x 3 = 2,400 | never raises; each message is acknowledged exactly once, at once when nothing in it is valid, else after its samples are stored; rejections published on the vehicle's error topic with reasons; valid samples stored |
+| MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/ingest.py): any JSON, valid samples with one field mutated, any bytes | MQTT_EXAMPLES x 3 = 2,400 | never raises; each message is acknowledged exactly once, at once when nothing in it is valid, else after its samples are stored; rejections published on the vehicle's error topic with reasons; valid samples stored |
 
 10,080 cases in all; about 2.5 min on two cores (`pytest tests/cloud/test_fuzz.py --hypothesis-show-statistics`
 prints the cases each test ran). The ingest tests run with the rate limit off: they post thousands of samples for one
@@ -338,7 +338,7 @@ def mqtt_handler(ingest):
     """Call the service's MQTT telemetry handler as paho would, recording what it submits to the pipeline and what it
     publishes. Yields handle(payload) -> (ack, submitted samples, published error reports)."""
     service = ingest[0]
-    submit, publish = service.pipeline.submit, service._publish
+    submit, publish = service.ingest.pipeline.submit, service._publish
     submitted, published = [], []
 
     def recording_submit(vehicle_id, samples, **options):
@@ -346,7 +346,7 @@ def mqtt_handler(ingest):
         submitted.append((vehicle_id, samples, future))
         return future
 
-    service.pipeline.submit = recording_submit
+    service.ingest.pipeline.submit = recording_submit
     service._publish = lambda topic, payload: published.append((topic, payload))
 
     def handle(payload: bytes) -> tuple[Ack, list[dict], list[dict]]:
@@ -354,7 +354,7 @@ def mqtt_handler(ingest):
         published.clear()
         ack = Ack(service)
         before = rows(service)
-        service._on_mqtt_telemetry(MQTT_VEHICLE, payload, ack)  # must not raise
+        service.ingest.mqtt_message(MQTT_VEHICLE, payload, ack)  # must not raise
         reports = []
         for topic, body in published:
             assert topic == errors_topic(MQTT_VEHICLE)
@@ -382,7 +382,7 @@ def mqtt_handler(ingest):
         return ack, samples, reports
 
     yield handle
-    service.pipeline.submit, service._publish = submit, publish
+    service.ingest.pipeline.submit, service._publish = submit, publish
 
 
 @fuzz(MQTT_EXAMPLES)

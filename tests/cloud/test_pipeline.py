@@ -1,5 +1,5 @@
-"""The streaming pipeline on its own (real SQLite storage, the EKF, the map and the warning engine): what it publishes
-on the vehicles' friction topics, and how often."""
+"""The streaming pipeline on its own with the fan-out (real SQLite storage, the EKF, the map and the warning engine):
+what it publishes on the vehicles' friction topics, and how often."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import time
 import pytest
 from drives import patch_drive
 
+from roadgrip.cloud.fanout import Fanout
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import friction_topic
 from roadgrip.cloud.pipeline import Pipeline
@@ -30,8 +31,9 @@ def make_pipeline(tmp_path):
                             map_clock="data", **settings)
         published: list[tuple[str, list[dict]]] = []
         storage = open_storage(settings.storage_url)
-        pipeline = Pipeline(storage, settings, load_estimator("ekf"), FrictionMap(), WarningEngine(),
-                            publish=lambda topic, payload: published.append((topic, json.loads(payload))))
+        fanout = Fanout(storage, settings, FrictionMap(), WarningEngine(),
+                        publish=lambda topic, payload: published.append((topic, json.loads(payload))))
+        pipeline = Pipeline(storage, settings, load_estimator("ekf"), fanout)
         made.append((pipeline, storage))
         pipeline.start()
         return pipeline, published

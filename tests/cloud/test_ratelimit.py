@@ -185,14 +185,14 @@ def test_a_vehicle_far_above_the_rate_gets_429_and_another_vehicle_is_unaffected
 
 
 def test_over_mqtt_a_refused_message_is_reported_and_acknowledged_and_http_and_mqtt_share_the_bucket(cloud):
-    """Needs CloudService.rate_limiter and the check in CloudService._on_mqtt_telemetry."""
+    """One limiter (Ingest.rate_limiter) for HTTP and MQTT, checked in Ingest.submit."""
     service, client = cloud
     vehicle = _register(client, "mqtt-car")
     samples = wire_samples(patch_drive(0.9, 3), "mqtt-car", START_MS)
     assert client.post("/v1/telemetry", json=samples[:50], auth=vehicle).status_code == 200  # the whole burst
     published, acks = [], []
     service._publish = lambda topic, payload: published.append((topic, json.loads(payload)))
-    service._on_mqtt_telemetry("mqtt-car", json.dumps(samples[50:60]).encode(), lambda: acks.append("ack"))
+    service.ingest.mqtt_message("mqtt-car", json.dumps(samples[50:60]).encode(), lambda: acks.append("ack"))
     assert acks == ["ack"]  # at once: a refused message must not come back from the broker
     ((topic, report),) = published
     assert topic == errors_topic("mqtt-car") and report["vehicle_id"] == "mqtt-car"
