@@ -414,7 +414,7 @@ def serve(
     import uvicorn
 
     from roadgrip.cloud.api import create_app
-    from roadgrip.cloud.process import tune_gc_for_serving
+    from roadgrip.cloud.process import tune_memory_for_serving
     from roadgrip.cloud.service import CloudService
     from roadgrip.cloud.settings import load_settings
 
@@ -426,7 +426,7 @@ def serve(
     signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
     service = CloudService(settings)
     service.start()
-    tune_gc_for_serving()
+    tune_memory_for_serving()
     try:
         console.print(f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
                       f"mqtt {service.mqtt_url or 'off'}")

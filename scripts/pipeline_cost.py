@@ -14,7 +14,7 @@ import tempfile
 import time
 
 from roadgrip.cloud.bench import _message, sample_bodies
-from roadgrip.cloud.process import rss_mb, tune_gc_for_serving
+from roadgrip.cloud.process import rss_mb, tune_memory_for_serving
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import load_settings
 from roadgrip.vehicle.params import PAPER_SUV
@@ -34,7 +34,7 @@ def main():
         service.start()
         ids = [f"cost-{i:05d}" for i in range(args.vehicles)]
         service.register_vehicles([(v, PAPER_SUV) for v in ids])
-        tune_gc_for_serving()  # as `roadgrip serve` does
+        tune_memory_for_serving()  # as `roadgrip serve` does
         base_ms = int(time.time() * 1000) - args.seconds * 1000
         acked, sent = [0], 0
 

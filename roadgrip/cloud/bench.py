@@ -264,6 +264,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                 h = service.health()
                 timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
                                  "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
+                                 "ingest_rss_mb": [p["rss_mb"] for p in h["pipeline"].get("ingest_processes", [])],
                                  "slow_rounds": h["pipeline"]["slow_rounds"],
                                  "mqtt_unacknowledged": h["pipeline"]["mqtt_unacknowledged"],
                                  **{k: round(h["pipeline"][k], 2) for k in ("estimate_s", "write_s", "fanout_s")},

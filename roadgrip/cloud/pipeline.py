@@ -1,5 +1,5 @@
-"""The per-vehicle streaming pipeline: validated samples in; telemetry and estimates stored, the map and warnings
-updated, estimates and warnings published.
+"""The per-vehicle streaming pipeline: validated samples in; telemetry and estimates stored, then handed on to the
+fan-out (map, warnings, publishing).
 
 One worker thread runs a loop every `flush_interval_s`. Each round it takes everything submitted since the last round and:
 

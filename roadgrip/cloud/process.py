@@ -1,9 +1,16 @@
-"""Set-up shared by the processes that serve (`roadgrip serve`, and each of its ingest processes): garbage collection
-tuned for the ingest path, the estimator warmed up before traffic, the resident memory as health reports it."""
+"""Set-up shared by the processes that serve (`roadgrip serve`, and each of its ingest processes): memory management
+tuned for the ingest path (garbage collection, free memory handed back), the estimator warmed up before traffic, the
+resident memory as health reports it."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import gc
+import logging
+import threading
+import time
 from pathlib import Path
 
 from roadgrip.vehicle.params import PAPER_SUV
@@ -12,17 +19,52 @@ from roadgrip.vehicle.params import PAPER_SUV
 # dozen containers a sample (dicts, tuples, futures), so at 10,000 samples/s the default collects some 170 times a
 # second.
 SERVING_GC_THRESHOLD = 50_000
+# How often a serving process hands the C allocator's free memory back to the system (glibc's malloc_trim). A sample's
+# dict (17 keys) keeps its table in malloc's heap, not in Python's arenas; after a queue of 100,000 such dicts is freed
+# the heap keeps the pages (+58 MB of RSS in `python scripts/malloc_trim.py`) until malloc_trim(0) returns them
+# (5 ms). So the service's RSS after a stall (a queue that filled, a long round) comes back down instead of staying at
+# the stall's peak for good: the soak's memory steps of docs/RELIABILITY.md.
+TRIM_INTERVAL_S = 10.0
+
+log = logging.getLogger(__name__)
 
 
-def tune_gc_for_serving() -> None:
-    """For a process that serves, once it has started: move what exists now (modules, numba and torch, the settings,
-    the restored map) out of the collector's sight (`gc.freeze`) and collect the young generation every
-    SERVING_GC_THRESHOLD allocations.
-    Collection took 2.4 s instead of 7.4 s over the 40 s of `python scripts/pipeline_cost.py --seconds 40`.
+@functools.cache
+def _malloc_trim():
+    """glibc's malloc_trim, or None where the C library has none (musl, macOS)."""
+    name = ctypes.util.find_library("c")
+    libc = ctypes.CDLL(name) if name else None
+    return getattr(libc, "malloc_trim", None)
+
+
+def release_free_memory() -> bool:
+    """Hand the C allocator's free pages back to the system; False where the C library cannot."""
+    trim = _malloc_trim()
+    if trim is None:
+        return False
+    trim(0)
+    return True
+
+
+def tune_memory_for_serving() -> None:
+    """For a process that serves, once it has started:
+    - move what exists now (modules, numba and torch, the settings, the restored map) out of the collector's sight
+      (`gc.freeze`) and collect the young generation every SERVING_GC_THRESHOLD allocations. Collection took 2.4 s
+      instead of 7.4 s over the 40 s of `python scripts/pipeline_cost.py --seconds 40`;
+    - every TRIM_INTERVAL_S, hand free memory back (`release_free_memory`), from a daemon thread.
     Process-wide, hence not done by `CloudService.start`, which tests call many times in one process."""
     gc.collect()
     gc.freeze()
     gc.set_threshold(SERVING_GC_THRESHOLD, *gc.get_threshold()[1:])
+    if _malloc_trim() is None:
+        log.info("the C library has no malloc_trim: free memory stays with the allocator")
+        return
+
+    def trim_periodically() -> None:
+        while True:
+            time.sleep(TRIM_INTERVAL_S)
+            release_free_memory()
+    threading.Thread(target=trim_periodically, name="roadgrip-malloc-trim", daemon=True).start()
 
 
 def rss_mb(pid: int | str = "self") -> float | None:

@@ -42,7 +42,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from roadgrip.cloud.fanout import Fanout
 from roadgrip.cloud.ingest import Ingest, Rejecter
 from roadgrip.cloud.pipeline import Pipeline, PipelineCounters
-from roadgrip.cloud.process import rss_mb, tune_gc_for_serving, warm_up
+from roadgrip.cloud.process import rss_mb, tune_memory_for_serving, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import open_storage
 from roadgrip.estimators.learned import load_estimator
@@ -337,7 +337,7 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
     sink = _ToService(send)
     ingest = sink.ingest = Ingest(settings, Pipeline(storage, settings, estimator, sink),
                                   reject=lambda vehicle_id, errors: send(("reject", vehicle_id, errors)))
-    tune_gc_for_serving()
+    tune_memory_for_serving()
     send(("ready",))  # before the pipeline's first counters
     ingest.start()
     try:
