@@ -15,8 +15,6 @@ from roadgrip.estimators.excitation import excited
 from roadgrip.features.windows import (
     TERMINAL_INPUTS, Scaler, feature_columns, feature_matrix, features_from_columns, make_windows,
 )
-from roadgrip.training.checkpoint import load_checkpoint
-from roadgrip.training.trainer import predict
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 DEFAULT_MODEL = "default"
@@ -37,12 +35,18 @@ class LearnedEstimator(Estimator):
         self.scaler = Scaler(meta["scaler_mean"], meta["scaler_scale"])
         self.calibration = meta["interval"]
 
+    # torch is imported where a model is loaded or run, not with this module: `load_estimator("ekf")` then costs no
+    # torch (130 MB of RSS in each process of `roadgrip serve`, measured with roadgrip.cloud.process.rss_mb)
     @classmethod
     def load(cls, path: str | Path) -> LearnedEstimator:
+        from roadgrip.training.checkpoint import load_checkpoint
+
         model, name, meta = load_checkpoint(path)
         return cls(model, name, meta)
 
     def _estimates(self, windows: np.ndarray, accel_lon, accel_lat, abs_active):
+        from roadgrip.training.trainer import predict
+
         mu = predict(self.model, self.scaler.transform(windows)).astype(np.float64)
         lower, upper = interval(mu, utilization_bin(accel_lon, accel_lat, abs_active, mu), self.calibration)
         return mu, lower, upper, excited(accel_lon, accel_lat, abs_active, mu)
