@@ -1,7 +1,8 @@
 """The per-vehicle streaming pipeline: validated samples in; telemetry and estimates stored, then handed on to the
 fan-out (map, warnings, publishing).
 
-One worker thread runs a loop every `flush_interval_s`. Each round it takes everything submitted since the last round and:
+One worker thread runs a loop every `flush_interval_s`. Each round it takes what was submitted since the last round,
+up to MAX_ROUND_SAMPLES (the rest goes in the next round, at once), and:
 
 1. drops the samples it remembers storing (same vehicle_id and timestamp_ms: a repeated HTTP request or an MQTT
    redelivery; it remembers the last DEDUP_HORIZON_MS of each vehicle) and, inside the round, keeps the first of equal
@@ -50,6 +51,11 @@ log = logging.getLogger(__name__)
 # repeat reaches the database, which skips it and says so (Storage.write_batch): the counts stay exact. The memory costs
 # up to 2 x 300 timestamps a vehicle at 10 Hz: 52 MB for 1,000 vehicles (tracemalloc); 10 minutes took 717 MB.
 DEDUP_HORIZON_MS = 30_000
+# The most samples a round takes (whole submissions: the one that reaches it is the last). At 10,000 samples/s a round
+# of 0.1 s has 1,000; after a stall the queue holds up to MAX_MQTT_BACKLOG (roadgrip/cloud/ingest.py), and one round of
+# it all made every buffer of the round (rows, estimates, the fan-out's messages) that large at once: the memory steps
+# at stalls of the soaks in docs/RELIABILITY.md.
+MAX_ROUND_SAMPLES = 5_000
 SLOW_ROUND_S = 1.0  # a round slower than this is counted (health: pipeline.slow_rounds): the service stalled
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
 
@@ -187,6 +193,7 @@ class Pipeline:
         while True:
             stopping = self._stop.is_set()
             started = time.perf_counter()
+            queued = self._queued
             try:
                 self.run_round(final=stopping)
                 self.sink.tick(final=stopping)
@@ -195,15 +202,21 @@ class Pipeline:
             took = self.counters.last_round_s = time.perf_counter() - started
             self.counters.slowest_round_s = max(self.counters.slowest_round_s, took)
             self.counters.slow_rounds += took > SLOW_ROUND_S
-            if stopping:
+            if stopping and not 0 < self._queued < queued:  # all done, or no progress (storage down)
                 return
+            if self._queued >= MAX_ROUND_SAMPLES:  # behind: the next round at once
+                continue
             self._wake.wait(max(0.0, self.settings.flush_interval_s - (time.perf_counter() - started)))
             self._wake.clear()
 
     def run_round(self, final: bool = False) -> None:
         with self._lock:
-            inbox, self._inbox = self._inbox, []
-            self._queued = 0
+            taken = count = 0
+            while taken < len(self._inbox) and count < MAX_ROUND_SAMPLES:
+                count += len(self._inbox[taken].samples)
+                taken += 1
+            inbox, self._inbox = self._inbox[:taken], self._inbox[taken:]
+            self._queued -= count
             forget, self._forget = self._forget, set()
         for vehicle_id in forget:
             self._profiles.pop(vehicle_id, None)

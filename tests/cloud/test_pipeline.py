@@ -9,12 +9,13 @@ import time
 import pytest
 from drives import patch_drive
 
+from roadgrip.cloud import pipeline as pipeline_module
 from roadgrip.cloud.fanout import Fanout
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.mqtt import friction_topic
 from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage import open_storage
+from roadgrip.cloud.storage import Storage, open_storage
 from roadgrip.cloud.warning_engine import WarningEngine
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
@@ -27,8 +28,8 @@ def make_pipeline(tmp_path):
     made = []
 
     def make(**settings):
-        settings = Settings(data_dir=tmp_path, mqtt="off", flush_interval_s=0.01, reorder_window_s=0.05,
-                            map_clock="data", **settings)
+        settings = Settings(**{"data_dir": tmp_path, "mqtt": "off", "flush_interval_s": 0.01,
+                               "reorder_window_s": 0.05, "map_clock": "data", **settings})
         published: list[tuple[str, list[dict]]] = []
         storage = open_storage(settings.storage_url)
         fanout = Fanout(storage, settings, FrictionMap(), WarningEngine(),
@@ -85,3 +86,39 @@ def test_a_long_interval_holds_the_estimates_until_the_pipeline_stops(make_pipel
     assert published == [] and pipeline.counters.estimates == n
     pipeline.stop()
     assert [(topic, len(estimates)) for topic, estimates in published] == [(friction_topic("car-1"), n)]
+
+
+@pytest.fixture
+def small_rounds(monkeypatch):
+    """Rounds of at most 20 samples; returns the number of telemetry rows each transaction wrote, as it goes."""
+    monkeypatch.setattr(pipeline_module, "MAX_ROUND_SAMPLES", 20)
+    written: list[int] = []
+    write_batch = Storage.write_batch
+
+    def recording(self, rows, estimates):
+        written.append(len(rows))
+        return write_batch(self, rows, estimates)
+    monkeypatch.setattr(Storage, "write_batch", recording)
+    return written
+
+
+def test_a_queue_is_worked_off_in_rounds_of_at_most_max_round_samples_one_after_the_other(make_pipeline,
+                                                                                        small_rounds):
+    pipeline, _ = make_pipeline(flush_interval_s=2.0)
+    samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
+    time.sleep(0.2)  # the first round (empty) has run: the next one is 2 s away
+    futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
+    started = time.monotonic()
+    assert [f.result(timeout=5).stored for f in futures] == [10] * 10
+    assert time.monotonic() - started < 3.0  # one flush interval, then the rounds back to back
+    assert sum(small_rounds) == 100 and max(small_rounds) == 20  # two submissions of 10 a round
+
+
+def test_stopping_stores_a_queue_longer_than_a_round(make_pipeline, small_rounds):
+    pipeline, _ = make_pipeline(flush_interval_s=5.0)
+    samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
+    time.sleep(0.2)
+    futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
+    pipeline.stop()
+    assert [f.result(timeout=0).stored for f in futures] == [10] * 10
+    assert len(pipeline.storage.telemetry("car-1")) == 100
