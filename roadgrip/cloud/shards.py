@@ -15,6 +15,8 @@ interpreter lock 82 % of the time (docs/RELIABILITY.md).
   ingest process sends what it stored to the fan-out, and its counters every STATS_INTERVAL_S (health sums them).
 - Backpressure as with no ingest processes: an ingest process whose pipeline has MAX_MQTT_BACKLOG samples waiting
   stops reading its channel, the channel fills, and paho's network thread waits to forward the next message.
+- An ingest process ignores SIGINT and SIGTERM (a terminal's Ctrl-C and systemd's stop reach the whole group): the
+  service's process stops it after its own last message.
 - An ingest process that dies is started again; the MQTT messages forwarded to it and not acknowledged are forwarded
   again (storing is idempotent: a sample stored before the crash is a duplicate), and the HTTP requests waiting on it
   fail with IngestUnavailable (503: nothing acknowledged). When the service's process dies, each ingest process sees
@@ -315,7 +317,10 @@ def _answer(send, request: int, future: Future) -> None:
 def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None:
     """An ingest process's main (module docstring): start, say ready, then serve the channel until it closes or says
     stop; then store what is held, send the last counters and exit."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service's process decides when this one stops
+    # the service's process decides when this one stops: Ctrl-C and a service manager's SIGTERM reach the whole process
+    # group, and this process must not stop before the service has stopped sending to it
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_IGN)
     logging.basicConfig(level=log_level, format=f"%(asctime)s ingest-{index} %(levelname)s %(name)s: %(message)s")
     lock = threading.Lock()
 
