@@ -55,10 +55,6 @@ class Ingest:
         self.pipeline.stop()
 
     @property
-    def running(self) -> bool:
-        return self.pipeline.running
-
-    @property
     def backlog(self) -> int:
         """Samples submitted and not yet taken by a round."""
         return self.pipeline.backlog

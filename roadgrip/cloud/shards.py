@@ -97,10 +97,16 @@ class IngestShards:
 
     # ------------------------------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
-        for shard in self._shards:  # all start at once: each takes seconds to import and warm up
-            self._launch(shard)
-        for shard in self._shards:
-            self._await_ready(shard)
+        try:
+            for shard in self._shards:  # all start at once: each takes seconds to import and warm up
+                self._launch(shard)
+            for shard in self._shards:
+                self._await_ready(shard)
+        except BaseException:
+            for shard in self._shards:
+                if shard.process is not None:
+                    shard.process.kill()
+            raise
         for shard in self._shards:
             shard.reader = threading.Thread(target=self._read, args=(shard,), name=f"roadgrip-ingest-{shard.index}",
                                             daemon=True)
@@ -128,10 +134,6 @@ class IngestShards:
         if self._ticker is not None:
             self._ticker.join(timeout_s)
         self.fanout.tick(final=True)
-
-    @property
-    def running(self) -> bool:
-        return self._ticker is not None and not self._stopping.is_set()
 
     @property
     def backlog(self) -> int:

@@ -150,3 +150,12 @@ def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_
     process = client.get("/v1/health", auth=ADMIN).json()["pipeline"]["ingest_processes"][owner]
     assert process["alive"] and process["restarts"] == 1 and process["pid"] != pid
     wait_for(lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["forwarded_unacknowledged"] == 0)
+
+
+def test_an_ingest_process_that_cannot_start_stops_the_service_starting_with_its_reason(tmp_path):
+    settings = Settings(data_dir=tmp_path, mqtt="off", admin_secret=ADMIN[1], ingest_processes=1,
+                        estimator="no-such-model")
+    service = CloudService(settings)
+    with pytest.raises(RuntimeError, match="ingest process 0 failed to start(.|\n)*no-such-model"):
+        service.start()
+    service.stop()
