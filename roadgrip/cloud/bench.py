@@ -220,11 +220,12 @@ class _Service:
                 broker = Path(f"/proc/{pid}/comm").read_text().strip() == "mosquitto"
             except OSError:
                 continue
+            seconds = _cpu_s(int(pid))
             if broker:
-                used["broker"] += _cpu_s(int(pid))
+                used["broker"] += seconds
             else:
-                used["ingest"] += _cpu_s(int(pid))
-                used["service"] += _cpu_s(int(pid))
+                used["ingest"] += seconds
+                used["service"] += seconds
         return used
 
     def health(self) -> dict:
@@ -298,7 +299,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
     expected = (per_vehicle, load["base_ms"], load["base_ms"] + (per_vehicle - 1) * SAMPLE_PERIOD_MS)
     since_start = pipeline["latency_since_start"]
     return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch, "seconds": case.seconds,
-            "ingest_processes": case.ingest_processes, "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS, "sent": load["sent"],
+            "ingest_processes": case.ingest_processes, "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS,
+            "sent": load["sent"],
             "acked_s": round(load["acked_s"], 2), "acked_per_s": load["acknowledged"] / load["acked_s"],
             "acknowledged": load["acknowledged"], "refused": load["refused"], "stored_rows": counts["telemetry"],
             "estimate_rows": counts["estimates"], "lost": load["acknowledged"] - counts["telemetry"],

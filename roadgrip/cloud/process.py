@@ -48,7 +48,7 @@ def release_free_memory() -> bool:
 
 def tune_memory_for_serving() -> None:
     """For a process that serves, once it has started:
-    - move what exists now (modules, numba and torch, the settings, the restored map) out of the collector's sight
+    - move what exists now (modules, numba's kernels, the settings, the restored map) out of the collector's sight
       (`gc.freeze`) and collect the young generation every SERVING_GC_THRESHOLD allocations. Collection took 2.4 s
       instead of 7.4 s over the 40 s of `python scripts/pipeline_cost.py --seconds 40`;
     - every TRIM_INTERVAL_S, hand free memory back (`release_free_memory`), from a daemon thread.

@@ -29,8 +29,8 @@ START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future
 
 @contextlib.contextmanager
 def running_cloud(storage_url, tmp_path, **settings):
-    settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="off", admin_secret=ADMIN[1],
-                        flush_interval_s=0.01, reorder_window_s=0.2, map_clock="data", **settings)
+    settings = Settings(**{"data_dir": tmp_path, "database_url": storage_url, "mqtt": "off", "admin_secret": ADMIN[1],
+                           "flush_interval_s": 0.01, "reorder_window_s": 0.2, "map_clock": "data", **settings})
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         yield service, client
 

@@ -5,18 +5,17 @@ nothing acknowledged lost."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import signal
 import time
 
 import pytest
+from broker_fixtures import wait_until
 from drives import patch_drive
-from fastapi.testclient import TestClient
+from test_api import running_cloud
 from test_service_mqtt import ADMIN, collect, register
 
-from roadgrip.cloud.api import create_app
 from roadgrip.cloud.broker import mosquitto_available
 from roadgrip.cloud.mqtt import UserClient, errors_topic, friction_topic, telemetry_topic
 from roadgrip.cloud.service import CloudService
@@ -47,27 +46,18 @@ def ids_on_each_shard(prefix: str, per_shard: int, count: int = 2) -> list[str]:
     return [v for n in range(count) for v in chosen[n]]
 
 
-@contextlib.contextmanager
 def running_sharded(storage_url, tmp_path, **settings):
+    """test_api's running cloud with its own Mosquitto and two ingest processes."""
     assert mosquitto_available(), "mosquitto is not installed: run `bash scripts/install_system_deps.sh`"
-    settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="managed", admin_secret=ADMIN[1],
-                        flush_interval_s=0.02, reorder_window_s=0.2, map_clock="data", ingest_processes=2,
-                        friction_publish_interval_s=0.2, **settings)
-    with CloudService(settings) as service, TestClient(create_app(service)) as client:
-        yield service, client
+    return running_cloud(storage_url, tmp_path, **{"mqtt": "managed", "flush_interval_s": 0.02,
+                                                   "ingest_processes": 2, "friction_publish_interval_s": 0.2,
+                                                   **settings})
 
 
 @pytest.fixture
 def sharded(storage_url, tmp_path):
     with running_sharded(storage_url, tmp_path) as running:
         yield running
-
-
-def wait_for(condition, timeout_s: float = 30.0) -> None:
-    deadline = time.time() + timeout_s
-    while not condition():
-        assert time.time() < deadline, "timed out"
-        time.sleep(0.05)
 
 
 def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(sharded):
@@ -93,11 +83,11 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
     assert all(a.status_code == 200 for a in answers) and sum(a.json()["stored"] for a in answers) == 2 * n
     assert repeat.json() | {"rejected": []} == {"received": 10, "accepted": 10, "stored": 0, "duplicates": 10,
                                                 "rejected": []}
-    wait_for(lambda: len(service.storage.estimates(mqtt_ids[0])) == n)
+    wait_until(lambda: len(service.storage.estimates(mqtt_ids[0])) == n, 30, "the estimates")
     for vehicle_id in mqtt_ids + http_ids:
         assert [s["timestamp_ms"] for s in service.storage.telemetry(vehicle_id)] == [
             s["timestamp_ms"] for s in runs[vehicle_id]]
-        wait_for(lambda v=vehicle_id: len(service.storage.estimates(v)) == n)
+        wait_until(lambda v=vehicle_id: len(service.storage.estimates(v)) == n, 30, f"{vehicle_id}'s estimates")
     for vehicle_id, car in cars.items():  # published by the service's process, every estimate once
         got = collect(car.messages, lambda got: sum(len(json.loads(p)) for _, p in got) >= n)
         assert sorted(e["timestamp_ms"] for _, p in got for e in json.loads(p)) == [
@@ -106,7 +96,7 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
     def counted() -> tuple[int, int, int]:  # health sums the counters each process sends every STATS_INTERVAL_S
         pipeline = client.get("/v1/health", auth=ADMIN).json()["pipeline"]
         return pipeline["stored"], pipeline["duplicates"], pipeline["estimates"]
-    wait_for(lambda: counted() == (4 * n, 20, 4 * n))
+    wait_until(lambda: counted() == (4 * n, 20, 4 * n), 30, "the counters in health")
     health = client.get("/v1/health", auth=ADMIN).json()
     assert health["status"] == "ok" and health["mqtt"] == "connected"
     pipeline = health["pipeline"]
@@ -144,12 +134,13 @@ def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_
             car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k:k + 5]))  # PUBACK: the broker has it
             if k == len(samples) // 2:
                 os.kill(pid, signal.SIGKILL)
-    wait_for(lambda: len(service.storage.telemetry(vehicle_id)) == len(samples), timeout_s=120)
+    wait_until(lambda: len(service.storage.telemetry(vehicle_id)) == len(samples), 120, "every sample stored")
     stored = [s["timestamp_ms"] for s in service.storage.telemetry(vehicle_id)]
     assert stored == [s["timestamp_ms"] for s in samples]  # each once, none lost
     process = client.get("/v1/health", auth=ADMIN).json()["pipeline"]["ingest_processes"][owner]
     assert process["alive"] and process["restarts"] == 1 and process["pid"] != pid
-    wait_for(lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["forwarded_unacknowledged"] == 0)
+    wait_until(lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["forwarded_unacknowledged"] == 0, 30,
+               "every forwarded message acknowledged")
 
 
 def test_an_ingest_process_that_cannot_start_stops_the_service_starting_with_its_reason(tmp_path):
