@@ -23,10 +23,10 @@ import numpy as np
 from numba import njit, prange
 
 from roadgrip.sim.driver import (
-    BRAKE_RISE_S, YAW_BUILD_UP_S, YAW_MAX_SHARE, LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S, STEER_LAG_S, abs_step, pure_pursuit, speed_control,
-    speed_reference, steer_input, traction_control,
+    BRAKE_RISE_S, ESC_CUT_SIDESLIP_RAD, TCS_CUT_SLIP, YAW_BUILD_UP_S, YAW_MAX_SHARE, LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S,
+    STEER_LAG_S, abs_step, pure_pursuit, speed_control, speed_reference, steer_input, traction_control,
 )
-from roadgrip.sim.roads import mu_at, point_at_station, project_on_path
+from roadgrip.sim.roads import grade_at, mu_at, point_at_station, project_on_path
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.dynamics import (
     N_STATE, P_AERO, P_BRAKE_F, P_DRIVE_F, P_FRR, P_JW, P_LF, P_LR, P_M, P_PMAX, P_RW, P_STEER_MAX, P_TMAX, PHI, PSI,
@@ -48,15 +48,21 @@ CHANNELS = (
     + [f"fz_{w}_n" for w in ("fl", "fr", "rl", "rr")]
     + [f"fx_{w}_n" for w in ("fl", "fr", "rl", "rr")]
     + [f"fy_{w}_n" for w in ("fl", "fr", "rl", "rr")]
+    + ["grade_rad", "brake_active", "tcs_active", "esc_active"]
 )
 N_CH = len(CHANNELS)
 (C_T, C_X, C_Y, C_PSI, C_VX, C_VY, C_R, C_PHI, C_AX, C_AY, C_STEER, C_STATION, C_MU, C_ABS, C_ACC, C_VREF, C_OMEGA, C_MUW,
- C_SIG, C_ALPHA, C_FZ, C_FX, C_FY) = list(range(16)) + [16 + 4 * k for k in range(7)]
+ C_SIG, C_ALPHA, C_FZ, C_FX, C_FY, C_GRADE, C_BRAKE, C_TCS, C_ESC) = (
+    list(range(16)) + [16 + 4 * k for k in range(7)] + [44, 45, 46, 47])
+# ax_mps2 is the specific force of the tire and drag forces (what a level accelerometer reads; dv_x/dt - r v_y + g sin(grade));
+# brake_active: the driver asked for brake torque at the sample (the brake-light switch); tcs_active / esc_active: during
+# the 100 ms before the sample, traction control cut drive torque that the driver asked for, triggered by a driven
+# wheel's slip (TCS) or by the body's sideslip (the engine intervention of ESC).
 
 
 @njit(cache=True)
-def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, steer_row, abs_on, tcs_on, n_sub,
-                 n_samples, out):
+def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade, speed, n_speed, steer_row, abs_on,
+                 tcs_on, n_sub, n_samples, out):
     dt = STEP_S
     x = np.zeros(N_STATE)
     dx = np.zeros(N_STATE)
@@ -78,12 +84,14 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
     ax_prev, ay_prev = 0.0, 0.0
     delta, delta_cmd, accel_cmd, integral, tcs_factor = 0.0, 0.0, 0.0, 0.0, 1.0
     seg, sp_k, station, v_ref, acc = 0, 0, 0.0, speed[0, 1], False
-    abs_window = False
+    abs_window, tcs_window, esc_window, tcs_cause, esc_cause = False, False, False, False, False
+    grade = grade_at(grade_tab, n_grade, 0.0)
     yaw_limit = 0.0  # N m: how far the front brakes may differ (grows while braking)
     for step in range(n_samples * n_sub):
         t = step * dt
         if step % CONTROL_EVERY == 0:
             seg, station, _ = project_on_path(path, n_path, seg, x[X], x[Y])
+            grade = grade_at(grade_tab, n_grade, station)
             v_ref, slope, acc, sp_k = speed_reference(speed, n_speed, t, sp_k)
             accel_cmd, integral = speed_control(v_ref, slope, acc, x[VX], integral, CONTROL_EVERY * dt)
             open_loop, steer_angle = steer_input(steer_row, t)
@@ -94,6 +102,7 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
                 tx, ty = point_at_station(path, n_path, seg, station + lookahead)
                 delta_cmd = pure_pursuit(x[X], x[Y], x[PSI], tx, ty, wheelbase)
             force = mass * accel_cmd + vp[P_AERO] * x[VX] * abs(x[VX]) + vp[P_FRR] * mass * G_MPS2
+            force += mass * G_MPS2 * math.sin(grade)  # the driver feels the grade: feed-forward of the weight's component
             if force >= 0.0:
                 force = min(force, vp[P_TMAX] / radius, vp[P_PMAX] / max(x[VX], 1.0))
                 for i in range(4):
@@ -112,7 +121,7 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
         for i in range(4):
             drive_now[i] = drive_t[i] * tcs_factor
         ax, ay = derivatives(x, delta, drive_now, mu_w, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
-                             wheel_k_secant, hub_speed)
+                             wheel_k_secant, hub_speed, grade)
         if step % n_sub == 0:
             row = out[step // n_sub]
             row[C_T], row[C_X], row[C_Y], row[C_PSI] = t, x[X], x[Y], x[PSI]
@@ -123,7 +132,10 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
             for i in range(4):
                 row[C_OMEGA + i], row[C_MUW + i], row[C_SIG + i] = x[W0 + i], mu_w[i], sigma[i]
                 row[C_ALPHA + i], row[C_FZ + i], row[C_FX + i], row[C_FY + i] = alpha[i], fz[i], fx[i], fy[i]
-            abs_window = False
+            row[C_GRADE] = grade
+            row[C_BRAKE] = 1.0 if brake_demand[0] + brake_demand[1] + brake_demand[2] + brake_demand[3] > 0.0 else 0.0
+            row[C_TCS], row[C_ESC] = 1.0 if tcs_window else 0.0, 1.0 if esc_window else 0.0
+            abs_window, tcs_window, esc_window = False, False, False
         # ABS and traction control, every step
         driven_slip = 0.0
         for i in range(4):
@@ -144,6 +156,12 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
         if tcs_on:
             sideslip = math.atan2(x[VY], max(abs(x[VX]), 1.0))
             tcs_factor = traction_control(tcs_factor, driven_slip, sideslip, dt)
+            # which half of the controller cut the torque, until it is fully restored
+            tcs_cause = tcs_factor < 1.0 and (tcs_cause or driven_slip > TCS_CUT_SLIP)
+            esc_cause = tcs_factor < 1.0 and (esc_cause or abs(sideslip) > ESC_CUT_SIDESLIP_RAD)
+            demanded = drive_t[0] + drive_t[1] + drive_t[2] + drive_t[3] > 0.0
+            tcs_window = tcs_window or (demanded and tcs_cause)
+            esc_window = esc_window or (demanded and esc_cause)
         # body: explicit Euler
         for j in range(W0):
             x[j] += dt * dx[j]
@@ -170,10 +188,11 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, st
 
 
 @njit(parallel=True, cache=True)
-def simulate_batch(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, speed, n_speed, steer, flags, n_sub, n_samples, out):
+def simulate_batch(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade, n_grade, speed, n_speed, steer, flags, n_sub,
+                   n_samples, out):
     for k in prange(vp.shape[0]):
-        simulate_one(vp[k], tp[k], path[k], n_path[k], mu_tab[k], n_mu[k], mu_mode[k], speed[k], n_speed[k], steer[k],
-                     flags[k, 0] != 0, flags[k, 1] != 0, n_sub, n_samples, out[k])
+        simulate_one(vp[k], tp[k], path[k], n_path[k], mu_tab[k], n_mu[k], mu_mode[k], grade[k], n_grade[k], speed[k],
+                     n_speed[k], steer[k], flags[k, 0] != 0, flags[k, 1] != 0, n_sub, n_samples, out[k])
     return out
 
 
@@ -182,4 +201,4 @@ def run_batch(packed, n_samples: int, sample_period_s: float) -> np.ndarray:
     n_sub = int(round(sample_period_s / STEP_S))
     out = np.zeros((packed.vp.shape[0], n_samples, N_CH))
     return simulate_batch(packed.vp, packed.tp, packed.path, packed.n_path, packed.mu, packed.n_mu, packed.mu_mode,
-                          packed.speed, packed.n_speed, packed.steer, packed.flags, n_sub, n_samples, out)
+                          packed.grade, packed.n_grade, packed.speed, packed.n_speed, packed.steer, packed.flags, n_sub, n_samples, out)

@@ -1,8 +1,12 @@
-"""Roads: the path a vehicle follows (any polyline; straight and circular ones built for you) and the road's adhesion
-coefficient along it, which may differ between the left and right wheel tracks and vary along the road in steps or ramps.
+"""Roads: the path a vehicle follows (any polyline; straight and circular ones built for you), the road's adhesion
+coefficient along it, which may differ between the left and right wheel tracks and vary along the road in steps or ramps,
+and the road's longitudinal grade along it.
 
-Both are tables the compiled simulator reads: a path as rows (x_m, y_m, station_m), a mu profile as rows
-(station_m, mu_left, mu_right) with an interpolation mode.
+All are tables the compiled simulator reads: a path as rows (x_m, y_m, station_m), a mu profile as rows
+(station_m, mu_left, mu_right) with an interpolation mode, a grade profile as rows (station_m, grade_rad).
+
+The path is the road's plan view unrolled: on a grade the simulator moves the car along it at its speed, so x_m and y_m are
+distances along the road (cos(grade) of them horizontal: 0.998 at 6 %).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from numba import njit
 
 MU_MAX = 1.5  # the highest adhesion coefficient a road may be given (dry asphalt with racing tires reaches ~1.3)
 MU_MODES = {"step": 0, "linear": 1}
+GRADE_MAX_RAD = 0.3  # 31 %: steeper than any public road (the steepest streets are about 35 %, motorways at most 6-7 %)
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +133,64 @@ class MuProfile:
         station = np.atleast_1d(np.asarray(station_m, dtype=np.float64))
         table = self.table()
         return np.array([mu_at(table, table.shape[0], MU_MODES[self.mode], s, 1 if left else 2) for s in station])
+
+
+@dataclass(frozen=True, eq=False)
+class GradeProfile:
+    """Longitudinal road grade along the path: angle (rad, positive uphill in the direction of travel) at stations (m),
+    linear between them (a vertical curve), the first value before the first station and the last after the last."""
+
+    stations_m: np.ndarray
+    grade_rad: np.ndarray
+
+    def __post_init__(self):
+        stations = np.atleast_1d(np.asarray(self.stations_m, dtype=np.float64))
+        grade = np.atleast_1d(np.asarray(self.grade_rad, dtype=np.float64))
+        if stations.ndim != 1 or grade.shape != stations.shape or stations.size < 1:
+            raise ValueError(f"GradeProfile needs stations_m and grade_rad of one length >= 1, got {stations.shape} and "
+                             f"{grade.shape}")
+        if not (np.isfinite(stations).all() and np.isfinite(grade).all()):
+            raise ValueError("GradeProfile stations_m and grade_rad must be finite")
+        if (np.diff(stations) <= 0).any():
+            raise ValueError(f"GradeProfile.stations_m must increase strictly, got {stations.tolist()}")
+        bad = grade[np.abs(grade) > GRADE_MAX_RAD]
+        if bad.size:
+            raise ValueError(f"GradeProfile.grade_rad must lie in [-{GRADE_MAX_RAD}, {GRADE_MAX_RAD}], got {float(bad[0])!r}")
+        object.__setattr__(self, "stations_m", stations)
+        object.__setattr__(self, "grade_rad", grade)
+
+    @classmethod
+    def flat(cls) -> GradeProfile:
+        return cls([0.0], [0.0])
+
+    @classmethod
+    def uniform(cls, grade_rad: float) -> GradeProfile:
+        return cls([0.0], [grade_rad])
+
+    @property
+    def is_flat(self) -> bool:
+        return bool((self.grade_rad == 0.0).all())
+
+    def table(self) -> np.ndarray:
+        """Rows (station_m, grade_rad) for the compiled simulator."""
+        return np.column_stack([self.stations_m, self.grade_rad])
+
+    def at(self, station_m) -> np.ndarray:
+        return np.interp(np.asarray(station_m, dtype=np.float64), self.stations_m, self.grade_rad)
+
+
+@njit(cache=True)
+def grade_at(table, n, station_m):
+    """Grade (rad) at a station from a (station, grade) table: linear between rows, constant beyond the ends."""
+    if station_m <= table[0, 0] or n == 1:
+        return table[0, 1]
+    if station_m >= table[n - 1, 0]:
+        return table[n - 1, 1]
+    k = 0
+    while table[k + 1, 0] <= station_m:
+        k += 1
+    u = (station_m - table[k, 0]) / (table[k + 1, 0] - table[k, 0])
+    return table[k, 1] + u * (table[k + 1, 1] - table[k, 1])
 
 
 @njit(cache=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from roadgrip.sim.driver import SpeedProfile, SteerInput
-from roadgrip.sim.roads import MU_MODES, MuProfile, Path
+from roadgrip.sim.roads import MU_MODES, GradeProfile, MuProfile, Path
 from roadgrip.validation import bounded, check_bounds
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 from roadgrip.vehicle.tires import DugoffTire, TireModel
@@ -36,11 +36,12 @@ class Scenario:
     seed: int = 0
     experiment: int = 1
     manoeuvre: str = "custom"
+    grade: GradeProfile = GradeProfile.flat()
 
     def __post_init__(self):
         check_bounds(self)
         for name, cls in (("path", Path), ("mu", MuProfile), ("speed", SpeedProfile), ("vehicle", VehicleParams),
-                          ("tire", TireModel)):
+                          ("tire", TireModel), ("grade", GradeProfile)):
             if not isinstance(getattr(self, name), cls):
                 raise TypeError(f"Scenario.{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
         if self.steer is not None and not isinstance(self.steer, SteerInput):
@@ -76,6 +77,7 @@ class Scenario:
             "speed_profile": {"times_s": self.speed.times_s.tolist(), "speeds_mps": self.speed.speeds_mps.tolist(),
                               "acc_active": self.speed.acc_active.tolist()},
             "steer": None if self.steer is None else dataclasses.asdict(self.steer),
+            "grade_profile": {"stations_m": self.grade.stations_m.tolist(), "grade_rad": self.grade.grade_rad.tolist()},
         }
 
 
@@ -90,6 +92,8 @@ class PackedBatch:
     mu: np.ndarray
     n_mu: np.ndarray
     mu_mode: np.ndarray
+    grade: np.ndarray
+    n_grade: np.ndarray
     speed: np.ndarray
     n_speed: np.ndarray
     steer: np.ndarray
@@ -110,6 +114,7 @@ def pack(scenarios: list[Scenario]) -> PackedBatch:
     path, n_path = _pad([s.path.table() for s in scenarios])
     mu, n_mu = _pad([s.mu.table() for s in scenarios])
     speed, n_speed = _pad([s.speed.table() for s in scenarios])
+    grade, n_grade = _pad([s.grade.table() for s in scenarios])
     no_steer = np.array([0.0, 0.0, 0.0, 0.0, 0.0])
     return PackedBatch(
         vp=np.stack([pack_vehicle(s.vehicle) for s in scenarios]),
@@ -119,6 +124,8 @@ def pack(scenarios: list[Scenario]) -> PackedBatch:
         mu=mu,
         n_mu=n_mu,
         mu_mode=np.array([MU_MODES[s.mu.mode] for s in scenarios], dtype=np.int64),
+        grade=grade,
+        n_grade=n_grade,
         speed=speed,
         n_speed=n_speed,
         steer=np.stack([no_steer if s.steer is None else s.steer.row() for s in scenarios]),

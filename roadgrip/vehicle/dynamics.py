@@ -102,16 +102,27 @@ def slip_ratio_per_spin(wheel_speed_mps, hub_speed_mps, radius_m):
 
 @njit(cache=True)
 def wheel_loads(vp, ax, ay, phi, phid, fz_out):
+    """Vertical loads on a level road (`wheel_loads_on_grade` with a zero grade)."""
+    wheel_loads_on_grade(vp, ax, ay, phi, phid, 0.0, fz_out)
+
+
+@njit(cache=True)
+def wheel_loads_on_grade(vp, ax, ay, phi, phid, grade_rad, fz_out):
     """Vertical loads, eq. 2: static share, longitudinal transfer m a_x h / (2 L), and per axle the lateral transfer through
     the roll centre (m_axle a_y h_rc / d) plus the elastic one through the roll stiffness and damping ((K phi + C phid) / d).
 
     The paper prints the lateral terms over 2 d and both with the CoG height, which halves them and counts the roll moment
-    twice; the form here balances the roll moment exactly (sum of Fz y = -(m_s a_y e + m a_y h_ra) in steady state)."""
+    twice; the form here balances the roll moment exactly (sum of Fz y = -(m_s a_y e + m a_y h_ra) in steady state).
+
+    On a grade the loads carry the weight's component normal to the road, m g cos(grade); the weight's component along
+    the road acts at the CoG and makes no moment about it, so the longitudinal transfer stays m a_x h / L with a_x the
+    specific force of the tire (and drag) forces, which is what `derivatives` passes."""
     m, lf, lr, h = vp[P_M], vp[P_LF], vp[P_LR], vp[P_H]
     wheelbase = lf + lr
     k_total = vp[P_KF] + vp[P_KR]
-    static_f = m * G_MPS2 * lr / (2.0 * wheelbase)
-    static_r = m * G_MPS2 * lf / (2.0 * wheelbase)
+    weight_normal = m * G_MPS2 * cos(grade_rad)
+    static_f = weight_normal * lr / (2.0 * wheelbase)
+    static_r = weight_normal * lf / (2.0 * wheelbase)
     lon = m * ax * h / (2.0 * wheelbase)
     roll_moment_f = vp[P_KF] * phi + vp[P_CROLL] * vp[P_KF] / k_total * phid
     roll_moment_r = vp[P_KR] * phi + vp[P_CROLL] * vp[P_KR] / k_total * phid
@@ -125,15 +136,22 @@ def wheel_loads(vp, ax, ay, phi, phid, fz_out):
 
 @njit(cache=True)
 def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
-                wheel_k_secant, hub_speed):
-    """dx/dt of the body and the wheels' tire torques. Returns (a_x, a_y), the CoG accelerations in the body frame.
+                wheel_k_secant, hub_speed, grade_rad=0.0):
+    """dx/dt of the body and the wheels' tire torques. Returns (a_x, a_y): the specific force of the tire and drag forces
+    on the body (force / m, body frame), which is the CoG acceleration on a level road and what a level accelerometer reads
+    on any road.
+
+    `grade_rad` is the road's longitudinal grade under the car (positive uphill): the weight's component along the road,
+    -g sin(grade), enters dv_x/dt but not a_x, and the loads carry m g cos(grade). The road is taken as a plane tilted
+    about the body's y axis (no cross slope); the mu of the road is the adhesion coefficient as before (force / normal
+    load), so the label keeps its meaning.
 
     Writes dx (N_STATE), and per wheel: fz (load, N), sigma (eq. 6), alpha (eq. 8, rad), fx/fy (tire force in the wheel
     frame, N), wheel_k and wheel_k_secant (N m s/rad, >= 0: the tangent and secant growth of the tire torque with the
     spin, for the implicit wheel step) and hub_speed (m/s along the wheel's heading)."""
     vx, vy, r, phi, phid = x[VX], x[VY], x[R], x[PHI], x[PHID]
     radius = vp[P_RW]
-    wheel_loads(vp, ax_prev, ay_prev, phi, phid, fz)
+    wheel_loads_on_grade(vp, ax_prev, ay_prev, phi, phid, grade_rad, fz)
     fx_body = 0.0
     fy_body = 0.0
     yaw_moment = 0.0
@@ -170,7 +188,7 @@ def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, si
     dx[X] = vx * cos(psi) - vy * sin(psi)
     dx[Y] = vx * sin(psi) + vy * cos(psi)
     dx[PSI] = r
-    dx[VX] = ax + r * vy
+    dx[VX] = ax + r * vy - G_MPS2 * sin(grade_rad)  # the weight's component along the road
     dx[VY] = ay - r * vx
     dx[R] = yaw_moment / vp[P_IZ]
     roll_arm = vp[P_H] - (vp[P_HRF] + (vp[P_HRR] - vp[P_HRF]) * vp[P_LF] / (vp[P_LF] + vp[P_LR]))
