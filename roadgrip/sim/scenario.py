@@ -69,6 +69,7 @@ class Scenario:
             "vehicle": self.vehicle.to_dict(),
             "tire_model": self.tire.name,
             "tire_shape": self.tire.shape_params(),
+            "tire_stiffness_scale": self.tire.stiffness_scale,
             "abs_enabled": self.abs_enabled,
             "tcs_enabled": self.tcs_enabled,
             "path_length_m": self.path.length_m,

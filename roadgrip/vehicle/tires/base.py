@@ -23,11 +23,20 @@ TP_LEN = 40
 MAX_SLIP_ANGLE_RAD = 1.4  # tan() stays finite; a tire never runs beyond 80 degrees of slip in the simulator
 
 
+STIFFNESS_SCALE_BOUNDS = (0.3, 3.0)  # a tire's slip stiffnesses times this factor: worn, under-inflated, winter tires
+
+
 class TireModel(ABC):
-    """A tire model: `forces` over arrays, `row` to pack it for the compiled simulator."""
+    """A tire model: `forces` over arrays, `row` to pack it for the compiled simulator.
+
+    Every model has a `stiffness_scale` (default 1): the longitudinal and cornering slip stiffnesses at zero slip are the
+    vehicle's `TireParams` times it, while the peak stays mu F_z (wear, inflation and tire make move the initial slope
+    by some +-30 % without changing the road's adhesion). Dugoff and the Magic Formula take it through C_x and C_y; the
+    Burckhardt model through its slip axis (see burckhardt.py)."""
 
     name: str
     kernel_id: int
+    stiffness_scale: float
 
     @abstractmethod
     def shape_params(self) -> list[float]:
@@ -36,8 +45,8 @@ class TireModel(ABC):
     def row(self, tire: TireParams) -> np.ndarray:
         tp = np.zeros(TP_LEN)
         tp[TP_MODEL] = self.kernel_id
-        tp[TP_CX] = tire.longitudinal_stiffness_per_load
-        tp[TP_CY] = tire.cornering_stiffness_per_load_per_rad
+        tp[TP_CX] = tire.longitudinal_stiffness_per_load * self.stiffness_scale
+        tp[TP_CY] = tire.cornering_stiffness_per_load_per_rad * self.stiffness_scale
         shape = self.shape_params()
         tp[TP_SHAPE : TP_SHAPE + len(shape)] = shape
         return tp

@@ -7,18 +7,22 @@ and scales it so that its peak is mu: the shape of the curve (where the peak lie
 surface, the peak follows the road.
 
 Combined slip: s_x = sigma (eq. 6), s_y = tan(alpha) C_y / C_x, so that the cornering stiffness keeps the tire's ratio to the
-longitudinal one; s = |(s_x, s_y)| capped at 1 (the table's range) and the force points along (s_x, s_y).
+longitudinal one; s = |(s_x, s_y)| and the force points along (s_x, s_y).
+
+Stiffness: the curve is read at k s (k = `stiffness_scale`, capped at the table's range, 1), so the slope at zero slip is
+k mu / peak c1 c2 F_z and the peak, still mu F_z, moves to s* / k: a stiffer tire reaches the same adhesion at a smaller
+slip. The curve's own slope at zero slip does not depend on C_x, whose ratio to C_y only shapes the combined slip.
 """
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from math import exp, log, sqrt, tan
 
 from numba import njit
 
-from roadgrip.validation import check_choice
-from roadgrip.vehicle.tires.base import TP_CX, TP_CY, TP_SHAPE, TireModel, clamp_slip_angle
+from roadgrip.validation import bounded, check_bounds, check_choice
+from roadgrip.vehicle.tires.base import STIFFNESS_SCALE_BOUNDS, TP_CX, TP_CY, TP_SHAPE, TireModel, clamp_slip_angle
 
 BURCKHARDT_ID = 2
 _PER_SURFACE = 4  # c1, c2, c3, peak
@@ -60,12 +64,13 @@ def burckhardt_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
             best = k
     base = TP_SHAPE + 1 + _PER_SURFACE * best
     c1, c2, c3, surface_peak = tp[base], tp[base + 1], tp[base + 2], tp[base + 3]
+    stiffness_scale = tp[TP_SHAPE + 1 + _PER_SURFACE * n_surfaces]
     s_x = slip_ratio
     s_y = tan(clamp_slip_angle(slip_angle_rad)) * tp[TP_CY] / tp[TP_CX]
     s = sqrt(s_x * s_x + s_y * s_y)
     if s == 0.0 or fz_n <= 0.0 or mu <= 0.0:
         return 0.0, 0.0
-    s_eff = min(s, 1.0)
+    s_eff = min(stiffness_scale * s, 1.0)
     mu_used = max(mu / surface_peak * (c1 * (1.0 - exp(-c2 * s_eff)) - c3 * s_eff), 0.0)
     force = mu_used * fz_n
     return force * s_x / s, force * s_y / s
@@ -73,14 +78,17 @@ def burckhardt_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
 
 @dataclass(frozen=True)
 class BurckhardtTire(TireModel):
-    """Burckhardt curves; `surface` fixes the curve's shape, None picks the surface whose peak is nearest the road's mu."""
+    """Burckhardt curves; `surface` fixes the curve's shape, None picks the surface whose peak is nearest the road's mu;
+    `stiffness_scale` stretches the slip axis (module docstring)."""
 
     surface: str | None = None
+    stiffness_scale: float = field(default=1.0, metadata=bounded(*STIFFNESS_SCALE_BOUNDS))
 
     name = "burckhardt"
     kernel_id = BURCKHARDT_ID
 
     def __post_init__(self):
+        check_bounds(self)
         if self.surface is not None:
             check_choice("BurckhardtTire", "surface", self.surface, set(SURFACES))
 
@@ -90,4 +98,4 @@ class BurckhardtTire(TireModel):
         for name in names:
             c1, c2, c3 = SURFACES[name]
             params += [c1, c2, c3, peak_mu(c1, c2, c3)]
-        return params
+        return params + [self.stiffness_scale]

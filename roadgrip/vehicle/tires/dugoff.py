@@ -8,11 +8,12 @@ With both, |F| = mu F_z (2 - lambda) / 2 <= mu F_z in the saturated region, and 
 
 from math import sqrt, tan
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from numba import njit
 
-from roadgrip.vehicle.tires.base import TP_CX, TP_CY, TireModel, clamp_slip_angle
+from roadgrip.validation import bounded, check_bounds
+from roadgrip.vehicle.tires.base import STIFFNESS_SCALE_BOUNDS, TP_CX, TP_CY, TireModel, clamp_slip_angle
 
 DUGOFF_ID = 0
 
@@ -36,10 +37,16 @@ def dugoff_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
 
 @dataclass(frozen=True)
 class DugoffTire(TireModel):
-    """Dugoff's model: linear up to the friction circle, then a smooth saturation towards mu F_z."""
+    """Dugoff's model: linear up to the friction circle, then a smooth saturation towards mu F_z. `stiffness_scale`
+    multiplies C_x and C_y (TireModel)."""
+
+    stiffness_scale: float = field(default=1.0, metadata=bounded(*STIFFNESS_SCALE_BOUNDS))
 
     name = "dugoff"
     kernel_id = DUGOFF_ID
+
+    def __post_init__(self):
+        check_bounds(self)
 
     def shape_params(self):
         return []

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from numba import njit
 
 from roadgrip.validation import bounded, check_bounds
-from roadgrip.vehicle.tires.base import TP_CX, TP_CY, TP_SHAPE, TireModel, clamp_slip_angle
+from roadgrip.vehicle.tires.base import STIFFNESS_SCALE_BOUNDS, TP_CX, TP_CY, TP_SHAPE, TireModel, clamp_slip_angle
 
 MAGIC_FORMULA_ID = 1
 
@@ -42,10 +42,12 @@ def magic_formula_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
 @dataclass(frozen=True)
 class MagicFormulaTire(TireModel):
     """Magic Formula on the combined slip. C in (1, 2) keeps one peak and sets the sliding-to-peak ratio sin(C pi / 2);
-    E <= 1 keeps the curve rising up to its peak."""
+    E <= 1 keeps the curve rising up to its peak. `stiffness_scale` multiplies C_x and C_y (TireModel): through B = 1 / (C D)
+    per newton of linear demand, the slope at zero slip scales and the peak stays D = mu F_z."""
 
     shape_c: float = field(default=1.4, metadata=bounded(1.0, 2.0, low_open=True))
     curvature_e: float = field(default=0.0, metadata=bounded(-10.0, 1.0))
+    stiffness_scale: float = field(default=1.0, metadata=bounded(*STIFFNESS_SCALE_BOUNDS))
 
     name = "magic-formula"
     kernel_id = MAGIC_FORMULA_ID
