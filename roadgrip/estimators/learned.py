@@ -99,16 +99,26 @@ def default_model_path() -> Path:
 
 
 def load_estimator(spec: str | Path = DEFAULT_MODEL) -> Estimator:
-    """An estimator from a model file, or by name: 'default' is the model shipped in the package, 'ekf' and 'ukf' the
-    Kalman filters (roadgrip/estimators/physics.py)."""
+    """An estimator from a model file, or by name: 'default' is the model shipped in the package, 'pmf' the Bayesian
+    grid filter (roadgrip/estimators/pmf.py), 'ekf' and 'ukf' the Kalman filters (roadgrip/estimators/physics.py).
+    Every estimator comes with the physics guard on its output (roadgrip/estimators/guard.py)."""
+    from roadgrip.estimators.guard import GuardedEstimator
+
+    return GuardedEstimator(_unguarded_estimator(spec))
+
+
+def _unguarded_estimator(spec: str | Path) -> Estimator:
     from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
+    from roadgrip.estimators.pmf import PMFEstimator
 
     if str(spec) == DEFAULT_MODEL:
         return LearnedEstimator.load(default_model_path())
+    if str(spec) == PMFEstimator.name:
+        return PMFEstimator()
     if str(spec) in PHYSICS_ESTIMATORS:
         return physics_estimator(str(spec))
     path = Path(spec)
     if path.suffix == ".pt" or path.exists():
         return LearnedEstimator.load(path)
-    names = [DEFAULT_MODEL, *PHYSICS_ESTIMATORS]
+    names = [DEFAULT_MODEL, PMFEstimator.name, *PHYSICS_ESTIMATORS]
     raise ValueError(f"--model must be a model file (.pt) or one of {names}, got {str(spec)!r}")

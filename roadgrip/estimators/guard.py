@@ -1,0 +1,162 @@
+"""The physics guard: what a car's own acceleration proves about mu, applied to every estimator's output in one place.
+
+The only horizontal forces on a car are the road's, on its tires, and the air's (DESIGN 3.1 axes). The accelerometer
+measures their sum per mass (the specific force: gravity on a grade is not in it), so the road's force per mass is
+
+    a_road_x = a_x + D(v) / m,   D(v) = 1/2 rho c_d A v^2  (drag, which decelerates the car without the road's help)
+    a_road_y = a_y / (1 + g k_phi)                          (the rolled accelerometer's reading, vehicle_model.py)
+
+and Coulomb's law at every tire, |F_i| <= mu F_z,i with sum F_z,i = m g, gives
+
+    mu >= |a_road| / g.
+
+Rolling resistance is not taken out: it is a moment of the vertical load about the wheel, not a force of the road
+along it, so at the friction limit (a locked or ABS-held wheel) the road's force is mu F_z whatever it is; taking it out
+as well would lower the bound by f_rr (0.012) for nothing. Drag is taken out: on the 0.1 section of the paper preset's
+decreasing road the car decelerates at 1.22-1.30 m/s^2 while every wheel is at its limit, 0.98 m/s^2 of it the road's.
+
+The measurement carries noise and bias, so the guard's bound is (|a_road| - k sigma_a) / g with sigma_a the
+accelerometer's noise and bias allowance (GuardSettings). The guard then makes every estimate physical:
+
+- mu_lower, mu and mu_upper are raised to the bound (0 at least): the car proved that much;
+- an estimate whose whole interval lay below the bound was contradicted by the measurement: it is an inconsistency of
+  the estimator's model, never evidence of low friction, so its interval widens to the prior's upper end
+  (PRIOR_UPPER_MU), its mu goes no lower than PRIOR_MU, and it is not `excited`;
+- 0 <= mu_lower <= mu <= mu_upper always.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
+from roadgrip.units import G_MPS2
+from roadgrip.validation import bounded, check_bounds
+from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+
+PRIOR_MU = 0.8  # the median of the prior a contradicted estimate falls back on (pmf.py: half dry asphalt)
+PRIOR_UPPER_MU = 1.2  # the prior's upper end (pmf.py's prior puts 95 % of its mass below it)
+
+
+@dataclass(frozen=True)
+class GuardSettings:
+    """sigma_a: the accelerometer's noise and bias allowance (m/s^2, 1 sigma); the bound is k sigma_a below |a_road|.
+    0.1 m/s^2 is twice the simulator's per-sample noise and a production MEMS sensor's bias after mounting
+    calibration; k = 2 leaves 2.3 % of samples of an unbiased sensor above the bound by chance."""
+
+    accel_sigma_mps2: float = field(default=0.1, metadata=bounded(0.0, 5.0))
+    k_sigma: float = field(default=2.0, metadata=bounded(0.0, 10.0))
+
+    def __post_init__(self):
+        check_bounds(self)
+
+
+def drag_per_mass(vehicle: VehicleParams) -> float:
+    """c with D(v) / m = c v^2 (1/m)."""
+    return 0.5 * AIR_DENSITY_KGPM3 * vehicle.drag_coefficient * vehicle.frontal_area_m2 / vehicle.mass_kg
+
+
+def road_acceleration(vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, speed_mps):
+    """(a_road_x, a_road_y): the road's force on the tires per mass (m/s^2), from the accelerometer's reading."""
+    ax = np.asarray(accel_lon_mps2, dtype=np.float64) + drag_per_mass(vehicle) * np.square(speed_mps)
+    ay = np.asarray(accel_lat_mps2, dtype=np.float64) / (1.0 + G_MPS2 * roll_per_lateral_accel(vehicle))
+    return ax, ay
+
+
+def tire_force_bound(vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, speed_mps,
+                     settings: GuardSettings = GuardSettings()) -> np.ndarray:
+    """The lower bound on mu that the measured acceleration proves: (|a_road| - k sigma_a) / g, at least 0."""
+    ax, ay = road_acceleration(vehicle, accel_lon_mps2, accel_lat_mps2, speed_mps)
+    margin = settings.k_sigma * settings.accel_sigma_mps2
+    return np.maximum((np.hypot(ax, ay) - margin) / G_MPS2, 0.0)
+
+
+def apply_bound(mu, mu_lower, mu_upper, excited, bound):
+    """The guarded (mu, mu_lower, mu_upper, excited) of estimates (arrays) given the bound of each."""
+    mu, lower, upper, bound = (np.asarray(a, dtype=np.float64) for a in (mu, mu_lower, mu_upper, bound))
+    excited = np.asarray(excited, dtype=bool)
+    contradicted = ~(upper >= bound)  # NaN counts as contradicted
+    upper = np.where(contradicted, np.maximum(PRIOR_UPPER_MU, bound), upper)
+    mu = np.where(contradicted, np.maximum(mu, PRIOR_MU), mu)
+    lower = np.maximum(np.nan_to_num(lower, nan=0.0), bound)
+    mu = np.maximum(np.nan_to_num(mu, nan=PRIOR_MU), lower)
+    upper = np.maximum(upper, mu)
+    return mu, lower, upper, excited & ~contradicted
+
+
+def _speed(sample_or_table_speed, wheel_speeds, radius_m):
+    """The speed for drag: the reported one, or the mean wheel speed where none is reported."""
+    return np.where(np.isfinite(sample_or_table_speed), sample_or_table_speed, np.mean(wheel_speeds, axis=0) * radius_m)
+
+
+WHEELS = ("wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps", "wheel_speed_rr_radps")
+
+
+class GuardedEstimator(Estimator):
+    """Any estimator with the physics guard on its output (the name and state are the inner estimator's)."""
+
+    def __init__(self, inner: Estimator, settings: GuardSettings = GuardSettings(), vehicle: VehicleParams | None = None):
+        self.inner = inner
+        self.settings = settings
+        self.vehicle = vehicle
+        self.name = inner.name
+
+    def __getattr__(self, item):  # the inner estimator's own extras (diagnostics, model, ...)
+        if item == "inner":
+            raise AttributeError(item)
+        return getattr(self.inner, item)
+
+    def _profile(self, vehicle: VehicleParams | None) -> VehicleParams:
+        if vehicle is not None:
+            return vehicle
+        return self.vehicle if self.vehicle is not None else PAPER_SUV
+
+    def start(self, vehicle: VehicleParams | None = None):
+        vehicle = self._profile(vehicle)
+        return {"vehicle": vehicle, "inner": self.inner.start(vehicle)}
+
+    def update(self, state, sample: dict) -> Estimate | None:
+        est = self.inner.update(state["inner"], sample)
+        if est is None:
+            return None
+        vehicle = state["vehicle"]
+        speed = sample.get("speed_mps")
+        if speed is None or not np.isfinite(float(speed)):
+            speed = np.mean([float(sample[w]) for w in WHEELS]) * vehicle.wheel_radius_m
+        bound = tire_force_bound(vehicle, float(sample["accel_lon_mps2"]), float(sample["accel_lat_mps2"]),
+                                 float(speed), self.settings)
+        mu, lower, upper, excited = apply_bound(est.mu, est.mu_lower, est.mu_upper, est.excited, bound)
+        return Estimate(est.vehicle_id, est.timestamp_ms, float(mu), float(lower), float(upper), bool(excited),
+                        est.estimator)
+
+    def reset(self, state) -> None:
+        self.inner.reset(state["inner"])
+
+    def state_to_dict(self, state) -> dict:
+        return {"vehicle": state["vehicle"].to_dict(), "inner": self.inner.state_to_dict(state["inner"])}
+
+    def state_from_dict(self, data: dict):
+        return {"vehicle": VehicleParams.from_dict(data["vehicle"]), "inner": self.inner.state_from_dict(data["inner"])}
+
+    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
+        vehicle = self._profile(vehicle)
+        est = self.inner.estimate_batch(table, segments, vehicle)
+        if est.num_rows == 0:
+            return est
+        # the estimates' rows are a subset of the table's, in order, one vehicle: join on the timestamp
+        where = np.searchsorted(table["timestamp_ms"].to_numpy(), est["timestamp_ms"].to_numpy())
+        col = {c: table[c].to_numpy(zero_copy_only=False).astype(np.float64)[where]
+               for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps", *WHEELS)}
+        speed = _speed(col["speed_mps"], np.stack([col[w] for w in WHEELS]), vehicle.wheel_radius_m)
+        bound = tire_force_bound(vehicle, col["accel_lon_mps2"], col["accel_lat_mps2"], speed, self.settings)
+        mu, lower, upper, excited = apply_bound(est["mu"].to_numpy(), est["mu_lower"].to_numpy(),
+                                                est["mu_upper"].to_numpy(),
+                                                est["excited"].to_numpy(zero_copy_only=False), bound)
+        return pa.table({"vehicle_id": est["vehicle_id"], "timestamp_ms": est["timestamp_ms"], "mu": mu,
+                         "mu_lower": lower, "mu_upper": upper, "excited": excited, "estimator": est["estimator"]},
+                        schema=ESTIMATE_SCHEMA)

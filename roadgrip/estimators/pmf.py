@@ -1,0 +1,528 @@
+"""A Bayesian grid (point-mass) filter over mu and the tire's slip stiffness, from the evidence production cars send.
+
+Production terminals compute their speed from the wheel speeds, so the speed carries no slip; their accelerometers carry
+bias and road grade; their tires are worn and of unknown stiffness. This estimator uses only what such a car proves:
+
+| evidence | when | likelihood of (mu, C) |
+|---|---|---|
+| the friction bound | every sample | P(mu >= u): Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias |
+| at the friction limit | ABS, TCS or ESC active | u_axle / mu in [ETA_LOW, 1]: the controller holds the tires near their peak |
+| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+
+with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
+profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
+(Pacejka, Tyre and Vehicle Dynamics, 3rd ed., section 3.2) gives, for a tire of stiffness C at utilisation f / mu,
+
+    s = (3 mu / C) (1 - (1 - f / mu)^(1/3))          (f < mu; s = f / C at small f, whatever mu)
+
+so slip at small force tells C, and slip growing faster than f / C tells mu. Each likelihood is tempered (raised to
+TEMPER) because consecutive 100 ms samples share their errors (model error, bias).
+
+Between samples mu diffuses (random walk, a 3-tap kernel) and the grid is mixed with the prior at FORGET_PER_S: evidence
+ages, so that a car leaving a braking zone does not carry its mu onto the next road, and with no evidence the posterior
+returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +- 0.15) and half spread evenly over
+0.1-1.1: below excitation the answer is this wide interval, never a low number.
+
+Self-calibration, kept in the state (so the cloud keeps it per vehicle through state_to_dict):
+- the accelerometer's bias: a slow average (BIAS_TAU_S of steady driving) of a_x - dv/dt, dv/dt from the wheels;
+  a_road uses a_x minus it, and s_u shrinks from BIAS_SIGMA0 towards BIAS_SIGMA_FLOOR (grades that vary) as it settles;
+- the left/right rolling-radius ratio of each axle, from straight driving (RADIUS_TAU_S);
+- the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
+  over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and the grid's C
+  marginal (kept across gaps) is the stiffness calibration.
+
+An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
+inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
+The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
+utilisation u / mu is at least 0.5 (DESIGN 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
+"""
+
+from __future__ import annotations
+
+from math import erf, exp, sqrt
+
+import numpy as np
+import pyarrow as pa
+from numba import njit
+
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.guard import drag_per_mass
+from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
+from roadgrip.units import G_MPS2
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+
+MU_GRID = np.round(np.arange(0.05, 1.5001, 0.025), 4)  # the grid's mu values
+C_FACTORS = np.geomspace(0.5, 2.0, 7)  # tire slip stiffness as a factor of the profile's
+NM, NC = MU_GRID.size, C_FACTORS.size
+
+
+def _prior(mu):
+    dry = np.exp(-0.5 * ((mu - 0.85) / 0.15) ** 2) / (0.15 * np.sqrt(2 * np.pi))
+    spread = ((mu >= 0.1) & (mu <= 1.1)).astype(float) / 1.0
+    p = 0.5 * dry + 0.5 * spread + 1e-3
+    return p / p.sum()
+
+
+PRIOR = _prior(MU_GRID)
+C_PRIOR = np.exp(-0.5 * (np.log(C_FACTORS) / 0.35) ** 2)
+C_PRIOR /= C_PRIOR.sum()
+
+# Tuning, each with its reason
+TEMPER = 0.3  # 10 Hz samples: errors correlated over about 0.3 s (ABS cycle, suspension, signal offsets)
+FORGET_PER_S = 0.3  # evidence halves in about 2.3 s: 50 m at 80 km/h, under an H3 cell of the map
+MU_WALK_PER_SQRT_S = 0.05  # the road's mu changing along the path
+C_FORGET_PER_S = 1.0 / 1800.0  # tires change over months; wet rubber or a tire change within half an hour
+ETA_LOW = 0.6  # a controller acting holds the axle's utilisation between 0.6 and 1 of mu (ABS cycles below the peak)
+ACCEL_NOISE_MPS2 = 0.1  # per-sample accelerometer noise allowance (the simulator: 0.05 white)
+BIAS_SIGMA0_MPS2 = 0.5  # an uncalibrated bias: mounting and pitch (a production SUV: -0.63 against d(speed)/dt)
+BIAS_SIGMA_FLOOR_MPS2 = 0.15  # what calibration leaves: grades that vary along the road (1.5 %)
+BIAS_TAU_S = 60.0  # seconds of steady driving that the bias average spans
+RADIUS_TAU_S = 30.0  # seconds of straight driving that the left/right radius ratios span
+RLS_TAU_S = 120.0  # the slip line's memory
+SLIP_SIGMA0 = 0.0015  # slip noise floor: wheel-speed noise, CAN quantisation, signal time offsets
+SLIP_SIGMA_PER_MPS = 0.01  # ... growing at low speed (quantisation of 0.01 km/h over v)
+SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic Formula, Burckhardt in the simulator)
+SLIP_MIN_SPEED_MPS = 5.0
+INCONSISTENT = 1e-3
+EXCITED_WIDTH = 0.25
+MAX_STEP_S = 0.5
+
+SAMPLE_COLUMNS = (
+    "timestamp_ms", "wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps", "wheel_speed_rr_radps",
+    "steering_wheel_angle_rad", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps",
+    "abs_active", "tcs_active", "esc_active",
+)
+OPTIONAL_COLUMNS = ("tcs_active", "esc_active")  # absent: not reported, taken as not acting
+S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10, 11
+N_S = len(SAMPLE_COLUMNS)
+
+# Parameter vector
+(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO) = range(11)
+N_Q = 11
+DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
+
+# Memory: the grid, then calibration and bookkeeping
+G0 = 0
+K_T = NM * NC
+(K_STARTED, K_BIAS, K_BIAS_W, K_LR_F, K_LR_R, K_LR_W, K_S0, K_SLOPE, K_P00, K_P01, K_P11, K_RLS_W, K_V_PREV,
+ K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT) = range(K_T + 1, K_T + 19)
+N_MEM = K_T + 19
+CALIBRATION = {"accel_bias_mps2": K_BIAS, "accel_bias_weight_s": K_BIAS_W, "radius_ratio_left_right_front": K_LR_F,
+               "radius_ratio_left_right_rear": K_LR_R, "radius_ratio_weight_s": K_LR_W,
+               "slip_offset_front_rear": K_S0, "slip_slope": K_SLOPE, "slip_line_weight_s": K_RLS_W}
+O_MU, O_LOWER, O_UPPER, O_EXCITED, O_VALID = range(5)
+N_OUT = 5
+
+
+def pack(vehicle: VehicleParams) -> np.ndarray:
+    """The profile as the kernel's parameter vector (Q_*)."""
+    if not isinstance(vehicle, VehicleParams):
+        raise TypeError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    q = np.zeros(N_Q)
+    q[Q_M] = vehicle.mass_kg
+    q[Q_DRAG] = drag_per_mass(vehicle)
+    q[Q_ROLL] = roll_per_lateral_accel(vehicle)
+    q[Q_LF], q[Q_LR], q[Q_H] = vehicle.cg_to_front_axle_m, vehicle.cg_to_rear_axle_m, vehicle.cg_height_m
+    q[Q_RADIUS] = vehicle.wheel_radius_m
+    q[Q_DRIVE] = DRIVE_CODES[vehicle.drive]
+    driven = vehicle.tire_rear if vehicle.drive == "rwd" else vehicle.tire_front
+    q[Q_C0] = driven.longitudinal_stiffness_per_load
+    q[Q_FRR] = vehicle.rolling_resistance
+    q[Q_STEER_RATIO] = vehicle.steering_ratio
+    return q
+
+
+@njit(cache=True)
+def _phi(x):
+    return 0.5 * (1.0 + erf(x / sqrt(2.0)))
+
+
+@njit(cache=True)
+def _start(mem, keep_stiffness):
+    """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps)."""
+    cm = np.empty(NC)
+    total = 0.0
+    for j in range(NC):
+        cm[j] = 0.0
+        if keep_stiffness:
+            for i in range(NM):
+                cm[j] += mem[G0 + i * NC + j]
+        else:
+            cm[j] = C_PRIOR[j]
+        total += cm[j]
+    for i in range(NM):
+        for j in range(NC):
+            mem[G0 + i * NC + j] = PRIOR[i] * cm[j] / total
+    mem[K_STARTED] = 1.0
+    mem[K_V_PREV] = -1.0
+
+
+@njit(cache=True)
+def _predict(mem, dt):
+    """Mu diffuses (random walk on the grid) and the grid is mixed with the prior; stiffness is nearly constant."""
+    step = MU_GRID[1] - MU_GRID[0]
+    var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * dt) / (step * step)  # in grid steps^2
+    side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
+    forget = 1.0 - exp(-FORGET_PER_S * dt)
+    forget_c = 1.0 - exp(-C_FORGET_PER_S * dt)
+    cm = np.zeros(NC)
+    for i in range(NM):
+        for j in range(NC):
+            cm[j] += mem[G0 + i * NC + j]
+    for j in range(NC):
+        col = np.empty(NM)
+        for i in range(NM):
+            col[i] = mem[G0 + i * NC + j]
+        for i in range(NM):
+            left = col[i - 1] if i > 0 else col[i]
+            right = col[i + 1] if i < NM - 1 else col[i]
+            p = (1.0 - 2.0 * side) * col[i] + side * (left + right)
+            c_target = (1.0 - forget_c) * cm[j] + forget_c * C_PRIOR[j]
+            mem[G0 + i * NC + j] = (1.0 - forget) * ((1.0 - forget_c) * p + forget_c * PRIOR[i] * C_PRIOR[j]) \
+                + forget * PRIOR[i] * c_target
+
+
+@njit(cache=True)
+def _apply(mem, like):
+    """Multiply the grid by a likelihood (NM x NC), tempered; skip it (False) if no cell explains the data."""
+    best = 0.0
+    total = 0.0
+    for i in range(NM):
+        for j in range(NC):
+            lk = like[i, j]
+            if lk > best:
+                best = lk
+            total += mem[G0 + i * NC + j] * lk
+    if not best > 0.0 or total < INCONSISTENT * best:
+        mem[K_INCONSISTENT] += 1.0
+        return False
+    norm = 0.0
+    for i in range(NM):
+        for j in range(NC):
+            v = mem[G0 + i * NC + j] * (like[i, j] / best) ** TEMPER
+            mem[G0 + i * NC + j] = v
+            norm += v
+    for k in range(NM * NC):
+        mem[G0 + k] /= norm
+    return True
+
+
+@njit(cache=True)
+def _bound_likelihood(u, s_u, like):
+    for i in range(NM):
+        lk = _phi((MU_GRID[i] - u) / s_u)
+        for j in range(NC):
+            like[i, j] = lk
+
+
+@njit(cache=True)
+def _limit_likelihood(u_axle, s_u, like):
+    """A controller acts: u_axle / mu in [ETA_LOW, 1], blurred by the measurement's noise."""
+    for i in range(NM):
+        mu = MU_GRID[i]
+        lk = _phi((mu - u_axle) / s_u) * _phi((u_axle - ETA_LOW * mu) / s_u)
+        for j in range(NC):
+            like[i, j] = lk
+
+
+@njit(cache=True)
+def _slip_likelihood(f, s, v, c0, like):
+    """The brush model's slip at force per load f against the measured slip s, for each (mu, C)."""
+    s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v
+    for i in range(NM):
+        mu = MU_GRID[i]
+        for j in range(NC):
+            c = c0 * C_FACTORS[j]
+            s_peak = 3.0 * mu / c
+            x = abs(f) / mu
+            if x >= 1.0:
+                pred = s_peak
+            else:
+                pred = s_peak * (1.0 - (1.0 - x) ** (1.0 / 3.0))
+            if f < 0.0:
+                pred = -pred
+            sig = s_floor + SLIP_MODEL_SHARE * abs(pred)
+            err = s - pred
+            if x >= 0.8 and abs(s) > abs(pred) and s * f > 0.0:  # near the peak the slip may grow freely
+                err = 0.0
+            like[i, j] = exp(-0.5 * (err / sig) ** 2)
+
+
+@njit(cache=True)
+def _quantile(pm, level):
+    """The level-quantile of the mu marginal, the grid's cells read as bins of width `step` around each value."""
+    step = MU_GRID[1] - MU_GRID[0]
+    acc = 0.0
+    for i in range(NM):
+        if acc + pm[i] >= level:
+            frac = (level - acc) / pm[i] if pm[i] > 0.0 else 0.5
+            return MU_GRID[i] - 0.5 * step + frac * step
+        acc += pm[i]
+    return MU_GRID[NM - 1] + 0.5 * step
+
+
+@njit(cache=True)
+def _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving):
+    """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
+    controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
+    if dt <= 0.0 or controller or v < 3.0:
+        return
+    # accelerometer bias: a_x - dv/dt over steady driving
+    v_prev = mem[K_V_PREV]
+    if v_prev >= 0.0 and abs(smp[S_AX]) < 2.5 and abs(smp[S_R]) < 0.1:
+        dvdt = (v - v_prev) / dt
+        w = 1.0 - exp(-dt / BIAS_TAU_S)
+        mem[K_BIAS] += w * ((smp[S_AX] - dvdt) - mem[K_BIAS])
+        mem[K_BIAS_W] += dt
+    if v < SLIP_MIN_SPEED_MPS or not straight:
+        return
+    # left/right radius ratios (straight driving: both sides roll the same way)
+    w = 1.0 - exp(-dt / RADIUS_TAU_S)
+    mem[K_LR_F] += w * (smp[S_W0] / smp[S_W0 + 1] - 1.0 - mem[K_LR_F])
+    mem[K_LR_R] += w * (smp[S_W0 + 2] / smp[S_W0 + 3] - 1.0 - mem[K_LR_R])
+    mem[K_LR_W] += dt
+    # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting
+    if driving and abs(f_d) < 0.15:
+        lam = exp(-dt / RLS_TAU_S)
+        p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
+        # K = P h / (h' P h + r), h = (1, f)
+        ph0, ph1 = p00 + p01 * f_d, p01 + p11 * f_d
+        r = (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
+        den = ph0 + ph1 * f_d + r
+        k0, k1 = ph0 / den, ph1 / den
+        err = s_raw - (mem[K_S0] + mem[K_SLOPE] * f_d)
+        mem[K_S0] += k0 * err
+        mem[K_SLOPE] += k1 * err
+        # P = (I - K h') P
+        mem[K_P00] = p00 - k0 * ph0
+        mem[K_P01] = p01 - k0 * ph1
+        mem[K_P11] = p11 - k1 * ph1
+        mem[K_RLS_W] += dt
+
+
+@njit(cache=True)
+def init_memory(mem, q):
+    mem[:] = 0.0
+    mem[K_SLOPE] = 1.0 / q[Q_C0]
+    mem[K_P00] = 0.02 ** 2  # radius mismatch: +-2 % a wheel
+    mem[K_P11] = (0.5 / q[Q_C0]) ** 2
+    mem[K_P01] = 0.0
+    _start(mem, False)
+    mem[K_STARTED] = 0.0
+
+
+@njit(cache=True)
+def pmf_step(mem, q, smp, t_prev, out):
+    """One sample. Returns the sample's time (ms) to remember, or t_prev where the sample was rejected."""
+    for k in range(N_S):
+        if not np.isfinite(smp[k]):
+            mem[K_REJECTED] += 1.0
+            _output(mem, 0.0, False, out)
+            return t_prev
+    dt = 0.0
+    if mem[K_STARTED] == 0.0:
+        _start(mem, True)
+    else:
+        dt = (smp[S_T] - t_prev) / 1000.0
+        if not dt > 0.0:
+            mem[K_REJECTED] += 1.0
+            _output(mem, 0.0, False, out)
+            return t_prev
+        if dt > MAX_STEP_S:
+            mem[K_RESTARTS] += 1.0
+            _start(mem, True)
+            dt = 0.0
+    if dt > 0.0:
+        _predict(mem, dt)
+    radius = q[Q_RADIUS]
+    # wheel ground speeds with the left/right radius ratios taken out (each side by half the ratio)
+    v_wheels = np.empty(4)
+    v_wheels[0] = smp[S_W0] * radius / (1.0 + 0.5 * mem[K_LR_F])
+    v_wheels[1] = smp[S_W0 + 1] * radius * (1.0 + 0.5 * mem[K_LR_F])
+    v_wheels[2] = smp[S_W0 + 2] * radius / (1.0 + 0.5 * mem[K_LR_R])
+    v_wheels[3] = smp[S_W0 + 3] * radius * (1.0 + 0.5 * mem[K_LR_R])
+    v_front = 0.5 * (v_wheels[0] + v_wheels[1])
+    v_rear = 0.5 * (v_wheels[2] + v_wheels[3])
+    drive = int(q[Q_DRIVE])
+    v = v_rear if drive == 0 else (v_front if drive == 1 else 0.5 * (v_front + v_rear))
+    v = abs(v)
+    # the road's force per mass (guard.py), with the calibrated bias taken out
+    bias_w = mem[K_BIAS_W]
+    ax_c = smp[S_AX] - mem[K_BIAS]
+    atx = ax_c + q[Q_DRAG] * v * v
+    aty = smp[S_AY] / (1.0 + G_MPS2 * q[Q_ROLL])
+    u = sqrt(atx * atx + aty * aty) / G_MPS2
+    bias_sd = sqrt(BIAS_SIGMA0_MPS2 ** 2 * exp(-bias_w / BIAS_TAU_S) + BIAS_SIGMA_FLOOR_MPS2 ** 2)
+    s_u = sqrt(ACCEL_NOISE_MPS2 ** 2 + bias_sd ** 2) / G_MPS2
+    like = np.empty((NM, NC))
+    _bound_likelihood(u, s_u, like)
+    _apply(mem, like)
+    # loads of the axles (static share and longitudinal transfer, eq. 2 summed over an axle)
+    m, lf, lr, h = q[Q_M], q[Q_LF], q[Q_LR], q[Q_H]
+    wb = lf + lr
+    fz_front = m * (G_MPS2 * lr - atx * h) / wb
+    fz_rear = m * (G_MPS2 * lf + atx * h) / wb
+    limit = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
+    if limit:
+        u_limit = u
+        if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
+            # traction control: only the driven axle is at its limit
+            fz_d = fz_front if drive == 0 else fz_rear
+            u_limit = sqrt((m * atx / max(fz_d, 0.2 * m * G_MPS2)) ** 2 + (aty / G_MPS2) ** 2)
+        _limit_likelihood(u_limit, s_u, like)
+        _apply(mem, like)
+    # slip between the driven and the undriven axle
+    straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
+    driving = atx > -0.3 and smp[S_ABS] == 0.0
+    f_d = 0.0
+    s_raw = 0.0
+    if drive < 2 and v >= SLIP_MIN_SPEED_MPS:
+        v_d, v_u = (v_front, v_rear) if drive == 0 else (v_rear, v_front)
+        fz_d, fz_u = (fz_front, fz_rear) if drive == 0 else (fz_rear, fz_front)
+        s_raw = v_d / v_u - 1.0
+        f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
+        if straight and driving:
+            _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
+            _apply(mem, like)
+    _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving)
+    mem[K_V_PREV] = v
+    mem[K_U] = u
+    mem[K_LIMIT] = 1.0 if limit else 0.0
+    _output(mem, u, True, out)
+    return smp[S_T]
+
+
+@njit(cache=True)
+def _output(mem, u, ok, out):
+    if mem[K_STARTED] == 0.0:
+        out[O_VALID] = 0.0
+        return
+    pm = np.zeros(NM)
+    for i in range(NM):
+        for j in range(NC):
+            pm[i] += mem[G0 + i * NC + j]
+    lower = _quantile(pm, 0.05)
+    mu = _quantile(pm, 0.5)
+    upper = _quantile(pm, 0.95)
+    out[O_MU] = mu
+    out[O_LOWER] = max(lower, 0.0)
+    out[O_UPPER] = upper
+    excited = u >= 0.5 * mu or mem[K_LIMIT] > 0.0 or upper - lower <= EXCITED_WIDTH
+    out[O_EXCITED] = 1.0 if (ok and excited) else 0.0
+    out[O_VALID] = 1.0
+
+
+@njit(cache=True)
+def run_rows(mem, q, samples, segments, out):
+    """The step kernel over one vehicle's rows, restarting the mu grid where the segment id changes."""
+    t_prev = 0.0
+    for k in range(samples.shape[0]):
+        if k > 0 and segments[k] != segments[k - 1]:
+            mem[K_STARTED] = 0.0
+            mem[K_RESTARTS] += 1.0
+        t_prev = pmf_step(mem, q, samples[k], t_prev, out[k])
+
+
+class PMFState:
+    """One vehicle's filter: its profile, the packed parameters, the memory, and the last accepted time (ms)."""
+
+    __slots__ = ("vehicle", "q", "mem", "t_prev")
+
+    def __init__(self, vehicle: VehicleParams, q: np.ndarray, mem: np.ndarray, t_prev: float = 0.0):
+        self.vehicle, self.q, self.mem, self.t_prev = vehicle, q, mem, t_prev
+
+
+def _sample_vector(sample: dict) -> np.ndarray:
+    smp = np.empty(N_S)
+    for k, column in enumerate(SAMPLE_COLUMNS):
+        if column not in sample:
+            if column in OPTIONAL_COLUMNS:
+                smp[k] = 0.0
+                continue
+            raise ValueError(f"pmf: telemetry sample lacks the field {column!r}")
+        value = sample[column]
+        smp[k] = np.nan if value is None else float(value)
+    return smp
+
+
+class PMFEstimator(Estimator):
+    """mu from a Bayesian grid over (mu, tire stiffness): friction bound, controller activity, axle slip (module doc)."""
+
+    name = "pmf"
+
+    def __init__(self, vehicle: VehicleParams | None = None):
+        if vehicle is not None and not isinstance(vehicle, VehicleParams):
+            raise TypeError(f"pmf: vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+        self.vehicle = vehicle
+
+    def _vehicle(self, vehicle: VehicleParams | None) -> VehicleParams:
+        if vehicle is not None:
+            return vehicle
+        return PAPER_SUV if self.vehicle is None else self.vehicle
+
+    def start(self, vehicle: VehicleParams | None = None) -> PMFState:
+        vehicle = self._vehicle(vehicle)
+        q = pack(vehicle)
+        mem = np.zeros(N_MEM)
+        init_memory(mem, q)
+        return PMFState(vehicle, q, mem)
+
+    def update(self, state: PMFState, sample: dict) -> Estimate | None:
+        smp = _sample_vector(sample)
+        out = np.zeros(N_OUT)
+        state.t_prev = pmf_step(state.mem, state.q, smp, state.t_prev, out)
+        if out[O_VALID] == 0.0 or not np.isfinite(smp[S_T]):
+            return None
+        return Estimate(str(sample["vehicle_id"]), int(smp[S_T]), float(out[O_MU]), float(out[O_LOWER]),
+                        float(out[O_UPPER]), bool(out[O_EXCITED]), self.name)
+
+    def reset(self, state: PMFState) -> None:
+        state.mem[K_STARTED] = 0.0
+
+    def calibration(self, state: PMFState) -> dict:
+        """The self-calibration this vehicle has reached, with the stiffness factor's posterior mean."""
+        grid = state.mem[G0:G0 + NM * NC].reshape(NM, NC)
+        cm = grid.sum(axis=0)
+        out = {name: float(state.mem[k]) for name, k in CALIBRATION.items()}
+        out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
+        out["inconsistent"] = int(state.mem[K_INCONSISTENT])
+        return out
+
+    def state_to_dict(self, state: PMFState) -> dict:
+        return {"estimator": self.name, "vehicle": state.vehicle.to_dict(), "memory": state.mem.tolist(),
+                "t_prev": state.t_prev}
+
+    def state_from_dict(self, data: dict) -> PMFState:
+        if data.get("estimator") != self.name:
+            raise ValueError(f"state of estimator {data.get('estimator')!r} given to {self.name!r}")
+        memory = np.asarray(data["memory"], dtype=np.float64)
+        if memory.shape != (N_MEM,):
+            raise ValueError(f"pmf state memory must hold {N_MEM} numbers, got shape {memory.shape}")
+        vehicle = VehicleParams.from_dict(data["vehicle"])
+        return PMFState(vehicle, pack(vehicle), memory.copy(), float(data["t_prev"]))
+
+    def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
+        vehicle = self._vehicle(vehicle)
+        missing = [c for c in SAMPLE_COLUMNS if c not in table.column_names and c not in OPTIONAL_COLUMNS]
+        if missing:
+            raise ValueError(f"pmf: telemetry table lacks the column(s) {missing}")
+        samples = np.zeros((table.num_rows, N_S))
+        for k, column in enumerate(SAMPLE_COLUMNS):
+            if column in table.column_names:
+                samples[:, k] = np.nan_to_num(table[column].to_numpy(zero_copy_only=False).astype(np.float64),
+                                              nan=0.0 if column in OPTIONAL_COLUMNS else np.nan)
+        segments = np.asarray(segments)
+        if segments.shape != (table.num_rows,):
+            raise ValueError(f"segments must give one id per row ({table.num_rows}), got shape {segments.shape}")
+        q = pack(vehicle)
+        mem = np.zeros(N_MEM)
+        init_memory(mem, q)
+        out = np.zeros((table.num_rows, N_OUT))
+        run_rows(mem, q, samples, segments.astype(np.int64), out)
+        valid = out[:, O_VALID] > 0.0
+        return pa.table({
+            "vehicle_id": table["vehicle_id"].filter(pa.array(valid)),
+            "timestamp_ms": table["timestamp_ms"].to_numpy()[valid],
+            "mu": out[valid, O_MU], "mu_lower": out[valid, O_LOWER], "mu_upper": out[valid, O_UPPER],
+            "excited": out[valid, O_EXCITED] > 0.0, "estimator": [self.name] * int(valid.sum()),
+        }, schema=ESTIMATE_SCHEMA)
