@@ -2,6 +2,10 @@
 
 Both are pure functions of a seed: the same seed gives the same scenarios, and the run seeds that drive the sensor noise are
 spawned from it with numpy's SeedSequence.
+
+Production-terminal realism (roadgrip/sim/production.py) is off in `paper` (the paper's CarSim-like setting) and on in
+`random` and the generalization presets (`RANDOM_EFFECTS`): their runs get speed from the wheel speeds, accelerometer
+mounting, bias and pitch, per-wheel rolling radii, CAN resolution, time offsets, a road grade and a tire stiffness factor.
 """
 
 from __future__ import annotations
@@ -10,8 +14,11 @@ import math
 
 import numpy as np
 
+import dataclasses
+
 from roadgrip.sim.driver import SpeedProfile, SteerInput
-from roadgrip.sim.roads import MU_MAX, MuProfile, Path
+from roadgrip.sim.production import ProductionEffects
+from roadgrip.sim.roads import MU_MAX, GradeProfile, MuProfile, Path
 from roadgrip.sim.scenario import Scenario
 from roadgrip.units import G_MPS2, kmh_to_mps
 from roadgrip.validation import check_choice
@@ -35,6 +42,7 @@ RANDOM_MANOEUVRES = ("acceleration", "braking_abs", "braking_no_abs", "lane_chan
 PRESETS = ("paper", "random", "generalization-train", "generalization-calibration", "generalization-test")
 TRAINING_VEHICLES = (PAPER_SUV, MIDSIZE_SEDAN)  # the random preset's vehicles; the compact hatchback is held out
 TYPICAL_WHEELBASE_M = 2.9  # to size steering inputs before the vehicle is drawn
+RANDOM_EFFECTS = ProductionEffects.production()  # the random and generalization presets' production-terminal effects
 
 
 def _road(kind: str, length_m: float, radius_m: float = PAPER_CIRCLE_RADIUS_M) -> Path:
@@ -192,10 +200,23 @@ def _braking_cycles(rng: np.random.Generator, duration_s: float) -> SpeedProfile
             speeds.append(target)
 
 
+def random_grade(rng: np.random.Generator, grade_max_rad: float, distance_m: float) -> GradeProfile:
+    """1 to 3 grades uniform in +-grade_max_rad at stations spread over the run's distance, linear between them (crests
+    and sags as vertical curves)."""
+    n = int(rng.integers(1, 4))
+    stations = np.sort(rng.uniform(0.0, 1.0, n)) * distance_m
+    stations[0] = 0.0
+    stations = np.maximum.accumulate(stations + 1e-3 * np.arange(n))
+    return GradeProfile(stations, rng.uniform(-grade_max_rad, grade_max_rad, n))
+
+
 def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_DURATION_S, mu_bands=((0.1, 1.0),),
-                     vehicles=TRAINING_VEHICLES, prefix: str = "random", ramps: bool = True) -> list[Scenario]:
+                     vehicles=TRAINING_VEHICLES, prefix: str = "random", ramps: bool = True,
+                     effects: ProductionEffects = RANDOM_EFFECTS) -> list[Scenario]:
     """Randomized vehicles (around `vehicles`), tire models, mu profiles (from `mu_bands`) and manoeuvres (see
-    docs/SIMULATOR.md for the ranges)."""
+    docs/SIMULATOR.md for the ranges), with the production-terminal `effects` (RANDOM_EFFECTS: all on;
+    ProductionEffects.off() gives the runs of before they existed). The grade and the tire stiffness factor are drawn
+    here, after everything else of a run, and only when their effect is on."""
     if runs < 1:
         raise ValueError(f"random preset runs must be >= 1, got {runs!r}")
     scenarios = []
@@ -207,20 +228,31 @@ def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_D
         speed, build_path, steer, abs_enabled = random_manoeuvre(
             rng, manoeuvre, duration_s, float(min(mu_left.min(), mu_right.min())))
         distance_m = speed.distance_m(duration_s)
+        path = build_path(1.3 * distance_m + 300.0)
+        vehicle = random_vehicle(rng, f"{prefix}-{k:05d}", vehicles)
+        tire = tires[int(rng.integers(len(tires)))]
+        grade = GradeProfile.flat()
+        if effects.grade_max_rad:
+            grade = random_grade(rng, effects.grade_max_rad, distance_m)
+        if effects.tire_stiffness_spread:
+            spread = effects.tire_stiffness_spread
+            tire = dataclasses.replace(tire, stiffness_scale=float(rng.uniform(1.0 - spread, 1.0 + spread)))
         scenarios.append(Scenario(
             run_id=f"{prefix}-{k:05d}",
-            path=build_path(1.3 * distance_m + 300.0),
+            path=path,
             mu=MuProfile(starts * distance_m, mu_left, mu_right, mu_mode),
             speed=speed,
             condition="random",
             road="curve" if manoeuvre == "steady_curve" else "straight",
-            vehicle=random_vehicle(rng, f"{prefix}-{k:05d}", vehicles),
-            tire=tires[int(rng.integers(len(tires)))],
+            vehicle=vehicle,
+            tire=tire,
             steer=steer,
             duration_s=duration_s,
             abs_enabled=abs_enabled,
             seed=run_seed,
             manoeuvre=manoeuvre,
+            grade=grade,
+            effects=effects,
         ))
     return scenarios
 
@@ -230,7 +262,8 @@ GENERALIZATION_TEST_MU_BANDS = ((0.45, 0.55), (0.85, 1.0))
 GENERALIZATION_RUNS = {"train": 160, "calibration": 40, "test": 40}
 
 
-def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None) -> list[Scenario]:
+def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None,
+                             effects: ProductionEffects = RANDOM_EFFECTS) -> list[Scenario]:
     """The generalization benchmark's data (DESIGN 4): `train` and `calibration` runs on the sedan and the SUV with mu in
     GENERALIZATION_TRAIN_MU_BANDS; `test` runs on the held-out compact hatchback with mu only in the held-out bands.
     Steps only: ramps would pass through the held-out bands."""
@@ -239,9 +272,9 @@ def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None) 
     offset = {"train": 0, "calibration": 1, "test": 2}[part]
     if part == "test":
         return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TEST_MU_BANDS, vehicles=(COMPACT_HATCHBACK,),
-                                prefix=part, ramps=False)
+                                prefix=part, ramps=False, effects=effects)
     return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TRAIN_MU_BANDS, vehicles=TRAINING_VEHICLES,
-                            prefix=part, ramps=False)
+                            prefix=part, ramps=False, effects=effects)
 
 
 def preset_scenarios(preset: str, runs: int | None = None, seed: int = 0) -> list[Scenario]:

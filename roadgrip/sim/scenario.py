@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from roadgrip.sim.driver import SpeedProfile, SteerInput
+from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.roads import MU_MODES, GradeProfile, MuProfile, Path
 from roadgrip.validation import bounded, check_bounds
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
@@ -19,7 +20,8 @@ SAMPLE_PERIOD_S = 0.1  # telemetry every 100 ms (paper 2.1)
 @dataclass(frozen=True, eq=False)
 class Scenario:
     """One run. `condition` and `road` label it in the dataset (paper: low/medium/high/increasing/decreasing, straight/
-    circular); `seed` drives the sensor noise and biases."""
+    circular); `seed` drives the sensor noise and biases; `grade` is the road's longitudinal grade; `effects` the
+    production-terminal effects of its sensors (off: the paper's CarSim-like setting)."""
 
     run_id: str
     path: Path
@@ -37,11 +39,12 @@ class Scenario:
     experiment: int = 1
     manoeuvre: str = "custom"
     grade: GradeProfile = GradeProfile.flat()
+    effects: ProductionEffects = ProductionEffects.off()
 
     def __post_init__(self):
         check_bounds(self)
         for name, cls in (("path", Path), ("mu", MuProfile), ("speed", SpeedProfile), ("vehicle", VehicleParams),
-                          ("tire", TireModel), ("grade", GradeProfile)):
+                          ("tire", TireModel), ("grade", GradeProfile), ("effects", ProductionEffects)):
             if not isinstance(getattr(self, name), cls):
                 raise TypeError(f"Scenario.{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
         if self.steer is not None and not isinstance(self.steer, SteerInput):
@@ -78,6 +81,7 @@ class Scenario:
             "speed_profile": {"times_s": self.speed.times_s.tolist(), "speeds_mps": self.speed.speeds_mps.tolist(),
                               "acc_active": self.speed.acc_active.tolist()},
             "steer": None if self.steer is None else dataclasses.asdict(self.steer),
+            "production_effects": self.effects.to_dict(),
             "grade_profile": {"stations_m": self.grade.stations_m.tolist(), "grade_rad": self.grade.grade_rad.tolist()},
         }
 

@@ -13,6 +13,10 @@ the standard deviations below are typical of production sensors (see docs/SIMULA
 | wheel_speed_*_radps        | -               | 0.02 rad/s      | wheel-speed sensor (tone wheel) jitter                   |
 | lateral_speed_mps          | -               | 0.02 m/s        | optical ground-speed sensor of a test vehicle            |
 | latitude/longitude_deg     | -               | 1.5 m           | GNSS, first-order Gauss-Markov error with 10 s time constant |
+
+On top of these, a run's `ProductionEffects` (roadgrip/sim/production.py) may put in what a series car's terminal does:
+speed computed from the wheel speeds, accelerometer mounting angle, bias and body pitch, per-wheel rolling radius, CAN
+resolution and time offsets between signal groups. With every effect off (the default) nothing here changes.
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymap3d
 
+from roadgrip.sim.production import ProductionEffects, ecu_signals, sensed_truth
 from roadgrip.units import G_MPS2, deg_to_rad
 from roadgrip.validation import bounded, check_bounds
+from roadgrip.vehicle.params import VehicleParams
 
 HEBEI_ORIGIN = (38.0428, 114.5149)  # Shijiazhuang, Hebei Province: where the paper's vehicle-road-cloud system runs
 
@@ -60,8 +66,19 @@ class SensorModel:
         return cls(**(zero | changes))
 
     def measure(self, truth: dict[str, np.ndarray], steering_ratio: float, sample_period_s: float,
-                rng: np.random.Generator) -> dict[str, np.ndarray]:
-        """Telemetry signals of one run from its true signals (arrays over samples, keys as in integrator.CHANNELS)."""
+                rng: np.random.Generator, *, effects: ProductionEffects | None = None,
+                vehicle: VehicleParams | None = None) -> dict[str, np.ndarray]:
+        """Telemetry signals of one run from its true signals (arrays over samples, keys as in integrator.CHANNELS).
+
+        With production `effects` (which need the `vehicle`: nominal wheel radius and drive layout), the sensors see
+        the truth through them (`production.sensed_truth`) and the ECU's speed and CAN resolution rewrite the speeds
+        (`production.ecu_signals`). Their per-run draws come from a generator spawned from `rng`, so the base model's
+        draws are the same with the effects on or off."""
+        production = effects is not None and effects.any_sensor_effect
+        if production:
+            if vehicle is None:
+                raise ValueError("SensorModel.measure: production effects need the vehicle (wheel radius, drive layout)")
+            truth = sensed_truth(truth, effects, effects.draw(rng.spawn(1)[0]))
         n = truth["t_s"].size
 
         def noisy(x, bias_sigma, noise_sigma):
@@ -84,6 +101,8 @@ class SensorModel:
         north = truth["y_m"] + self._gauss_markov(n, sample_period_s, rng)
         lat, lon, _ = pymap3d.enu2geodetic(east, north, np.zeros(n), self.origin_lat_deg, self.origin_lon_deg, 0.0)
         out["latitude_deg"], out["longitude_deg"] = np.asarray(lat), np.asarray(lon)
+        if production:
+            ecu_signals(out, truth, effects, vehicle.wheel_radius_m, vehicle.drive_split[0], sample_period_s)
         return out
 
     def _gauss_markov(self, n, sample_period_s, rng):

@@ -48,7 +48,8 @@ def simulate(scenarios: Sequence[Scenario], sensors: SensorModel = SensorModel()
     for scenario, truth in zip(scenarios, truths):
         signal = {name: truth[:, k] for name, k in index.items()}
         rng = np.random.default_rng(scenario.seed)
-        measured = sensors.measure(signal, scenario.vehicle.steering_ratio, SAMPLE_PERIOD_S, rng)
+        measured = sensors.measure(signal, scenario.vehicle.steering_ratio, SAMPLE_PERIOD_S, rng,
+                                   effects=scenario.effects, vehicle=scenario.vehicle)
         n = truth.shape[0]
         columns = {
             "vehicle_id": [f"sim-{scenario.run_id}"] * n,
