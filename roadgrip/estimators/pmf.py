@@ -5,8 +5,9 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
-| the friction bound | every sample | P(mu >= u): Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias |
+| the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
 | at the friction limit | ABS, TCS or ESC active | u_axle / mu in [ETA_LOW, 1]: the controller holds the tires near their peak |
+| a wheel locked or spinning | a wheel's slip against the reference speed beyond LOCK_SLIP | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
@@ -35,6 +36,10 @@ An evidence term that no cell of the grid explains (its total likelihood below I
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
 The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
 utilisation u / mu is at least 0.5 (DESIGN 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
+
+The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): it follows
+the fastest wheel (the slowest while driving) but changes no faster than the accelerometer's a_x allows, so that locked
+or spinning wheels do not drag it along; a wheel far from it is past its friction peak.
 """
 
 from __future__ import annotations
@@ -72,7 +77,12 @@ TEMPER = 0.3  # 10 Hz samples: errors correlated over about 0.3 s (ABS cycle, su
 FORGET_PER_S = 0.3  # evidence halves in about 2.3 s: 50 m at 80 km/h, under an H3 cell of the map
 MU_WALK_PER_SQRT_S = 0.05  # the road's mu changing along the path
 C_FORGET_PER_S = 1.0 / 1800.0  # tires change over months; wet rubber or a tire change within half an hour
-ETA_LOW = 0.6  # a controller acting holds the axle's utilisation between 0.6 and 1 of mu (ABS cycles below the peak)
+ETA_LOW = 0.78  # ABS holds the tires between 0.8 and 1 of their peak (the simulator's ABS: u / mu 0.79-1.02, 5-95 %)
+DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
+ETA_LIMIT = 0.8  # a car at its limit without a controller: u / mu 0.76-1.07 in the simulator (5-95 %, wheels locked)
+ETA_LOCK = 0.7  # a locked or spinning wheel slides: sliding friction is 0.7-1 of the peak (Burckhardt's surfaces)
+LOCK_SLIP = 0.15  # a wheel this far from the reference speed is past its peak (ABS thresholds: 0.1-0.2)
+REF_TOLERANCE_MPS2 = 0.5  # the reference speed follows the wheels unless they change faster than a_x by this much
 ACCEL_NOISE_MPS2 = 0.1  # per-sample accelerometer noise allowance (the simulator: 0.05 white)
 BIAS_SIGMA0_MPS2 = 0.5  # an uncalibrated bias: mounting and pitch (a production SUV: -0.63 against d(speed)/dt)
 BIAS_SIGMA_FLOOR_MPS2 = 0.15  # what calibration leaves: grades that vary along the road (1.5 %)
@@ -105,8 +115,8 @@ DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 G0 = 0
 K_T = NM * NC
 (K_STARTED, K_BIAS, K_BIAS_W, K_LR_F, K_LR_R, K_LR_W, K_S0, K_SLOPE, K_P00, K_P01, K_P11, K_RLS_W, K_V_PREV,
- K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT) = range(K_T + 1, K_T + 19)
-N_MEM = K_T + 19
+ K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT, K_V_REF, K_U_SEEN) = range(K_T + 1, K_T + 21)
+N_MEM = K_T + 21
 CALIBRATION = {"accel_bias_mps2": K_BIAS, "accel_bias_weight_s": K_BIAS_W, "radius_ratio_left_right_front": K_LR_F,
                "radius_ratio_left_right_rear": K_LR_R, "radius_ratio_weight_s": K_LR_W,
                "slip_offset_front_rear": K_S0, "slip_slope": K_SLOPE, "slip_line_weight_s": K_RLS_W}
@@ -155,6 +165,8 @@ def _start(mem, keep_stiffness):
             mem[G0 + i * NC + j] = PRIOR[i] * cm[j] / total
     mem[K_STARTED] = 1.0
     mem[K_V_PREV] = -1.0
+    mem[K_V_REF] = 0.0
+    mem[K_U_SEEN] = 0.0
 
 
 @njit(cache=True)
@@ -183,8 +195,8 @@ def _predict(mem, dt):
 
 
 @njit(cache=True)
-def _apply(mem, like):
-    """Multiply the grid by a likelihood (NM x NC), tempered; skip it (False) if no cell explains the data."""
+def _apply(mem, like, temper):
+    """Multiply the grid by a likelihood (NM x NC) raised to `temper`; skip it (False) if no cell explains the data."""
     best = 0.0
     total = 0.0
     for i in range(NM):
@@ -199,7 +211,7 @@ def _apply(mem, like):
     norm = 0.0
     for i in range(NM):
         for j in range(NC):
-            v = mem[G0 + i * NC + j] * (like[i, j] / best) ** TEMPER
+            v = mem[G0 + i * NC + j] * (like[i, j] / best) ** temper
             mem[G0 + i * NC + j] = v
             norm += v
     for k in range(NM * NC):
@@ -208,19 +220,31 @@ def _apply(mem, like):
 
 
 @njit(cache=True)
-def _bound_likelihood(u, s_u, like):
+def _demand_likelihood(mu, u, s_u):
+    """p(u | mu) up to a factor: the driver's demand d has density exp(-d / DEMAND_G) / DEMAND_G whatever the road;
+    the tires transmit u = d where d < mu, and where d >= mu (probability exp(-mu / DEMAND_G)) they saturate, u / mu
+    then in [ETA_LIMIT, 1]. Divided by exp(-u / DEMAND_G): P(mu >= u) (1 + DEMAND_G [u / mu in the band] / band)."""
+    s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
+    band = (1.0 - ETA_LIMIT) * mu
+    return _phi((mu - u) / s_u) * (1.0 + DEMAND_G * _phi((u - ETA_LIMIT * mu) / s_lim) / band)
+
+
+@njit(cache=True)
+def _bound_likelihood(u, u_seen, s_u, like):
+    """What a new largest utilisation u adds to the one u_seen already applied."""
     for i in range(NM):
-        lk = _phi((MU_GRID[i] - u) / s_u)
+        lk = _demand_likelihood(MU_GRID[i], u, s_u) / max(_demand_likelihood(MU_GRID[i], u_seen, s_u), 1e-300)
         for j in range(NC):
             like[i, j] = lk
 
 
 @njit(cache=True)
-def _limit_likelihood(u_axle, s_u, like):
-    """A controller acts: u_axle / mu in [ETA_LOW, 1], blurred by the measurement's noise."""
+def _limit_likelihood(u_axle, s_u, eta, like):
+    """At the friction limit: u_axle / mu in [eta, 1], blurred by the measurement's noise."""
     for i in range(NM):
         mu = MU_GRID[i]
-        lk = _phi((mu - u_axle) / s_u) * _phi((u_axle - ETA_LOW * mu) / s_u)
+        s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
+        lk = _phi((mu - u_axle) / s_u) * _phi((u_axle - eta * mu) / s_lim)
         for j in range(NC):
             like[i, j] = lk
 
@@ -274,15 +298,18 @@ def _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, dr
         w = 1.0 - exp(-dt / BIAS_TAU_S)
         mem[K_BIAS] += w * ((smp[S_AX] - dvdt) - mem[K_BIAS])
         mem[K_BIAS_W] += dt
-    if v < SLIP_MIN_SPEED_MPS or not straight:
+    if v < SLIP_MIN_SPEED_MPS or not straight or not driving:
         return
+    for i in range(4):
+        if not v_wheels[i] > 0.5 * v:  # a wheel locked or spinning backwards: no ratio to learn
+            return
     # left/right radius ratios (straight driving: both sides roll the same way)
     w = 1.0 - exp(-dt / RADIUS_TAU_S)
     mem[K_LR_F] += w * (smp[S_W0] / smp[S_W0 + 1] - 1.0 - mem[K_LR_F])
     mem[K_LR_R] += w * (smp[S_W0 + 2] / smp[S_W0 + 3] - 1.0 - mem[K_LR_R])
     mem[K_LR_W] += dt
     # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting
-    if driving and abs(f_d) < 0.15:
+    if abs(f_d) < 0.15:
         lam = exp(-dt / RLS_TAU_S)
         p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
         # K = P h / (h' P h + r), h = (1, f)
@@ -317,7 +344,7 @@ def pmf_step(mem, q, smp, t_prev, out):
     for k in range(N_S):
         if not np.isfinite(smp[k]):
             mem[K_REJECTED] += 1.0
-            _output(mem, 0.0, False, out)
+            _output(mem, 0.0, 0.0, False, out)
             return t_prev
     dt = 0.0
     if mem[K_STARTED] == 0.0:
@@ -326,7 +353,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         dt = (smp[S_T] - t_prev) / 1000.0
         if not dt > 0.0:
             mem[K_REJECTED] += 1.0
-            _output(mem, 0.0, False, out)
+            _output(mem, 0.0, 0.0, False, out)
             return t_prev
         if dt > MAX_STEP_S:
             mem[K_RESTARTS] += 1.0
@@ -355,45 +382,65 @@ def pmf_step(mem, q, smp, t_prev, out):
     bias_sd = sqrt(BIAS_SIGMA0_MPS2 ** 2 * exp(-bias_w / BIAS_TAU_S) + BIAS_SIGMA_FLOOR_MPS2 ** 2)
     s_u = sqrt(ACCEL_NOISE_MPS2 ** 2 + bias_sd ** 2) / G_MPS2
     like = np.empty((NM, NC))
-    _bound_likelihood(u, s_u, like)
-    _apply(mem, like)
+    # the bound is a maximum, not a sum: only a utilisation above the largest recent one (aged as the grid forgets)
+    # tells more; applying every sample's bound would count the same bias again and again
+    u_seen = mem[K_U_SEEN] * exp(-FORGET_PER_S * dt)
+    if u > u_seen:
+        _bound_likelihood(u, u_seen, s_u, like)
+        _apply(mem, like, 1.0)
+        u_seen = u
+    mem[K_U_SEEN] = u_seen
     # loads of the axles (static share and longitudinal transfer, eq. 2 summed over an axle)
     m, lf, lr, h = q[Q_M], q[Q_LF], q[Q_LR], q[Q_H]
     wb = lf + lr
     fz_front = m * (G_MPS2 * lr - atx * h) / wb
     fz_rear = m * (G_MPS2 * lf + atx * h) / wb
-    limit = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
+    # the reference speed, and wheels past their peak
+    v_max, v_min = max(v_wheels[0], v_wheels[1], v_wheels[2], v_wheels[3]), min(v_wheels[0], v_wheels[1],
+                                                                                  v_wheels[2], v_wheels[3])
+    v_ref = v_max if atx < 0.0 else v_min
+    if dt > 0.0 and mem[K_V_REF] > 0.0:
+        tol = (REF_TOLERANCE_MPS2 + 2.0 * bias_sd) * dt
+        v_ref = min(max(v_ref, mem[K_V_REF] + ax_c * dt - tol), mem[K_V_REF] + ax_c * dt + tol)
+    mem[K_V_REF] = max(v_ref, 0.0)
+    past_peak = False
+    if v_ref >= 3.0:
+        for i in range(4):
+            if abs(v_wheels[i] - v_ref) > LOCK_SLIP * v_ref:
+                past_peak = True
+    controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
+    limit = controller or past_peak
     if limit:
         u_limit = u
         if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
             # traction control: only the driven axle is at its limit
             fz_d = fz_front if drive == 0 else fz_rear
             u_limit = sqrt((m * atx / max(fz_d, 0.2 * m * G_MPS2)) ** 2 + (aty / G_MPS2) ** 2)
-        _limit_likelihood(u_limit, s_u, like)
-        _apply(mem, like)
+        _limit_likelihood(u_limit, s_u, ETA_LOW if controller else ETA_LOCK, like)
+        _apply(mem, like, TEMPER)
     # slip between the driven and the undriven axle
     straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
     driving = atx > -0.3 and smp[S_ABS] == 0.0
     f_d = 0.0
     s_raw = 0.0
-    if drive < 2 and v >= SLIP_MIN_SPEED_MPS:
+    if drive < 2 and v >= SLIP_MIN_SPEED_MPS and min(v_front, v_rear) > 0.5 * v:
         v_d, v_u = (v_front, v_rear) if drive == 0 else (v_rear, v_front)
         fz_d, fz_u = (fz_front, fz_rear) if drive == 0 else (fz_rear, fz_front)
         s_raw = v_d / v_u - 1.0
         f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
         if straight and driving:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
-            _apply(mem, like)
+            _apply(mem, like, TEMPER)
     _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving)
     mem[K_V_PREV] = v
     mem[K_U] = u
     mem[K_LIMIT] = 1.0 if limit else 0.0
-    _output(mem, u, True, out)
+    _output(mem, u, s_u, True, out)
     return smp[S_T]
 
 
 @njit(cache=True)
-def _output(mem, u, ok, out):
+def _output(mem, u, s_u, ok, out):
     if mem[K_STARTED] == 0.0:
         out[O_VALID] = 0.0
         return
@@ -404,6 +451,10 @@ def _output(mem, u, ok, out):
     lower = _quantile(pm, 0.05)
     mu = _quantile(pm, 0.5)
     upper = _quantile(pm, 0.95)
+    if mem[K_U_SEEN] >= 0.5 * mu:
+        # the car works its tires hard: the truth may lie right at the proven bound (the driver asked for more than
+        # the road gave), which the posterior's smooth lower tail understates
+        lower = min(lower, mem[K_U_SEEN] - 2.0 * s_u)
     out[O_MU] = mu
     out[O_LOWER] = max(lower, 0.0)
     out[O_UPPER] = upper
