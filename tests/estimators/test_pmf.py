@@ -1,0 +1,124 @@
+"""The grid filter: wide and honest without excitation, tight at the limit, self-calibrating, restartable."""
+
+import numpy as np
+import pytest
+
+from roadgrip.estimators.pmf import PMFEstimator
+from roadgrip.units import G_MPS2
+from roadgrip.vehicle.params import PAPER_SUV
+
+FWD = PAPER_SUV.replace(drive="fwd", front_drive_share=1.0)
+
+
+def _samples(speed_mps, accel_lon_mps2, *, abs_active=None, accel_bias=0.0, radius_ratio=(1.0, 1.0, 1.0, 1.0),
+             front_slip=None, seed=0, vehicle=FWD):
+    """Straight-line telemetry: the wheels roll at the speed (times their radius ratio, plus the front's slip), the
+    accelerometer reads the acceleration plus its bias and 0.05 m/s^2 noise."""
+    rng = np.random.default_rng(seed)
+    n = len(speed_mps)
+    front_slip = np.zeros(n) if front_slip is None else front_slip
+    abs_active = np.zeros(n, dtype=bool) if abs_active is None else abs_active
+    out = []
+    for k in range(n):
+        omega = speed_mps[k] / vehicle.wheel_radius_m
+        wheels = [omega * radius_ratio[i] * (1.0 + (front_slip[k] if i < 2 else 0.0)) for i in range(4)]
+        out.append({
+            "vehicle_id": "t", "timestamp_ms": 1_700_000_000_000 + 100 * k, "speed_mps": float(speed_mps[k]),
+            "accel_lon_mps2": float(accel_lon_mps2[k] + accel_bias + rng.normal(0.0, 0.05)),
+            "accel_lat_mps2": float(rng.normal(0.0, 0.05)), "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
+            "wheel_speed_fl_radps": wheels[0], "wheel_speed_fr_radps": wheels[1], "wheel_speed_rl_radps": wheels[2],
+            "wheel_speed_rr_radps": wheels[3], "abs_active": bool(abs_active[k]),
+        })
+    return out
+
+
+def _run(samples, vehicle=FWD, estimator=None, state=None):
+    estimator = estimator or PMFEstimator()
+    state = state or estimator.start(vehicle)
+    return [estimator.update(state, s) for s in samples], estimator, state
+
+
+def test_calm_driving_is_a_wide_interval_never_a_low_number():
+    n = 600  # a minute at 25 m/s with the speed wandering by 0.05 g
+    t = np.arange(n) * 0.1
+    ax = 0.5 * np.sin(2 * np.pi * t / 20.0)
+    speed = 25.0 + np.cumsum(ax) * 0.1
+    estimates, _, _ = _run(_samples(speed, ax, accel_bias=-0.6))
+    mu = np.array([e.mu for e in estimates])
+    upper = np.array([e.mu_upper for e in estimates])
+    assert mu.min() >= 0.6 and upper.min() >= 1.0
+    assert not any(e.excited for e in estimates)
+
+
+def test_abs_braking_on_ice_is_tight_and_low():
+    """ABS holding the tires at 0.9 of mu 0.15: the estimate brackets 0.15 tightly, its upper end well below 0.4."""
+    n = 40
+    decel = 0.9 * 0.15 * G_MPS2
+    speed = 20.0 - decel * np.arange(n) * 0.1
+    estimates, _, _ = _run(_samples(speed, np.full(n, -decel), abs_active=np.ones(n, dtype=bool)))
+    last = estimates[-1]
+    assert last.excited
+    assert last.mu_lower <= 0.15 <= last.mu_upper
+    assert last.mu == pytest.approx(0.15, abs=0.03)
+    assert last.mu_upper < 0.25
+
+
+def test_slip_growing_faster_than_force_reads_as_low_friction():
+    """A FWD car that first cruises (its tires' slip stiffness shows at small force), then pulls at 0.8 of mu 0.3 at
+    its front axle with the brush model's slip: the posterior moves from the prior's 0.8 to 0.3."""
+    from roadgrip.estimators.guard import drag_per_mass
+
+    c = FWD.tire_front.longitudinal_stiffness_per_load
+    cruise, pull = 600, 60
+    road = np.concatenate([0.03 * G_MPS2 * np.sin(np.arange(cruise) * 0.05), np.full(pull, 0.12 * G_MPS2)])
+    speed = 15.0 + np.cumsum(road) * 0.1
+    fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
+    f = FWD.mass_kg * road / fz_front  # the front axle's force per load
+    assert 0.75 < f[-1] / 0.3 < 0.85
+    slip = np.where(np.arange(cruise + pull) < cruise, f / c,
+                    3 * 0.3 / c * (1 - np.abs(1 - np.minimum(f / 0.3, 1.0)) ** (1 / 3)))
+    measured = road - drag_per_mass(FWD) * speed ** 2  # the accelerometer reads road force and drag
+    estimates, _, _ = _run(_samples(speed, measured, front_slip=slip))
+    assert estimates[cruise - 1].mu > 0.6
+    assert estimates[-1].mu < 0.45
+    assert estimates[-1].mu_lower <= 0.3 <= estimates[-1].mu_upper
+
+
+def test_self_calibration_converges_on_ordinary_driving():
+    """Five minutes of gentle driving: the accelerometer's bias and the wheels' radius ratios are learned."""
+    n = 3000
+    t = np.arange(n) * 0.1
+    ax = 0.8 * np.sin(2 * np.pi * t / 15.0)
+    speed = 20.0 + np.cumsum(ax) * 0.1
+    ratios = (1.01, 0.99, 1.0, 1.0)  # the front left tire 1 % fuller, the front right 1 % worn
+    _, estimator, state = _run(_samples(speed, ax, accel_bias=-0.6, radius_ratio=ratios))
+    cal = estimator.calibration(state)
+    assert cal["accel_bias_mps2"] == pytest.approx(-0.6, abs=0.05)
+    assert cal["radius_ratio_left_right_front"] == pytest.approx(1.01 / 0.99 - 1.0, abs=0.002)
+    assert cal["radius_ratio_left_right_rear"] == pytest.approx(0.0, abs=0.002)
+    assert abs(cal["slip_offset_front_rear"]) < 0.002
+
+
+def test_state_round_trip_continues_identically():
+    n = 200
+    ax = np.where(np.arange(n) < 100, 0.0, -3.0)
+    speed = 25.0 + np.cumsum(ax) * 0.1
+    samples = _samples(speed, ax)
+    whole, estimator, _ = _run(samples)
+    first, _, state = _run(samples[:120], estimator=estimator)
+    restored = estimator.state_from_dict(estimator.state_to_dict(state))
+    rest, _, _ = _run(samples[120:], estimator=estimator, state=restored)
+    assert [e.mu for e in first + rest] == [e.mu for e in whole]
+    assert [e.mu_upper for e in first + rest] == [e.mu_upper for e in whole]
+
+
+def test_batch_equals_streaming():
+    import pyarrow as pa
+
+    n = 150
+    ax = np.where(np.arange(n) < 60, 0.5, -5.0)
+    speed = np.maximum(20.0 + np.cumsum(ax) * 0.1, 0.0)
+    samples = _samples(speed, ax)
+    streamed, estimator, _ = _run(samples)
+    batch = estimator.estimate_batch(pa.Table.from_pylist(samples), np.zeros(n, dtype=np.int64), FWD)
+    assert batch["mu"].to_pylist() == [e.mu for e in streamed]
