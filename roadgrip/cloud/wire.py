@@ -25,7 +25,8 @@ Each sample (`SampleError`, with its first fault; `index` is its array index, or
    keys beside them (VSS has no sample time). Other wire keys mixed with VSS keys are an error (a key known to neither
    is reported first, as unknown). Errors on a VSS sample
    name the VSS key that was sent and give its value and range in the VSS unit;
-3. has every required field (TELEMETRY required=True: all but latitude, longitude and lateral speed); a sample without
+3. has every required field (TELEMETRY required=True: all but latitude, longitude, lateral speed and the tcs_active and
+   esc_active flags); a sample without
    vehicle_id takes the payload's authenticated vehicle when there is one;
 4. then field by field, vehicle_id, timestamp_ms, then the schema order:
    - vehicle_id: a string matching `VEHICLE_ID_RE`; when the authenticated `vehicle_id` is given, that one;
@@ -92,6 +93,8 @@ VSS = {
        for w, axle in _WHEEL_AXLES.items()},
     "Vehicle.ADAS.ABS.IsEngaged": VssSignal("abs_active", "-"),
     "Vehicle.ADAS.CruiseControl.IsActive": VssSignal("acc_active", "-"),
+    "Vehicle.ADAS.TCS.IsEngaged": VssSignal("tcs_active", "-"),
+    "Vehicle.ADAS.ESC.IsEngaged": VssSignal("esc_active", "-"),
 }
 VSS_PLAIN_KEYS = ("timestamp_ms", "vehicle_id")  # wire keys allowed beside VSS keys
 

@@ -33,6 +33,10 @@ TELEMETRY = (
     *(Column(f"wheel_speed_{w}_radps", pa.float64(), "rad/s", f"wheel angular speed, {w}") for w in WHEELS),
     Column("abs_active", pa.bool_(), "-", "ABS intervening"),
     Column("acc_active", pa.bool_(), "-", "adaptive cruise control engaged"),
+    Column("tcs_active", pa.bool_(), "-", "traction control intervening (absent: unknown, taken as false)",
+           required=False),
+    Column("esc_active", pa.bool_(), "-", "stability control intervening (absent: unknown, taken as false)",
+           required=False),
     Column("lateral_speed_mps", pa.float64(), "m/s", "lateral speed of the CoG (simulations, some test vehicles)",
            required=False),
 )

@@ -38,7 +38,7 @@ from roadgrip.data.schema import TELEMETRY
 from roadgrip.data.unit_checks import WHEEL_COLUMNS, check_units, vehicle_codes
 
 VEHICLE_ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # DESIGN 3.1
-BOOL_COLUMNS = ("abs_active", "acc_active")
+BOOL_COLUMNS = ("abs_active", "acc_active", "tcs_active", "esc_active")
 TIME_COLUMNS = ("vehicle_id", "timestamp_ms")
 SCHEMA = {c.name: c for c in TELEMETRY}
 
@@ -166,8 +166,10 @@ def _float_or_none(s):
 _TRUE, _FALSE = {"true", "1", "1.0"}, {"false", "0", "0.0"}
 
 
-def _booleans(arr, name: str, faults: _Faults) -> np.ndarray:
-    """Booleans from bool, 0/1 numbers, or the strings true/false/1/0 (any case); anything else is a fault."""
+def _booleans(arr, name: str, faults: _Faults, required: bool = True) -> np.ndarray:
+    """Booleans from bool, 0/1 numbers, or the strings true/false/1/0 (any case); anything else is a fault. A missing
+    value is a fault in a required column; in an optional one it is "absent": the result is then float, 1.0 / 0.0 with
+    NaN where absent (as an absent optional column is)."""
     arr = _plain(arr)
     n = len(arr)
     missing = arr.is_null().to_numpy(zero_copy_only=False)
@@ -180,14 +182,18 @@ def _booleans(arr, name: str, faults: _Faults) -> np.ndarray:
         uniq, idx = _strings(arr)
         low = [None if u is None else u.strip().lower() for u in uniq]
         values = np.array([x in _TRUE for x in low])[idx]
+        if not required:  # a blank cell of an optional column is an absent value, as a CSV writes one
+            missing = missing | np.array([x == "" for x in low])[idx]
         bad = np.array([x not in _TRUE and x not in _FALSE for x in low])[idx] & ~missing
         text = uniq[idx]
     elif pa.types.is_null(arr.type):
         values, bad, text = np.zeros(n, bool), np.zeros(n, bool), None
     else:
         raise ValueError(f"column {name} has type {arr.type}, expected booleans (true/false or 1/0)")
-    faults.add(missing, name, f"missing value in {name}")
     faults.add(bad, name, lambda i: f"{name} value {text[i]!r} is not a boolean (true/false or 1/0)")
+    if not required:
+        return np.where(missing, np.nan, values.astype(np.float64))
+    faults.add(missing, name, f"missing value in {name}")
     return values.astype(bool)
 
 
@@ -280,7 +286,7 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
         if col.name not in names:
             values[col.name] = np.full(n, np.nan)  # an absent optional column
         elif col.name in BOOL_COLUMNS:
-            values[col.name] = _booleans(table.column(col.name), col.name, faults)
+            values[col.name] = _booleans(table.column(col.name), col.name, faults, col.required)
         else:
             values[col.name] = _numbers(table.column(col.name), col.name, faults, col.required)
     used = set(SCHEMA) | {time_column}
@@ -362,8 +368,11 @@ def _output_table(vehicle, ts, values, order) -> pa.Table:
             columns.append(pa.array(vehicle[order].tolist(), pa.string()))
         elif col.name == "timestamp_ms":
             columns.append(pa.array(ts[order], pa.int64()))
-        elif col.name in BOOL_COLUMNS:
+        elif col.name in BOOL_COLUMNS and col.required:
             columns.append(pa.array(values[col.name][order], pa.bool_()))
+        elif col.name in BOOL_COLUMNS:  # optional: NaN is absent
+            v = values[col.name][order]
+            columns.append(pa.array(v == 1.0, pa.bool_(), mask=np.isnan(v)))
         else:
             v = values[col.name][order]
             columns.append(pa.array(v, pa.float64(), mask=np.isnan(v) if not col.required else None))

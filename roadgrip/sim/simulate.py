@@ -57,6 +57,8 @@ def simulate(scenarios: Sequence[Scenario], sensors: SensorModel = SensorModel()
             **measured,
             "abs_active": signal["abs_active"] > 0.5,
             "acc_active": signal["acc_active"] > 0.5,
+            "tcs_active": signal["tcs_active"] > 0.5,
+            "esc_active": signal["esc_active"] > 0.5,
             "run_id": [scenario.run_id] * n,
             "condition": [scenario.condition] * n,
             "road": [scenario.road] * n,

@@ -17,7 +17,7 @@ INJECTION = "x'); DROP TABLE telemetry;--"
 def telemetry_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
     row = {c.name: 0.5 for c in TELEMETRY}
     row.update(vehicle_id=vehicle_id, timestamp_ms=timestamp_ms, latitude_deg=48.1, longitude_deg=11.5,
-               abs_active=False, acc_active=True, lateral_speed_mps=None)
+               abs_active=False, acc_active=True, tcs_active=None, esc_active=False, lateral_speed_mps=None)
     row.update(values)
     return row
 

@@ -398,8 +398,19 @@ def test_a_vss_sample_converts_to_wire_format_with_exact_units():
         "longitude_deg": 114.51, "speed_mps": 100 / 3.6, "accel_lon_mps2": 0.5, "accel_lat_mps2": -0.2,
         "yaw_rate_radps": math.pi / 2, "steering_wheel_angle_rad": math.pi, "wheel_speed_fl_radps": math.pi,
         "wheel_speed_fr_radps": 2 * math.pi, "wheel_speed_rl_radps": 3 * math.pi, "wheel_speed_rr_radps": 4 * math.pi,
-        "abs_active": True, "acc_active": False, "lateral_speed_mps": None}]
+        "abs_active": True, "acc_active": False, "tcs_active": None, "esc_active": None, "lateral_speed_mps": None}]
     assert samples[0]["speed_mps"] == 27.77777777777778 and list(samples[0]) == list(TELEMETRY_COLUMNS)
+
+
+def test_tcs_and_esc_flags_are_optional_booleans_in_both_key_sets():
+    samples, errors = parse([vss_sample(**{"Vehicle.ADAS.TCS.IsEngaged": True, "Vehicle.ADAS.ESC.IsEngaged": False}),
+                             sample(tcs_active=False, esc_active=True), sample(tcs_active=None)])
+    assert errors == []
+    assert [(s["tcs_active"], s["esc_active"]) for s in samples] == [(True, False), (False, True), (None, None)]
+    _, errors = parse([sample(tcs_active=1), vss_sample(**{"Vehicle.ADAS.ESC.IsEngaged": "yes"})])
+    assert [(e.field, e.reason) for e in errors] == [
+        ("tcs_active", "tcs_active must be true or false, got number 1"),
+        ("Vehicle.ADAS.ESC.IsEngaged", 'Vehicle.ADAS.ESC.IsEngaged must be true or false, got string "yes"')]
 
 
 def test_every_vss_key_maps_to_a_wire_field():

@@ -45,6 +45,23 @@ def test_optional_columns_may_be_absent_and_extras_are_ignored_with_one_warning(
     assert len(extras) == 1 and "mu" in extras[0] and "run_id" in extras[0]
 
 
+def test_tcs_and_esc_flags_are_optional_booleans(tmp_path, clean):
+    n = clean.num_rows
+    absent = validate_telemetry(clean.drop([c for c in ("tcs_active", "esc_active") if c in clean.column_names]))
+    assert absent.table["tcs_active"].null_count == n and absent.table["esc_active"].null_count == n
+    assert absent.rejections == []
+    flags = [True, None, False] * (n // 3) + [False] * (n % 3)
+    table = clean.drop([c for c in ("tcs_active", "esc_active") if c in clean.column_names])
+    table = table.append_column("tcs_active", pa.array(flags, pa.bool_())).append_column(
+        "esc_active", pa.array(["1", "0", ""] * (n // 3) + ["0"] * (n % 3)))
+    batch = read_telemetry(write(table, tmp_path / "flags.parquet", "parquet"))
+    assert batch.rejections == []
+    assert batch.table["tcs_active"].to_pylist()[:3] == [True, None, False], "a missing value is absent, not a fault"
+    assert batch.table["esc_active"].to_pylist()[:3] == [True, False, None]
+    bad = table.set_column(table.column_names.index("tcs_active"), "tcs_active", pa.array(["maybe"] + ["1"] * (n - 1)))
+    assert [(r.row, r.column) for r in validate_telemetry(bad).rejections] == [(0, "tcs_active")]
+
+
 def test_nan_and_infinite_values_reject_their_rows_naming_the_column(clean):
     speed = clean["speed_mps"].to_numpy().copy()
     yaw = clean["yaw_rate_radps"].to_numpy().copy()

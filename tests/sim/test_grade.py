@@ -80,3 +80,11 @@ def test_traction_control_flag_marks_its_cuts_and_only_them(runs):
     assert not start[:, CH["esc_active"]].any(), "straight ahead: no sideslip, no ESC"
     # at t = 0 the car stands at a zero reference speed: the driver holds it on the brake
     assert not start[1:, CH["brake_active"]].any() and not steady[:, CH["brake_active"]].any()
+
+
+def test_the_dataset_carries_the_tcs_and_esc_flags():
+    from roadgrip.sim.simulate import simulate
+
+    table = simulate([RUNS[3]])
+    assert table["tcs_active"].to_numpy().any() and not table["esc_active"].to_numpy().any()
+    assert table.schema.field("tcs_active").nullable, "optional in wire format v1"
