@@ -16,6 +16,9 @@ runs:
     seed: 1
     condition: wet-patch              # labels written into the dataset
     manoeuvre: braking
+    grade: 0.03                      # optional, rad, positive uphill; or {stations_m: [...], grade_rad: [...]} (linear)
+    effects: production              # optional production-terminal effects: off (default) | production | a mapping of
+                                     # ProductionEffects fields (roadgrip/sim/production.py), the others off
 ```
 
 Every mapping is checked: an unknown key, a missing required key or an impossible value raises ValueError or TypeError
@@ -29,14 +32,15 @@ from pathlib import Path as FilePath
 import yaml
 
 from roadgrip.sim.driver import SpeedProfile, SteerInput
-from roadgrip.sim.roads import MuProfile, Path
+from roadgrip.sim.production import ProductionEffects
+from roadgrip.sim.roads import GradeProfile, MuProfile, Path
 from roadgrip.sim.scenario import Scenario
 from roadgrip.validation import from_mapping
 from roadgrip.vehicle.params import VehicleParams, vehicle_by_name
 from roadgrip.vehicle.tires import tire_model_by_name
 
 RUN_KEYS = {"run_id", "duration_s", "vehicle", "tire", "road", "mu", "speed", "steer", "abs_enabled", "tcs_enabled",
-            "seed", "condition", "manoeuvre"}
+            "seed", "condition", "manoeuvre", "grade", "effects"}
 ROAD_KINDS = {
     "straight": ({"length_m"}, lambda r: Path.straight(r["length_m"], r.get("heading_rad", 0.0)), {"heading_rad"}),
     "circle": ({"radius_m", "arc_length_m"}, lambda r: Path.circle(r["radius_m"], r["arc_length_m"],
@@ -73,6 +77,23 @@ def _mu(where: str, data) -> MuProfile:
                      data.get("mode", "step"))
 
 
+def _grade(where: str, data) -> GradeProfile:
+    if isinstance(data, (int, float)) and not isinstance(data, bool):
+        return GradeProfile.uniform(float(data))
+    data = _keys(f"{where}.grade", data, {"stations_m", "grade_rad"}, set())
+    return GradeProfile(data["stations_m"], data["grade_rad"])
+
+
+def _effects(where: str, data) -> ProductionEffects:
+    if data == "off":
+        return ProductionEffects.off()
+    if data == "production":
+        return ProductionEffects.production()
+    if isinstance(data, dict):
+        return from_mapping(ProductionEffects, data)
+    raise ValueError(f"{where}.effects must be 'off', 'production' or a mapping of ProductionEffects fields, got {data!r}")
+
+
 def scenario_from_dict(data) -> Scenario:
     run_id = data.get("run_id") if isinstance(data, dict) else None
     where = f"run {run_id!r}"
@@ -93,6 +114,8 @@ def scenario_from_dict(data) -> Scenario:
         tire=tire_model_by_name(tire.pop("model", "dugoff"), **tire),
         steer=None if steer is None else from_mapping(SteerInput, steer),
         road=data["road"]["kind"],
+        grade=_grade(where, data["grade"]) if "grade" in data else GradeProfile.flat(),
+        effects=_effects(where, data.get("effects", "off")),
         **options,
     )
 

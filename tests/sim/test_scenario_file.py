@@ -29,6 +29,17 @@ def test_a_run_is_built_from_its_mapping():
     assert s.mu.at([50.0]) == pytest.approx([0.65]) and s.n_samples == 100
 
 
+def test_grade_and_production_effects_are_read():
+    from roadgrip.sim.production import ProductionEffects
+
+    s = scenario_from_dict(RUN)
+    assert s.grade.is_flat and s.effects == ProductionEffects.off()
+    s = scenario_from_dict(RUN | {"grade": {"stations_m": [0, 100], "grade_rad": [0.0, 0.04]}, "effects": "production"})
+    assert s.grade.at(50.0) == pytest.approx(0.02) and s.effects == ProductionEffects.production()
+    s = scenario_from_dict(RUN | {"grade": -0.02, "effects": {"speed_from_wheels": True}})
+    assert s.grade.at(10.0) == pytest.approx(-0.02) and s.effects == ProductionEffects(speed_from_wheels=True)
+
+
 def test_the_example_file_loads():
     scenarios = load_scenarios(EXAMPLE)
     assert [s.run_id for s in scenarios] == ["wet-patch-braking-suv", "split-mu-braking-sedan"]
@@ -43,6 +54,9 @@ def test_the_example_file_loads():
     ({"vehicle": {"mass_kg": -10.0}}, "mass_kg must be in .* got -10.0"),
     ({"vehicle": {"mass": 1500.0}}, r"unknown VehicleParams key\(s\) \['mass'\]"),
     ({"speed": {"times_s": [0, 10]}}, r"missing key\(s\) \['speeds_mps'\]"),
+    ({"grade": 0.5}, r"grade_rad must lie in \[-0.3, 0.3\], got 0.5"),
+    ({"effects": "some"}, "effects must be 'off', 'production' or a mapping"),
+    ({"effects": {"radius_spread": 0.01}}, r"unknown ProductionEffects key\(s\) \['radius_spread'\]"),
 ])
 def test_bad_runs_name_the_key_and_value(change, message):
     with pytest.raises((ValueError, TypeError), match=message):
