@@ -236,7 +236,8 @@ def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
 def estimate(
     input: Path = typer.Option(..., help="telemetry file: CSV, Parquet, NDJSON or JSON (wire format v1)"),
     out: Path = typer.Option(..., help="estimates file (.csv, .parquet or .ndjson)"),
-    model: str = typer.Option("default", help="model file (.pt) or name: default | ekf | ukf"),
+    model: str = typer.Option("pmf", help="model file (.pt) or name: pmf (the default: docs/ESTIMATORS.md) | "
+                                          "default (the shipped learned model) | ekf | ukf"),
     vehicle: Path = typer.Option(None, help="vehicle profile YAML (DESIGN 3.2); default: the paper's SUV"),
 ):
     """Offline estimates of mu (DESIGN 3.4) for every sample of a telemetry file that can be judged."""
@@ -404,7 +405,7 @@ def serve(
                                                        "--data-dir)"),
     mqtt: str | None = typer.Option(None, help="off | auto (start Mosquitto when installed) | managed | mqtt://host:port"),
     data_dir: Path | None = typer.Option(None, help="folder for the database, broker files and the admin secret"),
-    estimator: str | None = typer.Option(None, help="ekf (default), ukf, default (learned) or a model file"),
+    estimator: str | None = typer.Option(None, help="pmf (default), ekf, ukf, default (learned) or a model file"),
     ingest_processes: int | None = typer.Option(None, min=0, help="processes that ingest, estimate and store, each "
                                                                   "for its share of the vehicles (default 0: this "
                                                                   "process; 2 kept up with 1,000 vehicles at 10 Hz "

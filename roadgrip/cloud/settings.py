@@ -39,8 +39,8 @@ class Settings(BaseSettings):
                                                                       "data_dir/admin-secret when absent")
 
     # ingest and estimation
-    estimator: str = Field("ekf", description="estimator for every vehicle: ekf, ukf, default (the shipped learned "
-                                              "model) or a model file")
+    estimator: str = Field("pmf", description="estimator for every vehicle: pmf (the grid filter, docs/ESTIMATORS.md), "
+                                              "ekf, ukf, default (the shipped learned model) or a model file")
     max_payload_bytes: int = Field(1_048_576, ge=1024, description="largest accepted body or MQTT message")
     max_samples_per_payload: int = Field(10_000, ge=1)
     max_future_s: float = Field(60.0, gt=0, description="samples further ahead of the server clock are refused")

@@ -81,12 +81,12 @@ def test_a_run_is_stored_and_estimated_like_the_offline_estimator_does(cloud):
     settle(service)
     assert service.storage.counts()["telemetry"] == len(samples)
     got = client.get("/v1/vehicles/suv-1/estimates", auth=auth).json()["estimates"]
-    offline = load_estimator("ekf").estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64),
+    offline = load_estimator(Settings().estimator).estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64),
                                                    vehicle_by_name("paper-suv"))
     assert len(got) == offline.num_rows
     np.testing.assert_allclose([e["mu"] for e in got], offline["mu"].to_numpy(), atol=1e-9)
     assert [e["excited"] for e in got] == offline["excited"].to_pylist()
-    assert {e["estimator"] for e in got} == {"ekf"}
+    assert {e["estimator"] for e in got} == {Settings().estimator}
     assert all(e["h3_cell"] == h3.latlng_to_cell(e["latitude_deg"], e["longitude_deg"], 10) for e in got)
     window = client.get("/v1/vehicles/suv-1/estimates", auth=auth,
                         params={"start_ms": START_MS + 1000, "end_ms": START_MS + 2000}).json()["estimates"]
@@ -137,7 +137,7 @@ def test_out_of_order_samples_inside_the_window_give_the_in_order_estimates(clou
         shuffled += samples[start:start + 2][::-1]
     post(client, auth, shuffled, chunk=1)
     settle(service)
-    offline = load_estimator("ekf").estimate_batch(run.slice(0, 120), np.zeros(120, dtype=np.int64),
+    offline = load_estimator(Settings().estimator).estimate_batch(run.slice(0, 120), np.zeros(120, dtype=np.int64),
                                                    vehicle_by_name("paper-suv"))
     deadline = time.time() + 10  # a loaded machine may need a round more to release the last reorder window
     while len(got := client.get("/v1/vehicles/car-3/estimates", auth=auth).json()["estimates"]) < offline.num_rows \
