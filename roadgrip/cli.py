@@ -225,10 +225,19 @@ def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
     from roadgrip.evaluation.generalization import run_generalization_benchmark
     from roadgrip.evaluation.generalization_report import write_generalization_report
 
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    from roadgrip.evaluation.bins import bins_markdown, run_bins_benchmark
+
     with console.status("generalization benchmark") as status:
-        metrics, predictions, _, _ = run_generalization_benchmark(
-            seed=seed, workers=workers, progress=lambda message: status.update(f"generalization benchmark: {message}"))
-    return write_generalization_report(metrics, predictions, out)
+        say = lambda message: status.update(f"generalization benchmark: {message}")  # noqa: E731
+        metrics, predictions, _, _ = run_generalization_benchmark(seed=seed, workers=workers, progress=say)
+        bins = run_bins_benchmark(seed=seed, progress=say)
+    paths = write_generalization_report(metrics, predictions, out)
+    pacsv.write_csv(pa.Table.from_pylist(bins), Path(out) / "bins.csv")
+    (Path(out) / "bins.md").write_text(bins_markdown(bins))
+    return paths | {"bins_csv": Path(out) / "bins.csv", "bins_md": Path(out) / "bins.md"}
 
 
 @app.command()

@@ -6,7 +6,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
-| at the friction limit | ABS, TCS or ESC active | u_axle / mu in [ETA_LOW, 1]: the controller holds the tires near their peak |
+| at the friction limit | ABS, TCS or ESC active | u_axle / mu in [ETA_LOW, 1]: the controller holds the tires near their peak; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
 | a wheel locked or spinning | a wheel's slip against the reference speed beyond LOCK_SLIP | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 
@@ -107,8 +107,8 @@ S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10
 N_S = len(SAMPLE_COLUMNS)
 
 # Parameter vector
-(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO) = range(11)
-N_Q = 11
+(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO, Q_BRAKE_FRONT) = range(12)
+N_Q = 12
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
@@ -139,6 +139,7 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
     q[Q_C0] = driven.longitudinal_stiffness_per_load
     q[Q_FRR] = vehicle.rolling_resistance
     q[Q_STEER_RATIO] = vehicle.steering_ratio
+    q[Q_BRAKE_FRONT] = vehicle.brake_front_share
     return q
 
 
@@ -412,6 +413,12 @@ def pmf_step(mem, q, smp, t_prev, out):
     limit = controller or past_peak
     if limit:
         u_limit = u
+        if atx < 0.0:
+            # braking: the axle whose brake share exceeds its load share reaches its limit first (ABS acts on it)
+            share = q[Q_BRAKE_FRONT]
+            f_front = share * m * -atx / max(fz_front, 0.2 * m * G_MPS2)
+            f_rear = (1.0 - share) * m * -atx / max(fz_rear, 0.2 * m * G_MPS2)
+            u_limit = sqrt(max(f_front, f_rear) ** 2 + (aty / G_MPS2) ** 2)
         if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
             # traction control: only the driven axle is at its limit
             fz_d = fz_front if drive == 0 else fz_rear

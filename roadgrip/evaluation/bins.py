@@ -80,3 +80,39 @@ def estimator_bins(estimates: dict[str, np.ndarray]) -> list[dict]:
     e = estimates
     bins = utilization_bin(e["ax_true_mps2"], e["ay_true_mps2"], e["mu"], e["abs_active"])
     return binned_metrics(e["mu_est"], e["mu_lower"], e["mu_upper"], e["excited"], e["mu"], bins, e["bound"])
+
+
+BIN_ESTIMATORS = ("pmf", "ekf", "ukf", "default")
+
+
+def run_bins_benchmark(seed: int = 0, estimators=BIN_ESTIMATORS, progress=None) -> list[dict]:
+    """Every estimator (as `load_estimator` gives it: guarded) on the generalization benchmark's test runs (held-out
+    vehicle and mu bands, every production-terminal effect on), by utilization bin: one row per (estimator, bin)."""
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.sim.presets import generalization_scenarios
+    from roadgrip.sim.simulate import simulate
+
+    scenarios = generalization_scenarios("test", seed)
+    table = simulate(scenarios)
+    vehicles = {s.run_id: s.vehicle for s in scenarios}
+    rows = []
+    for name in estimators:
+        if progress:
+            progress(f"{name} on {len(scenarios)} test runs by utilization bin")
+        estimates = estimates_on_runs(load_estimator(name), table, vehicles)
+        rows += [{"estimator": name} | row for row in estimator_bins(estimates)]
+    return rows
+
+
+def bins_markdown(rows: list[dict]) -> str:
+    """The per-bin table: one line per estimator and bin."""
+    lines = ["| estimator | bin | n | RMSE | MAE | 90 % coverage | width | judged excited | below bound | negative |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["n"] == 0:
+            lines.append(f"| {r['estimator']} | {r['bin']} | 0 | - | - | - | - | - | - | - |")
+            continue
+        lines.append(f"| {r['estimator']} | {r['bin']} | {r['n']} | {r['rmse']:.3f} | {r['mae']:.3f} | "
+                     f"{r['coverage']:.2f} | {r['width']:.2f} | {r['judged_excited']:.2f} | "
+                     f"{r['below_bound']:.3f} | {r['negative']} |")
+    return "\n".join(lines) + "\n"
