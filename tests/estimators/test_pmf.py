@@ -51,9 +51,12 @@ def test_calm_driving_is_a_wide_interval_never_a_low_number():
 
 
 def test_abs_braking_on_ice_is_tight_and_low():
-    """ABS holding the tires at 0.9 of mu 0.15: the estimate brackets 0.15 tightly, its upper end well below 0.4."""
+    """ABS holding the front tires (the profile's brake split saturates them first) at 0.9 of mu 0.15: the estimate
+    brackets 0.15 tightly, its upper end well below 0.4."""
     n = 40
-    decel = 0.9 * 0.15 * G_MPS2
+    u = 0.1  # the vehicle's deceleration in g, then scaled so that the front axle's force per load is 0.9 mu
+    front_load_share = (FWD.cg_to_rear_axle_m + FWD.cg_height_m * u) / FWD.wheelbase_m
+    decel = 0.9 * 0.15 * front_load_share / FWD.brake_front_share * G_MPS2
     speed = 20.0 - decel * np.arange(n) * 0.1
     estimates, _, _ = _run(_samples(speed, np.full(n, -decel), abs_active=np.ones(n, dtype=bool)))
     last = estimates[-1]
