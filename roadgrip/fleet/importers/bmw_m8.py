@@ -329,4 +329,6 @@ def to_wire(fast: dict[str, np.ndarray], slow: dict[str, np.ndarray], *, offset_
         "acc_active": np.zeros(k.size, bool),
         "lateral_speed_mps": f["Velocity_Y"][k],
     }
-    return pa.table({name: columns[name] for name in TELEMETRY_SCHEMA.names}, schema=TELEMETRY_SCHEMA)
+    # optional columns the log has no signal for (tcs_active, esc_active): null, "unknown"
+    return pa.table({f.name: columns[f.name] if f.name in columns else pa.nulls(k.size, f.type)
+                     for f in TELEMETRY_SCHEMA}, schema=TELEMETRY_SCHEMA)
