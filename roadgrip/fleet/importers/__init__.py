@@ -12,8 +12,9 @@ epoch, SI units, ISO 8855 signs), sorted by (vehicle_id, timestamp_ms). It is an
 
 Every importer takes the options `vehicle_id` (default: its own, e.g. derived from the file) and `start_ms` (the
 timestamp of the first sample; default: its own, documented there). The built-in ones are `wire` (any wire-format
-file: `roadgrip.fleet.importers.wire`) and `bmw-m8` (the real log in data/real/bmw_m8_braking:
-`roadgrip.fleet.importers.bmw_m8`).
+file: `roadgrip.fleet.importers.wire`), `bmw-m8` (the real log in data/real/bmw_m8_braking:
+`roadgrip.fleet.importers.bmw_m8`) and `can-dbc` (raw CAN logs with the car's DBC and a mapping file, such as the
+Toyota RAV4's in data/real/toyota_rav4_street: `roadgrip.fleet.importers.can_dbc`).
 
 Third-party packages add theirs through the entry-point group `roadgrip.importers`: in their pyproject.toml
 
@@ -148,10 +149,12 @@ def resolve_importer(path: str | Path, importer: str | Importer | None = None) -
 
 def _register_builtins() -> None:
     from roadgrip.fleet.importers.bmw_m8 import BmwM8Importer
+    from roadgrip.fleet.importers.can_dbc import CanDbcImporter
     from roadgrip.fleet.importers.wire import WireImporter
 
     register_importer(WireImporter())
     register_importer(BmwM8Importer())
+    register_importer(CanDbcImporter())
 
 
 _register_builtins()
