@@ -13,7 +13,7 @@ from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
 from roadgrip.estimators.calibration import interval, utilization_bin
 from roadgrip.estimators.excitation import excited
 from roadgrip.features.windows import (
-    TERMINAL_INPUTS, Scaler, feature_columns, feature_matrix, features_from_columns, make_windows,
+    Scaler, feature_matrix, features_from_columns, input_columns, make_windows, vehicle_profile,
 )
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
@@ -31,7 +31,7 @@ class LearnedEstimator(Estimator):
         self.name = meta.get("estimator_name", model_name)
         self.feature_set = meta["feature_set"]
         self.window = int(meta["window"])
-        self.inputs = set(TERMINAL_INPUTS) | set(feature_columns(self.feature_set))
+        self.required, self.optional = input_columns(self.feature_set)
         self.scaler = Scaler(meta["scaler_mean"], meta["scaler_scale"])
         self.calibration = meta["interval"]
 
@@ -52,7 +52,7 @@ class LearnedEstimator(Estimator):
         return mu, lower, upper, excited(accel_lon, accel_lat, abs_active, mu)
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams = PAPER_SUV) -> pa.Table:
-        features = feature_matrix(table, self.feature_set, vehicle.wheel_radius_m, vehicle.steering_ratio)
+        features = feature_matrix(table, self.feature_set, profile=vehicle_profile(vehicle), segments=segments)
         windows, ends = make_windows(features, np.asarray(segments), self.window)
         col = {c: table[c].to_numpy(zero_copy_only=False)[ends] for c in ("accel_lon_mps2", "accel_lat_mps2",
                                                                           "abs_active")}
@@ -66,13 +66,15 @@ class LearnedEstimator(Estimator):
         }, schema=ESTIMATE_SCHEMA)
 
     def start(self, vehicle: VehicleParams = PAPER_SUV):
-        return {"buffer": deque(maxlen=self.window), "wheel_radius_m": vehicle.wheel_radius_m,
-                "steering_ratio": vehicle.steering_ratio}
+        # previous: the last sample's inputs, for the features that difference consecutive samples
+        return {"buffer": deque(maxlen=self.window), "profile": vehicle_profile(vehicle), "previous": None}
 
     def update(self, state, sample: dict) -> Estimate | None:
-        row = features_from_columns({k: np.asarray([v], dtype=np.float64) for k, v in sample.items()
-                                     if k in self.inputs}, self.feature_set, state["wheel_radius_m"],
-                                    state["steering_ratio"])
+        inputs = {k: sample[k] for k in self.required}
+        inputs |= {k: sample[k] for k in self.optional if sample.get(k) is not None}
+        row = features_from_columns({k: np.asarray([float(v)], dtype=np.float64) for k, v in inputs.items()},
+                                    self.feature_set, profile=state["profile"], previous=state["previous"])
+        state["previous"] = {k: float(v) for k, v in inputs.items()}
         state["buffer"].append(row[0].tolist())
         if len(state["buffer"]) < self.window:
             return None
@@ -84,14 +86,18 @@ class LearnedEstimator(Estimator):
 
     def reset(self, state) -> None:
         state["buffer"].clear()
+        state["previous"] = None
 
     def state_to_dict(self, state) -> dict:
-        return {"buffer": [list(row) for row in state["buffer"]], "wheel_radius_m": state["wheel_radius_m"],
-                "steering_ratio": state["steering_ratio"]}
+        return {"buffer": [list(row) for row in state["buffer"]], "profile": dict(state["profile"]),
+                "previous": state["previous"]}
 
     def state_from_dict(self, data: dict):
-        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window),
-                "wheel_radius_m": data["wheel_radius_m"], "steering_ratio": data["steering_ratio"]}
+        # states saved before the profile was kept whole held only the wheel radius and steering ratio
+        profile = data.get("profile") or {"wheel_radius_m": data["wheel_radius_m"],
+                                          "steering_ratio": data["steering_ratio"]}
+        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window), "profile": profile,
+                "previous": data.get("previous")}
 
 
 def default_model_path() -> Path:

@@ -11,6 +11,10 @@ import numpy as np
 import pyarrow as pa
 
 from roadgrip.data.schema import WHEELS
+from roadgrip.features.production import (
+    OPTIONAL_FLAGS, PRODUCTION_FEATURES, PRODUCTION_INPUTS, production_features,
+)
+from roadgrip.features.production import vehicle_profile  # noqa: F401  (re-exported: the profile a feature set takes)
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.dynamics import SLIP_SPEED_FLOOR_MPS
 from roadgrip.validation import check_choice
@@ -28,8 +32,11 @@ FEATURE_SETS = {
     # and radius (eq. 6), accelerations and the yaw rate's centripetal part in g, the road-wheel angle, ABS
     "physics": tuple(f"slip_ratio_{w}" for w in WHEELS)
     + ("accel_lon_g", "accel_lat_g", "centripetal_g", "road_wheel_angle_rad", "speed_mps", "abs_active"),
+    # what holds on a production car, whose speed signal comes from its wheels: wheels compared with wheels, wheel
+    # speed rates against the accelerometer, accelerations in g, the profile's geometry (roadgrip/features/production.py)
+    "production": PRODUCTION_FEATURES,
 }
-PROFILE_FEATURE_SETS = {"physics"}  # feature sets that need the vehicle profile
+PROFILE_FEATURE_SETS = {"physics", "production"}  # feature sets that need the vehicle profile
 
 
 def feature_columns(feature_set: str) -> tuple[str, ...]:
@@ -42,22 +49,45 @@ def needs_vehicle(feature_set: str) -> bool:
     return feature_set in PROFILE_FEATURE_SETS
 
 
-def feature_matrix(table: pa.Table, feature_set: str, wheel_radius_m=None, steering_ratio=None) -> np.ndarray:
+def input_columns(feature_set: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(required, optional) telemetry columns that a feature set reads."""
+    if feature_set == "production":
+        return PRODUCTION_INPUTS, OPTIONAL_FLAGS
+    return (TERMINAL_INPUTS if needs_vehicle(feature_set) else feature_columns(feature_set)), ()
+
+
+def feature_matrix(table: pa.Table, feature_set: str, wheel_radius_m=None, steering_ratio=None, *,
+                   profile: dict | None = None, segments=None) -> np.ndarray:
     """(n_samples, n_features) float32 matrix of a feature set; a missing column is an error naming it.
 
-    Feature sets that use the vehicle profile take its wheel radius and steering ratio, one value or one per row."""
-    columns = TERMINAL_INPUTS if needs_vehicle(feature_set) else feature_columns(feature_set)
-    missing = [c for c in columns if c not in table.column_names]
+    Feature sets that use the vehicle profile take it as `profile` (`vehicle_profile(vehicle)`: each field one value
+    or one per row) or, for `physics`, as the wheel radius and steering ratio. `segments` (an id per sample) marks
+    where a stream restarts, for the features that difference consecutive samples (`production`); None: one stream."""
+    required, optional = input_columns(feature_set)
+    missing = [c for c in required if c not in table.column_names]
     if missing:
         raise ValueError(f"feature set {feature_set!r} needs column(s) {missing}, which the data lacks")
-    data = {c: table[c].to_numpy(zero_copy_only=False).astype(np.float64) for c in columns}
-    return features_from_columns(data, feature_set, wheel_radius_m, steering_ratio)
+    data = {c: _column(table[c]) for c in required + tuple(c for c in optional if c in table.column_names)}
+    return features_from_columns(data, feature_set, wheel_radius_m, steering_ratio, profile=profile, segments=segments)
 
 
-def features_from_columns(data: dict, feature_set: str, wheel_radius_m=None, steering_ratio=None) -> np.ndarray:
-    """The feature matrix from column arrays (a table's, or one streamed sample's)."""
+def _column(column) -> np.ndarray:
+    if pa.types.is_boolean(column.type):
+        column = column.fill_null(False)
+    return column.to_numpy(zero_copy_only=False).astype(np.float64)
+
+
+def features_from_columns(data: dict, feature_set: str, wheel_radius_m=None, steering_ratio=None, *,
+                          profile: dict | None = None, segments=None, previous: dict | None = None) -> np.ndarray:
+    """The feature matrix from column arrays (a table's, or one streamed sample's). `previous`: for a stream fed
+    sample by sample, the sample before data's first (None at the stream's start); see feature_matrix for the rest."""
     if not needs_vehicle(feature_set):
         return np.column_stack([np.asarray(data[c], dtype=np.float32) for c in feature_columns(feature_set)])
+    if profile is None:
+        profile = {"wheel_radius_m": wheel_radius_m, "steering_ratio": steering_ratio}
+    if feature_set == "production":
+        return production_features(data, profile, segments, previous)
+    wheel_radius_m, steering_ratio = profile.get("wheel_radius_m"), profile.get("steering_ratio")
     if wheel_radius_m is None or steering_ratio is None:
         raise ValueError(f"feature set {feature_set!r} needs the vehicle profile (wheel_radius_m, steering_ratio)")
     speed = np.asarray(data["speed_mps"], dtype=np.float64)

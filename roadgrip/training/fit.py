@@ -12,7 +12,9 @@ import torch
 from roadgrip.features.folds import grouped_folds, time_blocks
 from roadgrip.estimators.calibration import calibrate, utilization_bin
 from roadgrip.estimators.excitation import excited
-from roadgrip.features.windows import Scaler, feature_matrix, make_windows, needs_vehicle, segment_ids
+from roadgrip.features.windows import (
+    Scaler, feature_matrix, make_windows, needs_vehicle, segment_ids, vehicle_profile,
+)
 from roadgrip.models.registry import build_model, model_config
 from roadgrip.training.trainer import Trainer, TrainConfig, TrainResult, predict
 
@@ -38,15 +40,16 @@ def prepare(table: pa.Table, feature_set: str, window: int = WINDOW, vehicles: d
     """Windows of a simulation dataset, cut per (run, 4 s block), labelled with the true mu.
 
     `vehicles` maps the dataset's `vehicle` column to VehicleParams, for feature sets that use the profile."""
-    radius = ratio = None
+    profile = None
+    runs = np.asarray(table["run_id"].to_pylist())
     if needs_vehicle(feature_set):
         if vehicles is None:
             raise ValueError(f"feature set {feature_set!r} needs the vehicles of the dataset (its manifest)")
         names = table["vehicle"].to_pylist()
-        radius = np.array([vehicles[n].wheel_radius_m for n in names])
-        ratio = np.array([vehicles[n].steering_ratio for n in names])
-    features = feature_matrix(table, feature_set, radius, ratio)
-    runs = np.asarray(table["run_id"].to_pylist())
+        profiles = {n: vehicle_profile(vehicles[n]) for n in set(names)}
+        profile = {f: np.array([profiles[n][f] for n in names]) for f in next(iter(profiles.values()))}
+    # one stream per run: features that difference consecutive samples see each run as a terminal streams it
+    features = feature_matrix(table, feature_set, profile=profile, segments=segment_ids(runs))
     t_s = table["t_s"].to_numpy()
     blocks = time_blocks(t_s, BLOCK_S)
     windows, ends = make_windows(features, segment_ids(runs, blocks), window)
