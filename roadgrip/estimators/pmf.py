@@ -6,7 +6,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
-| at the friction limit | ABS, TCS or ESC active | u_axle / mu in [ETA_LOW, 1]: the controller holds the tires near their peak; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
+| at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
 | a wheel locked or spinning | a wheel's slip against the reference speed beyond LOCK_SLIP | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 
@@ -57,7 +57,7 @@ from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 MU_GRID = np.round(np.arange(0.05, 1.5001, 0.025), 4)  # the grid's mu values
-C_FACTORS = np.geomspace(0.5, 2.0, 7)  # tire slip stiffness as a factor of the profile's
+C_FACTORS = np.geomspace(0.2, 2.0, 11)  # slip stiffness as a factor of the profile's: tire and surface (cobblestone: 0.3)
 NM, NC = MU_GRID.size, C_FACTORS.size
 
 
@@ -69,19 +69,27 @@ def _prior(mu):
 
 
 PRIOR = _prior(MU_GRID)
-C_PRIOR = np.exp(-0.5 * (np.log(C_FACTORS) / 0.35) ** 2)
+C_PRIOR = np.exp(-0.5 * (np.log(C_FACTORS) / 0.6) ** 2)  # around the profile's, broad: worn tires, soft surfaces
 C_PRIOR /= C_PRIOR.sum()
 
 # Tuning, each with its reason
 TEMPER = 0.3  # 10 Hz samples: errors correlated over about 0.3 s (ABS cycle, suspension, signal offsets)
 FORGET_PER_S = 0.3  # evidence halves in about 2.3 s: 50 m at 80 km/h, under an H3 cell of the map
 MU_WALK_PER_SQRT_S = 0.05  # the road's mu changing along the path
-C_FORGET_PER_S = 1.0 / 1800.0  # tires change over months; wet rubber or a tire change within half an hour
-ETA_LOW = 0.78  # ABS holds the tires between 0.8 and 1 of their peak (the simulator's ABS: u / mu 0.79-1.02, 5-95 %)
+C_FORGET_PER_S = 1.0 / 120.0  # the slope is the tire's and the surface's (Gustafsson 1997): it changes with the road
+# What a controller's activity says of the acting axle's utilisation u_axle / mu. Both controllers of the simulator (and
+# many production ones) act on slip thresholds, which a tire with a soft slip curve (cobblestone, snow, a worn tire)
+# crosses below its peak: measured on the training and held-out runs of the generalization preset (5-95 %), ABS 0.86-1.0
+# and 0.57-1.0, traction control 0.48-0.99 and 0.22-0.87.
+ABS_SLIP_BAND = (0.06, 0.15)  # ABS cycles the wheels' slip between about 0.08 and 0.12 (Bosch; the simulator's -0.08/-0.12)
+LIMIT_PEAK_S = 1.0  # how long a controller's flag may lag or latch behind the utilisation it reacted to
+ETA_TCS = 0.3  # traction control (and ESC's engine cut) says little more than "the driven axle slips"
+LIMIT_ABS, LIMIT_TCS, LIMIT_LOCK = 0, 1, 2
 DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
 ETA_LIMIT = 0.8  # a car at its limit without a controller: u / mu 0.76-1.07 in the simulator (5-95 %, wheels locked)
 ETA_LOCK = 0.7  # a locked or spinning wheel slides: sliding friction is 0.7-1 of the peak (Burckhardt's surfaces)
 LOCK_SLIP = 0.15  # a wheel this far from the reference speed is past its peak (ABS thresholds: 0.1-0.2)
+REF_AGREE = 0.03  # wheels within 3 % of each other roll freely: the reference speed is theirs (radius spread 2 %)
 REF_TOLERANCE_MPS2 = 0.5  # the reference speed follows the wheels unless they change faster than a_x by this much
 ACCEL_NOISE_MPS2 = 0.1  # per-sample accelerometer noise allowance (the simulator: 0.05 white)
 BIAS_SIGMA0_MPS2 = 0.5  # an uncalibrated bias: mounting and pitch (a production SUV: -0.63 against d(speed)/dt)
@@ -115,8 +123,8 @@ DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 G0 = 0
 K_T = NM * NC
 (K_STARTED, K_BIAS, K_BIAS_W, K_LR_F, K_LR_R, K_LR_W, K_S0, K_SLOPE, K_P00, K_P01, K_P11, K_RLS_W, K_V_PREV,
- K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT, K_V_REF, K_U_SEEN) = range(K_T + 1, K_T + 21)
-N_MEM = K_T + 21
+ K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT, K_V_REF, K_U_SEEN, K_U_LIMIT) = range(K_T + 1, K_T + 22)
+N_MEM = K_T + 22
 CALIBRATION = {"accel_bias_mps2": K_BIAS, "accel_bias_weight_s": K_BIAS_W, "radius_ratio_left_right_front": K_LR_F,
                "radius_ratio_left_right_rear": K_LR_R, "radius_ratio_weight_s": K_LR_W,
                "slip_offset_front_rear": K_S0, "slip_slope": K_SLOPE, "slip_line_weight_s": K_RLS_W}
@@ -168,6 +176,7 @@ def _start(mem, keep_stiffness):
     mem[K_V_PREV] = -1.0
     mem[K_V_REF] = 0.0
     mem[K_U_SEEN] = 0.0
+    mem[K_U_LIMIT] = 0.0
 
 
 @njit(cache=True)
@@ -240,14 +249,42 @@ def _bound_likelihood(u, u_seen, s_u, like):
 
 
 @njit(cache=True)
-def _limit_likelihood(u_axle, s_u, eta, like):
-    """At the friction limit: u_axle / mu in [eta, 1], blurred by the measurement's noise."""
+def _band(mu, u_axle, s_u, eta):
+    """Whether u_axle lies in [eta mu, mu], blurred by the measurement's noise. A statement of membership, not a density:
+    a controller stays on for many samples that say the same, and a density's 1 / ((1 - eta) mu), applied again at each,
+    would push mu down to the band's lower end for no new reason."""
+    s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
+    return _phi((mu - u_axle) / s_u) * _phi((u_axle - eta * mu) / s_lim)
+
+
+@njit(cache=True)
+def _brush_force(slip, mu, c):
+    """The brush model's force per load at a slip (magnitude): mu (1 - (1 - z)^3), z = C s / (3 mu), mu beyond z = 1."""
+    z = min(c * slip / (3.0 * mu), 1.0)
+    return mu * (1.0 - (1.0 - z) ** 3)
+
+
+@njit(cache=True)
+def _limit_likelihood(u_axle, s_u, kind, c0, like):
+    """At (or near) the friction limit, by what says so (LIMIT_*). ABS holds the acting wheels' slip in a band
+    (ABS_SLIP_BAND): the axle's force is then the brush force at that slip, which for a stiff tire is its peak and for
+    a soft one (cobblestone, snow, worn: C small) below it, so the stiffness posterior decides how close to the peak
+    the tires are. Traction control and a locked or spinning wheel: u_axle / mu spread over [eta, 1]."""
     for i in range(NM):
         mu = MU_GRID[i]
-        s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
-        lk = _phi((mu - u_axle) / s_u) * _phi((u_axle - eta * mu) / s_lim)
         for j in range(NC):
-            like[i, j] = lk
+            if kind == LIMIT_ABS:
+                c = c0 * C_FACTORS[j]
+                lo = _brush_force(ABS_SLIP_BAND[0], mu, c)
+                hi = _brush_force(ABS_SLIP_BAND[1], mu, c)
+                s_lim = sqrt(s_u * s_u + (0.03 * mu) ** 2)
+                # a density over the band (normalised): ABS holds its slip band for every wheel it acts on, so a
+                # narrow band (a stiff tire at its peak) that keeps containing u_axle is the better explanation
+                like[i, j] = _phi((hi - u_axle) / s_lim) * _phi((u_axle - lo) / s_lim) / (hi - lo + s_lim)
+            elif kind == LIMIT_TCS:
+                like[i, j] = _band(mu, u_axle, s_u, ETA_TCS)
+            else:
+                like[i, j] = _band(mu, u_axle, s_u, ETA_LOCK) / ((1.0 - ETA_LOCK) * mu)
 
 
 @njit(cache=True)
@@ -267,10 +304,7 @@ def _slip_likelihood(f, s, v, c0, like):
             if f < 0.0:
                 pred = -pred
             sig = s_floor + SLIP_MODEL_SHARE * abs(pred)
-            err = s - pred
-            if x >= 0.8 and abs(s) > abs(pred) and s * f > 0.0:  # near the peak the slip may grow freely
-                err = 0.0
-            like[i, j] = exp(-0.5 * (err / sig) ** 2)
+            like[i, j] = exp(-0.5 * ((s - pred) / sig) ** 2)
 
 
 @njit(cache=True)
@@ -400,7 +434,7 @@ def pmf_step(mem, q, smp, t_prev, out):
     v_max, v_min = max(v_wheels[0], v_wheels[1], v_wheels[2], v_wheels[3]), min(v_wheels[0], v_wheels[1],
                                                                                   v_wheels[2], v_wheels[3])
     v_ref = v_max if atx < 0.0 else v_min
-    if dt > 0.0 and mem[K_V_REF] > 0.0:
+    if dt > 0.0 and mem[K_V_REF] > 0.0 and v_max - v_min > REF_AGREE * v_max:  # wheels that agree are the reference
         tol = (REF_TOLERANCE_MPS2 + 2.0 * bias_sd) * dt
         v_ref = min(max(v_ref, mem[K_V_REF] + ax_c * dt - tol), mem[K_V_REF] + ax_c * dt + tol)
     mem[K_V_REF] = max(v_ref, 0.0)
@@ -411,7 +445,9 @@ def pmf_step(mem, q, smp, t_prev, out):
                 past_peak = True
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     limit = controller or past_peak
-    if limit:
+    if not limit:
+        mem[K_U_LIMIT] = 0.0
+    else:
         u_limit = u
         if atx < 0.0:
             # braking: the axle whose brake share exceeds its load share reaches its limit first (ABS acts on it)
@@ -423,7 +459,12 @@ def pmf_step(mem, q, smp, t_prev, out):
             # traction control: only the driven axle is at its limit
             fz_d = fz_front if drive == 0 else fz_rear
             u_limit = sqrt((m * atx / max(fz_d, 0.2 * m * G_MPS2)) ** 2 + (aty / G_MPS2) ** 2)
-        _limit_likelihood(u_limit, s_u, ETA_LOW if controller else ETA_LOCK, like)
+        # a controller's flag lags and latches (it stays on between the peaks of a sine steer): it speaks of the
+        # largest utilisation of the last LIMIT_PEAK_S, not of this sample's
+        u_limit = max(u_limit, mem[K_U_LIMIT] * exp(-dt / LIMIT_PEAK_S))
+        mem[K_U_LIMIT] = u_limit
+        kind = LIMIT_ABS if smp[S_ABS] > 0.0 else (LIMIT_TCS if controller else LIMIT_LOCK)
+        _limit_likelihood(u_limit, s_u, kind, q[Q_C0], like)
         _apply(mem, like, TEMPER)
     # slip between the driven and the undriven axle
     straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
@@ -462,6 +503,8 @@ def _output(mem, u, s_u, ok, out):
         # the car works its tires hard: the truth may lie right at the proven bound (the driver asked for more than
         # the road gave), which the posterior's smooth lower tail understates
         lower = min(lower, mem[K_U_SEEN] - 2.0 * s_u)
+    if mem[K_LIMIT] > 0.0:  # likewise at a controller's or a sliding wheel's limit, for the acting axle
+        lower = min(lower, mem[K_U_LIMIT] - 2.0 * s_u)
     out[O_MU] = mu
     out[O_LOWER] = max(lower, 0.0)
     out[O_UPPER] = upper

@@ -66,25 +66,40 @@ def test_abs_braking_on_ice_is_tight_and_low():
     assert last.mu_upper < 0.25
 
 
-def test_slip_growing_faster_than_force_reads_as_low_friction():
-    """A FWD car that first cruises (its tires' slip stiffness shows at small force), then pulls at 0.8 of mu 0.3 at
-    its front axle with the brush model's slip: the posterior moves from the prior's 0.8 to 0.3."""
+def _pulling_drive(mu: float):
+    """A FWD car driven gently for 80 s (its acceleration swinging between 0 and 0.06 g), then pulling at 0.13 g for
+    10 s, on a road of `mu`, its front wheels slipping as the brush model says (stiffness as the profile's); the
+    accelerometer reads the road's force less drag, which is also what the speed follows."""
     from roadgrip.estimators.guard import drag_per_mass
 
     c = FWD.tire_front.longitudinal_stiffness_per_load
-    cruise, pull = 600, 60
-    road = np.concatenate([0.03 * G_MPS2 * np.sin(np.arange(cruise) * 0.05), np.full(pull, 0.12 * G_MPS2)])
-    speed = 15.0 + np.cumsum(road) * 0.1
+    n = 900
+    k = np.arange(n)
+    road = np.where(k < PULL_START, 0.03 + 0.03 * np.sin(k * 2 * np.pi / 150), 0.13) * G_MPS2
+    speed = np.empty(n)
+    speed[0] = 15.0
+    for i in range(1, n):
+        speed[i] = speed[i - 1] + (road[i - 1] - drag_per_mass(FWD) * speed[i - 1] ** 2) * 0.1
     fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
-    f = FWD.mass_kg * road / fz_front  # the front axle's force per load
-    assert 0.75 < f[-1] / 0.3 < 0.85
-    slip = np.where(np.arange(cruise + pull) < cruise, f / c,
-                    3 * 0.3 / c * (1 - np.abs(1 - np.minimum(f / 0.3, 1.0)) ** (1 / 3)))
-    measured = road - drag_per_mass(FWD) * speed ** 2  # the accelerometer reads road force and drag
-    estimates, _, _ = _run(_samples(speed, measured, front_slip=slip))
-    assert estimates[cruise - 1].mu > 0.6
-    assert estimates[-1].mu < 0.45
-    assert estimates[-1].mu_lower <= 0.3 <= estimates[-1].mu_upper
+    f = FWD.mass_kg * road / fz_front  # the front axle's force per load: 0.26 in the pull
+    slip = 3 * mu / c * (1 - np.cbrt(1 - np.clip(f / mu, 0.0, 1.0)))
+    return _samples(speed, road - drag_per_mass(FWD) * speed ** 2, front_slip=slip)
+
+
+PULL_START = 800
+
+
+def test_slip_growing_faster_than_force_reads_as_low_friction():
+    """On mu 0.3 the pull works the front axle at 0.88 of mu and its slip is 1.9 times the line's: within 5 s the
+    posterior moves from the prior's 0.8 down to about 0.4 with 0.3 inside; on mu 0.9 the same pull (0.29 of mu) reads
+    high. What slip cannot tell: at one force level a soft tire on a good road slips like a stiff one near its limit,
+    so held longer the low-mu posterior widens back (docs/PRODUCTION.md)."""
+    low, _, _ = _run(_pulling_drive(0.3))
+    high, _, _ = _run(_pulling_drive(0.9))
+    at = PULL_START + 50
+    assert low[at].mu < 0.5 and low[at].mu_lower <= 0.3 <= low[at].mu_upper
+    assert high[at].mu > 0.7 and high[at].mu_upper >= 0.9
+    assert all(e.mu_upper >= 0.9 for e in high)
 
 
 def test_self_calibration_converges_on_ordinary_driving():
