@@ -379,7 +379,7 @@ def import_log(
     input: Path = typer.Argument(..., help="a recorded log: a file or folder that an importer recognises"),
     out: Path = typer.Option(..., help="wire-format telemetry file to write (.csv, .parquet, .ndjson or .jsonl)"),
     importer: str = typer.Option(None, help="importer name (default: the one that recognises INPUT): "
-                                            "wire | bmw-m8 | any installed through entry points"),
+                                            "wire | bmw-m8 | can-dbc | any installed through entry points"),
     vehicle_id: str = typer.Option(None, help="vehicle_id of the samples (default: the importer's)"),
     start_ms: int = typer.Option(None, help="timestamp of the first sample, ms since the Unix epoch (default: the "
                                             "importer's)"),
