@@ -11,7 +11,13 @@ import argparse
 import time
 
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.evaluation.bins import BIN_ESTIMATORS, bins_markdown, estimates_on_runs, estimator_bins, run_bins_benchmark
+from roadgrip.evaluation.bins import (
+    BIN_ESTIMATORS,
+    bins_markdown,
+    estimates_on_runs,
+    estimator_bins,
+    run_bins_benchmark,
+)
 from roadgrip.sim.presets import random_scenarios
 from roadgrip.sim.simulate import simulate
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-from roadgrip.vehicle.params import VehicleParams
+from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
 ESTIMATE_SCHEMA = pa.schema([
     pa.field("vehicle_id", pa.string(), nullable=False),
@@ -44,6 +44,13 @@ class Estimate:
         return {"vehicle_id": self.vehicle_id, "timestamp_ms": self.timestamp_ms, "mu": self.mu,
                 "mu_lower": self.mu_lower, "mu_upper": self.mu_upper, "excited": self.excited,
                 "estimator": self.estimator}
+
+
+def profile_of_call(vehicle: VehicleParams | None, own: VehicleParams | None) -> VehicleParams:
+    """The profile a call uses: the one it passes, else the estimator's own, else the paper's SUV."""
+    if vehicle is not None:
+        return vehicle
+    return PAPER_SUV if own is None else own
 
 
 class Estimator(ABC):

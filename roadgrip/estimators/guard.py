@@ -32,12 +32,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
 from roadgrip.validation import bounded, check_bounds
 from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
-from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+from roadgrip.vehicle.params import VehicleParams
 
 PRIOR_MU = 0.8  # the median of the prior a contradicted estimate falls back on (pmf.py: half dry asphalt)
 PRIOR_UPPER_MU = 1.2  # the prior's upper end (pmf.py's prior puts 95 % of its mass below it)
@@ -102,7 +102,8 @@ WHEELS = ("wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps"
 class GuardedEstimator(Estimator):
     """Any estimator with the physics guard on its output (the name and state are the inner estimator's)."""
 
-    def __init__(self, inner: Estimator, settings: GuardSettings = GuardSettings(), vehicle: VehicleParams | None = None):
+    def __init__(self, inner: Estimator, settings: GuardSettings = GuardSettings(),
+                 vehicle: VehicleParams | None = None):
         self.inner = inner
         self.settings = settings
         self.vehicle = vehicle
@@ -113,13 +114,11 @@ class GuardedEstimator(Estimator):
             raise AttributeError(item)
         return getattr(self.inner, item)
 
-    def _profile(self, vehicle: VehicleParams | None) -> VehicleParams:
-        if vehicle is not None:
-            return vehicle
-        return self.vehicle if self.vehicle is not None else PAPER_SUV
+    def _vehicle(self, vehicle: VehicleParams | None) -> VehicleParams:
+        return profile_of_call(vehicle, self.vehicle)
 
     def start(self, vehicle: VehicleParams | None = None):
-        vehicle = self._profile(vehicle)
+        vehicle = self._vehicle(vehicle)
         return {"vehicle": vehicle, "inner": self.inner.start(vehicle)}
 
     def update(self, state, sample: dict) -> Estimate | None:
@@ -146,7 +145,7 @@ class GuardedEstimator(Estimator):
         return {"vehicle": VehicleParams.from_dict(data["vehicle"]), "inner": self.inner.state_from_dict(data["inner"])}
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
-        vehicle = self._profile(vehicle)
+        vehicle = self._vehicle(vehicle)
         est = self.inner.estimate_batch(table, segments, vehicle)
         if est.num_rows == 0:
             return est

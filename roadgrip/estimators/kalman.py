@@ -27,13 +27,13 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
 from roadgrip.estimators.vehicle_model import (
     INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
     U_W0, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, initial_state, pack_model,
 )
 from roadgrip.vehicle.dynamics import P_STEER_RATIO
-from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+from roadgrip.vehicle.params import VehicleParams
 
 logger = logging.getLogger(__name__)
 
@@ -294,10 +294,7 @@ class KalmanEstimator(Estimator):
         self.vehicle = vehicle
 
     def _vehicle(self, vehicle: VehicleParams | None) -> VehicleParams:
-        """The profile of a call; without one, the estimator's own (`vehicle`), else the paper's SUV."""
-        if vehicle is not None:
-            return vehicle
-        return PAPER_SUV if self.vehicle is None else self.vehicle
+        return profile_of_call(vehicle, self.vehicle)
 
     # streaming
     def start(self, vehicle: VehicleParams | None = None) -> FilterState:

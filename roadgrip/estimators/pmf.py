@@ -50,14 +50,14 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
-from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
+from roadgrip.vehicle.params import VehicleParams
 
 MU_GRID = np.round(np.arange(0.05, 1.5001, 0.025), 4)  # the grid's mu values
-C_FACTORS = np.geomspace(0.2, 2.0, 11)  # slip stiffness as a factor of the profile's: tire and surface (cobblestone: 0.3)
+C_FACTORS = np.geomspace(0.2, 2.0, 11)  # slip stiffness per the profile's: tire and surface (cobblestone: 0.3)
 NM, NC = MU_GRID.size, C_FACTORS.size
 
 
@@ -81,7 +81,7 @@ C_FORGET_PER_S = 1.0 / 120.0  # the slope is the tire's and the surface's (Gusta
 # many production ones) act on slip thresholds, which a tire with a soft slip curve (cobblestone, snow, a worn tire)
 # crosses below its peak: measured on the training and held-out runs of the generalization preset (5-95 %), ABS 0.86-1.0
 # and 0.57-1.0, traction control 0.48-0.99 and 0.22-0.87.
-ABS_SLIP_BAND = (0.06, 0.15)  # ABS cycles the wheels' slip between about 0.08 and 0.12 (Bosch; the simulator's -0.08/-0.12)
+ABS_SLIP_BAND = (0.06, 0.15)  # ABS cycles the slip between about 0.08 and 0.12 (Bosch; the simulator: 0.08/0.12)
 LIMIT_PEAK_S = 1.0  # how long a controller's flag may lag or latch behind the utilisation it reacted to
 ETA_TCS = 0.3  # traction control (and ESC's engine cut) says little more than "the driven axle slips"
 LIMIT_ABS, LIMIT_TCS, LIMIT_LOCK = 0, 1, 2
@@ -211,10 +211,8 @@ def _apply(mem, like, temper):
     total = 0.0
     for i in range(NM):
         for j in range(NC):
-            lk = like[i, j]
-            if lk > best:
-                best = lk
-            total += mem[G0 + i * NC + j] * lk
+            best = max(best, like[i, j])
+            total += mem[G0 + i * NC + j] * like[i, j]
     if not best > 0.0 or total < INCONSISTENT * best:
         mem[K_INCONSISTENT] += 1.0
         return False
@@ -250,9 +248,9 @@ def _bound_likelihood(u, u_seen, s_u, like):
 
 @njit(cache=True)
 def _band(mu, u_axle, s_u, eta):
-    """Whether u_axle lies in [eta mu, mu], blurred by the measurement's noise. A statement of membership, not a density:
-    a controller stays on for many samples that say the same, and a density's 1 / ((1 - eta) mu), applied again at each,
-    would push mu down to the band's lower end for no new reason."""
+    """Whether u_axle lies in [eta mu, mu], blurred by the measurement's noise. A statement of membership, not a
+    density: a controller stays on for many samples that say the same, and a density's 1 / ((1 - eta) mu), applied
+    again at each, would push mu down to the band's lower end for no new reason."""
     s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
     return _phi((mu - u_axle) / s_u) * _phi((u_axle - eta * mu) / s_lim)
 
@@ -547,7 +545,7 @@ def _sample_vector(sample: dict) -> np.ndarray:
 
 
 class PMFEstimator(Estimator):
-    """mu from a Bayesian grid over (mu, tire stiffness): friction bound, controller activity, axle slip (module doc)."""
+    """mu from a Bayesian grid over (mu, tire stiffness): friction bound, controllers, axle slip (module doc)."""
 
     name = "pmf"
 
@@ -557,9 +555,7 @@ class PMFEstimator(Estimator):
         self.vehicle = vehicle
 
     def _vehicle(self, vehicle: VehicleParams | None) -> VehicleParams:
-        if vehicle is not None:
-            return vehicle
-        return PAPER_SUV if self.vehicle is None else self.vehicle
+        return profile_of_call(vehicle, self.vehicle)
 
     def start(self, vehicle: VehicleParams | None = None) -> PMFState:
         vehicle = self._vehicle(vehicle)
