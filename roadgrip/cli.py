@@ -456,7 +456,7 @@ def serve(
 @bench_app.command("estimate")
 @friendly_errors
 def bench_estimate_command(
-    estimators: list[str] = typer.Option(["ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"),
+    estimators: list[str] = typer.Option(["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"),
     updates: int = typer.Option(20000, help="streamed updates per estimator"),
 ):
     """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""

@@ -17,16 +17,14 @@ from roadgrip.estimators.base import Estimator
 
 BENCH_RUN = "paper-decreasing-circular-e2"
 WARMUP_UPDATES = 200
-DEFAULT_NAMES = ("ekf", "ukf", "default")
+DEFAULT_NAMES = ("pmf", "ekf", "ukf", "default")
 
 
 def bench_estimator_by_name(name: str) -> Estimator:
-    """'ekf', 'ukf' (physics filters), 'fusion' (ekf + the default model), or anything `load_estimator` takes."""
+    """'fusion' (ekf + the default model), or anything `load_estimator` takes, as the cloud runs it (guarded)."""
     from roadgrip.estimators.learned import load_estimator
-    from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
+    from roadgrip.estimators.physics import physics_estimator
 
-    if name in PHYSICS_ESTIMATORS:
-        return physics_estimator(name)
     if name == "fusion":
         from roadgrip.estimators.fusion import FusionEstimator
 

@@ -10,12 +10,7 @@ from hypothesis import strategies as st
 
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.estimators.guard import (
-    PRIOR_MU,
-    PRIOR_UPPER_MU,
-    GuardSettings,
-    apply_bound,
-    drag_per_mass,
-    tire_force_bound,
+    PRIOR_MU, PRIOR_UPPER_MU, GuardSettings, apply_bound, apply_bound_scalar, drag_per_mass, tire_force_bound,
 )
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.importers import get_importer
@@ -63,6 +58,17 @@ def test_apply_bound_raises_what_is_below_and_widens_what_is_contradicted():
     assert lower.tolist() == [0.4, 0.5, 0.8]
     assert upper.tolist() == [0.6, PRIOR_UPPER_MU, 1.0]
     assert excited.tolist() == [True, False, True]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.floats(-1.0, 2.0), st.just(float("nan"))), min_size=4, max_size=4), st.booleans())
+def test_the_streaming_guard_is_the_batch_guard(values, excited):
+    mu, lower, upper, bound = values
+    bound = abs(bound) if bound == bound else 0.0
+    expected = [float(v[0]) for v in apply_bound([mu], [lower], [upper], [excited], [bound])[:3]]
+    got = apply_bound_scalar(mu, lower, upper, excited, bound)
+    assert list(got[:3]) == expected
+    assert got[3] == bool(apply_bound([mu], [lower], [upper], [excited], [bound])[3][0])
 
 
 def _random_telemetry(draw, n):
