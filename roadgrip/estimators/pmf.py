@@ -97,6 +97,8 @@ BIAS_SIGMA_FLOOR_MPS2 = 0.15  # what calibration leaves: grades that vary along 
 BIAS_TAU_S = 60.0  # seconds of steady driving that the bias average spans
 RADIUS_TAU_S = 30.0  # seconds of straight driving that the left/right radius ratios span
 RLS_TAU_S = 120.0  # the slip line's memory
+STIFFNESS_CALIBRATED_S = 30.0  # seconds of low-force driving before the slip line's slope informs the stiffness
+STIFFNESS_SURFACE_SPREAD = 0.25  # what the slope at low force leaves unknown of the curve nearer the peak (log)
 SLIP_SIGMA0 = 0.0015  # slip noise floor: wheel-speed noise, CAN quantisation, signal time offsets
 SLIP_SIGMA_PER_MPS = 0.01  # ... growing at low speed (quantisation of 0.01 km/h over v)
 SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic Formula, Burckhardt in the simulator)
@@ -180,8 +182,28 @@ def _start(mem, keep_stiffness):
 
 
 @njit(cache=True)
-def _predict(mem, dt):
-    """Mu diffuses (random walk on the grid) and the grid is mixed with the prior; stiffness is nearly constant."""
+def _stiffness_prior(mem, q, out):
+    """What the grid's stiffness forgets towards: the broad prior, narrowed around the calibrated slip line's 1 / slope
+    (the low-force stiffness, Gustafsson's slip slope) once it has STIFFNESS_CALIBRATED_S of data behind it."""
+    calibrated = mem[K_RLS_W] >= STIFFNESS_CALIBRATED_S and mem[K_SLOPE] > 0.0
+    centre, spread = 0.0, 1.0
+    if calibrated:
+        centre = -np.log(mem[K_SLOPE] * q[Q_C0])  # log of the calibrated stiffness factor
+        spread = sqrt(mem[K_P11] / mem[K_SLOPE] ** 2 + STIFFNESS_SURFACE_SPREAD ** 2)
+    total = 0.0
+    for j in range(NC):
+        out[j] = C_PRIOR[j]
+        if calibrated:
+            out[j] *= exp(-0.5 * ((np.log(C_FACTORS[j]) - centre) / spread) ** 2)
+        total += out[j]
+    for j in range(NC):
+        out[j] /= total
+
+
+@njit(cache=True)
+def _predict(mem, dt, c_prior):
+    """Mu diffuses (random walk on the grid) and the grid is mixed with the prior; stiffness forgets slowly towards
+    its (calibrated) prior."""
     step = MU_GRID[1] - MU_GRID[0]
     var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * dt) / (step * step)  # in grid steps^2
     side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
@@ -199,8 +221,8 @@ def _predict(mem, dt):
             left = col[i - 1] if i > 0 else col[i]
             right = col[i + 1] if i < NM - 1 else col[i]
             p = (1.0 - 2.0 * side) * col[i] + side * (left + right)
-            c_target = (1.0 - forget_c) * cm[j] + forget_c * C_PRIOR[j]
-            mem[G0 + i * NC + j] = (1.0 - forget) * ((1.0 - forget_c) * p + forget_c * PRIOR[i] * C_PRIOR[j]) \
+            c_target = (1.0 - forget_c) * cm[j] + forget_c * c_prior[j]
+            mem[G0 + i * NC + j] = (1.0 - forget) * ((1.0 - forget_c) * p + forget_c * PRIOR[i] * c_prior[j]) \
                 + forget * PRIOR[i] * c_target
 
 
@@ -393,7 +415,9 @@ def pmf_step(mem, q, smp, t_prev, out):
             _start(mem, True)
             dt = 0.0
     if dt > 0.0:
-        _predict(mem, dt)
+        c_prior = np.empty(NC)
+        _stiffness_prior(mem, q, c_prior)
+        _predict(mem, dt, c_prior)
     radius = q[Q_RADIUS]
     # wheel ground speeds with the left/right radius ratios taken out (each side by half the ratio)
     v_wheels = np.empty(4)

@@ -103,18 +103,29 @@ def test_slip_growing_faster_than_force_reads_as_low_friction():
 
 
 def test_self_calibration_converges_on_ordinary_driving():
-    """Five minutes of gentle driving: the accelerometer's bias and the wheels' radius ratios are learned."""
+    """Five minutes of gentle driving (0 to 0.09 g) on a worn tire (half the profile's slip stiffness), the front
+    tires 1 % fuller than the rear and the front left 2 % fuller than the front right, the accelerometer 0.6 m/s^2
+    off: the bias, the radius ratios and the tire's stiffness are learned."""
+    from roadgrip.estimators.guard import drag_per_mass
+
     n = 3000
-    t = np.arange(n) * 0.1
-    ax = 0.8 * np.sin(2 * np.pi * t / 15.0)
-    speed = 20.0 + np.cumsum(ax) * 0.1
-    ratios = (1.01, 0.99, 1.0, 1.0)  # the front left tire 1 % fuller, the front right 1 % worn
-    _, estimator, state = _run(_samples(speed, ax, accel_bias=-0.6, radius_ratio=ratios))
+    road = (0.04 + 0.05 * np.sin(np.arange(n) * 2 * np.pi / 200)) * G_MPS2
+    speed = np.empty(n)
+    speed[0] = 20.0
+    for i in range(1, n):
+        speed[i] = speed[i - 1] + (road[i - 1] - drag_per_mass(FWD) * speed[i - 1] ** 2) * 0.1
+    fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
+    c = 0.5 * FWD.tire_front.longitudinal_stiffness_per_load
+    slip = 3 * 0.9 / c * (1 - np.cbrt(1 - FWD.mass_kg * road / fz_front / 0.9))
+    ratios = (1.02, 1.0, 1.0, 1.0)  # each front wheel +1 % on the rear axle's mean
+    _, estimator, state = _run(_samples(speed, road - drag_per_mass(FWD) * speed ** 2, accel_bias=-0.6,
+                                        radius_ratio=ratios, front_slip=slip))
     cal = estimator.calibration(state)
     assert cal["accel_bias_mps2"] == pytest.approx(-0.6, abs=0.05)
-    assert cal["radius_ratio_left_right_front"] == pytest.approx(1.01 / 0.99 - 1.0, abs=0.002)
+    assert cal["radius_ratio_left_right_front"] == pytest.approx(0.02, abs=0.002)
     assert cal["radius_ratio_left_right_rear"] == pytest.approx(0.0, abs=0.002)
-    assert abs(cal["slip_offset_front_rear"]) < 0.002
+    assert cal["slip_offset_front_rear"] == pytest.approx(0.01, abs=0.002)
+    assert 1.0 / cal["slip_slope"] == pytest.approx(c, rel=0.1)
 
 
 def test_state_round_trip_continues_identically():
