@@ -227,21 +227,23 @@ def _predict(mem, dt, c_prior):
 
 
 @njit(cache=True)
-def _apply(mem, like, temper):
-    """Multiply the grid by a likelihood (NM x NC) raised to `temper`; skip it (False) if no cell explains the data."""
+def _apply(mem, like, temper, inconsistent=INCONSISTENT):
+    """Multiply the grid by a likelihood (NM x NC) raised to `temper`; skip it (False) if no cell explains the data
+    (the grid's total likelihood under `inconsistent` of the best cell's)."""
     best = 0.0
     total = 0.0
     for i in range(NM):
         for j in range(NC):
             best = max(best, like[i, j])
             total += mem[G0 + i * NC + j] * like[i, j]
-    if not best > 0.0 or total < INCONSISTENT * best:
+    if not best > 0.0 or total < inconsistent * best:
         mem[K_INCONSISTENT] += 1.0
         return False
     norm = 0.0
     for i in range(NM):
         for j in range(NC):
-            v = mem[G0 + i * NC + j] * (like[i, j] / best) ** temper
+            ratio = like[i, j] / best
+            v = mem[G0 + i * NC + j] * (ratio if temper == 1.0 else ratio ** temper)
             mem[G0 + i * NC + j] = v
             norm += v
     for k in range(NM * NC):
@@ -309,22 +311,18 @@ def _limit_likelihood(u_axle, s_u, kind, c0, like):
 
 @njit(cache=True)
 def _slip_likelihood(f, s, v, c0, like):
-    """The brush model's slip at force per load f against the measured slip s, for each (mu, C)."""
+    """The brush model's slip at force per load f against the measured slip s, for each (mu, C), already raised to
+    TEMPER (one exp a cell instead of an exp and a power: this runs at every straight driving sample)."""
     s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v
+    sign = -1.0 if f < 0.0 else 1.0
     for i in range(NM):
         mu = MU_GRID[i]
+        x = min(abs(f) / mu, 1.0)
+        shape = sign * 3.0 * mu / c0 * (1.0 - (1.0 - x) ** (1.0 / 3.0))  # the slip at C = c0; at C it is shape / C
         for j in range(NC):
-            c = c0 * C_FACTORS[j]
-            s_peak = 3.0 * mu / c
-            x = abs(f) / mu
-            if x >= 1.0:
-                pred = s_peak
-            else:
-                pred = s_peak * (1.0 - (1.0 - x) ** (1.0 / 3.0))
-            if f < 0.0:
-                pred = -pred
+            pred = shape / C_FACTORS[j]
             sig = s_floor + SLIP_MODEL_SHARE * abs(pred)
-            like[i, j] = exp(-0.5 * ((s - pred) / sig) ** 2)
+            like[i, j] = exp(-0.5 * TEMPER * ((s - pred) / sig) ** 2)
 
 
 @njit(cache=True)
@@ -500,7 +498,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
         if straight and driving:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
-            _apply(mem, like, TEMPER)
+            _apply(mem, like, 1.0, INCONSISTENT ** TEMPER)
     _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving)
     mem[K_V_PREV] = v
     mem[K_U] = u
