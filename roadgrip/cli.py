@@ -111,7 +111,7 @@ def train(
     model: str = typer.Option(..., help="dnn | cnn | convlstm | sa-cnn-lstm"),
     data: Path = typer.Option(..., help="a dataset folder (roadgrip simulate)"),
     out: Path = typer.Option(..., help="model file to write (.pt)"),
-    features: str = typer.Option("terminal", help="feature set: paper | terminal"),
+    features: str = typer.Option("terminal", help="feature set: paper | terminal | physics | production"),
     experiment: int = typer.Option(None, help="train on this experiment's runs only (paper preset: 1)"),
     condition: list[str] = typer.Option(None, help="train on these conditions only (repeatable)"),
     config: list[str] = typer.Option(None, help="model config override KEY=VALUE (repeatable)"),
