@@ -315,6 +315,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "slowest_round_s": round(pipeline["slowest_round_s"], 2), "slow_rounds": pipeline["slow_rounds"],
             "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
             "estimate_messages_dropped": pipeline["estimate_messages_dropped"],
+            # estimator state checkpoints while serving (roadgrip/cloud/checkpoints.py; not those of the stop)
+            "checkpoints_written": pipeline["checkpoints_written"], "checkpoint_s": round(pipeline["checkpoint_s"], 3),
             **memory_trend(timeline), "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
 

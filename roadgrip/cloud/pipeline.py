@@ -19,7 +19,11 @@ up to MAX_ROUND_SAMPLES (the rest goes in the next round, at once), and:
    stored, and counted as stored only when this submission stored it;
 6. hands the round's estimates to what follows (`StoredSink`): in the service's process the fan-out
    (roadgrip/cloud/fanout.py: the map, warnings, publishing); in an ingest process, the channel to it
-   (roadgrip/cloud/shards.py).
+   (roadgrip/cloud/shards.py);
+7. stores the estimator states of the vehicles that are due (every 60 s of a vehicle's data; at most 25 vehicles in
+   one transaction every 0.5 s) and, when it stops, of every vehicle estimated since; a vehicle seen for the first time
+   since the start goes on from its stored state where that fits (roadgrip/cloud/checkpoints.py): its
+   self-calibration survives a restart.
 
 If the database is down (StorageUnavailable), the round is held and retried (backoff up to MAX_RETRY_S) before anything
 newer. HTTP submitters get StorageUnavailable at once (503: nothing acknowledged; their samples may still be written
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 import threading
 import time
 from concurrent.futures import Future
@@ -40,6 +45,7 @@ from typing import Protocol
 
 import h3
 
+from roadgrip.cloud.checkpoints import Checkpoints
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable
 from roadgrip.estimators.base import Estimator
@@ -103,6 +109,8 @@ class _VehicleStream:
     last_estimated_ms: int | None = None
     last_arrival_s: float = 0.0
     stored: set = field(default_factory=set)      # timestamps stored within DEDUP_HORIZON_MS of newest_ms
+    checkpoint_at_ms: float = math.inf  # data time at which its state is due for a checkpoint (Checkpoints)
+    written_ms: int | None = None       # last_estimated_ms of its stored state
 
 
 @dataclass
@@ -121,6 +129,9 @@ class PipelineCounters:
     # seconds spent since start, by part of the round: where a stall went
     estimate_s: float = 0.0  # reorder buffers and the estimator
     write_s: float = 0.0     # the round's transaction (telemetry and estimates)
+    checkpoints_written: int = 0   # estimator states stored (roadgrip/cloud/checkpoints.py)
+    checkpoints_restored: int = 0  # vehicles that went on from a stored estimator state
+    checkpoint_s: float = 0.0      # seconds spent storing estimator states
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -147,6 +158,7 @@ class Pipeline:
         self._failures = 0
         self._retry_at = 0.0
         self._thread: threading.Thread | None = None
+        self.checkpoints = Checkpoints(storage, estimator, self.counters)
 
     # ------------------------------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -154,7 +166,8 @@ class Pipeline:
         self._thread.start()
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """Process what was submitted, then stop."""
+        """Process what was submitted, store the estimator states of the vehicles estimated since their last
+        checkpoint, then stop."""
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
@@ -203,11 +216,22 @@ class Pipeline:
             self.counters.slowest_round_s = max(self.counters.slowest_round_s, took)
             self.counters.slow_rounds += took > SLOW_ROUND_S
             if stopping and not 0 < self._queued < queued:  # all done, or no progress (storage down)
+                self._checkpoint_all()
                 return
             if self._queued >= MAX_ROUND_SAMPLES:  # behind: the next round at once
                 continue
             self._wake.wait(max(0.0, self.settings.flush_interval_s - (time.perf_counter() - started)))
             self._wake.clear()
+
+    def _checkpoint_all(self) -> None:
+        if self.storage_down:
+            log.error("storage is down at the stop: the estimator states of %d vehicles were not stored",
+                      len(self._streams))
+            return
+        try:
+            self.checkpoints.write_all(self._streams)
+        except Exception:
+            log.exception("storing the estimator states at the stop failed")
 
     def run_round(self, final: bool = False) -> None:
         with self._lock:
@@ -228,6 +252,7 @@ class Pipeline:
         try:
             for sub in inbox:  # every profile first: a storage failure here leaves nothing half done
                 self._profile(sub.vehicle_id)
+            self._open_streams(inbox)
         except StorageUnavailable as exc:
             self._refuse_or_keep(inbox, exc)
             return
@@ -236,7 +261,7 @@ class Pipeline:
         new_rows: list[dict] = []
         touched: set[str] = set()
         for sub in inbox:
-            stream = self._stream(sub.vehicle_id)
+            stream = self._streams[sub.vehicle_id]
             seen_now: set[int] = set()
             for sample in sub.samples:
                 ts = sample["timestamp_ms"]
@@ -258,7 +283,8 @@ class Pipeline:
         estimates = self._release(now_s, final, late)
         self.counters.estimate_s += time.perf_counter() - started
         self._held = _Held(results, new_rows, late, estimates, touched)
-        self._write_held()
+        if self._write_held():
+            self.checkpoints.write_due(self._streams)
 
     def _write_held(self) -> bool:
         """Write the held round (one transaction). On success resolve its submitters and fan out. When storage is
@@ -334,12 +360,20 @@ class Pipeline:
         return self._held is not None and self._failures > 0
 
     # ------------------------------------------------------------------------------------------------- per vehicle
-    def _stream(self, vehicle_id: str) -> _VehicleStream:
-        stream = self._streams.get(vehicle_id)
-        if stream is None:
-            stream = _VehicleStream(self.estimator.start(self._profile(vehicle_id)))
-            self._streams[vehicle_id] = stream
-        return stream
+    def _open_streams(self, inbox: list[_Submission]) -> None:
+        """Streams for the vehicles first seen (their profiles read): from their stored estimator states where those
+        fit, else fresh. StorageUnavailable leaves nothing half done."""
+        first_ms: dict[str, float] = {}
+        for sub in inbox:
+            if sub.vehicle_id not in self._streams:
+                first_ms[sub.vehicle_id] = min(first_ms.get(sub.vehicle_id, math.inf),
+                                               min((s["timestamp_ms"] for s in sub.samples), default=math.inf))
+        if not first_ms:
+            return
+        states = self.checkpoints.start_states({v: self._profiles[v] for v in first_ms})
+        for vehicle_id, state in states.items():
+            self._streams[vehicle_id] = _VehicleStream(
+                state, checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]))
 
     def _profile(self, vehicle_id: str) -> VehicleParams:
         params = self._profiles.get(vehicle_id)
@@ -361,7 +395,7 @@ class Pipeline:
         gap_ms = self.settings.max_gap_s * 1000.0
         resolution = self.settings.h3_resolution
         estimates: list[dict] = []
-        for stream in self._streams.values():
+        for vehicle_id, stream in self._streams.items():
             if not stream.pending:
                 continue
             quiet = final or now_s - stream.last_arrival_s >= self.settings.reorder_window_s
@@ -384,4 +418,6 @@ class Pipeline:
                 row["latitude_deg"], row["longitude_deg"] = lat, lon
                 row["h3_cell"] = None if lat is None or lon is None else h3.latlng_to_cell(lat, lon, resolution)
                 estimates.append(row)
+            if stream.last_estimated_ms is not None and stream.last_estimated_ms >= stream.checkpoint_at_ms:
+                self.checkpoints.due(vehicle_id, stream)
         return estimates

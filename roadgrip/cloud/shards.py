@@ -15,6 +15,9 @@ interpreter lock 82 % of the time (docs/RELIABILITY.md).
   ingest process sends what it stored to the fan-out, and its counters every STATS_INTERVAL_S (health sums them).
 - Backpressure as with no ingest processes: an ingest process whose pipeline has MAX_MQTT_BACKLOG samples waiting
   stops reading its channel, the channel fills, and paho's network thread waits to forward the next message.
+- Each ingest process's pipeline checkpoints the estimator states of its own vehicles and restores them when it first
+  sees them (roadgrip/cloud/checkpoints.py), so a vehicle's calibration survives a restart of its process, and a
+  change of `ingest_processes` too: the states are stored by vehicle_id, whichever process owns it next.
 - An ingest process ignores SIGINT and SIGTERM (a terminal's Ctrl-C and systemd's stop reach the whole group): the
   service's process stops it after its own last message.
 - An ingest process that dies is started again; the MQTT messages forwarded to it and not acknowledged are forwarded

@@ -12,10 +12,12 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
 | credentials | name | role (vehicle, reader or admin), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
+| estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/checkpoints.py), updated_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
 `write_batch`, in one transaction, and a row whose (vehicle_id, timestamp_ms) is stored already is skipped: sending a
 batch twice stores it once. No foreign keys tie the tables together: a vehicle may send before its profile is stored.
+A database made by an older version opens: `open_storage` creates the tables it lacks (estimator_states came later).
 
 On PostgreSQL with the PostGIS extension available, estimates get a generated column `geom geometry(Point,4326)` (null
 where the position is) with a GiST index, for spatial queries by other tools; `Storage.postgis` says whether it is
@@ -134,6 +136,16 @@ warnings_table = Table(
     Column("detection_ms", sa.BigInteger, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
     Column("message", _JSON, nullable=False))
+
+# Each vehicle's estimator state (its self-calibration), one row per estimator name: a service switched from one
+# estimator to another and back finds the first one's state again (roadgrip/cloud/checkpoints.py).
+estimator_states_table = Table(
+    "estimator_states", metadata,
+    Column("vehicle_id", sa.String, nullable=False),
+    Column("estimator", sa.String, nullable=False),
+    Column("state", _JSON, nullable=False),
+    Column("updated_ms", sa.BigInteger, nullable=False),
+    sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
 
 POSTGIS_DDL = (
     ("ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
@@ -463,6 +475,44 @@ class Storage:
         c = telemetry_table.c
         rows = self._all(select(c.vehicle_id, func.max(c.timestamp_ms).label("latest")).group_by(c.vehicle_id))
         return {row["vehicle_id"]: row["latest"] for row in rows}
+
+    # ------------------------------------------------------------------------------------ estimator states
+
+    def put_estimator_states(self, rows: list[dict]) -> None:
+        """Store (or replace) estimator states in one transaction: each row holds vehicle_id, estimator (its name),
+        state (a JSON-able dict) and optionally updated_ms (default: now). Of rows with the same key the last wins."""
+        now_ms = _now_ms()
+        latest = {}
+        for row in rows:
+            if not isinstance(row.get("state"), dict):
+                raise TypeError(f"state of vehicle {row.get('vehicle_id')!r} must be a dict, got "
+                                f"{type(row.get('state')).__name__}")
+            latest[(row.get("vehicle_id"), row.get("estimator"))] = {"updated_ms": now_ms, **row}
+        if not latest:
+            return
+        rows = _checked_rows("estimator state", list(latest.values()), estimator_states_table)
+        insert = self._insert(estimator_states_table)
+        upsert = insert.on_conflict_do_update(index_elements=["vehicle_id", "estimator"],
+                                              set_={"state": insert.excluded.state,
+                                                    "updated_ms": insert.excluded.updated_ms})
+        with self._transaction() as conn:
+            conn.execute(upsert, rows)
+
+    def estimator_states(self, vehicle_ids: list[str], estimator: str) -> dict[str, dict]:
+        """vehicle_id -> the stored state of estimator `estimator`, for those of `vehicle_ids` that have one."""
+        c = estimator_states_table.c
+        states: dict[str, dict] = {}
+        ids = sorted(set(vehicle_ids))
+        for start in range(0, len(ids), 1000):  # well inside every database's limit on parameters
+            query = select(c.vehicle_id, c.state).where(c.estimator == estimator,
+                                                        c.vehicle_id.in_(ids[start:start + 1000]))
+            states.update((row["vehicle_id"], row["state"]) for row in self._all(query))
+        return states
+
+    def estimator_state_rows(self) -> list[dict]:
+        """Every stored estimator state (vehicle_id, estimator, state, updated_ms), by vehicle and estimator."""
+        c = estimator_states_table.c
+        return self._all(select(estimator_states_table).order_by(c.vehicle_id, c.estimator))
 
     # ------------------------------------------------------------------------------------ warnings
 
