@@ -86,7 +86,7 @@ def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_
         run = predictions.filter(pc.equal(predictions["run_id"], run_id))
         excited_share[run_id] = float(run["excited"].to_numpy().mean())
     run_id = max(excited_share, key=excited_share.get)
-    figure = plot_run(predictions, run_id, [(best["model"], best["feature_set"]), ("EKF", "-")],
+    figure = plot_run(predictions, run_id, [("pmf", "-"), (best["model"], best["feature_set"]), ("EKF", "-")],
                       out / "estimates_with_intervals.png")
     return {"metrics_csv": out / "metrics.csv", "tables_md": out / "tables.md",
             "predictions": out / "predictions.parquet", "figures": [figure]}
