@@ -167,10 +167,24 @@ class AsciiJSONResponse(JSONResponse):
         return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
 
 
+def single_query_values(request: Request) -> None:
+    """Every query parameter this API declares is a scalar: one given twice (?limit=5&limit=7) is refused with 422, as
+    the OpenAPI says, instead of being read as its last value (found by fuzzing: tests/cloud/test_fuzz.py). One place,
+    for every route (a dependency of the app); parameters a route does not declare are ignored, as FastAPI does."""
+    dependant = getattr(request.scope.get("route"), "dependant", None)
+    declared = {param.alias for param in dependant.query_params} if dependant is not None else set()
+    repeated = sorted(k for k in declared if len(request.query_params.getlist(k)) > 1)
+    if repeated:
+        raise RequestValidationError([{"type": "repeated_query_parameter", "loc": ("query", k),
+                                       "msg": "a single value is expected, got several",
+                                       "input": request.query_params.getlist(k)} for k in repeated])
+
+
 def create_app(service: CloudService) -> FastAPI:
     app = FastAPI(title="roadgrip cloud", version="1",
                   description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
-                  responses=_errors(401, 403, 503))  # every route authenticates and reads storage
+                  responses=_errors(401, 403, 503),  # every route authenticates and reads storage
+                  dependencies=[Depends(single_query_values)])
     app.state.service = service
 
     def require(caller: Credential, *roles: str) -> None:

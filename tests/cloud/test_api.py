@@ -231,6 +231,22 @@ def test_unusable_bodies_are_refused_with_clear_errors(cloud):
     assert client.get("/v1/health", auth=auth).json()["status"] == "ok"
 
 
+def test_a_repeated_query_parameter_is_refused_on_every_route(cloud):
+    """Every declared query parameter is a scalar: given twice it is a 422 naming it, not its last value (a fuzzing
+    case, issue 17); an undeclared one is ignored, as FastAPI does."""
+    service, client = cloud
+    auth = register(client, "car-q")
+    for path, params in (("/v1/vehicles/car-q/estimates", [("limit", "5"), ("limit", "7")]),
+                         ("/v1/vehicles/car-q/estimates", [("start_ms", "1"), ("end_ms", "2"), ("end_ms", "3")]),
+                         ("/v1/warnings", [("active", "true"), ("active", "false")])):
+        answer = client.get(path, params=params, auth=ADMIN if "warnings" in path else auth)
+        assert answer.status_code == 422, (path, answer.text)
+        repeated = {key for key, _ in params if sum(k == key for k, _ in params) > 1}
+        assert {tuple(d["loc"]) for d in answer.json()["detail"]} == {("query", k) for k in repeated}
+    assert client.get("/v1/warnings", params=[("x", "1"), ("x", "2")], auth=ADMIN).status_code == 200
+    assert client.get("/v1/vehicles/car-q/estimates", params={"limit": 5}, auth=auth).status_code == 200
+
+
 def test_vss_keyed_samples_are_accepted(cloud):
     service, client = cloud
     auth = register(client, "car-7")
