@@ -12,6 +12,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
+import numpy as np
 import pyarrow as pa
 
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
@@ -51,6 +52,17 @@ def profile_of_call(vehicle: VehicleParams | None, own: VehicleParams | None) ->
     if vehicle is not None:
         return vehicle
     return PAPER_SUV if own is None else own
+
+
+def memory_state(data: dict, name: str, n_memory: int) -> tuple[VehicleParams, np.ndarray]:
+    """(profile, memory) of a state saved by a filter with one flat memory vector (the Kalman filters, pmf), checked:
+    the estimator's name and the memory's length must be this filter's."""
+    if data.get("estimator") != name:
+        raise ValueError(f"state of estimator {data.get('estimator')!r} given to {name!r}")
+    memory = np.asarray(data["memory"], dtype=np.float64)
+    if memory.shape != (n_memory,):
+        raise ValueError(f"{name} state memory must hold {n_memory} numbers, got shape {memory.shape}")
+    return VehicleParams.from_dict(data["vehicle"]), memory.copy()
 
 
 class Estimator(ABC):

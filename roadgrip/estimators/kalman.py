@@ -27,7 +27,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, memory_state, profile_of_call
 from roadgrip.estimators.vehicle_model import (
     INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
     U_W0, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, initial_state, pack_model,
@@ -323,13 +323,8 @@ class KalmanEstimator(Estimator):
         return {"estimator": self.name, "vehicle": state.vehicle.to_dict(), "memory": state.mem.tolist()}
 
     def state_from_dict(self, data: dict) -> FilterState:
-        if data.get("estimator") != self.name:
-            raise ValueError(f"state of estimator {data.get('estimator')!r} given to {self.name!r}")
-        memory = np.asarray(data["memory"], dtype=np.float64)
-        if memory.shape != (N_MEM,):
-            raise ValueError(f"{self.name} state memory must hold {N_MEM} numbers, got shape {memory.shape}")
-        vehicle = VehicleParams.from_dict(data["vehicle"])
-        return FilterState(vehicle, pack_model(vehicle, self.tuning), memory.copy())
+        vehicle, memory = memory_state(data, self.name, N_MEM)
+        return FilterState(vehicle, pack_model(vehicle, self.tuning), memory)
 
     def diagnostics(self, state: FilterState) -> dict:
         """The filter's inner estimates (what the terminal does not send: lateral speed) and its counters."""

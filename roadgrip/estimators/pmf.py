@@ -50,7 +50,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
+from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, memory_state, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
@@ -612,13 +612,8 @@ class PMFEstimator(Estimator):
                 "t_prev": state.t_prev}
 
     def state_from_dict(self, data: dict) -> PMFState:
-        if data.get("estimator") != self.name:
-            raise ValueError(f"state of estimator {data.get('estimator')!r} given to {self.name!r}")
-        memory = np.asarray(data["memory"], dtype=np.float64)
-        if memory.shape != (N_MEM,):
-            raise ValueError(f"pmf state memory must hold {N_MEM} numbers, got shape {memory.shape}")
-        vehicle = VehicleParams.from_dict(data["vehicle"])
-        return PMFState(vehicle, pack(vehicle), memory.copy(), float(data["t_prev"]))
+        vehicle, memory = memory_state(data, self.name, N_MEM)
+        return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
         vehicle = self._vehicle(vehicle)

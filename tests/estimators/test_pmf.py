@@ -102,13 +102,12 @@ def test_slip_growing_faster_than_force_reads_as_low_friction():
     assert all(e.mu_upper >= 0.9 for e in high)
 
 
-def test_self_calibration_converges_on_ordinary_driving():
-    """Five minutes of gentle driving (0 to 0.09 g) on a worn tire (half the profile's slip stiffness), the front
-    tires 1 % fuller than the rear and the front left 2 % fuller than the front right, the accelerometer 0.6 m/s^2
-    off: the bias, the radius ratios and the tire's stiffness are learned."""
+def worn_tire_drive(n: int):
+    """A FWD car driven gently (0 to 0.09 g) for n samples on a worn tire (half the profile's slip stiffness), the
+    front left tire 2 % fuller than the others (each front wheel +1 % on the rear axle's mean, 2 % left against
+    right), the accelerometer 0.6 m/s^2 off; also scripts/calibration_convergence.py's. Returns (samples, stiffness)."""
     from roadgrip.estimators.guard import drag_per_mass
 
-    n = 3000
     road = (0.04 + 0.05 * np.sin(np.arange(n) * 2 * np.pi / 200)) * G_MPS2
     speed = np.empty(n)
     speed[0] = 20.0
@@ -117,9 +116,16 @@ def test_self_calibration_converges_on_ordinary_driving():
     fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
     c = 0.5 * FWD.tire_front.longitudinal_stiffness_per_load
     slip = 3 * 0.9 / c * (1 - np.cbrt(1 - FWD.mass_kg * road / fz_front / 0.9))
-    ratios = (1.02, 1.0, 1.0, 1.0)  # each front wheel +1 % on the rear axle's mean
-    _, estimator, state = _run(_samples(speed, road - drag_per_mass(FWD) * speed ** 2, accel_bias=-0.6,
-                                        radius_ratio=ratios, front_slip=slip))
+    samples = _samples(speed, road - drag_per_mass(FWD) * speed ** 2, accel_bias=-0.6,
+                       radius_ratio=(1.02, 1.0, 1.0, 1.0), front_slip=slip)
+    return samples, c
+
+
+def test_self_calibration_converges_on_ordinary_driving():
+    """Five minutes of gentle driving on a worn tire with mismatched radii and a biased accelerometer: the bias, the
+    radius ratios and the tire's stiffness are learned."""
+    samples, c = worn_tire_drive(3000)
+    _, estimator, state = _run(samples)
     cal = estimator.calibration(state)
     assert cal["accel_bias_mps2"] == pytest.approx(-0.6, abs=0.05)
     assert cal["radius_ratio_left_right_front"] == pytest.approx(0.02, abs=0.002)
