@@ -16,8 +16,9 @@ profile's and marginalised out, so that an unknown tire widens the posterior rat
 
     s = (3 mu / C) (1 - (1 - f / mu)^(1/3))          (f < mu; s = f / C at small f, whatever mu)
 
-so slip at small force tells C, and slip growing faster than f / C tells mu. Each likelihood is tempered (raised to
-TEMPER) because consecutive 100 ms samples share their errors (model error, bias).
+so slip at small force tells C, and slip growing faster than f / C tells mu. The likelihoods that every sample of a
+steady manoeuvre repeats (controllers, slip) are tempered (raised to TEMPER), because consecutive 100 ms samples share
+their errors (model error, bias); the bound is a maximum and is applied only where a sample raises it.
 
 Between samples mu diffuses (random walk, a 3-tap kernel) and the grid is mixed with the prior at FORGET_PER_S: evidence
 ages, so that a car leaving a braking zone does not carry its mu onto the next road, and with no evidence the posterior
@@ -29,17 +30,19 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   a_road uses a_x minus it, and s_u shrinks from BIAS_SIGMA0 towards BIAS_SIGMA_FLOOR (grades that vary) as it settles;
 - the left/right rolling-radius ratio of each axle, from straight driving (RADIUS_TAU_S);
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
-  over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and the grid's C
-  marginal (kept across gaps) is the stiffness calibration.
+  over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
+  has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope.
 
 An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
 The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
 utilisation u / mu is at least 0.5 (DESIGN 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
 
-The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): it follows
-the fastest wheel (the slowest while driving) but changes no faster than the accelerometer's a_x allows, so that locked
-or spinning wheels do not drag it along; a wheel far from it is past its friction peak.
+The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): the wheels'
+own while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster than the
+accelerometer's a_x allows, so that locked or spinning wheels do not drag it along; a wheel far from it is past its
+friction peak. Where the tires work hard (the recent largest utilisation at least half the median, or an axle at a
+controller's limit) the interval's lower end reaches that utilisation: the truth may lie right at the proven bound.
 """
 
 from __future__ import annotations
@@ -63,7 +66,7 @@ NM, NC = MU_GRID.size, C_FACTORS.size
 
 def _prior(mu):
     dry = np.exp(-0.5 * ((mu - 0.85) / 0.15) ** 2) / (0.15 * np.sqrt(2 * np.pi))
-    spread = ((mu >= 0.1) & (mu <= 1.1)).astype(float) / 1.0
+    spread = ((mu >= 0.1) & (mu <= 1.1)).astype(float)  # a density of 1 over the 1.0 wide band
     p = 0.5 * dry + 0.5 * spread + 1e-3
     return p / p.sum()
 
