@@ -48,9 +48,12 @@ class VehiclePlan:
 
 
 def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: float,
-                   duration_s: float) -> tuple[SpeedProfile, float]:
-    """Cruise with brakings starting at the given stations; returns the profile and the duration that keeps the
-    vehicle on the road."""
+                   duration_s: float, *, brake_mps2: float = BRAKE_MPS2,
+                   reaccelerate_mps2: float = REACCELERATE_MPS2) -> tuple[SpeedProfile, float]:
+    """Cruise with brakings (at `brake_mps2`, then back up at `reaccelerate_mps2`: the driver's style) starting at the
+    given stations; returns the profile and the duration that keeps the vehicle on the road."""
+    if not (brake_mps2 > 0 and reaccelerate_mps2 > 0):
+        raise ValueError(f"brake_mps2 and reaccelerate_mps2 must be > 0, got {brake_mps2!r}, {reaccelerate_mps2!r}")
     low = LOW_SPEED_SHARE * cruise_mps
     times, speeds = [0.0], [cruise_mps]
     t, s = 0.0, 0.0
@@ -58,8 +61,8 @@ def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: f
         if station <= s:
             continue
         t += (station - s) / cruise_mps
-        brake_s = (cruise_mps - low) / BRAKE_MPS2
-        accel_s = (cruise_mps - low) / REACCELERATE_MPS2
+        brake_s = (cruise_mps - low) / brake_mps2
+        accel_s = (cruise_mps - low) / reaccelerate_mps2
         times += [t, t + brake_s, t + brake_s + accel_s]
         speeds += [cruise_mps, low, cruise_mps]
         t += brake_s + accel_s
@@ -120,6 +123,22 @@ def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, se
                             seed=int(rng.integers(2**31)), condition="fleet", road=road.name, manoeuvre="cruise-brake")
         plans.append(VehiclePlan(vehicle_id, vehicle, road, scenario, tuple(brakes)))
     return plans
+
+
+def planned_arrival(speed: SpeedProfile, depart_s: float = 0.0, step_s: float = 0.1):
+    """The clock of a drive as planned: stations (m) -> the times (s) the speed profile reaches them, for a vehicle
+    that departs at `depart_s` (for Network.mu_profile: patches that come and go). The driver tracks the profile
+    closely; where ABS cannot follow a braking on ice the vehicle runs a little ahead of it."""
+    end_s = float(speed.times_s[-1])
+    t = np.arange(0.0, end_s + step_s, step_s)
+    v = np.maximum(np.interp(t, speed.times_s, speed.speeds_mps), 1e-3)
+    s = np.concatenate([[0.0], np.cumsum((v[1:] + v[:-1]) / 2 * step_s)])  # trapezoid: station(t)
+
+    def arrival(stations_m: np.ndarray) -> np.ndarray:
+        stations_m = np.asarray(stations_m, dtype=np.float64)
+        beyond = np.maximum(stations_m - s[-1], 0.0) / v[-1]  # past the profile's end: at its last speed
+        return depart_s + np.interp(stations_m, s, t) + beyond
+    return arrival
 
 
 def simulate_fleet(plans: list[VehiclePlan], network: Network) -> dict[str, list[dict]]:

@@ -2,19 +2,26 @@
 
 Coordinates are metres east/north of the network's origin (the simulator's frame; `SensorModel` turns them into WGS84
 around the same origin). A `Road` is a polyline a vehicle drives from end to end (a route); a `Patch` is a disc of road
-surface (wet, snow, ice) whose adhesion replaces the dry road's wherever a road crosses it.
+surface (wet, snow, ice) whose adhesion replaces the dry road's wherever a road crosses it. A patch may appear and dry
+up during a run (`appear_s`, `dry_s`, seconds on the run's clock; default: there all along): `Network.mu_profile` with
+an `arrival_s` clock (station -> the time the vehicle gets there, `roadgrip.fleet.fleet.planned_arrival`) gives a
+vehicle the patches that are there when it reaches them. The simulator's mu is a function of the station, so a patch
+is judged at the planned arrival; a patch that appears or dries while a vehicle is on it is the patch as it was
+when the vehicle reached its first station.
 
 Surface adhesion: the peak of the Burckhardt curve of each surface (reference/tire_surfaces.csv, via
 roadgrip.vehicle.tires.burckhardt): dry asphalt 1.17, wet asphalt 0.80, snow 0.19, ice 0.05.
 
 GeoJSON (RFC 7946, lon/lat): LineString features are roads (properties: `name`, `kind` in expressway/ramp/urban, and
-optional `speed_mps`); Point features with properties `surface` (wet, snow, ice) and `radius_m` are patches.
+optional `speed_mps`); Point features with properties `surface` (wet, snow, ice) and `radius_m` are patches (optional: `mu`, `appear_s`,
+`dry_s`).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path as FilePath
 
@@ -62,21 +69,42 @@ class Road:
 
 @dataclass(frozen=True)
 class Patch:
+    """A disc of wet, snowy or icy road. Its adhesion is the surface's (SURFACE_MU) unless `mu_value` gives it (slush,
+    a worn wet road: a surface between the Burckhardt ones). It is there from `appear_s` until `dry_s` (seconds on
+    the run's clock; dry_s excluded)."""
+
     name: str
     surface: str
     east_m: float
     north_m: float
     radius_m: float
+    mu_value: float | None = None
+    appear_s: float = 0.0
+    dry_s: float = math.inf
 
     def __post_init__(self):
         if self.surface not in SURFACE_MU or self.surface == "dry":
             raise ValueError(f"patch {self.name!r}: surface must be wet, snow or ice, got {self.surface!r}")
         if not self.radius_m > 0:
             raise ValueError(f"patch {self.name!r}: radius_m must be > 0, got {self.radius_m!r}")
+        if self.mu_value is not None and not 0.0 < self.mu_value < SURFACE_MU["dry"]:
+            raise ValueError(f"patch {self.name!r}: mu_value must lie in (0, {SURFACE_MU['dry']:.2f}) (below the dry "
+                             f"road), got {self.mu_value!r}")
+        if not (math.isfinite(self.appear_s) and self.appear_s < self.dry_s):
+            raise ValueError(f"patch {self.name!r}: appear_s must be finite and before dry_s, got appear_s "
+                             f"{self.appear_s!r}, dry_s {self.dry_s!r}")
 
     @property
     def mu(self) -> float:
-        return SURFACE_MU[self.surface]
+        return SURFACE_MU[self.surface] if self.mu_value is None else self.mu_value
+
+    def active(self, t_s) -> np.ndarray | bool:
+        """Whether the patch is there at time(s) t_s (appear_s <= t < dry_s)."""
+        return (np.asarray(t_s) >= self.appear_s) & (np.asarray(t_s) < self.dry_s)
+
+    def contains(self, east_m, north_m) -> np.ndarray:
+        """Whether the points lie on the patch (inside its disc)."""
+        return np.hypot(np.asarray(east_m) - self.east_m, np.asarray(north_m) - self.north_m) <= self.radius_m
 
 
 @dataclass(frozen=True)
@@ -86,14 +114,20 @@ class Network:
     origin: tuple[float, float] = HEBEI_ORIGIN
     dry_mu: float = field(default=SURFACE_MU["dry"])
 
-    def mu_profile(self, road: Road) -> MuProfile:
-        """The road's adhesion along its stations: dry, except where it crosses a patch (the lowest patch wins)."""
+    def mu_profile(self, road: Road, arrival_s: Callable[[np.ndarray], np.ndarray] | None = None) -> MuProfile:
+        """The road's adhesion along its stations: dry, except where it crosses a patch (the lowest patch wins).
+        Without `arrival_s` every patch counts whatever its times; with it (stations in m -> the times in s the vehicle
+        reaches them) a patch counts where it is there when the vehicle reaches its first station on the road."""
         path = road.path
         stations = np.arange(0.0, path.length_m, MU_STEP_M)
         xy = points_at(path, stations)
         mu = np.full(stations.size, self.dry_mu)
         for patch in self.patches:
-            inside = np.hypot(xy[:, 0] - patch.east_m, xy[:, 1] - patch.north_m) <= patch.radius_m
+            inside = patch.contains(xy[:, 0], xy[:, 1])
+            if arrival_s is not None and inside.any():
+                first = stations[np.flatnonzero(inside)[0]]
+                if not patch.active(float(np.asarray(arrival_s(np.array([first])))[0])):
+                    continue
             mu[inside] = np.minimum(mu[inside], patch.mu)
         change = np.concatenate([[True], mu[1:] != mu[:-1]])
         return MuProfile(stations[change], mu[change], mu[change], "step")
@@ -105,7 +139,7 @@ class Network:
         xy = points_at(path, stations)
         found = []
         for patch in self.patches:
-            inside = np.flatnonzero(np.hypot(xy[:, 0] - patch.east_m, xy[:, 1] - patch.north_m) <= patch.radius_m)
+            inside = np.flatnonzero(patch.contains(xy[:, 0], xy[:, 1]))
             if inside.size:
                 found.append((float(stations[inside[0]]), float(stations[inside[-1]]), patch))
         return found
@@ -184,5 +218,6 @@ def network_from_geojson(path: str | FilePath, origin: tuple[float, float] | Non
         props = feature.get("properties") or {}
         east, north = enu([feature["geometry"]["coordinates"]])[0]
         patches.append(Patch(str(props.get("name", f"patch-{k + 1}")), str(props.get("surface")), float(east),
-                             float(north), float(props.get("radius_m", 50.0))))
+                             float(north), float(props.get("radius_m", 50.0)), props.get("mu"),
+                             float(props.get("appear_s", 0.0)), float(props.get("dry_s", math.inf))))
     return Network(tuple(roads), tuple(patches), origin)
