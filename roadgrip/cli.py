@@ -169,19 +169,23 @@ def train(
 @app.command()
 @friendly_errors
 def evaluate(
-    benchmark: str = typer.Option(..., help="paper | generalization | real-vehicle"),
+    benchmark: str = typer.Option(..., help="paper | generalization | real-vehicle | fleet"),
     out: Path = typer.Option(..., help="output folder: metrics.csv, tables.md, figures"),
     data: Path = typer.Option(None, help="paper benchmark: a paper-preset dataset; default: simulate it (seed 0)"),
-    seed: int = typer.Option(0, help="seed of the data and the training"),
+    seed: int = typer.Option(0, help="seed of the data and the training (fleet: the first seed)"),
+    seeds: int = typer.Option(3, min=1, help="fleet benchmark: how many seeds (seed, seed + 1, ...)"),
     workers: int = typer.Option(2, help="training processes in parallel"),
 ):
-    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, or the paper's
-    Table 7 (real-vehicle test) in simulation (DESIGN 4)."""
+    """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
+    Table 7 (real-vehicle test) in simulation (DESIGN 4), or the fleet benchmark (a simulated fleet through the cloud
+    service: warnings and map against the truth; docs/RESULTS.md)."""
     from roadgrip.validation import check_choice
 
-    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle"})
+    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet"})
     start = time.perf_counter()
-    if benchmark == "paper":
+    if benchmark == "fleet":
+        paths = _evaluate_fleet(out, seed, seeds)
+    elif benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
     elif benchmark == "real-vehicle":
         paths = _evaluate_real_vehicle(out, seed)
@@ -210,6 +214,17 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
     return write_report(metrics, predictions, out)
 
 
+def _evaluate_fleet(out: Path, seed: int, seeds: int) -> dict:
+    from roadgrip.evaluation.fleet_report import run_fleet_benchmark
+
+    with Progress(TextColumn("[bold]fleet[/] {task.description}"), BarColumn(), TimeElapsedColumn(), console=console,
+                  transient=True) as progress:
+        task = progress.add_task("starting", total=1.0)
+        result = run_fleet_benchmark(out, seed, seeds, progress=lambda message, fraction: progress.update(
+            task, completed=fraction, description=message))
+    return result["paths"]
+
+
 def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
     from roadgrip.evaluation.real_vehicle import run_real_vehicle_benchmark
 
@@ -222,16 +237,15 @@ def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
 
 
 def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
-    from roadgrip.evaluation.generalization import run_generalization_benchmark
-    from roadgrip.evaluation.generalization_report import write_generalization_report
-
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
     from roadgrip.evaluation.bins import bins_markdown, run_bins_benchmark
+    from roadgrip.evaluation.generalization import run_generalization_benchmark
+    from roadgrip.evaluation.generalization_report import write_generalization_report
 
     with console.status("generalization benchmark") as status:
-        say = lambda message: status.update(f"generalization benchmark: {message}")  # noqa: E731
+        say = lambda message: status.update(f"generalization benchmark: {message}")
         metrics, predictions, _, _ = run_generalization_benchmark(seed=seed, workers=workers, progress=say)
         bins = run_bins_benchmark(seed=seed, progress=say)
     paths = write_generalization_report(metrics, predictions, out)

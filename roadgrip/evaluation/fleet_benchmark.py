@@ -1,0 +1,410 @@
+"""The fleet benchmark (issue 16, items 1-2): a simulated fleet drives a road network for an hour while patches of ice,
+snow, slush and wet road come and go; its telemetry goes through the cloud service's own ingest path (the same code as
+`roadgrip serve`: per-vehicle estimators, storage, map, warning engine), in this process and far faster than real time;
+then the warnings and the map are scored against the truth.
+
+Scenario (one per seed, `make_scenario`):
+- the generated network (roadgrip.fleet.network.generated_network) without its fixed patches; `patches_per_band`
+  patches in each band of BANDS (mu drawn uniformly in the band) and `control_patches` wet ones (mu 0.80, the
+  Burckhardt wet asphalt: not slippery), discs of 40-70 m radius on one road each, away from the other roads and from
+  each other; each appears at a time uniform in [0, appear_max_s] and dries up `life_s` later (uniform range), inside
+  the run;
+- `vehicles` vehicles (kinds cycling over the shipped ones, production-terminal effects on: ProductionEffects.production,
+  a tire stiffness factor drawn per vehicle, a grade per road), each with a driver style drawn from STYLES (most gentle,
+  some firm, a few braking hard); each drives trips one after the other for the whole run: a road of the network
+  (either direction, uniform) end to end at its cruising speed (x U(0.9, 1.05)), braking now and then at random
+  stations (BRAKINGS_PER_KM by road kind: junctions in town, merges, traffic) at its style's deceleration to 40 % of the
+  cruise, then back up; a pause of TRIP_GAP_S between trips. A trip's patches are those there when it reaches them
+  (Network.mu_profile with the planned arrival clock).
+
+Service: a CloudService (SQLite in a temporary folder, MQTT off, map_clock "data", no per-vehicle rate limit: the fleet
+is sent faster than real time) with the product's defaults otherwise (estimator pmf, warning and map settings). Every
+vehicle's samples go in timestamp order, one second (10 samples) a message, through `parse_payload` and
+`service.ingest.submit`: what the HTTP route does after authentication. The map is read at `snapshot_every_s`.
+
+Definitions (docs/RESULTS.md, "The fleet benchmark"):
+- pass: a vehicle's consecutive samples on a patch (inside its disc) while the patch is there (the simulator's true mu
+  under the vehicle is the patch's); its time is when it entered;
+- patch cells: the H3 cells (the service's resolution) of the road points inside the patch;
+- a warning is on a patch when its cell is a patch cell and it was raised while the patch was there; it is beside a
+  patch when its cell neighbours a patch cell (k = 1) or it was raised within the warning validity after the patch
+  dried; otherwise it is false. Warnings on control (wet, mu 0.80) patches are false;
+- detected: a warning on the patch; time to first warning: its detection time less the patch's appearance;
+  passes to first warning: the passes that entered the patch up to the detection time;
+- linger: how long after the patch dried the last of its warnings ended (cancelled or expired; a warning still active at
+  the end counts to the end and is flagged censored);
+- dry road: road whose true mu under the vehicle is at least DRY_MU (dry asphalt, or a wet control patch); false
+  warnings per 100 km of dry road = false warnings / (km driven on dry road / 100);
+- map error at an instant: for each cell with recent excited evidence (status measured), the distance from the map's mu
+  to the range of the true mu over the road points of the cell at that instant (a cell may hold patch and dry road);
+  covered when the map's 90 % interval meets that range; its band is that of the lowest true mu in it;
+- evidence share: of the cells driven in the last EVIDENCE_WINDOW_S before an instant, the share with recent excited
+  evidence on the map.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h3
+import numpy as np
+import orjson
+import pyarrow as pa
+import pymap3d
+
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.wire import parse_payload
+from roadgrip.data.schema import TELEMETRY_COLUMNS
+from roadgrip.fleet.fleet import _speed_profile, planned_arrival
+from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road, generated_network, points_at
+from roadgrip.sim.presets import random_grade
+from roadgrip.sim.production import ProductionEffects
+from roadgrip.sim.roads import GradeProfile
+from roadgrip.sim.scenario import Scenario
+from roadgrip.sim.sensors import SensorModel
+from roadgrip.sim.simulate import simulate
+from roadgrip.units import G_MPS2
+from roadgrip.vehicle.params import VEHICLES
+from roadgrip.vehicle.tires import DugoffTire
+
+log = logging.getLogger(__name__)
+
+BANDS = (("mu<=0.2", 0.05, 0.2), ("0.2-0.4", 0.2, 0.4), ("0.4-0.6", 0.4, 0.6))  # name, low, high (mu)
+CONTROL_MU = SURFACE_MU["wet"]  # 0.80: wet asphalt, not slippery
+# driver styles: (share of drivers, braking deceleration, re-acceleration), m/s^2
+STYLES = {"gentle": (0.70, 0.15 * G_MPS2, 0.10 * G_MPS2),
+          "firm": (0.25, 0.30 * G_MPS2, 0.15 * G_MPS2),
+          "hard": (0.05, 0.60 * G_MPS2, 0.20 * G_MPS2)}
+BRAKINGS_PER_KM = {"urban": 2.0, "ramp": 1.0, "expressway": 0.4}  # junctions and traffic in town, a merge, traffic
+TRIP_GAP_S = (5.0, 60.0)  # pause between two trips of one vehicle (parking, a road not in the network)
+PATCH_RADIUS_M = (40.0, 70.0)
+PATCH_CLEARANCE_M = 150.0  # between patch edges, and from a patch to any other road
+EVIDENCE_WINDOW_S = 600.0
+WAIT_STEP_S = 0.01
+EXCITED_UTILIZATION = 0.5  # DESIGN 4: an excited sample
+OBSERVABLE_SAMPLES = 3  # excited samples that make a pass observable (the warning engine's min_excited_per_pass)
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    vehicles: int = 32
+    duration_s: float = 3600.0
+    patches_per_band: int = 3
+    control_patches: int = 2
+    appear_max_s: float = 1200.0  # patches appear in [0, appear_max_s] ...
+    life_s: tuple[float, float] = (900.0, 1800.0)  # ... and dry up this long after
+    snapshot_every_s: float = 300.0
+
+    def __post_init__(self):
+        if self.vehicles < 1:
+            raise ValueError(f"vehicles must be >= 1, got {self.vehicles!r}")
+        if not 60.0 <= self.duration_s <= 3 * 3600.0:
+            raise ValueError(f"duration_s must lie in [60, 10800], got {self.duration_s!r}")
+        if not 0 < self.life_s[0] <= self.life_s[1]:
+            raise ValueError(f"life_s must be (low, high) with 0 < low <= high, got {self.life_s!r}")
+
+
+@dataclass(frozen=True)
+class Trip:
+    vehicle_id: str
+    style: str
+    depart_s: float
+    scenario: Scenario
+
+
+@dataclass(frozen=True)
+class FleetScenario:
+    seed: int
+    config: FleetConfig
+    network: Network
+    trips: tuple[Trip, ...]
+    styles: dict = field(default_factory=dict)  # vehicle_id -> style
+    kinds: dict = field(default_factory=dict)  # vehicle_id -> VehicleParams
+
+
+# --------------------------------------------------------------------------------------------------- scenario
+def _place_patches(rng: np.random.Generator, roads: tuple[Road, ...], config: FleetConfig) -> tuple[Patch, ...]:
+    wanted = [(name, surface, float(rng.uniform(low, high)))
+              for (name, low, high), surface in zip(BANDS, ("ice", "snow", "wet"))
+              for _ in range(config.patches_per_band)]
+    wanted += [("control", "wet", None)] * config.control_patches
+    lengths = np.array([r.path.length_m for r in roads])
+    placed: list[Patch] = []
+    for k, (band, surface, mu) in enumerate(wanted):
+        for _ in range(500):
+            i = int(rng.choice(len(roads), p=lengths / lengths.sum()))
+            road, radius = roads[i], float(rng.uniform(*PATCH_RADIUS_M))
+            east, north = points_at(road.path, np.array([rng.uniform(0.15, 0.85) * road.path.length_m]))[0]
+            clear = all(math.hypot(east - p.east_m, north - p.north_m) > radius + p.radius_m + PATCH_CLEARANCE_M
+                        for p in placed)
+            clear = clear and all(np.hypot(*(other.points_m - [east, north]).T).min() > radius + PATCH_CLEARANCE_M
+                                  for j, other in enumerate(roads) if j != i)
+            if clear:
+                break
+        else:
+            raise ValueError(f"no room for patch {k} on the network: fewer patches or a larger network")
+        appear = float(rng.uniform(0.0, config.appear_max_s))
+        dry = min(appear + float(rng.uniform(*config.life_s)), config.duration_s)
+        placed.append(Patch(f"{band}-{k:02d}", surface, float(east), float(north), radius, mu, appear, dry))
+    return tuple(placed)
+
+
+def _reversed_grade(grade: GradeProfile, length_m: float) -> GradeProfile:
+    """The grade of the road driven the other way: stations mirrored, uphill becomes downhill."""
+    stations = np.concatenate([[0.0], length_m - grade.stations_m[::-1]])
+    values = np.concatenate([[-grade.grade_rad[-1]], -grade.grade_rad[::-1]])
+    keep = np.concatenate([[True], np.diff(stations) > 1e-6])
+    return GradeProfile(stations[keep], values[keep])
+
+
+def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenario:
+    """The network with this seed's patches, and every vehicle's trips over the run (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    base = generated_network()
+    network = Network(base.roads, _place_patches(rng, base.roads, config), base.origin)
+    effects = ProductionEffects.production()
+    routes = []  # (road, its grade)
+    for road in network.roads:
+        grade = random_grade(rng, effects.grade_max_rad, road.path.length_m)
+        routes += [(road, grade), (road.reversed(), _reversed_grade(grade, road.path.length_m))]
+    names = list(STYLES)
+    shares = np.array([STYLES[n][0] for n in names])
+    kinds = list(VEHICLES.values())
+    trips, styles, vehicle_kinds = [], {}, {}
+    for v in range(config.vehicles):
+        vehicle_id = f"bench-{v:03d}"
+        style = names[int(rng.choice(len(names), p=shares / shares.sum()))]
+        _, brake, accel = STYLES[style]
+        vehicle = kinds[v % len(kinds)]
+        tire = dataclasses.replace(DugoffTire(), stiffness_scale=float(rng.uniform(1 - effects.tire_stiffness_spread,
+                                                                                   1 + effects.tire_stiffness_spread)))
+        sensor_seed = int(rng.integers(2**31))  # one terminal: its biases and mounting stay with the vehicle
+        styles[vehicle_id], vehicle_kinds[vehicle_id] = style, vehicle
+        t = float(rng.uniform(0.0, 60.0))
+        k = 0
+        while t < config.duration_s - 30.0:
+            road, grade = routes[int(rng.integers(len(routes)))]
+            length = road.path.length_m
+            cruise = road.cruise_mps * float(rng.uniform(0.9, 1.05))
+            n_brakes = int(rng.poisson(BRAKINGS_PER_KM[road.kind] * length / 1000.0))
+            brakes = sorted(rng.uniform(0.05 * length, 0.85 * length, size=n_brakes).tolist())
+            speed, duration = _speed_profile(cruise, brakes, length, config.duration_s - t, brake_mps2=brake,
+                                             reaccelerate_mps2=accel)
+            duration = math.floor(duration * 10) / 10
+            if duration < 10.0:
+                break
+            mu = network.mu_profile(road, planned_arrival(speed, t))
+            trips.append(Trip(vehicle_id, style, round(t, 1), Scenario(
+                run_id=f"{vehicle_id}-{k:03d}", path=road.path, mu=mu, speed=speed, vehicle=vehicle, tire=tire,
+                duration_s=duration, seed=sensor_seed, condition="fleet", road=road.name, manoeuvre=style,
+                grade=grade, effects=effects)))
+            t = round(t + duration + float(rng.uniform(*TRIP_GAP_S)), 1)
+            k += 1
+    return FleetScenario(seed, config, network, tuple(trips), styles, vehicle_kinds)
+
+
+# --------------------------------------------------------------------------------------------------- drives
+@dataclass
+class Drives:
+    """Every sample of the run in timestamp order: `table` holds the wire-format telemetry (what the terminals send)
+    with timestamps on the data clock; the rest the truth beside it."""
+
+    table: pa.Table
+    t_s: np.ndarray  # seconds from the run's start
+    vehicle: np.ndarray  # vehicle_id per sample (object array)
+    east_m: np.ndarray
+    north_m: np.ndarray
+    mu: np.ndarray  # true mu under the vehicle
+    distance_m: np.ndarray  # driven in the 100 ms before the sample
+    cell: np.ndarray  # H3 cell of the reported position (object array)
+    start_ms: int
+    excited: np.ndarray  # DESIGN 4: friction utilization >= 0.5 (reported accelerations, true mu) or ABS active
+
+
+def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10) -> Drives:
+    """Simulate every trip; the samples of all vehicles on one clock starting at `start_ms`."""
+    network = scenario.network
+    sensors = SensorModel(origin_lat_deg=network.origin[0], origin_lon_deg=network.origin[1])
+    table = simulate([trip.scenario for trip in scenario.trips], sensors=sensors, start_epoch_ms=0)
+    runs = {trip.scenario.run_id: trip for trip in scenario.trips}
+    run_ids = table["run_id"].to_numpy(zero_copy_only=False)
+    depart = np.array([runs[r].depart_s for r in run_ids.tolist()])
+    t_s = depart + table["t_s"].to_numpy()
+    order = np.argsort(t_s, kind="stable")
+    vehicle = np.array([runs[r].vehicle_id for r in run_ids.tolist()], dtype=object)[order]
+    t_s = np.round(t_s[order], 1)
+    wire = [c for c in TELEMETRY_COLUMNS if c in table.column_names and c not in ("vehicle_id", "timestamp_ms",
+                                                                                "lateral_speed_mps")]
+    telemetry = table.select(wire).take(pa.array(order))  # a production terminal has no lateral speed
+    timestamps = start_ms + np.round(t_s * 1000.0).astype(np.int64)
+    telemetry = telemetry.append_column("vehicle_id", pa.array(vehicle.tolist(), pa.string()))
+    telemetry = telemetry.append_column("timestamp_ms", pa.array(timestamps, pa.int64()))
+    speed = table["speed_mps"].to_numpy()[order]
+    lat = telemetry["latitude_deg"].to_numpy()
+    lon = telemetry["longitude_deg"].to_numpy()
+    cells = np.array([h3.latlng_to_cell(a, b, resolution) for a, b in zip(lat.tolist(), lon.tolist())], dtype=object)
+    mu = table["mu"].to_numpy()[order]
+    utilization = np.hypot(telemetry["accel_lon_mps2"].to_numpy(), telemetry["accel_lat_mps2"].to_numpy()) / (mu * G_MPS2)
+    excited = (utilization >= EXCITED_UTILIZATION) | telemetry["abs_active"].to_numpy(zero_copy_only=False)
+    return Drives(telemetry, t_s, vehicle, table["x_m"].to_numpy()[order], table["y_m"].to_numpy()[order], mu,
+                  np.abs(speed) * 0.1, cells, start_ms, excited)
+
+
+# --------------------------------------------------------------------------------------------------- service
+@dataclass
+class ServiceRun:
+    warnings: list[dict]  # storage rows: the latest event of every warning raised
+    snapshots: dict[float, list]  # t_s -> the map's CellSummary list at that instant
+    samples_sent: int
+    rejected: int
+    stats: dict
+    wall_s: float
+
+
+def _wait_idle(service: CloudService) -> None:
+    """Until the pipeline has taken everything submitted and released its reorder windows into the map."""
+    while service.ingest.backlog:
+        time.sleep(WAIT_STEP_S)
+    time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
+    while service.ingest.backlog:
+        time.sleep(WAIT_STEP_S)
+
+
+def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_backlog: int = 20_000,
+                progress: Callable[[float], None] | None = None, **settings) -> ServiceRun:
+    """Feed the drives to a CloudService through its ingest path (parse_payload, then ingest.submit, as the HTTP
+    route does), one second of every vehicle a message, in timestamp order; read the map at each snapshot instant."""
+    settings = Settings(**{"data_dir": data_dir, "mqtt": "off", "map_clock": "data", "rate_limit_samples_per_s": 0,
+                           "admin_secret": "fleet-benchmark-admin", **settings})
+    started = time.perf_counter()
+    snapshots: dict[float, list] = {}
+    rejected = sent = 0
+    every = scenario.config.snapshot_every_s
+    instants = [float(t) for t in np.arange(every, scenario.config.duration_s + 1e-6, every)]
+    with CloudService(settings) as service:
+        service.register_vehicles(sorted(scenario.kinds.items()))
+        s = service.settings
+        second = np.floor(drives.t_s).astype(np.int64)
+        bounds = np.flatnonzero(np.diff(second)) + 1
+        starts = np.concatenate([[0], bounds])
+        ends = np.concatenate([bounds, [second.size]])
+        futures = []
+        chunk_rows, chunk_start = [], 0
+        for a, b in zip(starts.tolist(), ends.tolist()):
+            if a >= chunk_start + len(chunk_rows):  # rows come 60 s of data at a time (to_pylist is per call)
+                chunk_start, stop = a, int(np.searchsorted(second, second[a] + 60))
+                chunk_rows = drives.table.slice(a, stop - a).to_pylist()
+            by_vehicle: dict[str, list] = {}
+            for row in chunk_rows[a - chunk_start:b - chunk_start]:
+                by_vehicle.setdefault(row["vehicle_id"], []).append(row)
+            now_ms = int(time.time() * 1000)
+            for vehicle_id, rows in by_vehicle.items():
+                samples, errors = parse_payload(orjson.dumps(rows), content_type="application/json", now_ms=now_ms,
+                                                max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
+                                                max_future_ms=int(s.max_future_s * 1000), vehicle_id=vehicle_id)
+                rejected += len(errors)
+                sent += len(rows)
+                futures.append(service.ingest.submit(vehicle_id, samples, len(samples) + len(errors)))
+            t_end = float(second[a] + 1)
+            while instants and t_end >= instants[0]:
+                _wait_idle(service)
+                instant = instants.pop(0)
+                snapshots[instant] = service.friction_map.cells(drives.start_ms + int(instant * 1000))
+            if service.ingest.backlog > max_backlog:  # backpressure, as the MQTT side does
+                while service.ingest.backlog > max_backlog // 2:
+                    time.sleep(WAIT_STEP_S)
+            if len(futures) > 1000:
+                futures = [f for f in futures if not f.done() or f.exception() is not None]
+            if progress is not None:
+                progress(t_end)
+        _wait_idle(service)
+        for instant in instants:
+            snapshots[instant] = service.friction_map.cells(drives.start_ms + int(instant * 1000))
+        failed = [f.exception() for f in futures if f.done() and f.exception() is not None]
+        if failed:
+            raise RuntimeError(f"{len(failed)} submissions failed, the first: {failed[0]!r}")
+        stats = service.ingest.stats()
+    # the service stopped: every round stored; read what it decided
+    storage_settings = Settings(data_dir=data_dir, mqtt="off", map_clock="data",
+                                admin_secret="fleet-benchmark-admin")
+    from roadgrip.cloud.storage import open_storage
+    storage = open_storage(storage_settings.storage_url)
+    try:
+        warnings = storage.warnings(active_only=False)
+    finally:
+        storage.close()
+    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started)
+
+
+# --------------------------------------------------------------------------------------------------- truth
+def patch_cells(network: Network, patch: Patch, resolution: int = 10, step_m: float = 1.0) -> set[str]:
+    """The H3 cells of the road points (every `step_m` along each road) that lie on the patch."""
+    cells: set[str] = set()
+    for road in network.roads:
+        xy = points_at(road.path, np.arange(0.0, road.path.length_m, step_m))
+        inside = xy[patch.contains(xy[:, 0], xy[:, 1])]
+        if inside.size:
+            lat, lon, _ = pymap3d.enu2geodetic(inside[:, 0], inside[:, 1], 0.0, *network.origin, 0.0)
+            cells |= {h3.latlng_to_cell(a, b, resolution) for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon))}
+    return cells
+
+
+def find_passes(t_s: np.ndarray, vehicle: np.ndarray, east_m: np.ndarray, north_m: np.ndarray, mu: np.ndarray,
+                patch: Patch, gap_s: float = 1.0, while_there: bool = True) -> list[tuple[str, float, float]]:
+    """(vehicle_id, entered s, left s) of every pass over the patch while it was there: consecutive samples of a
+    vehicle on the patch whose true mu is the patch's (gap_s apart at most). `while_there` False: every pass over its
+    place, whatever the road was."""
+    on = patch.contains(east_m, north_m)
+    if while_there:
+        on &= np.isclose(mu, patch.mu, atol=1e-6)
+    idx = np.flatnonzero(on)
+    passes = []
+    by_vehicle: dict[str, list[float]] = {}
+    for i in idx.tolist():
+        by_vehicle.setdefault(vehicle[i], []).append(float(t_s[i]))
+    for vehicle_id, times in by_vehicle.items():
+        times.sort()
+        first = last = times[0]
+        for t in times[1:]:
+            if t - last > gap_s:
+                passes.append((vehicle_id, first, last))
+                first = t
+            last = t
+        passes.append((vehicle_id, first, last))
+    return sorted(passes, key=lambda p: p[1])
+
+
+def observable(drives: Drives, patch: Patch, passes: list[tuple[str, float, float]]) -> int:
+    """How many of the passes had at least OBSERVABLE_SAMPLES excited samples on the patch (the truth's view: a
+    braking or an acceleration that made the patch's mu observable)."""
+    on = np.flatnonzero(patch.contains(drives.east_m, drives.north_m) & drives.excited)
+    count = 0
+    for vehicle_id, first, last in passes:
+        sel = on[(drives.vehicle[on] == vehicle_id) & (drives.t_s[on] >= first) & (drives.t_s[on] <= last)]
+        count += sel.size >= OBSERVABLE_SAMPLES
+    return count
+
+
+def truth_by_cell(network: Network, t_s: float, resolution: int = 10, step_m: float = 2.0) -> dict[str, tuple]:
+    """cell -> (lowest, highest) true mu over the road points in the cell at time t_s."""
+    out: dict[str, list] = {}
+    for road in network.roads:
+        xy = points_at(road.path, np.arange(0.0, road.path.length_m, step_m))
+        mu = np.full(len(xy), network.dry_mu)
+        for patch in network.patches:
+            if patch.active(t_s):
+                inside = patch.contains(xy[:, 0], xy[:, 1])
+                mu[inside] = np.minimum(mu[inside], patch.mu)
+        lat, lon, _ = pymap3d.enu2geodetic(xy[:, 0], xy[:, 1], 0.0, *network.origin, 0.0)
+        for a, b, m in zip(lat.tolist(), lon.tolist(), mu.tolist()):
+            cell = h3.latlng_to_cell(a, b, resolution)
+            lo_hi = out.setdefault(cell, [m, m])
+            lo_hi[0], lo_hi[1] = min(lo_hi[0], m), max(lo_hi[1], m)
+    return {c: tuple(v) for c, v in out.items()}

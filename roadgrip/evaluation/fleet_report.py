@@ -1,0 +1,211 @@
+"""`roadgrip evaluate --benchmark fleet`: run the fleet benchmark (roadgrip/evaluation/fleet_benchmark.py) for several
+seeds, score it (roadgrip/evaluation/fleet_metrics.py) and write DIR/metrics.csv (per seed and pooled, per band and
+overall), DIR/patches.csv (one row per patch and seed), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and
+the service's log DIR/cloud.log."""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.csv as pacsv
+
+from roadgrip.cloud.friction_map import MEASURED
+from roadgrip.cloud.settings import Settings
+from roadgrip.evaluation.fleet_benchmark import (
+    FleetConfig,
+    FleetScenario,
+    ServiceRun,
+    find_passes,
+    make_scenario,
+    observable,
+    patch_cells,
+    run_service,
+    simulate_drives,
+    truth_by_cell,
+)
+from roadgrip.evaluation.fleet_metrics import (
+    DRY_MU,
+    TARGET_LINGER_S,
+    Warning,
+    classify,
+    patch_outcome,
+    score_cell,
+    summarize_run,
+    warning_from_row,
+)
+
+DATA_CLOCK_LAG_S = 3600.0  # the run's data clock ends this long before the wall clock (no sample from the future)
+
+
+@dataclass
+class SeedResult:
+    seed: int
+    scenario: FleetScenario
+    run: ServiceRun
+    warnings: list[Warning]
+    kinds: list[str]
+    patch_rows: list[dict]
+    cell_scores: list[dict]
+    rows: list[dict]
+    dry_km: float
+    driven_cells: int
+    cells_with_evidence: int
+    simulate_s: float
+
+
+def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], None] | None = None) -> SeedResult:
+    """One seed end to end: scenario, simulation, the service, the scores."""
+    say = progress or (lambda message, fraction: None)
+    say(f"seed {seed}: simulating", 0.0)
+    scenario = make_scenario(seed, config)
+    start_ms = int(time.time() - config.duration_s - DATA_CLOCK_LAG_S) * 1000
+    started = time.perf_counter()
+    drives = simulate_drives(scenario, start_ms)
+    simulate_s = time.perf_counter() - started
+    with tempfile.TemporaryDirectory(prefix="roadgrip-fleet-") as tmp:
+        run = run_service(scenario, drives, Path(tmp), progress=lambda t: say(
+            f"seed {seed}: the service at {t / 60:.0f} of {config.duration_s / 60:.0f} min", t / config.duration_s))
+    network = scenario.network
+    validity_s = Settings.model_fields["warning_validity_s"].default
+    warnings = [warning_from_row(row, start_ms) for row in run.warnings]
+    cells = {p.name: patch_cells(network, p) for p in network.patches}
+    classes = [classify(w, list(network.patches), cells, validity_s) for w in warnings]
+    patch_rows = []
+    for patch in network.patches:
+        if patch.mu >= DRY_MU:
+            continue
+        passes = find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch)
+        after = [p for p in find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch,
+                                        while_there=False) if patch.dry_s <= p[1] < patch.dry_s + TARGET_LINGER_S]
+        on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
+        beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
+        patch_rows.append({"seed": seed, **patch_outcome(patch, passes, on, beside, config.duration_s, len(after),
+                                                            observable(drives, patch, passes))})
+    cell_scores, driven_total, evidence_total = [], 0, 0
+    for instant, summaries in sorted(run.snapshots.items()):
+        truth = truth_by_cell(network, instant)
+        measured = {c.cell for c in summaries if c.status == MEASURED}
+        for c in summaries:
+            if c.status == MEASURED and c.cell in truth:
+                cell_scores.append({"seed": seed, "t_s": instant, "cell": c.cell, "mu": c.mu,
+                                    **score_cell(c.mu, c.mu_lower, c.mu_upper, truth[c.cell])})
+        window = (drives.t_s > instant - 600.0) & (drives.t_s <= instant)
+        driven = set(drives.cell[window].tolist())
+        driven_total += len(driven)
+        evidence_total += len(driven & measured)
+    dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
+    kinds = [kind for kind, _ in classes]
+    rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
+                                                             evidence_total)]
+    return SeedResult(seed, scenario, run, warnings, kinds, patch_rows, cell_scores, rows, dry_km, driven_total,
+                      evidence_total, simulate_s)
+
+
+def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetConfig = FleetConfig(),
+                        progress: Callable[[str, float], None] | None = None) -> dict:
+    """Every seed, pooled scores, the files. Returns the paths written and the metrics rows."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if seeds < 1:
+        raise ValueError(f"seeds must be >= 1, got {seeds!r}")
+    logger = logging.getLogger("roadgrip")
+    handler = logging.FileHandler(out / "cloud.log", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    saved = logger.handlers, logger.level, logger.propagate
+    logger.handlers, logger.propagate = [handler], False
+    logger.setLevel(logging.INFO)
+    started = time.perf_counter()
+    try:
+        results = [run_seed(s, config, progress) for s in range(seed, seed + seeds)]
+    finally:
+        logger.handlers, logger.level, logger.propagate = saved
+        handler.close()
+    wall_s = time.perf_counter() - started
+    patch_rows = [r for res in results for r in res.patch_rows]
+    cell_scores = [s for res in results for s in res.cell_scores]
+    pooled = [{"seed": "pooled", **r} for r in summarize_run(
+        patch_rows, cell_scores, [k for res in results for k in res.kinds], sum(res.dry_km for res in results),
+        sum(res.driven_cells for res in results), sum(res.cells_with_evidence for res in results))]
+    rows = [r for res in results for r in res.rows] + pooled
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    pacsv.write_csv(pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows]), out / "metrics.csv")
+    pacsv.write_csv(pa.Table.from_pylist(patch_rows), out / "patches.csv")
+    from roadgrip.evaluation.fleet_plots import plot_detection_delay, plot_map_vs_truth
+
+    paths = {"metrics": out / "metrics.csv", "patches": out / "patches.csv", "report": out / "fleet.md",
+             "log": out / "cloud.log",
+             "map_vs_truth": plot_map_vs_truth(results[0], out / "map_vs_truth.png"),
+             "detection_delay": plot_detection_delay(patch_rows, out / "detection_delay.png")}
+    (out / "fleet.md").write_text(fleet_markdown(rows, patch_rows, results, config, wall_s))
+    return {"paths": paths, "rows": rows, "wall_s": wall_s}
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _minutes(value) -> str:
+    return "-" if value is None else f"{value / 60:.1f}"
+
+
+def fleet_markdown(rows: list[dict], patch_rows: list[dict], results: list[SeedResult], config: FleetConfig,
+                   wall_s: float) -> str:
+    seeds = ", ".join(str(r.seed) for r in results)
+    timing = (f"Wall time {wall_s:.0f} s (simulation {sum(r.simulate_s for r in results):.0f} s, the service "
+              f"{sum(r.run.wall_s for r in results):.0f} s); samples through the service "
+              f"{sum(r.run.samples_sent for r in results):,}, rejected {sum(r.run.rejected for r in results)}.")
+    title = f"# Fleet benchmark: {config.vehicles} vehicles, {config.duration_s / 60:.0f} simulated minutes, seeds {seeds}"
+    lines = [title, "", timing, "",
+             ("## Detection and warnings per band (recall and by-3rd-pass over patches driven by >= 3 vehicles "
+              "while there; times in minutes)"), "",
+             ("| seed | group | patches | eligible | recall | recall (all) | by 3rd pass | time to 1st (median / max) | "
+              "passes to 1st (median / max) | warned and dried | lingering | linger (median / max) | > 10 min | "
+              "censored |"),
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | --- | ---: | ---: | --- | ---: | ---: |"]
+    for r in rows:
+        if r["group"] == "dry":
+            continue
+        lines.append(f"| {r['seed']} | {r['group']} | {r['patches']} | {r['eligible']} | {_fmt(r['recall'])} | "
+                     f"{_fmt(r['recall_all'])} | {_fmt(r['within_3rd_pass'])} | "
+                     f"{_minutes(r['time_to_first_median_s'])} / {_minutes(r['time_to_first_max_s'])} | "
+                     f"{_fmt(r['passes_to_first_median'], 1)} / {_fmt(r['passes_to_first_max'], 0)} | "
+                     f"{r['warned_and_dried']} | {r['lingering']} | {_minutes(r['linger_median_s'])} / "
+                     f"{_minutes(r['linger_max_s'])} | {r['linger_over_10min']} | {r['censored']} |")
+    lines += ["", ("## Map (cells with recent excited evidence at every snapshot, against the true mu of their road) "
+                   "and false warnings"), "",
+              ("| seed | group | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
+               "90 % coverage (lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(f"| {r['seed']} | {r['group']} | {r['map_cells']} | {_fmt(r['map_mae'], 3)} | "
+                     f"{_fmt(r['map_coverage'])} | {_fmt(r['map_mae_low'], 3)} | {_fmt(r['map_coverage_low'])} |")
+    lines += ["", ("| seed | warnings raised | on a patch | beside or after a patch | false | dry road km | "
+                   "false per 100 km | driven cells with map evidence |"),
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        if r["group"] == "all":
+            lines.append(f"| {r['seed']} | {r['warnings']} | {r['warnings_on_patch']} | {r['warnings_beside']} | "
+                         f"{r['false_warnings']} | {r['dry_km']:.0f} | {_fmt(r['false_per_100km'], 3)} | "
+                         f"{_fmt(r['evidence_share'])} |")
+    lines += ["", "## Patches", "",
+              ("| seed | patch | mu | there (min) | passes | observable passes | vehicles | detected | "
+               "time to 1st (min) | passes to 1st | warnings | passes in 10 min after drying | linger (min) |"),
+              "| --- | --- | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
+    for p in patch_rows:
+        lines.append(f"| {p['seed']} | {p['patch']} | {p['mu']:.2f} | {p['appear_s'] / 60:.0f}-{p['dry_s'] / 60:.0f} | "
+                     f"{p['passes']} | {p['observable_passes']} | {p['vehicles']} | {_fmt(p['detected'])} | "
+                     f"{_minutes(p['time_to_first_s'])} | {_fmt(p['passes_to_first'])} | {p['warnings']} | "
+                     f"{p['passes_after_dry']} | {_minutes(p['linger_s'])}{' (censored)' if p['censored'] else ''} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,147 @@
+"""The fleet benchmark: its metrics on hand-made cases, patches that come and go under the wheels, and a tiny run
+through the cloud service."""
+
+from __future__ import annotations
+
+import math
+
+import h3
+import numpy as np
+import pyarrow.csv as pacsv
+import pytest
+
+from roadgrip.evaluation.fleet_benchmark import FleetConfig, find_passes, make_scenario, patch_cells
+from roadgrip.evaluation.fleet_metrics import (
+    Warning,
+    band_of,
+    classify,
+    patch_outcome,
+    score_cell,
+    summarize_run,
+    warning_from_row,
+)
+from roadgrip.evaluation.fleet_report import run_fleet_benchmark
+from roadgrip.fleet.fleet import _speed_profile, planned_arrival
+from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road
+from roadgrip.sim.scenario import Scenario
+from roadgrip.sim.simulate import simulate
+
+ROAD = Road("straight", "urban", np.array([[0.0, 0.0], [600.0, 0.0]]))
+ICE = Patch("ice", "ice", 300.0, 0.0, 30.0, appear_s=20.0, dry_s=60.0)
+NETWORK = Network((ROAD,), (ICE,))
+
+
+def test_bands():
+    assert [band_of(m) for m in (0.05, 0.2, 0.3, 0.5, 0.6, 1.17)] == ["mu<=0.2", "mu<=0.2", "0.2-0.4", "0.4-0.6",
+                                                                     "dry", "dry"]
+
+
+def test_a_patch_warned_at_its_second_pass_took_two_passes():
+    passes = [("a", 25.0, 28.0), ("b", 40.0, 43.0), ("c", 50.0, 53.0)]
+    warned = Warning("cell", 43.0, 70.0, "recovered")
+    row = patch_outcome(ICE, passes, [warned], [], run_end_s=600.0)
+    assert row["detected"] and row["passes_to_first"] == 2
+    assert row["time_to_first_s"] == pytest.approx(23.0)
+    assert row["eligible"]  # three vehicles drove it while it was there
+
+
+def test_a_warning_outliving_its_patch_by_five_minutes():
+    warned = Warning("cell", 30.0, ICE.dry_s + 300.0, "expired")
+    row = patch_outcome(ICE, [("a", 25.0, 28.0)], [warned], [], run_end_s=3600.0)
+    assert row["linger_s"] == pytest.approx(300.0) and not row["censored"]
+    still = patch_outcome(ICE, [("a", 25.0, 28.0)], [Warning("cell", 30.0, None)], [], run_end_s=500.0)
+    assert still["linger_s"] == pytest.approx(440.0) and still["censored"]
+    summary = summarize_run([row], [], [], 1.0, 0, 0)[-1]
+    assert summary["lingering"] == 1 and summary["linger_over_10min"] == 0 and summary["linger_max_s"] == 300.0
+
+
+def test_a_warning_on_dry_road_is_false_and_counted_per_100_km():
+    cells = {ICE.name: patch_cells(NETWORK, ICE)}
+    assert cells[ICE.name]
+    on = Warning(next(iter(cells[ICE.name])), 30.0, None)
+    far = h3.latlng_to_cell(*h3.cell_to_latlng(next(iter(cells[ICE.name]))), 10)
+    far = next(c for c in h3.grid_ring(far, 4))  # four cells away: dry road
+    assert classify(on, [ICE], cells, 600.0) == ("on", ICE)
+    assert classify(Warning(on.cell, 10.0, None), [ICE], cells, 600.0)[0] == "false"  # before the ice appeared
+    assert classify(Warning(on.cell, 100.0, None), [ICE], cells, 600.0) == ("beside", ICE)  # just after it dried
+    assert classify(Warning(far, 30.0, None), [ICE], cells, 600.0) == ("false", None)
+    overall = summarize_run([], [], ["on", "false"], dry_km=50.0, driven_cells=10, cells_with_evidence=4)[-1]
+    assert overall["false_warnings"] == 1 and overall["false_per_100km"] == pytest.approx(2.0)
+    assert overall["evidence_share"] == pytest.approx(0.4)
+
+
+def test_map_cell_scores_against_the_range_of_true_mu():
+    mixed = score_cell(0.1, 0.05, 0.2, (0.05, 1.17))  # a cell with ice and dry road: 0.1 lies in the range
+    assert (mixed["band"], mixed["error"], mixed["covered"]) == ("mu<=0.2", 0.0, True)
+    assert mixed["error_low"] == pytest.approx(0.05) and mixed["covered_low"]
+    dry = score_cell(0.4, 0.3, 0.6, (1.17, 1.17))
+    assert dry["band"] == "dry" and dry["error"] == pytest.approx(0.77) and not dry["covered"]
+
+
+def test_warning_from_a_storage_row():
+    row = {"cell": "c", "status": "cancelled", "detection_ms": 61_000,
+           "message": {"event": {"evidence_ms": 121_000, "reason": "recovered"}}}
+    assert warning_from_row(row, 1_000) == Warning("c", 60.0, 120.0, "recovered")
+    row = {**row, "status": "active"}
+    assert warning_from_row(row, 1_000).end_s is None
+
+
+def _drive(depart_s: float) -> tuple[Scenario, np.ndarray]:
+    speed, duration = _speed_profile(15.0, [], ROAD.path.length_m, 60.0)
+    mu = NETWORK.mu_profile(ROAD, planned_arrival(speed, depart_s))
+    return Scenario(run_id=f"d{depart_s:g}", path=ROAD.path, mu=mu, speed=speed, duration_s=math.floor(duration)), mu
+
+
+def test_a_patch_is_under_the_wheels_only_while_it_is_there():
+    # the ice is there from 20 s to 60 s; at 15 m/s the car reaches it (station 270 m) 18 s after departing
+    before, _ = _drive(0.0)     # reaches it at 18 s: not there yet
+    during, _ = _drive(10.0)    # at 28 s
+    after, _ = _drive(50.0)     # at 68 s: dried
+    assert before.mu.at(300.0)[0] == pytest.approx(SURFACE_MU["dry"])
+    assert during.mu.at(300.0)[0] == pytest.approx(ICE.mu)
+    assert after.mu.at(300.0)[0] == pytest.approx(SURFACE_MU["dry"])
+    assert NETWORK.mu_profile(ROAD).at(300.0)[0] == pytest.approx(ICE.mu)  # no clock: every patch counts
+    table = simulate([before, during, after])
+    for scenario, depart, icy in ((before, 0.0, False), (during, 10.0, True), (after, 50.0, False)):
+        run = table.filter(table["run_id"].to_numpy(zero_copy_only=False) == scenario.run_id)
+        x, mu, t = run["x_m"].to_numpy(), run["mu"].to_numpy(), run["t_s"].to_numpy()
+        on = ICE.contains(x, run["y_m"].to_numpy())
+        assert on.any()
+        assert np.allclose(mu[on], ICE.mu if icy else SURFACE_MU["dry"])
+        away = np.hypot(x - ICE.east_m, run["y_m"].to_numpy() - ICE.north_m) > ICE.radius_m + 3.0  # the 2 m mu steps
+        assert np.allclose(mu[away], SURFACE_MU["dry"])
+        passes = find_passes(t + depart, np.array(["v"] * len(t), dtype=object), x, run["y_m"].to_numpy(), mu, ICE)
+        assert len(passes) == (1 if icy else 0)
+        if icy:
+            assert ICE.appear_s <= passes[0][1] < ICE.dry_s
+
+
+def test_patch_times_are_checked():
+    with pytest.raises(ValueError, match="appear_s"):
+        Patch("p", "ice", 0.0, 0.0, 10.0, appear_s=60.0, dry_s=30.0)
+    with pytest.raises(ValueError, match="mu_value"):
+        Patch("p", "wet", 0.0, 0.0, 10.0, mu_value=1.5)
+
+
+def test_the_scenario_is_seeded_and_its_patches_fall_in_their_bands():
+    config = FleetConfig(vehicles=3, duration_s=300.0, appear_max_s=60.0, life_s=(100.0, 200.0))
+    a, b = make_scenario(5, config), make_scenario(5, config)
+    assert [(t.vehicle_id, t.depart_s, t.scenario.road) for t in a.trips] == \
+           [(t.vehicle_id, t.depart_s, t.scenario.road) for t in b.trips]
+    mus = sorted(p.mu for p in a.network.patches)
+    assert [band_of(m) for m in mus] == ["mu<=0.2"] * 3 + ["0.2-0.4"] * 3 + ["0.4-0.6"] * 3 + ["dry"] * 2
+    assert all(0.0 <= p.appear_s < p.dry_s <= config.duration_s for p in a.network.patches)
+    assert all(t.scenario.effects.speed_from_wheels for t in a.trips)  # production-terminal realism on
+
+
+def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path):
+    config = FleetConfig(vehicles=3, duration_s=240.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
+                         life_s=(100.0, 150.0), snapshot_every_s=120.0)
+    result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config)
+    rows = pacsv.read_csv(tmp_path / "metrics.csv").to_pylist()
+    overall = [r for r in rows if r["group"] == "all"]
+    assert [r["seed"] for r in overall] == ["1", "pooled"]
+    assert overall[0]["dry_km"] > 0 and overall[0]["patches"] == 3
+    for name in ("fleet.md", "patches.csv", "map_vs_truth.png", "detection_delay.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert result["rows"][-1]["seed"] == "pooled"
