@@ -33,8 +33,8 @@ Definitions (docs/RESULTS.md, "The fleet benchmark"):
   passes to first warning: the passes that entered the patch up to the detection time;
 - linger: how long after the patch dried the last of its warnings ended (cancelled or expired; a warning still active at
   the end counts to the end and is flagged censored);
-- dry road: road whose true mu under the vehicle is at least DRY_MU (dry asphalt, or a wet control patch); false
-  warnings per 100 km of dry road = false warnings / (km driven on dry road / 100);
+- dry road: road whose true mu under the vehicle is at least 0.6 (fleet_metrics.DRY_MU: dry asphalt, or a wet control
+  patch); false warnings per 100 km of dry road = false warnings / (km driven on dry road / 100);
 - map error at an instant: for each cell with recent excited evidence (status measured), the distance from the map's mu
   to the range of the true mu over the road points of the cell at that instant (a cell may hold patch and dry road);
   covered when the map's 90 % interval meets that range; its band is that of the lowest true mu in it;

@@ -20,6 +20,7 @@ TARGET_MU = 0.3
 TARGET_MIN_VEHICLES = 3
 TARGET_PASSES = 3
 TARGET_LINGER_S = 600.0
+SLIPPERY_MU = 0.4  # the service's default warning threshold (Settings.warning_threshold_mu)
 
 
 def band_of(mu: float) -> str:
@@ -93,7 +94,7 @@ def score_cell(mu: float, mu_lower: float, mu_upper: float, truth: tuple[float, 
     patch, in a cell that holds one): `error_low` and `covered_low` (the interval holds it)."""
     lo, hi = truth
     error = 0.0 if lo <= mu <= hi else min(abs(mu - lo), abs(mu - hi))
-    return {"band": band_of(lo), "mu_truth": lo, "error": error, "covered": mu_lower <= hi and mu_upper >= lo,
+    return {"band": band_of(lo), "mu": mu, "mu_truth": lo, "error": error, "covered": mu_lower <= hi and mu_upper >= lo,
             "error_low": abs(mu - lo), "covered_low": mu_lower <= lo <= mu_upper}
 
 
@@ -154,7 +155,9 @@ def summarize_run(patch_rows: list[dict], cell_scores: list[dict], kinds: list[s
     rows.append(summarize("dry", [], [s for s in cell_scores if s["band"] == "dry"]))
     overall = summarize("all", [r for r in patch_rows if r["band"] != "dry"], cell_scores)
     false = kinds.count("false")
-    overall.update(warnings=len(kinds), warnings_on_patch=kinds.count("on"), warnings_beside=kinds.count("beside"),
+    dry_cells = [s for s in cell_scores if s["band"] == "dry"]
+    overall.update(dry_cells_read_slippery=_share(sum(s["mu"] < SLIPPERY_MU for s in dry_cells), len(dry_cells)),
+                   warnings=len(kinds), warnings_on_patch=kinds.count("on"), warnings_beside=kinds.count("beside"),
                    false_warnings=false, dry_km=dry_km,
                    false_per_100km=false / (dry_km / 100.0) if dry_km > 0 else math.nan,
                    evidence_share=_share(cells_with_evidence, driven_cells))

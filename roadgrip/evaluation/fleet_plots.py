@@ -34,8 +34,10 @@ def plot_map_vs_truth(result, path: Path, instants: int = 4) -> Path:
     network = scenario.network
     times = sorted(run.snapshots)
     chosen = [times[k] for k in np.linspace(0, len(times) - 1, min(instants, len(times))).round().astype(int)]
-    fig = Figure(figsize=(4.2 * len(chosen), 4.6), layout="constrained")
-    axes = fig.subplots(1, len(chosen), squeeze=False)[0]
+    columns = min(len(chosen), 2)
+    rows = -(-len(chosen) // columns)
+    fig = Figure(figsize=(6.5 * columns, 3.6 * rows + 0.6), layout="constrained")
+    axes = fig.subplots(rows, columns, squeeze=False).ravel()
     for ax, t in zip(axes, chosen):
         for road in network.roads:
             ax.plot(*road.points_m.T, color="0.75", lw=0.8, zorder=1)
@@ -63,10 +65,11 @@ def plot_map_vs_truth(result, path: Path, instants: int = 4) -> Path:
         ax.set_xlim(-2700, 2900)
         ax.set_ylim(-1600, 900)
         ax.set_xlabel("east (m)")
-    axes[0].set_ylabel("north (m)")
+        ax.set_ylabel("north (m)")
     fig.colorbar(ScalarMappable(norm=MU_NORM, cmap=CMAP), ax=axes, shrink=0.8, label="mu (cells: the map; discs: the truth)")
-    fig.suptitle(f"Fleet benchmark, seed {result.seed}: the friction map against the true patches (black hexagons: "
-                 f"active warnings; dashed discs: patches not there at that instant)", fontsize=10)
+    fig.suptitle(f"Fleet benchmark, seed {result.seed}: the friction map against the true patches\n(black hexagons: "
+                 f"active warnings; dashed discs: patches not there at that instant; grey cells: driven, no excited "
+                 f"evidence)", fontsize=10)
     fig.savefig(path, dpi=110)
     return path
 

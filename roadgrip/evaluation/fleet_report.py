@@ -1,6 +1,6 @@
 """`roadgrip evaluate --benchmark fleet`: run the fleet benchmark (roadgrip/evaluation/fleet_benchmark.py) for several
 seeds, score it (roadgrip/evaluation/fleet_metrics.py) and write DIR/metrics.csv (per seed and pooled, per band and
-overall), DIR/patches.csv (one row per patch and seed), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and
+overall), DIR/patches.csv (one row per patch and seed), DIR/cells.csv (every map cell scored at a snapshot), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and
 the service's log DIR/cloud.log."""
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
         measured = {c.cell for c in summaries if c.status == MEASURED}
         for c in summaries:
             if c.status == MEASURED and c.cell in truth:
-                cell_scores.append({"seed": seed, "t_s": instant, "cell": c.cell, "mu": c.mu,
+                cell_scores.append({"seed": seed, "t_s": instant, "cell": c.cell, "mu_upper": c.mu_upper,
                                     **score_cell(c.mu, c.mu_lower, c.mu_upper, truth[c.cell])})
         window = (drives.t_s > instant - 600.0) & (drives.t_s <= instant)
         driven = set(drives.cell[window].tolist())
@@ -137,9 +137,11 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
     columns = list(dict.fromkeys(k for r in rows for k in r))
     pacsv.write_csv(pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows]), out / "metrics.csv")
     pacsv.write_csv(pa.Table.from_pylist(patch_rows), out / "patches.csv")
+    pacsv.write_csv(pa.Table.from_pylist(cell_scores), out / "cells.csv")
     from roadgrip.evaluation.fleet_plots import plot_detection_delay, plot_map_vs_truth
 
-    paths = {"metrics": out / "metrics.csv", "patches": out / "patches.csv", "report": out / "fleet.md",
+    paths = {"metrics": out / "metrics.csv", "patches": out / "patches.csv", "cells": out / "cells.csv",
+             "report": out / "fleet.md",
              "log": out / "cloud.log",
              "map_vs_truth": plot_map_vs_truth(results[0], out / "map_vs_truth.png"),
              "detection_delay": plot_detection_delay(patch_rows, out / "detection_delay.png")}
@@ -192,13 +194,13 @@ def fleet_markdown(rows: list[dict], patch_rows: list[dict], results: list[SeedR
         lines.append(f"| {r['seed']} | {r['group']} | {r['map_cells']} | {_fmt(r['map_mae'], 3)} | "
                      f"{_fmt(r['map_coverage'])} | {_fmt(r['map_mae_low'], 3)} | {_fmt(r['map_coverage_low'])} |")
     lines += ["", ("| seed | warnings raised | on a patch | beside or after a patch | false | dry road km | "
-                   "false per 100 km | driven cells with map evidence |"),
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                   "false per 100 km | driven cells with map evidence | dry cells the map reads below 0.4 |"),
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         if r["group"] == "all":
             lines.append(f"| {r['seed']} | {r['warnings']} | {r['warnings_on_patch']} | {r['warnings_beside']} | "
                          f"{r['false_warnings']} | {r['dry_km']:.0f} | {_fmt(r['false_per_100km'], 3)} | "
-                         f"{_fmt(r['evidence_share'])} |")
+                         f"{_fmt(r['evidence_share'])} | {_fmt(r['dry_cells_read_slippery'])} |")
     lines += ["", "## Patches", "",
               ("| seed | patch | mu | there (min) | passes | observable passes | vehicles | detected | "
                "time to 1st (min) | passes to 1st | warnings | passes in 10 min after drying | linger (min) |"),

@@ -73,6 +73,8 @@ def test_a_warning_on_dry_road_is_false_and_counted_per_100_km():
 def test_map_cell_scores_against_the_range_of_true_mu():
     mixed = score_cell(0.1, 0.05, 0.2, (0.05, 1.17))  # a cell with ice and dry road: 0.1 lies in the range
     assert (mixed["band"], mixed["error"], mixed["covered"]) == ("mu<=0.2", 0.0, True)
+    overall = summarize_run([], [mixed, score_cell(0.3, 0.2, 0.5, (1.17, 1.17))], [], 1.0, 1, 1)[-1]
+    assert overall["dry_cells_read_slippery"] == 1.0
     assert mixed["error_low"] == pytest.approx(0.05) and mixed["covered_low"]
     dry = score_cell(0.4, 0.3, 0.6, (1.17, 1.17))
     assert dry["band"] == "dry" and dry["error"] == pytest.approx(0.77) and not dry["covered"]
@@ -142,6 +144,7 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path):
     overall = [r for r in rows if r["group"] == "all"]
     assert [r["seed"] for r in overall] == ["1", "pooled"]
     assert overall[0]["dry_km"] > 0 and overall[0]["patches"] == 3
+    assert (tmp_path / "cells.csv").exists()  # empty when the map had no excited evidence at a snapshot
     for name in ("fleet.md", "patches.csv", "map_vs_truth.png", "detection_delay.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert result["rows"][-1]["seed"] == "pooled"
