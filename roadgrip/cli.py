@@ -175,6 +175,9 @@ def evaluate(
     seed: int = typer.Option(0, help="seed of the data and the training (fleet: the first seed)"),
     seeds: int = typer.Option(3, min=1, help="fleet benchmark: how many seeds (seed, seed + 1, ...)"),
     workers: int = typer.Option(2, help="training processes in parallel"),
+    sweep: bool = typer.Option(False, help="fleet benchmark: also replay the warning engine's estimates over a grid of "
+                                           "its settings: tradeoff.csv, tradeoff.png (roadgrip/evaluation/"
+                                           "fleet_sweep.py)"),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
     Table 7 (real-vehicle test) in simulation (DESIGN 4), or the fleet benchmark (a simulated fleet through the cloud
@@ -184,7 +187,7 @@ def evaluate(
     check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet"})
     start = time.perf_counter()
     if benchmark == "fleet":
-        paths = _evaluate_fleet(out, seed, seeds)
+        paths = _evaluate_fleet(out, seed, seeds, sweep)
     elif benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
     elif benchmark == "real-vehicle":
@@ -214,14 +217,15 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
     return write_report(metrics, predictions, out)
 
 
-def _evaluate_fleet(out: Path, seed: int, seeds: int) -> dict:
+def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False) -> dict:
     from roadgrip.evaluation.fleet_report import run_fleet_benchmark
+    from roadgrip.evaluation.fleet_sweep import GRID
 
     with Progress(TextColumn("[bold]fleet[/] {task.description}"), BarColumn(), TimeElapsedColumn(), console=console,
                   transient=True) as progress:
         task = progress.add_task("starting", total=1.0)
         result = run_fleet_benchmark(out, seed, seeds, progress=lambda message, fraction: progress.update(
-            task, completed=fraction, description=message))
+            task, completed=fraction, description=message), sweep=GRID if sweep else None)
     return result["paths"]
 
 

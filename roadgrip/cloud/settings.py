@@ -16,6 +16,8 @@ import yaml
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
+from roadgrip.cloud import warning_engine as we
+
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="ROADGRIP_", extra="forbid", frozen=True)
@@ -68,12 +70,17 @@ class Settings(BaseSettings):
     map_max_age_s: float = Field(3600.0, gt=0, description="older evidence leaves the map")
     map_clock: Literal["wall", "data"] = Field("wall", description="age against the server clock, or against the "
                                                                    "newest sample (replays of old logs)")
-    warning_threshold_mu: float = Field(0.4, gt=0, lt=2, description="a pass is low when its mu_upper lies below")
-    warning_min_low_passes: int = Field(2, ge=1, description="low passes (vehicles or repeated passes) to raise")
-    warning_min_dry_passes: int = Field(1, ge=1, description="dry passes after a warning to cancel it")
-    warning_pass_gap_s: float = Field(30.0, gt=0, description="a vehicle back in a cell after this is a new pass")
-    warning_min_excited_per_pass: int = Field(3, ge=1)
-    warning_validity_s: float = Field(600.0, gt=0, description="DENM validity; a warning not refreshed expires")
+    # the warning defaults live in one place, roadgrip/cloud/warning_engine.py (THRESHOLD_MU, ...)
+    warning_threshold_mu: float = Field(we.THRESHOLD_MU, gt=0, lt=2,
+                                        description="a pass is low when its mu_upper lies below")
+    warning_min_low_passes: int = Field(we.MIN_LOW_PASSES, ge=1,
+                                        description="low passes (vehicles or repeated passes) to raise")
+    warning_min_dry_passes: int = Field(we.MIN_DRY_PASSES, ge=1, description="dry passes after a warning to cancel it")
+    warning_pass_gap_s: float = Field(we.PASS_GAP_S, gt=0,
+                                      description="a vehicle back in a cell after this is a new pass")
+    warning_min_excited_per_pass: int = Field(we.MIN_EXCITED_PER_PASS, ge=1)
+    warning_validity_s: float = Field(we.VALIDITY_S, gt=0,
+                                      description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
 
     # dashboard

@@ -50,6 +50,16 @@ import h3
 from roadgrip.cloud.exports import MAX_VALIDITY_S, denm
 from roadgrip.cloud.friction_map import validate_resolution
 
+# The product's settings, in this one place (Settings.warning_* take them as defaults). The fleet benchmark's trade-off
+# curve (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py) would take
+# MIN_LOW_PASSES = 1; it stays 2 until warnings in the cells beside a patch are scored (see there).
+THRESHOLD_MU = 0.4
+MIN_LOW_PASSES = 2
+MIN_DRY_PASSES = 1
+PASS_GAP_S = 30.0
+MIN_EXCITED_PER_PASS = 3
+VALIDITY_S = 600.0
+
 LOW, DRY, UNKNOWN = "low", "dry", "unknown"
 ACTIVE, CANCELLED = "active", "cancelled"
 LOW_FRICTION, RECOVERED, EXPIRED = "low friction", "recovered", "expired"
@@ -210,9 +220,10 @@ def _positive(name: str, value, upper: float = math.inf) -> float:
 class WarningEngine:
     """Slippery-road warnings from low-friction passes; see the module docstring for the rules."""
 
-    def __init__(self, resolution: int = 10, threshold_mu: float = 0.4, min_low_passes: int = 2,
-                 min_dry_passes: int = 1, pass_gap_s: float = 30.0, min_excited_per_pass: int = 3,
-                 validity_s: float = 600.0, station_id: int = 1):
+    def __init__(self, resolution: int = 10, threshold_mu: float = THRESHOLD_MU,
+                 min_low_passes: int = MIN_LOW_PASSES, min_dry_passes: int = MIN_DRY_PASSES,
+                 pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
+                 validity_s: float = VALIDITY_S, station_id: int = 1):
         self.resolution = validate_resolution(resolution)
         self.threshold_mu = _positive("threshold_mu", threshold_mu)
         self.min_low_passes = _count("min_low_passes", min_low_passes)

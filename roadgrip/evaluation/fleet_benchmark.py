@@ -266,6 +266,42 @@ class ServiceRun:
     rejected: int
     stats: dict
     wall_s: float
+    estimates: pa.Table | None = None  # every estimate row the warning engine took, in order (EngineRecorder)
+
+
+REPLAY_FIELDS = ("vehicle_id", "timestamp_ms", "latitude_deg", "longitude_deg", "mu_lower", "mu_upper", "excited")
+REPLAY_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("vehicle_id", pa.string()),
+                           ("timestamp_ms", pa.int64()), ("latitude_deg", pa.float64()),
+                           ("longitude_deg", pa.float64()), ("mu_lower", pa.float64()), ("mu_upper", pa.float64()),
+                           ("excited", pa.bool_())])
+
+
+class EngineRecorder:
+    """Stands in for the service's WarningEngine and passes every call on to it, keeping what each `update` took:
+    the round (one call of Fanout), the service clock `now_ms` it was called with, and the fields of every estimate
+    row the engine reads (REPLAY_FIELDS), in the order given. `table()` holds them as REPLAY_SCHEMA;
+    roadgrip/evaluation/fleet_sweep.py replays them into engines with other settings."""
+
+    def __init__(self, engine):
+        self.engine = engine
+        self._columns: dict[str, list] = {name: [] for name in REPLAY_SCHEMA.names}
+        self._rounds = 0
+
+    def __getattr__(self, name):
+        return getattr(self.engine, name)
+
+    def update(self, estimates, now_ms: int):
+        estimates = list(estimates)
+        columns = self._columns
+        columns["round"].extend([self._rounds] * len(estimates))
+        columns["now_ms"].extend([int(now_ms)] * len(estimates))
+        for name in REPLAY_FIELDS:
+            columns[name].extend([row[name] for row in estimates])
+        self._rounds += 1
+        return self.engine.update(estimates, now_ms)
+
+    def table(self) -> pa.Table:
+        return pa.Table.from_pydict(self._columns, schema=REPLAY_SCHEMA)
 
 
 def _wait_idle(service: CloudService) -> None:
@@ -288,7 +324,9 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
     rejected = sent = 0
     every = scenario.config.snapshot_every_s
     instants = [float(t) for t in np.arange(every, scenario.config.duration_s + 1e-6, every)]
-    with CloudService(settings) as service:
+    service = CloudService(settings)
+    recorder = service.warning_engine = EngineRecorder(service.warning_engine)  # before start: Fanout takes it there
+    with service:
         service.register_vehicles(sorted(scenario.kinds.items()))
         s = service.settings
         second = np.floor(drives.t_s).astype(np.int64)
@@ -340,7 +378,7 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
         warnings = storage.warnings(active_only=False)
     finally:
         storage.close()
-    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started)
+    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started, recorder.table())
 
 
 # --------------------------------------------------------------------------------------------------- truth

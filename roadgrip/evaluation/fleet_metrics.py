@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import h3
 
+from roadgrip.cloud.warning_engine import THRESHOLD_MU
 from roadgrip.fleet.network import Patch
 
 BAND_LIMITS = (("mu<=0.2", 0.2), ("0.2-0.4", 0.4), ("0.4-0.6", 0.6))
@@ -20,7 +21,7 @@ TARGET_MU = 0.3
 TARGET_MIN_VEHICLES = 3
 TARGET_PASSES = 3
 TARGET_LINGER_S = 600.0
-SLIPPERY_MU = 0.4  # the service's default warning threshold (Settings.warning_threshold_mu)
+SLIPPERY_MU = THRESHOLD_MU  # the service's default warning threshold (Settings.warning_threshold_mu)
 
 
 def band_of(mu: float) -> str:

@@ -110,3 +110,32 @@ def plot_detection_delay(patch_rows: list[dict], path: Path) -> Path:
     fig.suptitle("Detection delay per patch (the fleet benchmark)", fontsize=10)
     fig.savefig(path, dpi=110)
     return path
+
+
+def plot_tradeoff(rows: list[dict], chosen: dict | None, path: Path) -> Path:
+    """The warning engine's trade-off: recall of the mu <= 0.3 patches against false warnings per 100 km of dry road,
+    one point per setting (colour: share warned by the 3rd pass), the product's setting and the chosen one marked."""
+    fig = Figure(figsize=(7.5, 4.8), layout="constrained")
+    ax = fig.subplots()
+    x = np.array([r["false_per_100km"] for r in rows], float)
+    y = np.array([np.nan if r["recall"] is None else r["recall"] for r in rows], float)
+    c = np.array([0.0 if r["within_3rd_pass"] is None else r["within_3rd_pass"] for r in rows], float)
+    jitter = np.random.default_rng(0).uniform(-0.004, 0.004, y.size)  # settings on the same point stay visible
+    points = ax.scatter(x, y + jitter, c=c, cmap="viridis", vmin=0, vmax=1, s=22, alpha=0.8)
+    fig.colorbar(points, ax=ax, label="share warned by the 3rd pass")
+    product = next((r for r in rows if r["product"]), None)
+    marks = ((product, {"marker": "s", "s": 140, "facecolor": "none", "edgecolor": "r", "lw": 1.8}, "product now"),
+             (chosen, {"marker": "*", "s": 220, "facecolor": "none", "edgecolor": "k", "lw": 1.2}, "chosen"))
+    for row, style, label in marks:
+        if row is not None and row["recall"] is not None:
+            ax.scatter([row["false_per_100km"]], [row["recall"]], label=f"{label}: mu {row['threshold_mu']}, "
+                       f"{row['min_low_passes']} passes, {row['min_excited_per_pass']} excited, "
+                       f"{row['validity_s']:.0f} s", **style)
+    ax.axhline(0.95, color="0.6", ls="--", lw=0.8)
+    ax.set_xlabel("false warnings per 100 km of dry road (seeds pooled)")
+    ax.set_ylabel("recall, patches mu <= 0.3")
+    ax.set_ylim(-0.03, 1.05)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.suptitle("Warning engine settings: recall against false warnings (fleet benchmark, replayed)", fontsize=10)
+    fig.savefig(path, dpi=110)
+    return path

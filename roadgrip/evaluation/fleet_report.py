@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
 
 from roadgrip.cloud.friction_map import MEASURED
 from roadgrip.cloud.settings import Settings
@@ -58,6 +59,53 @@ class SeedResult:
     driven_cells: int
     cells_with_evidence: int
     simulate_s: float
+    truth: PatchTruth
+    start_ms: int
+
+
+@dataclass(frozen=True)
+class PatchTruth:
+    """What scoring a seed's warnings needs of the truth, whatever the warnings: the patches, their cells, and per
+    slippery patch its passes while there, the passes over its place within TARGET_LINGER_S after it dried, and its
+    observable passes."""
+
+    patches: tuple
+    cells: dict  # patch name -> its cells
+    passes: dict  # slippery patch name -> [(vehicle, entered s, left s)]
+    passes_after_dry: dict  # slippery patch name -> count
+    observable: dict  # slippery patch name -> count
+
+
+def patch_truth(scenario: FleetScenario, drives) -> PatchTruth:
+    network = scenario.network
+    cells = {p.name: patch_cells(network, p) for p in network.patches}
+    passes, after, seen = {}, {}, {}
+    for patch in network.patches:
+        if patch.mu >= DRY_MU:
+            continue
+        passes[patch.name] = find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch)
+        after[patch.name] = sum(patch.dry_s <= p[1] < patch.dry_s + TARGET_LINGER_S for p in find_passes(
+            drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch, while_there=False))
+        seen[patch.name] = observable(drives, patch, passes[patch.name])
+    return PatchTruth(tuple(network.patches), cells, passes, after, seen)
+
+
+def score_warnings(seed: int, truth: PatchTruth, warnings: list[Warning], validity_s: float,
+                   run_end_s: float) -> tuple[list[str], list[dict]]:
+    """The class of every warning ("on", "beside", "false"; fleet_metrics.classify) and one row per slippery patch
+    (fleet_metrics.patch_outcome): the scoring shared by the run and the sweep (fleet_sweep.py)."""
+    patches = list(truth.patches)
+    classes = [classify(w, patches, truth.cells, validity_s) for w in warnings]
+    patch_rows = []
+    for patch in patches:
+        if patch.mu >= DRY_MU:
+            continue
+        on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
+        beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
+        patch_rows.append({"seed": seed, **patch_outcome(patch, truth.passes[patch.name], on, beside, run_end_s,
+                                                         truth.passes_after_dry[patch.name],
+                                                         truth.observable[patch.name])})
+    return [kind for kind, _ in classes], patch_rows
 
 
 def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], None] | None = None) -> SeedResult:
@@ -75,42 +123,32 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
     network = scenario.network
     validity_s = Settings.model_fields["warning_validity_s"].default
     warnings = [warning_from_row(row, start_ms) for row in run.warnings]
-    cells = {p.name: patch_cells(network, p) for p in network.patches}
-    classes = [classify(w, list(network.patches), cells, validity_s) for w in warnings]
-    patch_rows = []
-    for patch in network.patches:
-        if patch.mu >= DRY_MU:
-            continue
-        passes = find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch)
-        after = [p for p in find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch,
-                                        while_there=False) if patch.dry_s <= p[1] < patch.dry_s + TARGET_LINGER_S]
-        on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
-        beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
-        patch_rows.append({"seed": seed, **patch_outcome(patch, passes, on, beside, config.duration_s, len(after),
-                                                            observable(drives, patch, passes))})
+    truth = patch_truth(scenario, drives)
+    kinds, patch_rows = score_warnings(seed, truth, warnings, validity_s, config.duration_s)
     cell_scores, driven_total, evidence_total = [], 0, 0
     for instant, summaries in sorted(run.snapshots.items()):
-        truth = truth_by_cell(network, instant)
+        cell_truth = truth_by_cell(network, instant)
         measured = {c.cell for c in summaries if c.status == MEASURED}
         for c in summaries:
-            if c.status == MEASURED and c.cell in truth:
+            if c.status == MEASURED and c.cell in cell_truth:
                 cell_scores.append({"seed": seed, "t_s": instant, "cell": c.cell, "mu_upper": c.mu_upper,
-                                    **score_cell(c.mu, c.mu_lower, c.mu_upper, truth[c.cell])})
+                                    **score_cell(c.mu, c.mu_lower, c.mu_upper, cell_truth[c.cell])})
         window = (drives.t_s > instant - 600.0) & (drives.t_s <= instant)
         driven = set(drives.cell[window].tolist())
         driven_total += len(driven)
         evidence_total += len(driven & measured)
     dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
-    kinds = [kind for kind, _ in classes]
     rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
                                                              evidence_total)]
     return SeedResult(seed, scenario, run, warnings, kinds, patch_rows, cell_scores, rows, dry_km, driven_total,
-                      evidence_total, simulate_s)
+                      evidence_total, simulate_s, truth, start_ms)
 
 
 def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetConfig = FleetConfig(),
-                        progress: Callable[[str, float], None] | None = None) -> dict:
-    """Every seed, pooled scores, the files. Returns the paths written and the metrics rows."""
+                        progress: Callable[[str, float], None] | None = None, sweep: dict | None = None) -> dict:
+    """Every seed, pooled scores, the files (with DIR/estimates_seed{S}.parquet: what the warning engine took,
+    fleet_benchmark.EngineRecorder). `sweep`: a grid of warning-engine parameters (fleet_sweep.GRID) to replay those
+    estimates with: DIR/tradeoff.csv and DIR/tradeoff.png. Returns the paths written and the metrics rows."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if seeds < 1:
@@ -127,6 +165,15 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
     finally:
         logger.handlers, logger.level, logger.propagate = saved
         handler.close()
+    for res in results:
+        pq.write_table(res.run.estimates, out / f"estimates_seed{res.seed}.parquet")
+    sweep_rows = None
+    if sweep is not None:
+        from roadgrip.evaluation.fleet_sweep import sweep as run_sweep
+
+        sweep_started = time.perf_counter()
+        sweep_rows = run_sweep(results, config.duration_s, sweep, progress=progress)
+        sweep_s = time.perf_counter() - sweep_started
     wall_s = time.perf_counter() - started
     patch_rows = [r for res in results for r in res.patch_rows]
     cell_scores = [s for res in results for s in res.cell_scores]
@@ -145,8 +192,20 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
              "log": out / "cloud.log",
              "map_vs_truth": plot_map_vs_truth(results[0], out / "map_vs_truth.png"),
              "detection_delay": plot_detection_delay(patch_rows, out / "detection_delay.png")}
-    (out / "fleet.md").write_text(fleet_markdown(rows, patch_rows, results, config, wall_s))
-    return {"paths": paths, "rows": rows, "wall_s": wall_s}
+    for res in results:
+        paths[f"estimates_seed{res.seed}"] = out / f"estimates_seed{res.seed}.parquet"
+    report = fleet_markdown(rows, patch_rows, results, config, wall_s)
+    if sweep_rows is not None:
+        from roadgrip.evaluation.fleet_plots import plot_tradeoff
+        from roadgrip.evaluation.fleet_sweep import choose, tradeoff_markdown
+
+        pacsv.write_csv(pa.Table.from_pylist(sweep_rows), out / "tradeoff.csv")
+        chosen = choose(sweep_rows)
+        paths["tradeoff"] = out / "tradeoff.csv"
+        paths["tradeoff_plot"] = plot_tradeoff(sweep_rows, chosen, out / "tradeoff.png")
+        report += "\n" + tradeoff_markdown(sweep_rows, chosen, sweep_s)
+    (out / "fleet.md").write_text(report)
+    return {"paths": paths, "rows": rows, "wall_s": wall_s, "sweep": sweep_rows}
 
 
 def _fmt(value, digits: int = 2) -> str:
