@@ -125,7 +125,7 @@ def plot_tradeoff(rows: list[dict], chosen: dict | None, path: Path) -> Path:
     fig.colorbar(points, ax=ax, label="share warned by the 3rd pass")
     product = next((r for r in rows if r["product"]), None)
     marks = ((product, {"marker": "s", "s": 140, "facecolor": "none", "edgecolor": "r", "lw": 1.8}, "product now"),
-             (chosen, {"marker": "*", "s": 220, "facecolor": "none", "edgecolor": "k", "lw": 1.2}, "chosen"))
+             (chosen, {"marker": "*", "s": 220, "facecolor": "none", "edgecolor": "k", "lw": 1.2}, "the rule's pick"))
     for row, style, label in marks:
         if row is not None and row["recall"] is not None:
             ax.scatter([row["false_per_100km"]], [row["recall"]], label=f"{label}: mu {row['threshold_mu']}, "
