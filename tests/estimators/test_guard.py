@@ -115,6 +115,11 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
         state = estimator.start(PAPER_SUV)
         streamed = [e for e in (estimator.update(state, r) for r in rows) if e is not None]
         assert all(0.0 <= e.mu_lower <= e.mu <= e.mu_upper for e in streamed), name
+        # the streaming guard computes the bound from the profile's constants kept in the state: the same bound
+        at = {r["timestamp_ms"]: r for r in rows}
+        stream_bound = tire_force_bound(PAPER_SUV, *(np.array([at[e.timestamp_ms][c] for e in streamed])
+                                                     for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")))
+        assert all(e.mu_lower >= b - 1e-9 for e, b in zip(streamed, stream_bound)), name
 
 
 @pytest.mark.parametrize("name", ESTIMATORS)
