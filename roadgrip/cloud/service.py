@@ -53,7 +53,8 @@ class CloudService:
         self.mqtt: MqttClient | None = None
         self.mqtt_url: str | None = None
         self.admin_secret: str | None = None
-        self.friction_map = FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s)
+        self.friction_map = FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s,
+                                        pass_gap_s=settings.warning_pass_gap_s)
         self.warning_engine = WarningEngine(
             resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
             min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
