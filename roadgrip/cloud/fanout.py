@@ -27,7 +27,7 @@ from roadgrip.cloud.warning_engine import WarningEngine
 
 log = logging.getLogger(__name__)
 
-ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator",
+ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator", "mu_proven",
                    "latitude_deg", "longitude_deg", "h3_cell")
 
 

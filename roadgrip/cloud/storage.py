@@ -8,7 +8,7 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | table | key | columns |
 | --- | --- | --- |
 | telemetry | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.TELEMETRY` (wire format v1, DESIGN 3.1), SI units |
-| estimates | vehicle_id, timestamp_ms | mu, mu_lower, mu_upper (the 90% interval), excited, estimator (DESIGN 3.4); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (below) |
+| estimates | vehicle_id, timestamp_ms | mu, mu_lower, mu_upper (the 90% interval), excited, estimator (DESIGN 3.4), mu_proven (what the car's acceleration proves; null from an estimator without the guard); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (below) |
 | vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
 | credentials | name | role (vehicle, reader or admin), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
@@ -17,7 +17,8 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
 `write_batch`, in one transaction, and a row whose (vehicle_id, timestamp_ms) is stored already is skipped: sending a
 batch twice stores it once. No foreign keys tie the tables together: a vehicle may send before its profile is stored.
-A database made by an older version opens: `open_storage` creates the tables it lacks (estimator_states came later).
+A database made by an older version opens: `open_storage` creates the tables it lacks (estimator_states came later)
+and adds the columns it lacks (ADDED_COLUMNS: estimates.mu_proven came later; older rows hold null there).
 
 On PostgreSQL with the PostGIS extension available, estimates get a generated column `geom geometry(Point,4326)` (null
 where the position is) with a GiST index, for spatial queries by other tools; `Storage.postgis` says whether it is
@@ -111,6 +112,7 @@ estimates_table = Table(
     Column("mu_upper", sa.Float, nullable=False),
     Column("excited", sa.Boolean, nullable=False),
     Column("estimator", sa.String, nullable=False),
+    Column("mu_proven", sa.Float),
     Column("latitude_deg", sa.Float),
     Column("longitude_deg", sa.Float),
     Column("h3_cell", sa.String),
@@ -146,6 +148,9 @@ estimator_states_table = Table(
     Column("state", _JSON, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
+
+# columns added after their table was first released: (table, column), added by open_storage where missing
+ADDED_COLUMNS = ((estimates_table, "mu_proven"),)
 
 POSTGIS_DDL = (
     ("ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
@@ -557,6 +562,16 @@ def _enable_postgis(engine: Engine, where: str) -> bool:
             return False
 
 
+def _add_missing_columns(conn: Connection) -> None:
+    inspector = sa.inspect(conn)
+    for table, name in ADDED_COLUMNS:
+        if name not in {c["name"] for c in inspector.get_columns(table.name)}:
+            column = table.c[name]
+            conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {name} "
+                              f"{column.type.compile(dialect=conn.dialect)}"))
+            log.info("added column %s.%s to a database of an older version", table.name, name)
+
+
 def open_storage(url: str) -> Storage:
     """Open the database at `url` (sqlite:///PATH, postgresql://... or postgresql+psycopg://...) and create the
     tables that are missing; the parent folder of an SQLite file is created too."""
@@ -579,6 +594,7 @@ def open_storage(url: str) -> Storage:
             postgis = engine.dialect.name == "postgresql" and _enable_postgis(engine, where)
             with engine.begin() as conn:
                 metadata.create_all(conn)
+                _add_missing_columns(conn)
                 for statement in POSTGIS_DDL if postgis else ():
                     conn.execute(text(statement))
     except BaseException:

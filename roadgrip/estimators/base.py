@@ -25,12 +25,24 @@ ESTIMATE_SCHEMA = pa.schema([
     pa.field("mu_upper", pa.float64(), nullable=False),
     pa.field("excited", pa.bool_(), nullable=False),
     pa.field("estimator", pa.string(), nullable=False),
+    pa.field("mu_proven", pa.float64(), nullable=True),
 ])
+
+
+def estimate_table(columns: dict) -> pa.Table:
+    """An ESTIMATE_SCHEMA table from its columns; mu_proven null where the caller has none (an unguarded estimator)."""
+    if "mu_proven" not in columns:
+        columns = {**columns, "mu_proven": pa.nulls(len(columns["timestamp_ms"]), pa.float64())}
+    return pa.table(columns, schema=ESTIMATE_SCHEMA)
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """DESIGN 3.4: the most probable mu, a 90 % interval (5 % and 95 %), and whether the manoeuvre made mu observable."""
+    """DESIGN 3.4: the most probable mu, a 90 % interval (5 % and 95 %), and whether the manoeuvre made mu observable.
+
+    mu_proven (added to DESIGN 3.4, docs/ESTIMATORS.md): what the car's own acceleration proves at this sample,
+    (|a_road| - k sigma_a) / g at least 0 (roadgrip/estimators/guard.py), excited or not; mu_lower >= mu_proven. None
+    from an estimator without the guard. A pass that is not excited still proves this much: the map counts it."""
 
     vehicle_id: str
     timestamp_ms: int
@@ -39,12 +51,13 @@ class Estimate:
     mu_upper: float
     excited: bool
     estimator: str
+    mu_proven: float | None = None
 
     def to_dict(self) -> dict:
         # by hand: dataclasses.asdict deep-copies field by field, ten times slower (the cloud calls this 10,000 times a s)
         return {"vehicle_id": self.vehicle_id, "timestamp_ms": self.timestamp_ms, "mu": self.mu,
                 "mu_lower": self.mu_lower, "mu_upper": self.mu_upper, "excited": self.excited,
-                "estimator": self.estimator}
+                "estimator": self.estimator, "mu_proven": self.mu_proven}
 
 
 def profile_of_call(vehicle: VehicleParams | None, own: VehicleParams | None) -> VehicleParams:

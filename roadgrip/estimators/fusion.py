@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.base import Estimate, Estimator, estimate_table
 from roadgrip.estimators.vehicle_model import INTERVAL_RANGE, INTERVAL_Z
 from roadgrip.vehicle.params import VehicleParams
 
@@ -88,6 +88,5 @@ class FusionEstimator(Estimator):
             col["mu"][where], col["mu_lower"][where], col["mu_upper"][where], lm["mu"], lm["mu_lower"],
             lm["mu_upper"])
         excited[where] |= learned["excited"].to_numpy(zero_copy_only=False)[hit]
-        return pa.table({"vehicle_id": p["vehicle_id"], "timestamp_ms": p["timestamp_ms"], **col,
-                         "excited": excited, "estimator": pa.array([self.name] * p.num_rows, pa.string())},
-                        schema=ESTIMATE_SCHEMA)
+        return estimate_table({"vehicle_id": p["vehicle_id"], "timestamp_ms": p["timestamp_ms"], **col,
+                         "excited": excited, "estimator": pa.array([self.name] * p.num_rows, pa.string())})

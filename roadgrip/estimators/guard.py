@@ -22,7 +22,9 @@ accelerometer's noise and bias allowance (GuardSettings). The guard then makes e
 - an estimate whose whole interval lay below the bound was contradicted by the measurement: it is an inconsistency of
   the estimator's model, never evidence of low friction, so its interval widens to the prior's upper end
   (PRIOR_UPPER_MU), its mu goes no lower than PRIOR_MU, and it is not `excited`;
-- 0 <= mu_lower <= mu <= mu_upper always.
+- 0 <= mu_lower <= mu <= mu_upper always;
+- the bound itself goes out as the estimate's `mu_proven`, excited or not: what a calm pass still proves (a car
+  cornering at 0.4 g shows mu >= 0.37 there), which the friction map counts (roadgrip/cloud/friction_map.py).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, profile_of_call
+from roadgrip.estimators.base import Estimate, Estimator, estimate_table, profile_of_call
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
 from roadgrip.validation import bounded, check_bounds
@@ -149,10 +151,12 @@ class GuardedEstimator(Estimator):
         road = math.hypot(float(sample["accel_lon_mps2"]) + state["drag"] * float(speed) ** 2,
                           float(sample["accel_lat_mps2"]) / state["roll"])
         bound = max((road - state["margin"]) / G_MPS2, 0.0)
-        if bound <= est.mu_lower <= est.mu <= est.mu_upper:  # already physical: nothing to change
-            return est
+        if bound <= est.mu_lower <= est.mu <= est.mu_upper:  # already physical: only the bound is added
+            return Estimate(est.vehicle_id, est.timestamp_ms, est.mu, est.mu_lower, est.mu_upper, est.excited,
+                            est.estimator, bound)
         return Estimate(est.vehicle_id, est.timestamp_ms,
-                        *apply_bound_scalar(est.mu, est.mu_lower, est.mu_upper, est.excited, bound), est.estimator)
+                        *apply_bound_scalar(est.mu, est.mu_lower, est.mu_upper, est.excited, bound), est.estimator,
+                        bound)
 
     def reset(self, state) -> None:
         self.inner.reset(state["inner"])
@@ -177,6 +181,6 @@ class GuardedEstimator(Estimator):
         mu, lower, upper, excited = apply_bound(est["mu"].to_numpy(), est["mu_lower"].to_numpy(),
                                                 est["mu_upper"].to_numpy(),
                                                 est["excited"].to_numpy(zero_copy_only=False), bound)
-        return pa.table({"vehicle_id": est["vehicle_id"], "timestamp_ms": est["timestamp_ms"], "mu": mu,
-                         "mu_lower": lower, "mu_upper": upper, "excited": excited, "estimator": est["estimator"]},
-                        schema=ESTIMATE_SCHEMA)
+        return estimate_table({"vehicle_id": est["vehicle_id"], "timestamp_ms": est["timestamp_ms"], "mu": mu,
+                               "mu_lower": lower, "mu_upper": upper, "excited": excited,
+                               "estimator": est["estimator"], "mu_proven": bound})

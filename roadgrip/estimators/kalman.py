@@ -27,7 +27,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, memory_state, profile_of_call
+from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.vehicle_model import (
     INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
     U_W0, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, initial_state, pack_model,
@@ -359,10 +359,10 @@ class KalmanEstimator(Estimator):
                            "longer than %.2f s, or an update that would have broken the covariance)", self.name,
                            counters["rejected"], counters["restarts"], self.tuning.max_step_s)
         valid = out[:, O_VALID] > 0.5
-        return pa.table({
+        return estimate_table({
             "vehicle_id": pa.array(table["vehicle_id"].to_numpy(zero_copy_only=False)[valid], pa.string()),
             "timestamp_ms": table["timestamp_ms"].to_numpy()[valid].astype(np.int64),
             "mu": out[valid, O_MU], "mu_lower": out[valid, O_LOWER], "mu_upper": out[valid, O_UPPER],
             "excited": out[valid, O_EXCITED] > 0.5,
             "estimator": pa.array([self.name] * int(valid.sum()), pa.string()),
-        }, schema=ESTIMATE_SCHEMA)
+        })

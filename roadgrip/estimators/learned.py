@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator
+from roadgrip.estimators.base import Estimate, Estimator, estimate_table
 from roadgrip.estimators.calibration import interval, utilization_bin
 from roadgrip.estimators.excitation import excited
 from roadgrip.features.windows import (
@@ -58,12 +58,12 @@ class LearnedEstimator(Estimator):
                                                                           "abs_active")}
         mu, lower, upper, exc = self._estimates(windows, col["accel_lon_mps2"], col["accel_lat_mps2"],
                                                 col["abs_active"])
-        return pa.table({
+        return estimate_table({
             "vehicle_id": np.asarray(table["vehicle_id"].to_pylist(), dtype=object)[ends],
             "timestamp_ms": table["timestamp_ms"].to_numpy()[ends],
             "mu": mu, "mu_lower": lower, "mu_upper": upper, "excited": exc,
             "estimator": [self.name] * len(ends),
-        }, schema=ESTIMATE_SCHEMA)
+        })
 
     def start(self, vehicle: VehicleParams = PAPER_SUV):
         # previous: the last sample's inputs, for the features that difference consecutive samples

@@ -53,7 +53,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
-from roadgrip.estimators.base import ESTIMATE_SCHEMA, Estimate, Estimator, memory_state, profile_of_call
+from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
@@ -637,9 +637,9 @@ class PMFEstimator(Estimator):
         out = np.zeros((table.num_rows, N_OUT))
         run_rows(mem, q, samples, segments.astype(np.int64), out)
         valid = out[:, O_VALID] > 0.0
-        return pa.table({
+        return estimate_table({
             "vehicle_id": table["vehicle_id"].filter(pa.array(valid)),
             "timestamp_ms": table["timestamp_ms"].to_numpy()[valid],
             "mu": out[valid, O_MU], "mu_lower": out[valid, O_LOWER], "mu_upper": out[valid, O_UPPER],
             "excited": out[valid, O_EXCITED] > 0.0, "estimator": [self.name] * int(valid.sum()),
-        }, schema=ESTIMATE_SCHEMA)
+        })
