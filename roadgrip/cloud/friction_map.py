@@ -11,16 +11,18 @@ Evidence, on a grid of mu (MU_GRID: 0 to 1.2 in steps of 0.02; the prior is flat
 
       L_low(mu) = eps + (1 - eps) Phi((mu - l) / s),   L_high(mu) = eps + (1 - eps) Phi((u - mu) / s)
 
-  with s = edge_sigma (0.05) and eps = outlier_rate (0.02). Their product is a plateau over [l, u]: the map takes what
-  the estimate proves, not its point value. The point value inside a wide interval is mostly the estimator's prior
-  (pmf: "mu >= 0.3, most probably 0.8" from a car that only proved 0.3); multiplying such points would make the prior
-  look like evidence. A plateau of width W alone puts about 0.4 s / W of its mass beyond each end (5 % for W = 0.4,
-  the typical interval). The upper side is skipped where u reaches the grid's end (it says nothing).
-- eps, the chance that a piece of evidence is wrong beyond its interval (a mislocated sample, an estimator's model
-  error), keeps the fusion robust: Gaussian tails alone would let one confident, wrong estimate veto any number of
-  others (log Phi(-7) = -27); with eps, evidence that disagrees costs at most log(1/eps) = 3.9 a pass, so a road that
-  changed (ice that dried) is decided by how many recent passes say which, and a cell split between two surfaces
-  shows both in its interval.
+  Their product is a plateau over [l, u]: the map takes what the estimate proves, not its point value. The point value
+  inside a wide interval is mostly the estimator's prior (pmf: "mu >= 0.3, most probably 0.8" from a car that only
+  proved 0.3); multiplying such points would make the prior look like evidence. The edge s = W / 8 (W = u - l, at
+  least min_interval_width = 0.1): a plateau of width W puts about 0.4 s / W = 5 % of its mass beyond each end, so that
+  one estimate alone gives back its own 90 % interval. The upper side is skipped where u reaches the grid's end (it
+  says nothing).
+- eps = outlier_rate (0.005), the chance that a piece of evidence is wrong beyond its interval (a mislocated sample,
+  an estimator's model error), keeps the fusion robust: Gaussian tails alone would let one confident, wrong estimate
+  veto any number of others (log Phi(-7) = -27); with eps, evidence that disagrees costs at most log(1/eps) = 5.3 a
+  pass, so a road that changed (ice that dried) is decided by how many recent passes say which, and a cell split
+  between two surfaces shows both in its interval. It costs a single narrow estimate little: eps (1.2 - W) / W of
+  extra mass outside (2.5 % for W = 0.2).
 - What a pass proves even without excitation (a car cornering at 0.4 g proves mu >= 0.37): the largest mu_proven of
   the pass's estimates, b, as a sharp lower side Phi((mu - b) / proven_sigma) (0.02: the guard's bound already leaves
   two sigma of the accelerometer's noise and bias, roadgrip/estimators/guard.py), with the same eps. Bounds below
@@ -73,6 +75,7 @@ from roadgrip.cloud.exports import geojson
 
 MU_GRID = np.linspace(0.0, 1.2, 61)  # the map's mu values: the estimators' prior range (guard.py PRIOR_UPPER_MU)
 MU_MAX = float(MU_GRID[-1])
+EDGE_PER_WIDTH = 0.125  # an interval's soft edge per its width: 0.4 s / W = 5 % of a plateau beyond each end
 BUCKETS_PER_MAX_AGE = 6  # time buckets per max_age_s: memory per cell against how long old evidence lingers
 QUANTILES = (0.05, 0.5, 0.95)  # mu_lower, mu, mu_upper
 MEASURED = "measured"
@@ -169,12 +172,12 @@ class FrictionMap:
     """Per-H3-cell friction posteriors from estimate rows and station reports; see the module docstring."""
 
     def __init__(self, resolution: int = 10, half_life_s: float = 600.0, max_age_s: float = 3600.0,
-                 edge_sigma: float = 0.05, outlier_rate: float = 0.02, proven_sigma: float = 0.02,
+                 min_interval_width: float = 0.1, outlier_rate: float = 0.005, proven_sigma: float = 0.02,
                  min_proven_mu: float = 0.1, pass_gap_s: float = 30.0):
         self.resolution = validate_resolution(resolution)
         self.half_life_s = _positive_finite("half_life_s", half_life_s)
         self.max_age_s = _positive_finite("max_age_s", max_age_s)
-        self.edge_sigma = _positive_finite("edge_sigma", edge_sigma)
+        self.min_interval_width = _positive_finite("min_interval_width", min_interval_width)
         self.outlier_rate = _probability("outlier_rate", outlier_rate)
         self.proven_sigma = _positive_finite("proven_sigma", proven_sigma)
         self.min_proven_mu = _positive_finite("min_proven_mu", min_proven_mu)
@@ -201,8 +204,9 @@ class FrictionMap:
         """Log-likelihoods on MU_GRID of intervals [lower, upper] (arrays of n), shape (n, grid): two soft steps."""
         lower = np.asarray(lower, dtype=np.float64)[:, None]
         upper = np.asarray(upper, dtype=np.float64)[:, None]
-        ll = self._soft((MU_GRID - lower) / self.edge_sigma)
-        return ll + np.where(upper < MU_MAX, self._soft((upper - MU_GRID) / self.edge_sigma), 0.0)
+        edge = EDGE_PER_WIDTH * np.maximum(upper - lower, self.min_interval_width)
+        ll = self._soft((MU_GRID - lower) / edge)
+        return ll + np.where(upper < MU_MAX, self._soft((upper - MU_GRID) / edge), 0.0)
 
     def proven_log_likelihood(self, proven: float) -> np.ndarray:
         """Log-likelihood on MU_GRID of "mu >= proven" (a pass's largest bound)."""
