@@ -563,9 +563,9 @@ def _enable_postgis(engine: Engine, where: str) -> bool:
 
 
 def _add_missing_columns(conn: Connection) -> None:
-    inspector = sa.inspect(conn)
     for table, name in ADDED_COLUMNS:
-        if name not in {c["name"] for c in inspector.get_columns(table.name)}:
+        # the result's keys, not the inspector (which warns about PostGIS's geometry type it cannot reflect)
+        if name not in conn.execute(text(f"SELECT * FROM {table.name} LIMIT 0")).keys():
             column = table.c[name]
             conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {name} "
                               f"{column.type.compile(dialect=conn.dialect)}"))

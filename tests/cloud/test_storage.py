@@ -24,7 +24,7 @@ def telemetry_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
 
 def estimate_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
     row = {"vehicle_id": vehicle_id, "timestamp_ms": timestamp_ms, "mu": 0.8, "mu_lower": 0.6, "mu_upper": 0.95,
-           "excited": True, "estimator": "sa-cnn-lstm", "latitude_deg": 48.1, "longitude_deg": 11.5,
+           "excited": True, "estimator": "sa-cnn-lstm", "mu_proven": 0.3, "latitude_deg": 48.1, "longitude_deg": 11.5,
            "h3_cell": "8a1f8d2a1b27fff"}
     row.update(values)
     return row
@@ -59,6 +59,19 @@ def test_opening_twice_keeps_the_schema_and_the_rows(storage_url):
     assert second.dialect == make_url(storage_url).get_backend_name()
     assert second.counts() == {"telemetry": 10, "estimates": 10, "vehicles": 0, "warnings": 0}
     second.ping()
+    second.close()
+
+
+def test_a_database_of_an_older_version_gains_the_added_columns(storage_url):
+    first = open_storage(storage_url)
+    first.write_batch(*drive("car-1", 3))
+    with first._transaction() as conn:  # the estimates table as released before mu_proven
+        conn.execute(text("ALTER TABLE estimates DROP COLUMN mu_proven"))
+    first.close()
+    second = open_storage(storage_url)
+    assert [r["mu_proven"] for r in second.estimates("car-1")] == [None, None, None]
+    second.write_batch([telemetry_row("car-1", T0_MS + 1000)], [estimate_row("car-1", T0_MS + 1000, mu_proven=0.42)])
+    assert second.estimates("car-1")[-1]["mu_proven"] == 0.42
     second.close()
 
 

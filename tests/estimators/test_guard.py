@@ -112,6 +112,7 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
         assert (lower >= 0.0).all(), name
         assert (lower <= mu).all() and (mu <= upper).all(), name
         assert (lower >= bound - 1e-12).all(), name
+        assert out["mu_proven"].to_numpy() == pytest.approx(bound, abs=1e-12), name  # the bound goes out as such
         state = estimator.start(PAPER_SUV)
         streamed = [e for e in (estimator.update(state, r) for r in rows) if e is not None]
         assert all(0.0 <= e.mu_lower <= e.mu <= e.mu_upper for e in streamed), name
@@ -120,6 +121,7 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
         stream_bound = tire_force_bound(PAPER_SUV, *(np.array([at[e.timestamp_ms][c] for e in streamed])
                                                      for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")))
         assert all(e.mu_lower >= b - 1e-9 for e, b in zip(streamed, stream_bound)), name
+        assert [e.mu_proven for e in streamed] == pytest.approx(list(stream_bound), abs=1e-9), name
 
 
 @pytest.mark.parametrize("name", ESTIMATORS)
