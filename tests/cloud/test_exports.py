@@ -65,7 +65,7 @@ def test_datex2_parses_with_one_friction_per_measured_cell():
         assert basic.findtext("roa:measurementOrCalculationTime/roa:timeValue", namespaces=NS) == \
             "2026-01-15T08:00:00.000Z"
     assert sorted(float(f.text) for f in root.iterfind(".//com:friction/com:friction", NS)) == \
-        pytest.approx([0.3, 0.7], abs=5e-4)
+        pytest.approx([0.3, 0.7], abs=0.005)  # the posterior median: the outlier floor leans it
 
 
 def test_datex2_of_no_measured_cell_is_still_well_formed():
