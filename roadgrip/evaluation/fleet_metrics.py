@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import h3
 
+from roadgrip.cloud.friction_map import BOUNDED, MEASURED
 from roadgrip.cloud.warning_engine import THRESHOLD_MU
 from roadgrip.fleet.network import Patch
 
@@ -134,19 +135,28 @@ def summarize(group: str, patch_rows: list[dict], cell_scores: list[dict]) -> di
         "linger_max_s": _max(r["linger_s"] for r in dried),
         "linger_over_10min": sum(r["linger_s"] > TARGET_LINGER_S for r in dried),
         "censored": sum(r["censored"] for r in dried),
-        "map_cells": len(cell_scores),
-        "map_mae": None if not cell_scores else sum(s["error"] for s in cell_scores) / len(cell_scores),
-        "map_coverage": _share(sum(s["covered"] for s in cell_scores), len(cell_scores)),
-        "map_mae_low": None if not cell_scores else sum(s["error_low"] for s in cell_scores) / len(cell_scores),
-        "map_coverage_low": _share(sum(s["covered_low"] for s in cell_scores), len(cell_scores)),
+        **_map_scores("map", [s for s in cell_scores if s["status"] == MEASURED]),
+        **_map_scores("bounded", [s for s in cell_scores if s["status"] == BOUNDED]),
     }
 
 
+def _map_scores(prefix: str, cell_scores: list[dict]) -> dict:
+    """Error and coverage of the map's cells of one status (measured: excited evidence or a station; bounded: only
+    what calm passes proved)."""
+    n = len(cell_scores)
+    return {f"{prefix}_cells": n,
+            f"{prefix}_mae": None if not n else sum(s["error"] for s in cell_scores) / n,
+            f"{prefix}_coverage": _share(sum(s["covered"] for s in cell_scores), n),
+            f"{prefix}_mae_low": None if not n else sum(s["error_low"] for s in cell_scores) / n,
+            f"{prefix}_coverage_low": _share(sum(s["covered_low"] for s in cell_scores), n)}
+
+
 def summarize_run(patch_rows: list[dict], cell_scores: list[dict], kinds: list[str], dry_km: float,
-                  driven_cells: int, cells_with_evidence: int) -> list[dict]:
+                  driven_cells: int, cells_with_evidence: int, cells_measured: int | None = None) -> list[dict]:
     """Rows per band, for the target's patches (mu <= TARGET_MU), for all slippery patches, and the whole run (false
-    warnings per 100 km of dry road, the map over every scored cell, the evidence share). `kinds`: the class of every
-    warning raised ("on", "beside", "false")."""
+    warnings per 100 km of dry road, the map over every scored cell, the share of driven cells with evidence of any
+    kind and, where given, with a measurement). `kinds`: the class of every warning raised ("on", "beside",
+    "false"). Cell scores carry the cell's map status ("measured" or "bounded")."""
     rows = []
     for band, _ in BAND_LIMITS:
         rows.append(summarize(band, [r for r in patch_rows if r["band"] == band],
@@ -156,11 +166,12 @@ def summarize_run(patch_rows: list[dict], cell_scores: list[dict], kinds: list[s
     rows.append(summarize("dry", [], [s for s in cell_scores if s["band"] == "dry"]))
     overall = summarize("all", [r for r in patch_rows if r["band"] != "dry"], cell_scores)
     false = kinds.count("false")
-    dry_cells = [s for s in cell_scores if s["band"] == "dry"]
+    dry_cells = [s for s in cell_scores if s["band"] == "dry" and s["status"] == MEASURED]
     overall.update(dry_cells_read_slippery=_share(sum(s["mu"] < SLIPPERY_MU for s in dry_cells), len(dry_cells)),
                    warnings=len(kinds), warnings_on_patch=kinds.count("on"), warnings_beside=kinds.count("beside"),
                    false_warnings=false, dry_km=dry_km,
                    false_per_100km=false / (dry_km / 100.0) if dry_km > 0 else math.nan,
-                   evidence_share=_share(cells_with_evidence, driven_cells))
+                   evidence_share=_share(cells_with_evidence, driven_cells),
+                   measured_share=None if cells_measured is None else _share(cells_measured, driven_cells))
     rows.append(overall)
     return rows

@@ -17,7 +17,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from roadgrip.cloud.friction_map import MEASURED
+from roadgrip.cloud.friction_map import BOUNDED, MEASURED
 from roadgrip.cloud.settings import Settings
 from roadgrip.evaluation.fleet_benchmark import (
     FleetConfig,
@@ -57,7 +57,8 @@ class SeedResult:
     rows: list[dict]
     dry_km: float
     driven_cells: int
-    cells_with_evidence: int
+    cells_with_evidence: int  # driven cells (summed over snapshots) where the map has evidence of any kind
+    cells_measured: int  # ... where it has a measurement (excited evidence or a station)
     simulate_s: float
     truth: PatchTruth
     start_ms: int
@@ -125,23 +126,26 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
     warnings = [warning_from_row(row, start_ms) for row in run.warnings]
     truth = patch_truth(scenario, drives)
     kinds, patch_rows = score_warnings(seed, truth, warnings, validity_s, config.duration_s)
-    cell_scores, driven_total, evidence_total = [], 0, 0
+    cell_scores, driven_total, evidence_total, measured_total = [], 0, 0, 0
     for instant, summaries in sorted(run.snapshots.items()):
         cell_truth = truth_by_cell(network, instant)
         measured = {c.cell for c in summaries if c.status == MEASURED}
+        claimed = {c.cell for c in summaries if c.status in (MEASURED, BOUNDED)}
         for c in summaries:
-            if c.status == MEASURED and c.cell in cell_truth:
+            if c.status in (MEASURED, BOUNDED) and c.cell in cell_truth:
                 cell_scores.append({"seed": seed, "t_s": instant, "cell": c.cell, "mu_upper": c.mu_upper,
+                                    "status": c.status,
                                     **score_cell(c.mu, c.mu_lower, c.mu_upper, cell_truth[c.cell])})
         window = (drives.t_s > instant - 600.0) & (drives.t_s <= instant)
         driven = set(drives.cell[window].tolist())
         driven_total += len(driven)
-        evidence_total += len(driven & measured)
+        evidence_total += len(driven & claimed)
+        measured_total += len(driven & measured)
     dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
     rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
-                                                             evidence_total)]
+                                                             evidence_total, measured_total)]
     return SeedResult(seed, scenario, run, warnings, kinds, patch_rows, cell_scores, rows, dry_km, driven_total,
-                      evidence_total, simulate_s, truth, start_ms)
+                      evidence_total, measured_total, simulate_s, truth, start_ms)
 
 
 def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetConfig = FleetConfig(),
@@ -179,7 +183,8 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
     cell_scores = [s for res in results for s in res.cell_scores]
     pooled = [{"seed": "pooled", **r} for r in summarize_run(
         patch_rows, cell_scores, [k for res in results for k in res.kinds], sum(res.dry_km for res in results),
-        sum(res.driven_cells for res in results), sum(res.cells_with_evidence for res in results))]
+        sum(res.driven_cells for res in results), sum(res.cells_with_evidence for res in results),
+        sum(res.cells_measured for res in results))]
     rows = [r for res in results for r in res.rows] + pooled
     columns = list(dict.fromkeys(k for r in rows for k in r))
     pacsv.write_csv(pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows]), out / "metrics.csv")
@@ -245,21 +250,27 @@ def fleet_markdown(rows: list[dict], patch_rows: list[dict], results: list[SeedR
                      f"{_fmt(r['passes_to_first_median'], 1)} / {_fmt(r['passes_to_first_max'], 0)} | "
                      f"{r['warned_and_dried']} | {r['lingering']} | {_minutes(r['linger_median_s'])} / "
                      f"{_minutes(r['linger_max_s'])} | {r['linger_over_10min']} | {r['censored']} |")
-    lines += ["", ("## Map (cells with recent excited evidence at every snapshot, against the true mu of their road) "
-                   "and false warnings"), "",
-              ("| seed | group | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
-               "90 % coverage (lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines += ["", ("## Map (cells with evidence at every snapshot, against the true mu of their road) and false "
+                   "warnings"), "",
+              ("Measured: cells with recent excited estimates or a station's report; bounded: cells where only calm "
+               "passes proved a lower bound (the interval is [bound, 1.2])."), "",
+              ("| seed | group | measured cells | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
+               "90 % coverage (lowest mu) | bounded cells | bounded: coverage (range) | bounded: coverage "
+               "(lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         lines.append(f"| {r['seed']} | {r['group']} | {r['map_cells']} | {_fmt(r['map_mae'], 3)} | "
-                     f"{_fmt(r['map_coverage'])} | {_fmt(r['map_mae_low'], 3)} | {_fmt(r['map_coverage_low'])} |")
+                     f"{_fmt(r['map_coverage'])} | {_fmt(r['map_mae_low'], 3)} | {_fmt(r['map_coverage_low'])} | "
+                     f"{r['bounded_cells']} | {_fmt(r['bounded_coverage'])} | {_fmt(r['bounded_coverage_low'])} |")
     lines += ["", ("| seed | warnings raised | on a patch | beside or after a patch | false | dry road km | "
-                   "false per 100 km | driven cells with map evidence | dry cells the map reads below 0.4 |"),
+                   "false per 100 km | driven cells with map evidence (any / measured) | measured dry cells the map "
+                   "reads below 0.4 |"),
               "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         if r["group"] == "all":
             lines.append(f"| {r['seed']} | {r['warnings']} | {r['warnings_on_patch']} | {r['warnings_beside']} | "
                          f"{r['false_warnings']} | {r['dry_km']:.0f} | {_fmt(r['false_per_100km'], 3)} | "
-                         f"{_fmt(r['evidence_share'])} | {_fmt(r['dry_cells_read_slippery'])} |")
+                         f"{_fmt(r['evidence_share'])} / {_fmt(r['measured_share'])} | "
+                         f"{_fmt(r['dry_cells_read_slippery'])} |")
     lines += ["", "## Patches", "",
               ("| seed | patch | mu | there (min) | passes | observable passes | vehicles | detected | "
                "time to 1st (min) | passes to 1st | warnings | passes in 10 min after drying | linger (min) |"),

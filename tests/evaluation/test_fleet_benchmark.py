@@ -73,8 +73,12 @@ def test_a_warning_on_dry_road_is_false_and_counted_per_100_km():
 def test_map_cell_scores_against_the_range_of_true_mu():
     mixed = score_cell(0.1, 0.05, 0.2, (0.05, 1.17))  # a cell with ice and dry road: 0.1 lies in the range
     assert (mixed["band"], mixed["error"], mixed["covered"]) == ("mu<=0.2", 0.0, True)
-    overall = summarize_run([], [mixed, score_cell(0.3, 0.2, 0.5, (1.17, 1.17))], [], 1.0, 1, 1)[-1]
-    assert overall["dry_cells_read_slippery"] == 1.0
+    slippery_dry = {"status": "measured", **score_cell(0.3, 0.2, 0.5, (1.17, 1.17))}
+    bounded = {"status": "bounded", **score_cell(0.8, 0.4, 1.17, (1.17, 1.17))}
+    overall = summarize_run([], [{"status": "measured", **mixed}, slippery_dry, bounded], [], 1.0, 4, 3, 2)[-1]
+    assert overall["dry_cells_read_slippery"] == 1.0  # of the measured dry cells
+    assert (overall["map_cells"], overall["bounded_cells"], overall["bounded_coverage"]) == (2, 1, 1.0)
+    assert (overall["evidence_share"], overall["measured_share"]) == (0.75, 0.5)
     assert mixed["error_low"] == pytest.approx(0.05) and mixed["covered_low"]
     dry = score_cell(0.4, 0.3, 0.6, (1.17, 1.17))
     assert dry["band"] == "dry" and dry["error"] == pytest.approx(0.77) and not dry["covered"]
