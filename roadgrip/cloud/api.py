@@ -7,6 +7,9 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | POST /v1/vehicles | admin | register a vehicle with its profile (DESIGN 3.2); returns its secret once |
 | GET /v1/vehicles/{id} | admin, reader, the vehicle | its profile |
 | POST /v1/readers | admin | create a reader credential; returns its secret once |
+| POST /v1/stations | admin | register a roadside station (its own credential); returns its secret once |
+| POST /v1/stations/{id}/reports | the station | its reports (roadgrip/cloud/stations.py: one JSON object or an array) |
+| GET /v1/stations | admin, reader | each station's newest report, with the evidence drawn from it and its cells |
 | DELETE /v1/credentials/{name} | admin | revoke a credential, at once |
 | POST /v1/telemetry | vehicle | ingest samples (DESIGN 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys) |
 | GET /v1/vehicles/{id}/estimates | admin, reader, the vehicle | estimates (DESIGN 3.4) over a time range |
@@ -48,6 +51,7 @@ from roadgrip.cloud.exports import datex2_xml
 from roadgrip.cloud.ingest import RateLimited
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.shards import IngestUnavailable
+from roadgrip.cloud.stations import ReportError, parse_reports
 from roadgrip.cloud.storage import Credential, StorageUnavailable
 from roadgrip.cloud.wire import PayloadError, parse_payload
 from roadgrip.data.telemetry import VEHICLE_ID_RE
@@ -68,6 +72,25 @@ class VehicleRegistration(BaseModel):
 
 class ReaderRegistration(BaseModel):
     name: str = Field(pattern=VEHICLE_ID_RE.pattern)
+
+
+class StationRegistration(BaseModel):
+    station_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-")
+
+
+class StationAnswer(BaseModel):
+    received: int
+    stored: int = Field(description="new reports; a repeat of a stored one (same station_id and timestamp_ms) is a "
+                                    "duplicate")
+    duplicates: int
+    evidence_cells: int = Field(description="H3 cells the new reports gave friction evidence to")
+
+
+class ReportFault(BaseModel):
+    """A refused payload of station reports: the report (array index), the field and why; nothing was stored."""
+    index: int | None
+    field: str | None
+    reason: str
 
 
 class Issued(BaseModel):
@@ -105,9 +128,10 @@ class Fault(BaseModel):
 
 
 class ErrorAnswer(BaseModel):
-    """Every error: a sentence; for a telemetry body that cannot be read, the part at fault and why; for a request that
-    does not match this schema, FastAPI's list of problems."""
-    detail: str | Fault | list[dict]
+    """Every error: a sentence; for a telemetry body that cannot be read, the part at fault and why; for a station
+    report refused, the report, field and why; for a request that does not match this schema, FastAPI's list of
+    problems."""
+    detail: str | Fault | ReportFault | list[dict]
 
 
 def _errors(*codes: int) -> dict:
@@ -192,6 +216,7 @@ def create_app(service: CloudService) -> FastAPI:
             raise HTTPException(403, f"a {caller.role} credential may not do this (needs {' or '.join(roles)})")
 
     def may_read_vehicle(caller: Credential, vehicle_id: str) -> None:
+        require(caller, "admin", "reader", "vehicle")  # a station reads no vehicle
         if caller.role == "vehicle" and caller.vehicle_id != vehicle_id:
             raise HTTPException(403, f"vehicle {caller.vehicle_id} may not read vehicle {vehicle_id}")
 
@@ -253,6 +278,43 @@ def create_app(service: CloudService) -> FastAPI:
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
         return Issued(name=body.name, role="reader", secret=secret, mqtt_url=service.mqtt_url)
+
+    @app.post("/v1/stations", status_code=201, response_model=Issued, responses=_errors(400, 409, 422))
+    def register_station(body: StationRegistration, caller: Caller) -> Issued:
+        require(caller, "admin")
+        try:
+            secret = service.register_station(body.station_id)
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return Issued(name=body.station_id, role="station", secret=secret, mqtt_url=service.mqtt_url)
+
+    @app.post("/v1/stations/{station_id}/reports", response_model=StationAnswer, responses={
+                  **_errors(413), 400: {"model": ErrorAnswer, "description": "a body that is not JSON"},
+                  422: {"model": ErrorAnswer, "description": "a report breaks the format (detail: a ReportFault); "
+                                                             "nothing stored"}},
+              openapi_extra={"requestBody": {"required": True, "content": {"application/json": {"schema": {
+                  "oneOf": [{"type": "object"}, {"type": "array", "items": {"type": "object"}}]}}}}})
+    async def station_reports(station_id: VehicleId, request: Request, caller: Caller):
+        require(caller, "station")
+        if caller.name != station_id:
+            raise HTTPException(403, f"station {caller.name} may not report for station {station_id}")
+        s = service.settings
+        body = await _read_limited(request, s.max_payload_bytes)
+        try:
+            reports = parse_reports(body, station_id=station_id, now_ms=int(time.time() * 1000),
+                                    max_future_ms=int(s.max_future_s * 1000), max_bytes=s.max_payload_bytes)
+        except ReportError as exc:
+            raise HTTPException(exc.status, exc.to_dict()) from None
+        result = await asyncio.to_thread(service.station_reports, reports)
+        return StationAnswer(received=result.received, stored=result.stored, duplicates=result.duplicates,
+                             evidence_cells=result.evidence_cells)
+
+    @app.get("/v1/stations")
+    def stations(caller: Caller) -> dict:
+        """Each station's newest report (the fields of roadgrip/cloud/stations.py), the evidence drawn from it (mu,
+        mu_lower, mu_upper; null for none), its covered cells and received_ms; server_time_ms for the reports' age."""
+        require(caller, "admin", "reader")
+        return {"server_time_ms": int(time.time() * 1000), "stations": service.storage.latest_station_reports()}
 
     @app.delete("/v1/credentials/{name}", status_code=204, responses=_errors(404, 409))
     def revoke(name: Annotated[str, PathParam(pattern=VEHICLE_ID_RE.pattern)], caller: Caller) -> Response:
@@ -332,6 +394,7 @@ def create_app(service: CloudService) -> FastAPI:
 
     @app.get("/v1/warnings")
     def warnings(caller: Caller, active: bool = True) -> dict:
+        require(caller, "admin", "reader", "vehicle")
         rows = service.storage.warnings(active_only=active)
         return {"warnings": [row["message"]["denm"] for row in rows]}
 

@@ -1,8 +1,10 @@
 """Credentials: who may call the cloud, and as what.
 
-Three roles. A *vehicle* (login name = its vehicle_id) writes its own telemetry and reads its own estimates; a *reader*
-(a road operator, a dashboard) reads estimates of every vehicle, the map and the warnings; the *admin* registers vehicles
-and readers and revokes credentials. The same name and secret work over HTTP (Basic authentication) and MQTT.
+Four roles. A *vehicle* (login name = its vehicle_id) writes its own telemetry and reads its own estimates; a *station*
+(a roadside road weather station, login name = its station_id: roadgrip/cloud/stations.py) writes its own reports and
+reads nothing else; a *reader* (a road operator, a dashboard) reads estimates of every vehicle, the stations' reports,
+the map and the warnings; the *admin* registers vehicles, stations and readers and revokes credentials. The same name
+and secret work over HTTP (Basic authentication) and MQTT.
 
 Secrets are never stored, only hashed. The secrets the cloud issues are random (32 bytes, URL-safe: 256 bits), so a
 plain SHA-256 of them cannot be reversed by guessing and costs microseconds, which a fleet registering and posting
@@ -21,7 +23,7 @@ import threading
 
 from roadgrip.cloud.storage import Credential, Storage
 
-ROLES = ("vehicle", "reader", "admin")
+ROLES = ("vehicle", "reader", "admin", "station")
 ADMIN_NAME = "admin"
 _SCRYPT_N, _SCRYPT_R, _SCRYPT_P = 2**14, 8, 1
 

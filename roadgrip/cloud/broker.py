@@ -29,6 +29,9 @@ Access rules (the ACL file), with the topics of `roadgrip.cloud.mqtt`; nothing e
 |                                     | roadgrip/v1/warnings                               |                                            |
 | a reader                            | roadgrip/v1/vehicles/+/friction,                   | -                                          |
 |                                     | roadgrip/v1/warnings                               |                                            |
+| a station (login name = station_id) | roadgrip/v1/stations/<id>/errors                   | roadgrip/v1/stations/<id>/reports          |
+
+The service also reads roadgrip/v1/stations/+/reports and writes roadgrip/v1/stations/+/errors.
 
 Each login gets a `user` section with its own `topic` lines. `pattern ... %u` lines are not used on purpose: a pattern
 applies to every login, so `pattern write roadgrip/v1/vehicles/%u/telemetry` would also let the service and every
@@ -63,18 +66,22 @@ from typing import Self
 from roadgrip.cloud.mqtt import (
     ERRORS_SUBSCRIPTION,
     FRICTION_SUBSCRIPTION,
+    STATION_ERRORS_SUBSCRIPTION,
+    STATION_REPORTS_SUBSCRIPTION,
     TELEMETRY_SUBSCRIPTION,
     WARNINGS_TOPIC,
     BrokerRefused,
     connect_paho,
     errors_topic,
     friction_topic,
+    station_errors_topic,
+    station_reports_topic,
     telemetry_topic,
 )
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 
 INSTALL_HINT = "run `bash scripts/install_system_deps.sh`"
-ROLES = ("vehicle", "reader")
+ROLES = ("vehicle", "reader", "station")
 SALT_BYTES = 12  # what mosquitto_passwd 2.0 writes
 PBKDF2_ITERATIONS = 101  # mosquitto_passwd 2.0's default
 # Queued messages per client: one minute of a 1,000-vehicle fleet at 10 Hz, for the service (the one subscriber to all
@@ -136,7 +143,7 @@ def free_port(host: str = "127.0.0.1") -> int:
 @dataclass(frozen=True)
 class _Login:
     password_hash: str
-    role: str  # "service", "vehicle" or "reader"
+    role: str  # "service", "vehicle", "reader" or "station"
 
 
 class ManagedBroker:
@@ -228,7 +235,7 @@ class ManagedBroker:
 
     def set_user(self, name: str, password: str, role: str, vehicle_id: str | None = None) -> None:
         """Add a login, or replace one (password and role). A vehicle's login name is its vehicle_id (`vehicle_id`, if
-        given, must equal `name`); a reader has none. Applies at once when the broker runs (see the module docstring)."""
+        given, must equal `name`), a station's its station_id; a reader has none. Applies at once when the broker runs (see the module docstring)."""
         self.set_users([(name, password, role, vehicle_id)])
 
     def set_users(self, logins: list[tuple[str, str, str, str | None]]) -> None:
@@ -318,10 +325,13 @@ class ManagedBroker:
         for name, login in self._logins.items():
             if login.role == "service":
                 rules = [("read", TELEMETRY_SUBSCRIPTION), ("write", FRICTION_SUBSCRIPTION),
-                         ("write", ERRORS_SUBSCRIPTION), ("write", WARNINGS_TOPIC)]
+                         ("write", ERRORS_SUBSCRIPTION), ("write", WARNINGS_TOPIC),
+                         ("read", STATION_REPORTS_SUBSCRIPTION), ("write", STATION_ERRORS_SUBSCRIPTION)]
             elif login.role == "vehicle":
                 rules = [("write", telemetry_topic(name)), ("read", friction_topic(name)),
                          ("read", errors_topic(name)), ("read", WARNINGS_TOPIC)]
+            elif login.role == "station":
+                rules = [("write", station_reports_topic(name)), ("read", station_errors_topic(name))]
             else:
                 rules = [("read", FRICTION_SUBSCRIPTION), ("read", WARNINGS_TOPIC)]
             sections.append(f"# {login.role}\nuser {name}\n" + "".join(f"topic {a} {t}\n" for a, t in rules))

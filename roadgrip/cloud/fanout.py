@@ -98,3 +98,26 @@ class Fanout:
         now_s = time.monotonic()
         for row in estimates:
             self._outbox.setdefault(row["vehicle_id"], (now_s, []))[1].append(_estimate_message(row))
+
+    def station_reports(self, rows: list[dict]) -> None:
+        """The evidence of newly stored roadside station reports (roadgrip/cloud/stations.py, evidence_rows: one row
+        per covered cell) into the map and the warning engine, under the lock; warning changes stored and their DENMs
+        published as after a round of estimates."""
+        if not rows:
+            return
+        with self._lock:
+            now_ms = self.now_ms()
+            self.friction_map.add_station(rows, now_ms)
+            events = self.warning_engine.station_evidence(rows, now_ms)
+            denms = [event.to_denm() for event in events]
+            self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
+                                        "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
+                                        "message": {"denm": d, "event": dataclasses.asdict(e)}}
+                                       for e, d in zip(events, denms)])
+            for event in events:
+                log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
+                        "warning %s %s in cell %s (%s, roadside station)", event.warning_id, event.status,
+                        event.cell, event.reason)
+            if self.publish is not None:
+                for denm in denms:
+                    self.publish(WARNINGS_TOPIC, orjson.dumps(denm))

@@ -10,6 +10,8 @@ Topics, all QoS 1; this module is the one place that spells them:
 | roadgrip/v1/vehicles/{vehicle_id}/friction  | the service (estimates) | that vehicle, readers   |
 | roadgrip/v1/vehicles/{vehicle_id}/errors    | the service (rejected)  | that vehicle            |
 | roadgrip/v1/warnings                        | the service             | every vehicle, readers  |
+| roadgrip/v1/stations/{station_id}/reports   | the roadside station    | the service             |
+| roadgrip/v1/stations/{station_id}/errors    | the service (rejected)  | that station            |
 
 What Mosquitto 2.0.11 answers to a request outside a client's ACL (tests/cloud/test_mqtt.py pins each of these):
 
@@ -50,6 +52,9 @@ log = logging.getLogger(__name__)
 
 VEHICLES_PREFIX = "roadgrip/v1/vehicles/"
 TELEMETRY_SUBSCRIPTION = VEHICLES_PREFIX + "+/telemetry"
+STATIONS_PREFIX = "roadgrip/v1/stations/"
+STATION_REPORTS_SUBSCRIPTION = STATIONS_PREFIX + "+/reports"
+STATION_ERRORS_SUBSCRIPTION = STATIONS_PREFIX + "+/errors"
 FRICTION_SUBSCRIPTION = VEHICLES_PREFIX + "+/friction"
 ERRORS_SUBSCRIPTION = VEHICLES_PREFIX + "+/errors"
 WARNINGS_TOPIC = "roadgrip/v1/warnings"
@@ -89,6 +94,25 @@ def vehicle_of_topic(topic: str) -> str | None:
         return None
     parts = topic[len(VEHICLES_PREFIX):].split("/")
     if len(parts) != 2 or parts[1] not in VEHICLE_TOPIC_KINDS or VEHICLE_ID_RE.fullmatch(parts[0]) is None:
+        return None
+    return parts[0]
+
+
+def station_reports_topic(station_id: str) -> str:
+    """A station's reports topic; its id follows the vehicle_id rule (roadgrip/cloud/stations.py)."""
+    return f"{STATIONS_PREFIX}{check_vehicle_id(station_id)}/reports"
+
+
+def station_errors_topic(station_id: str) -> str:
+    return f"{STATIONS_PREFIX}{check_vehicle_id(station_id)}/errors"
+
+
+def station_of_topic(topic: str) -> str | None:
+    """The station id in `roadgrip/v1/stations/{id}/reports`; None for any other topic or an invalid id."""
+    if not topic.startswith(STATIONS_PREFIX):
+        return None
+    parts = topic[len(STATIONS_PREFIX):].split("/")
+    if len(parts) != 2 or parts[1] != "reports" or VEHICLE_ID_RE.fullmatch(parts[0]) is None:
         return None
     return parts[0]
 
@@ -182,19 +206,22 @@ class MqttClient:
       `max_inflight_messages`; an error is logged when it does). The rest wait in paho, `max_queued_messages` at most.
     - Automatic reconnects (`reconnect_delay_set`, from `reconnect_min_delay_s` doubling up to `reconnect_max_delay_s`),
       in paho's network thread (`loop_start`); after every (re)connect the client subscribes to
-      `TELEMETRY_SUBSCRIPTION` again (when it has a handler), in case the broker lost the session.
+      `TELEMETRY_SUBSCRIPTION` again (when it has a handler), and to `STATION_REPORTS_SUBSCRIPTION` (when it has
+      `on_station_report`), in case the broker lost the session.
 
     `on_telemetry(vehicle_id, payload, ack)` is called on paho's network thread for each telemetry message, with the
     vehicle id taken from the topic (which the broker's ACL ties to the publisher's login). It must be cheap (the
     service puts the message on a queue) and must not block: no other message is read meanwhile. An exception in it
-    is logged and the message is left unacknowledged. `ack()` may be called from any thread, at any later time, and
+    is logged and the message is left unacknowledged. `on_station_report(station_id, payload, ack)` is the same for
+    the roadside stations' reports. `ack()` may be called from any thread, at any later time, and
     more than once (only the first call counts): paho's `Client.ack` only appends a PUBACK to a deque (atomic in
     CPython) and wakes the network thread through its socket pair, the same path as `publish`. An `ack()` that comes
     after the connection the message arrived on has dropped does nothing: the broker delivers that message again.
     """
 
     def __init__(self, url: str, username: str, password: str, client_id: str,
-                 on_telemetry: TelemetryHandler | None = None, *, session_expiry_s: int = 86_400,
+                 on_telemetry: TelemetryHandler | None = None, *, on_station_report: TelemetryHandler | None = None,
+                 session_expiry_s: int = 86_400,
                  receive_maximum: int = 10_000, max_queued_messages: int = 100_000,
                  max_inflight: int = DEFAULT_MAX_INFLIGHT,
                  keepalive_s: int = 30,
@@ -209,6 +236,7 @@ class MqttClient:
         self.username = username
         self.client_id = client_id
         self.on_telemetry = on_telemetry
+        self.on_station_report = on_station_report
         self.session_expiry_s = session_expiry_s
         self.receive_maximum = receive_maximum
         self.max_queued_messages = max_queued_messages
@@ -333,15 +361,19 @@ class MqttClient:
         if self.on_telemetry is None:
             self._ready.set()
             return
-        _, self._subscribe_mid = client.subscribe(TELEMETRY_SUBSCRIPTION, qos=QOS)
+        subscriptions = [(TELEMETRY_SUBSCRIPTION, QOS)]
+        if self.on_station_report is not None:
+            subscriptions.append((STATION_REPORTS_SUBSCRIPTION, QOS))
+        _, self._subscribe_mid = client.subscribe(subscriptions)
 
     def _on_subscribe(self, _client, _userdata, mid, reason_codes, _properties):
         if mid != self._subscribe_mid:
             return
-        if reason_codes[0].is_failure:
-            log.error("%s: subscription to %s refused: %s", self.client_id, TELEMETRY_SUBSCRIPTION, reason_codes[0])
+        failed = next((code for code in reason_codes if code.is_failure), None)
+        if failed is not None:
+            log.error("%s: subscription to %s refused: %s", self.client_id, TELEMETRY_SUBSCRIPTION, failed)
             if not self._ready.is_set():
-                self._failure = BrokerRefused(f"subscribe to {TELEMETRY_SUBSCRIPTION}", reason_codes[0])
+                self._failure = BrokerRefused(f"subscribe to {TELEMETRY_SUBSCRIPTION}", failed)
         self._ready.set()
 
     def _on_publish(self, _client, _userdata, _mid, _reason_code, _properties):
@@ -355,6 +387,14 @@ class MqttClient:
     def _on_message(self, client, _userdata, message):
         vehicle_id = vehicle_of_topic(message.topic)
         ack = self._acker(client, message.mid, message.qos)
+        station_id = station_of_topic(message.topic)
+        if station_id is not None and self.on_station_report is not None:
+            try:
+                self.on_station_report(station_id, message.payload, ack)
+            except Exception:
+                log.exception("%s: station report handler failed on a message of %s; left unacknowledged",
+                              self.client_id, station_id)
+            return
         if self.on_telemetry is None or vehicle_id is None or not message.topic.endswith("/telemetry"):
             # a subscription left in the persistent session by an earlier client with this id, or a foreign topic
             log.warning("%s: message on %r dropped (not telemetry, or no handler)", self.client_id, message.topic)

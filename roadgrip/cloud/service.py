@@ -2,6 +2,11 @@
 storage; in this process, or sharded over `ingest_processes`), the fan-out (map, warnings, publishing), the MQTT side
 (a broker given by URL, or a Mosquitto started here), and the HTTP API.
 
+Roadside stations (roadgrip/cloud/stations.py) do not go through the vehicles' pipeline: `station_reports` stores a
+station's validated reports (idempotent on station_id and timestamp_ms) and hands the evidence of the new ones to the
+fan-out (map and warnings, under its lock), in this process, from the HTTP route or from the MQTT handler's own
+thread (a station reports about once a minute; the vehicles' queue is not needed).
+
     service = CloudService(load_settings())
     service.start()          # storage opened, pipeline running, MQTT connected when configured
     app = create_app(service) # roadgrip.cloud.api
@@ -15,6 +20,8 @@ import json
 import logging
 import secrets
 import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
 
@@ -23,11 +30,12 @@ from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitt
 from roadgrip.cloud.fanout import Fanout
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.ingest import Ingest
-from roadgrip.cloud.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic
+from roadgrip.cloud.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
 from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.process import rss_mb, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.shards import IngestShards
+from roadgrip.cloud.stations import ReportError, StationReport, covered_cells, evidence, evidence_rows, parse_reports
 from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
 from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
 from roadgrip.estimators.learned import load_estimator
@@ -40,6 +48,16 @@ log = logging.getLogger(__name__)
 # in a stall; run e, with this bound, stayed level at 606 MB until its stall. The estimates stay stored and readable
 # over HTTP; warnings and error reports are never dropped.
 MAX_UNACKNOWLEDGED_ESTIMATES = 5_000
+
+
+@dataclass(frozen=True)
+class StationIngest:
+    """What `CloudService.station_reports` did with a payload of reports."""
+
+    received: int
+    stored: int  # new reports (a repeat of a stored one is a duplicate)
+    duplicates: int
+    evidence_cells: int  # cells that got evidence from the new reports
 
 
 class CloudService:
@@ -62,6 +80,7 @@ class CloudService:
             validity_s=settings.warning_validity_s, station_id=settings.station_id)
         self.mqtt_rejected = 0
         self.estimate_messages_dropped = 0
+        self._station_worker: ThreadPoolExecutor | None = None  # MQTT station reports, off paho's network thread
 
     # ------------------------------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -89,6 +108,9 @@ class CloudService:
         if self.mqtt is not None:
             self.mqtt.close()
             self.mqtt = None
+        if self._station_worker is not None:
+            self._station_worker.shutdown(wait=True)
+            self._station_worker = None
         if self.ingest is not None:
             self.ingest.stop()
             self.ingest = None
@@ -124,7 +146,18 @@ class CloudService:
         self.friction_map.add(rows)
         active = [WarningEvent(**row["message"]["event"]) for row in self.storage.warnings(active_only=True)]
         self.warning_engine.restore(active)
-        log.info("restored the map from %d stored estimates and %d active warnings", len(rows), len(active))
+        reports = self.storage.station_reports_since(since)
+        self.friction_map.add_station([row for report in reports for row in self._evidence_of(report)])
+        log.info("restored the map from %d stored estimates, %d station reports and %d active warnings", len(rows),
+                 len(reports), len(active))
+
+    def _evidence_of(self, stored: dict) -> list[dict]:
+        """A stored station report's evidence rows, one per covered cell it was stored with."""
+        if stored["mu"] is None:
+            return []
+        return [{"station_id": stored["station_id"], "cell": cell, "timestamp_ms": stored["timestamp_ms"],
+                 "mu": stored["mu"], "mu_lower": stored["mu_lower"], "mu_upper": stored["mu_upper"]}
+                for cell in stored["cells"]]
 
     # ------------------------------------------------------------------------------------------------- MQTT
     def _start_mqtt(self) -> None:
@@ -149,8 +182,9 @@ class CloudService:
             self.mqtt_url = mode
             username, password = s.mqtt_username, s.mqtt_password
         # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, Mosquitto's default
+        self._station_worker = ThreadPoolExecutor(1, thread_name_prefix="station-reports")
         self.mqtt = MqttClient(self.mqtt_url, username, password, client_id="roadgrip-cloud",
-                               on_telemetry=self.ingest.mqtt_message,
+                               on_telemetry=self.ingest.mqtt_message, on_station_report=self._station_message,
                                max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT)
         self.mqtt.connect()
 
@@ -174,6 +208,49 @@ class CloudService:
         # json, not orjson: a reason quotes what was sent, which may hold a lone surrogate (escaped by json)
         self._publish(errors_topic(vehicle_id), json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
 
+    # ------------------------------------------------------------------------------------------------- stations
+    def station_reports(self, reports: list[StationReport]) -> StationIngest:
+        """Store validated reports (roadgrip/cloud/stations.py) and hand the evidence of the new ones to the map and
+        the warning engine. StorageUnavailable when the database is down (nothing stored)."""
+        resolution = self.settings.h3_resolution
+        rows, evidence_of = [], {}
+        for report in reports:
+            found = evidence(report)
+            evidence_of[(report.station_id, report.timestamp_ms)] = evidence_rows(report, resolution)
+            rows.append({**report.model_dump(), "mu": None if found is None else found.mu,
+                         "mu_lower": None if found is None else found.mu_lower,
+                         "mu_upper": None if found is None else found.mu_upper,
+                         "cells": covered_cells(report.latitude_deg, report.longitude_deg, resolution)})
+        new = self.storage.put_station_reports(rows)
+        fresh = [row for key in sorted(new, key=lambda k: k[1]) for row in evidence_of[key]]
+        self.fanout.station_reports(fresh)
+        return StationIngest(len(reports), len(new), len(reports) - len(new), len(fresh))
+
+    def _station_message(self, station_id: str, payload: bytes, ack) -> None:
+        """An MQTT message on a station's reports topic (the broker's ACL made sure it is that station): handled on
+        the station worker thread; rejections go to the station's errors topic. Acknowledged once stored, or at once
+        when refused (it would never pass)."""
+        self._station_worker.submit(self._handle_station_message, station_id, payload, ack)
+
+    def _handle_station_message(self, station_id: str, payload: bytes, ack) -> None:
+        s = self.settings
+        try:
+            reports = parse_reports(payload, station_id=station_id, now_ms=int(time.time() * 1000),
+                                    max_future_ms=int(s.max_future_s * 1000))
+        except ReportError as exc:
+            self.mqtt_rejected += 1
+            log.warning("rejected a message of station %s over MQTT: %s", station_id, exc)
+            self._publish(station_errors_topic(station_id), json.dumps({"station_id": station_id,
+                                                                        "rejected": [exc.to_dict()]}).encode())
+            ack()
+            return
+        try:
+            self.station_reports(reports)
+        except StorageUnavailable as exc:
+            log.warning("station %s: storage unavailable, its report is left unacknowledged: %s", station_id, exc)
+            return
+        ack()
+
     # ------------------------------------------------------------------------------------------------- registration
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:
         """Store each profile and create each vehicle's credential (HTTP and MQTT, one broker reload for all);
@@ -189,11 +266,18 @@ class CloudService:
         return secrets_
 
     def register_reader(self, name: str) -> str:
+        return self._register(name, "reader")
+
+    def register_station(self, station_id: str) -> str:
+        """A roadside station's credential (login name = station_id, HTTP and MQTT); returns its secret."""
+        return self._register(station_id, "station")
+
+    def _register(self, name: str, role: str) -> str:
         if self.storage.credential(name) is not None:
             raise ValueError(f"credential name {name!r} is already taken")
-        secret = self.auth.create(name, "reader")
+        secret = self.auth.create(name, role)
         if self.broker is not None:
-            self.broker.set_user(name, secret, "reader")
+            self.broker.set_user(name, secret, role)
         return secret
 
     def revoke(self, name: str) -> bool:

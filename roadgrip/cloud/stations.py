@@ -157,6 +157,8 @@ def parse_reports(body: bytes, *, station_id: str, now_ms: int, max_future_ms: i
         document = json.loads(body)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ReportError(f"not JSON: {exc}", status=400) from None
+    except RecursionError:
+        raise ReportError("not JSON: nested too deeply", status=400) from None
     items = document if isinstance(document, list) else [document]
     if not items:
         raise ReportError("an empty array holds no report")

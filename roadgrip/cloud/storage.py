@@ -10,9 +10,10 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | telemetry | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.TELEMETRY` (wire format v1, DESIGN 3.1), SI units |
 | estimates | vehicle_id, timestamp_ms | mu, mu_lower, mu_upper (the 90% interval), excited, estimator (DESIGN 3.4), mu_proven (what the car's acceleration proves; null from an estimator without the guard); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (below) |
 | vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
-| credentials | name | role (vehicle, reader or admin), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
+| credentials | name | role (vehicle, reader, admin or station), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
 | estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/checkpoints.py), updated_ms |
+| station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
 `write_batch`, in one transaction, and a row whose (vehicle_id, timestamp_ms) is stored already is skipped: sending a
@@ -50,7 +51,7 @@ from roadgrip.data.schema import TELEMETRY
 
 log = logging.getLogger(__name__)
 
-ROLES = ("vehicle", "reader", "admin")
+ROLES = ("vehicle", "reader", "admin", "station")
 ACTIVE = "active"  # the warning status that `warnings(active_only=True)` selects
 SQLITE_BUSY_TIMEOUT_MS = 10_000  # how long a writer waits for another one's lock before giving up
 CONNECT_TIMEOUT_S = 5  # PostgreSQL: how long to wait for the server before calling it unavailable
@@ -151,6 +152,26 @@ estimator_states_table = Table(
 
 # columns added after their table was first released: (table, column), added by open_storage where missing
 ADDED_COLUMNS = ((estimates_table, "mu_proven"),)
+
+# Roadside stations' reports (roadgrip/cloud/stations.py), as validated, with the evidence the service drew from them.
+station_reports_table = Table(
+    "station_reports", metadata,
+    Column("station_id", sa.String, nullable=False),
+    Column("timestamp_ms", sa.BigInteger, nullable=False),
+    Column("latitude_deg", sa.Float, nullable=False),
+    Column("longitude_deg", sa.Float, nullable=False),
+    Column("surface_state", sa.String, nullable=False),
+    Column("surface_temperature_c", sa.Float),
+    Column("water_film_thickness_mm", sa.Float),
+    Column("friction", sa.Float),
+    Column("friction_uncertainty", sa.Float),
+    Column("mu", sa.Float),
+    Column("mu_lower", sa.Float),
+    Column("mu_upper", sa.Float),
+    Column("cells", _JSON, nullable=False),
+    Column("received_ms", sa.BigInteger, nullable=False),
+    sa.PrimaryKeyConstraint("station_id", "timestamp_ms"),
+    sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"))
 
 POSTGIS_DDL = (
     ("ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
@@ -519,6 +540,36 @@ class Storage:
         c = estimator_states_table.c
         return self._all(select(estimator_states_table).order_by(c.vehicle_id, c.estimator))
 
+    # ------------------------------------------------------------------------------------ station reports
+
+    def put_station_reports(self, rows: list[dict]) -> set[tuple[str, int]]:
+        """Store station reports in one transaction (keys: the station_reports table's columns; received_ms defaults
+        to now); a report whose (station_id, timestamp_ms) is stored already is skipped. Returns the keys newly
+        stored."""
+        now_ms = _now_ms()
+        rows = _checked_rows("station report", [{"received_ms": now_ms, **row} for row in rows],
+                             station_reports_table)
+        if not rows:
+            return set()
+        c = station_reports_table.c
+        insert = self._insert(station_reports_table).on_conflict_do_nothing().returning(c.station_id, c.timestamp_ms)
+        with self._transaction() as conn:
+            return {(row[0], row[1]) for row in conn.execute(insert, rows)}
+
+    def latest_station_reports(self) -> list[dict]:
+        """The newest report of every station, by station_id."""
+        c = station_reports_table.c
+        newest = select(c.station_id, func.max(c.timestamp_ms)).group_by(c.station_id)
+        query = select(station_reports_table).where(sa.tuple_(c.station_id, c.timestamp_ms).in_(newest))
+        return self._all(query.order_by(c.station_id))
+
+    def station_reports_since(self, since_ms: int, limit: int = 100_000) -> list[dict]:
+        """The reports of all stations with timestamp_ms >= since_ms, oldest first, at most `limit`."""
+        _check_limit(limit)
+        c = station_reports_table.c
+        return self._all(select(station_reports_table).where(c.timestamp_ms >= since_ms)
+                         .order_by(c.timestamp_ms, c.station_id).limit(limit))
+
     # ------------------------------------------------------------------------------------ warnings
 
     def put_warnings(self, rows: list[dict]) -> None:
@@ -572,6 +623,29 @@ def _add_missing_columns(conn: Connection) -> None:
             log.info("added column %s.%s to a database of an older version", table.name, name)
 
 
+def _widen_role_check(conn: Connection) -> None:
+    """A database made before the station role has a credentials CHECK that names only the roles of its time, and
+    would refuse a station's credential: replace the check with one of ROLES (PostgreSQL: the constraint; SQLite,
+    which cannot alter a constraint: the table rebuilt, its rows copied, in the same transaction)."""
+    if conn.dialect.name == "postgresql":
+        definition = conn.execute(text("SELECT pg_get_constraintdef(oid) FROM pg_constraint "
+                                       "WHERE conname = 'ck_credentials_role'")).scalar()
+        if definition is not None and "'station'" not in definition:
+            conn.execute(text("ALTER TABLE credentials DROP CONSTRAINT ck_credentials_role"))
+            conn.execute(text(f"ALTER TABLE credentials ADD CONSTRAINT ck_credentials_role CHECK (role IN {ROLES})"))
+            log.info("credentials: role check widened to %s", ROLES)
+        return
+    definition = conn.execute(text("SELECT sql FROM sqlite_master WHERE type = 'table' AND name = 'credentials'"))
+    if "'station'" in definition.scalar():
+        return
+    conn.execute(text("ALTER TABLE credentials RENAME TO credentials_before_stations"))
+    credentials_table.create(conn)
+    columns = ", ".join(c.name for c in credentials_table.columns)
+    conn.execute(text(f"INSERT INTO credentials ({columns}) SELECT {columns} FROM credentials_before_stations"))
+    conn.execute(text("DROP TABLE credentials_before_stations"))
+    log.info("credentials: table rebuilt with the role check of %s", ROLES)
+
+
 def open_storage(url: str) -> Storage:
     """Open the database at `url` (sqlite:///PATH, postgresql://... or postgresql+psycopg://...) and create the
     tables that are missing; the parent folder of an SQLite file is created too."""
@@ -594,6 +668,7 @@ def open_storage(url: str) -> Storage:
             postgis = engine.dialect.name == "postgresql" and _enable_postgis(engine, where)
             with engine.begin() as conn:
                 metadata.create_all(conn)
+                _widen_role_check(conn)
                 _add_missing_columns(conn)
                 for statement in POSTGIS_DDL if postgis else ():
                     conn.execute(text(statement))

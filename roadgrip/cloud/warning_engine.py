@@ -3,7 +3,8 @@ adverseWeatherCondition-Adhesion).
 
 Pure and in memory: `update(estimates, now_ms)` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
-position are ignored.
+position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roadside stations' reports
+(roadgrip/cloud/stations.py: dicts with station_id, cell, timestamp_ms, mu, mu_lower, mu_upper) the same way (rule 8).
 
 Rules
 1. Passes. A pass is one vehicle's consecutive estimates in one cell. It ends when the vehicle is seen in another cell,
@@ -29,6 +30,14 @@ Rules
 7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
    validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
    applied to its cell against the pass's time.
+
+8. Roadside stations. A station's report is one pass in each cell it covers, its own source: vehicle_id
+   f"station:{station_id}" (a colon, which no vehicle_id holds), time the report's timestamp. Its verdict comes from
+   the report's one interval: low when mu_upper < threshold_mu, dry when mu_lower >= threshold_mu, otherwise unknown
+   (min_excited_per_pass does not apply: a report is a measurement, not a sample of a manoeuvre). It then counts by
+   rules 3-7 like a vehicle's pass: a station's low reports more than pass_gap_s apart are repeated passes of one
+   source (two raise a warning alone with min_low_passes 2), a dry report cancels. A report no newer than the
+   station's last one applied in that cell is dropped (counted in `late_rows_`): its newest report supersedes.
 
 Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
 is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
@@ -241,6 +250,7 @@ class WarningEngine:
         self.next_action_sequence_number_ = 0
         self.late_rows_ = 0
         self.last_sweep_ms_ = _NEVER
+        self.station_last_ms_: dict[tuple[str, str], int] = {}  # (station source, cell) -> its last report applied
 
     # ------------------------------------------------------------------------------------------------------ public
 
@@ -295,6 +305,29 @@ class WarningEngine:
             self._sweep(now_ms)
         return events
 
+    def station_evidence(self, rows: Iterable[dict], now_ms: int) -> list[WarningEvent]:
+        """Apply roadside stations' evidence rows (rule 8), in order of their time; the events caused, then the
+        expiries at now_ms."""
+        now_ms = int(now_ms)
+        events: list[WarningEvent] = []
+        for row in sorted(rows, key=operator.itemgetter("timestamp_ms", "cell", "station_id")):
+            source, cell, t = f"station:{row['station_id']}", row["cell"], int(row["timestamp_ms"])
+            lo, hi = row["mu_lower"], row["mu_upper"]
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+                raise ValueError(f"evidence of station {row['station_id']!r} at {t}: mu_lower {lo!r} and mu_upper "
+                                 f"{hi!r} must be finite with mu_lower <= mu_upper")
+            if t <= self.station_last_ms_.get((source, cell), _NEVER):
+                self.late_rows_ += 1
+                continue
+            self.station_last_ms_[(source, cell)] = t
+            report = _Pass(source, cell, t)
+            report.uppers.append(hi)
+            report.lowers.append(lo)
+            verdict = LOW if hi < self.threshold_mu else DRY if lo >= self.threshold_mu else UNKNOWN
+            self._apply(report, now_ms, events, verdict)
+        self._expire(now_ms, events)
+        return events
+
     def active(self) -> list[WarningEvent]:
         """The latest event of every active warning, ordered by cell."""
         return [self.cell_states_[c].warning.last_event for c in sorted(self.active_cells_)]
@@ -341,8 +374,9 @@ class WarningEngine:
             return DRY
         return UNKNOWN
 
-    def _apply(self, finished: _Pass, now_ms: int, events: list[WarningEvent]) -> None:
-        verdict = self.verdict(finished.uppers, finished.lowers)
+    def _apply(self, finished: _Pass, now_ms: int, events: list[WarningEvent], verdict: str | None = None) -> None:
+        """Apply a judged pass to its cell (rules 4-7); its verdict by rule 2 unless given (a station's, rule 8)."""
+        verdict = self.verdict(finished.uppers, finished.lowers) if verdict is None else verdict
         if verdict == UNKNOWN:
             return
         t = finished.last_ms
@@ -433,4 +467,6 @@ class WarningEngine:
                 del self.cell_states_[cell]
         for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:
             del self.last_judged_ms_[vehicle]
+        for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:
+            del self.station_last_ms_[key]
         self.last_sweep_ms_ = now_ms
