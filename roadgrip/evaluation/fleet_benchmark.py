@@ -17,6 +17,22 @@ Scenario (one per seed, `make_scenario`):
   cruise, then back up; a pause of TRIP_GAP_S between trips. A trip's patches are those there when it reaches them
   (Network.mu_profile with the planned arrival clock).
 
+Roadside stations (issue 16, item 4; `simulate_station_reports`): `stations_at_patches` stations stand at the centre of
+as many slippery patches (drawn among them), `stations_on_dry_road` on roads at least STATION_CLEARANCE_M from every
+patch; each reports every STATION_REPORT_S (60 s, from a random phase) what its sensors read at its spot, in report
+format v1 (roadgrip/cloud/stations.py):
+- surface state from the true mu there (`state_of`: <= 0.2 ice, <= 0.4 snow, < 0.65 wet with a 1-3 mm film, < 0.95
+  wet with a 0.05-0.2 mm film, else dry), moved one class along ice-snow-wet-moist-dry with probability
+  STATION_CONFUSION (0.1) per report: the misclassifications of optical sensors; a surface temperature that goes with
+  it (ice and snow -8..-1 C, else 1..8 C);
+- every other station (the odd ones) also has a friction sensor: the true mu capped at 1 plus N(0, 0.05), clipped to
+  [0, 1], with its class's +-0.1 uncertainty;
+- failures: each report is lost with probability STATION_LOSS (0.05); with probability 0.3 a station is out for one
+  spell of 10-30 min (no reports); with probability 0.2 it sticks for 10-20 min from a random instant, repeating the
+  reading it had then with new timestamps (a frozen sensor).
+Stations change no vehicle's estimate: the warnings without them are the service's warning engine's own input
+replayed without the station rounds (EngineRecorder, roadgrip/evaluation/fleet_sweep.py).
+
 Service: a CloudService (SQLite in a temporary folder, MQTT off, map_clock "data", no per-vehicle rate limit: the fleet
 is sent faster than real time) with the product's defaults otherwise (estimator pmf, warning and map settings). Every
 vehicle's samples go in timestamp order, one second (10 samples) a message, through `parse_payload` and
@@ -60,6 +76,7 @@ import pymap3d
 
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.stations import parse_reports
 from roadgrip.cloud.wire import parse_payload
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.fleet.fleet import _speed_profile, planned_arrival
@@ -88,6 +105,12 @@ PATCH_RADIUS_M = (40.0, 70.0)
 PATCH_CLEARANCE_M = 150.0  # between patch edges, and from a patch to any other road
 EVIDENCE_WINDOW_S = 600.0
 WAIT_STEP_S = 0.01
+STATION_REPORT_S = 60.0
+STATION_CLEARANCE_M = 300.0  # a dry-road station from the edge of every patch
+STATION_CONFUSION = 0.1  # a report's state one class off
+STATION_LOSS = 0.05  # a report lost
+STATION_FRICTION_NOISE = 0.05  # standard deviation of a friction sensor's reading
+STATE_ORDER = ("ice", "snow", "wet", "moist", "dry")  # a misread moves one step along
 EXCITED_UTILIZATION = 0.5  # DESIGN 4: an excited sample
 OBSERVABLE_SAMPLES = 3  # excited samples that make a pass observable (the warning engine's min_excited_per_pass)
 
@@ -101,6 +124,8 @@ class FleetConfig:
     appear_max_s: float = 1200.0  # patches appear in [0, appear_max_s] ...
     life_s: tuple[float, float] = (900.0, 1800.0)  # ... and dry up this long after
     snapshot_every_s: float = 300.0
+    stations_at_patches: int = 4  # roadside stations at slippery patches ...
+    stations_on_dry_road: int = 2  # ... and beside dry road
 
     def __post_init__(self):
         if self.vehicles < 1:
@@ -210,6 +235,94 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
     return FleetScenario(seed, config, network, tuple(trips), styles, vehicle_kinds)
 
 
+# --------------------------------------------------------------------------------------------------- stations
+@dataclass(frozen=True)
+class SimStation:
+    station_id: str
+    east_m: float
+    north_m: float
+    patch: str | None  # the patch it stands at, None beside dry road
+    friction_sensor: bool
+
+
+def state_of(mu: float, rng: np.random.Generator) -> tuple[str, float | None]:
+    """The surface state a station reads for a true mu, and its water film (mm)."""
+    if mu <= 0.2:
+        return "ice", 0.0
+    if mu <= 0.4:
+        return "snow", 0.0
+    if mu < 0.65:
+        return "wet", float(rng.uniform(1.0, 3.0))
+    if mu < 0.95:
+        return "wet", float(rng.uniform(0.05, 0.2))
+    return "dry", 0.0
+
+
+def place_stations(scenario: FleetScenario, rng: np.random.Generator) -> list[SimStation]:
+    """`stations_at_patches` at the centre of slippery patches drawn among them, `stations_on_dry_road` at road points
+    STATION_CLEARANCE_M from every patch's edge."""
+    config, network = scenario.config, scenario.network
+    slippery = [p for p in network.patches if p.mu is not None and p.mu < CONTROL_MU]
+    chosen = rng.choice(len(slippery), size=min(config.stations_at_patches, len(slippery)), replace=False)
+    stations = [SimStation(f"rws-{k:02d}", slippery[i].east_m, slippery[i].north_m, slippery[i].name, k % 2 == 1)
+                for k, i in enumerate(sorted(chosen.tolist()))]
+    points = np.concatenate([road.points_m for road in network.roads])
+    clear = np.ones(len(points), bool)
+    for patch in network.patches:
+        clear &= np.hypot(*(points - [patch.east_m, patch.north_m]).T) > patch.radius_m + STATION_CLEARANCE_M
+    candidates = np.flatnonzero(clear)
+    for k in range(config.stations_on_dry_road):
+        east, north = points[int(rng.choice(candidates))]
+        n = len(stations)
+        stations.append(SimStation(f"rws-{n:02d}", float(east), float(north), None, n % 2 == 1))
+    return stations
+
+
+def simulate_station_reports(scenario: FleetScenario, start_ms: int) -> tuple[list[SimStation], list[tuple]]:
+    """The stations (`place_stations`) and every report they send over the run, (t_s, report dict) in time order, with
+    their sensors' misreadings and failures (module docstring)."""
+    rng = np.random.default_rng([scenario.seed, 16])  # a stream of its own: the scenario's draws stay as they were
+    network, duration_s = scenario.network, scenario.config.duration_s
+    stations = place_stations(scenario, rng)
+    origin = network.origin
+    out = []
+    for station in stations:
+        lat, lon, _ = pymap3d.enu2geodetic(station.east_m, station.north_m, 0.0, *origin, 0.0)
+        outage = (-1.0, -1.0)
+        if rng.random() < 0.3:
+            begin = float(rng.uniform(0.0, duration_s))
+            outage = (begin, begin + float(rng.uniform(600.0, 1800.0)))
+        stuck = (-1.0, -1.0)
+        if rng.random() < 0.2:
+            begin = float(rng.uniform(0.0, duration_s))
+            stuck = (begin, begin + float(rng.uniform(600.0, 1200.0)))
+        frozen = None
+        for t in np.arange(float(rng.uniform(0.0, STATION_REPORT_S)), duration_s, STATION_REPORT_S).tolist():
+            mu = network.dry_mu
+            for patch in network.patches:
+                if patch.active(t) and patch.contains(station.east_m, station.north_m):
+                    mu = min(mu, patch.mu)
+            state, film = state_of(mu, rng)
+            if rng.random() < STATION_CONFUSION:
+                k = STATE_ORDER.index(state) + (1 if rng.random() < 0.5 else -1)
+                state = STATE_ORDER[min(len(STATE_ORDER) - 1, max(0, k))]
+            reading = {"surface_state": state, "water_film_thickness_mm": film,
+                       "surface_temperature_c": round(float(rng.uniform(-8.0, -1.0) if state in ("ice", "snow")
+                                                            else rng.uniform(1.0, 8.0)), 1)}
+            if station.friction_sensor:
+                friction = min(1.0, mu) + float(rng.normal(0.0, STATION_FRICTION_NOISE))
+                reading.update(friction=round(min(1.0, max(0.0, friction)), 3), friction_uncertainty=0.1)
+            if stuck[0] <= t < stuck[1]:
+                frozen = frozen or reading
+                reading = frozen
+            lost = outage[0] <= t < outage[1] or rng.random() < STATION_LOSS
+            if not lost:
+                out.append((round(t, 1), {"station_id": station.station_id, "timestamp_ms": start_ms + round(t * 1000),
+                                          "latitude_deg": float(lat), "longitude_deg": float(lon), **reading}))
+    out.sort(key=lambda item: (item[0], item[1]["station_id"]))
+    return stations, out
+
+
 # --------------------------------------------------------------------------------------------------- drives
 @dataclass
 class Drives:
@@ -267,9 +380,15 @@ class ServiceRun:
     stats: dict
     wall_s: float
     estimates: pa.Table | None = None  # every estimate row the warning engine took, in order (EngineRecorder)
+    stations: pa.Table | None = None  # every station evidence row it took (EngineRecorder.station_table)
+    station_reports: int = 0  # reports the stations sent
+    station_sites: tuple = ()  # the SimStations
 
 
 REPLAY_FIELDS = ("vehicle_id", "timestamp_ms", "latitude_deg", "longitude_deg", "mu_lower", "mu_upper", "excited")
+STATION_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("station_id", pa.string()),
+                            ("cell", pa.string()), ("timestamp_ms", pa.int64()), ("mu", pa.float64()),
+                            ("mu_lower", pa.float64()), ("mu_upper", pa.float64())])
 REPLAY_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("vehicle_id", pa.string()),
                            ("timestamp_ms", pa.int64()), ("latitude_deg", pa.float64()),
                            ("longitude_deg", pa.float64()), ("mu_lower", pa.float64()), ("mu_upper", pa.float64()),
@@ -279,12 +398,14 @@ REPLAY_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("vehi
 class EngineRecorder:
     """Stands in for the service's WarningEngine and passes every call on to it, keeping what each `update` took:
     the round (one call of Fanout), the service clock `now_ms` it was called with, and the fields of every estimate
-    row the engine reads (REPLAY_FIELDS), in the order given. `table()` holds them as REPLAY_SCHEMA;
+    row the engine reads (REPLAY_FIELDS), in the order given. `table()` holds them as REPLAY_SCHEMA; the roadside
+    stations' evidence (`station_evidence` calls, rounds counted with the others) `station_table()` as STATION_SCHEMA.
     roadgrip/evaluation/fleet_sweep.py replays them into engines with other settings."""
 
     def __init__(self, engine):
         self.engine = engine
         self._columns: dict[str, list] = {name: [] for name in REPLAY_SCHEMA.names}
+        self._station_columns: dict[str, list] = {name: [] for name in STATION_SCHEMA.names}
         self._rounds = 0
 
     def __getattr__(self, name):
@@ -300,8 +421,21 @@ class EngineRecorder:
         self._rounds += 1
         return self.engine.update(estimates, now_ms)
 
+    def station_evidence(self, rows, now_ms: int):
+        rows = list(rows)
+        columns = self._station_columns
+        columns["round"].extend([self._rounds] * len(rows))
+        columns["now_ms"].extend([int(now_ms)] * len(rows))
+        for name in STATION_SCHEMA.names[2:]:
+            columns[name].extend([row[name] for row in rows])
+        self._rounds += 1
+        return self.engine.station_evidence(rows, now_ms)
+
     def table(self) -> pa.Table:
         return pa.Table.from_pydict(self._columns, schema=REPLAY_SCHEMA)
+
+    def station_table(self) -> pa.Table:
+        return pa.Table.from_pydict(self._station_columns, schema=STATION_SCHEMA)
 
 
 def _wait_idle(service: CloudService) -> None:
@@ -321,13 +455,16 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
                            "admin_secret": "fleet-benchmark-admin", **settings})
     started = time.perf_counter()
     snapshots: dict[float, list] = {}
-    rejected = sent = 0
+    rejected = sent = station_sent = 0
     every = scenario.config.snapshot_every_s
     instants = [float(t) for t in np.arange(every, scenario.config.duration_s + 1e-6, every)]
+    stations, reports = simulate_station_reports(scenario, drives.start_ms)
     service = CloudService(settings)
     recorder = service.warning_engine = EngineRecorder(service.warning_engine)  # before start: Fanout takes it there
     with service:
         service.register_vehicles(sorted(scenario.kinds.items()))
+        for station in stations:
+            service.register_station(station.station_id)
         s = service.settings
         second = np.floor(drives.t_s).astype(np.int64)
         bounds = np.flatnonzero(np.diff(second)) + 1
@@ -351,6 +488,11 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
                 sent += len(rows)
                 futures.append(service.ingest.submit(vehicle_id, samples, len(samples) + len(errors)))
             t_end = float(second[a] + 1)
+            while reports and reports[0][0] < t_end:  # as the HTTP route does: parse, then store and fan out
+                _, report = reports.pop(0)
+                service.station_reports(parse_reports(orjson.dumps(report), station_id=report["station_id"],
+                                                      now_ms=int(time.time() * 1000)))
+                station_sent += 1
             while instants and t_end >= instants[0]:
                 _wait_idle(service)
                 instant = instants.pop(0)
@@ -378,7 +520,8 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
         warnings = storage.warnings(active_only=False)
     finally:
         storage.close()
-    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started, recorder.table())
+    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started, recorder.table(),
+                      recorder.station_table(), station_sent, tuple(stations))
 
 
 # --------------------------------------------------------------------------------------------------- truth

@@ -1,7 +1,13 @@
 """`roadgrip evaluate --benchmark fleet`: run the fleet benchmark (roadgrip/evaluation/fleet_benchmark.py) for several
 seeds, score it (roadgrip/evaluation/fleet_metrics.py) and write DIR/metrics.csv (per seed and pooled, per band and
-overall), DIR/patches.csv (one row per patch and seed), DIR/cells.csv (every map cell scored at a snapshot), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and
-the service's log DIR/cloud.log."""
+overall), DIR/patches.csv (one row per patch and seed), DIR/cells.csv (every map cell scored at a snapshot), DIR/stations.csv (detection with and without the roadside
+stations, per seed and pooled), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and the service's log
+DIR/cloud.log.
+
+With and without stations: the service runs with them (fleet_benchmark.simulate_station_reports); the warnings
+without them are the warning engine's recorded input replayed without the stations' rounds (fleet_sweep.replay at the
+product's settings), since stations change no vehicle's estimate. Replaying with the stations' rounds must give the
+service's own warnings back: checked per seed (`replay_matches_service`)."""
 
 from __future__ import annotations
 
@@ -62,6 +68,10 @@ class SeedResult:
     simulate_s: float
     truth: PatchTruth
     start_ms: int
+    without_rows: list[dict]  # summarize_run of the warnings without stations
+    without_patch_rows: list[dict]
+    without_kinds: list[str]
+    replay_matches_service: bool
 
 
 @dataclass(frozen=True)
@@ -144,8 +154,24 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
     dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
     rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
                                                              evidence_total, measured_total)]
+    from roadgrip.evaluation.fleet_sweep import as_warnings, engine_kwargs, replay, rounds_of
+
+    product = engine_kwargs()
+    without = as_warnings(replay(rounds_of(run.estimates), **product), start_ms)
+    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations), **product), start_ms)
+    matches = sorted(replayed, key=lambda w: (w.detection_s, w.cell)) == sorted(warnings,
+                                                                               key=lambda w: (w.detection_s, w.cell))
+    without_kinds, without_patch_rows = score_warnings(seed, truth, without, validity_s, config.duration_s)
+    at = {site.patch: site.station_id for site in run.station_sites if site.patch is not None}
+    for row, bare in zip(patch_rows, without_patch_rows):
+        row.update(station=at.get(row["patch"], ""), detected_without_stations=bare["detected"],
+                   time_to_first_s_without_stations=bare["time_to_first_s"],
+                   passes_to_first_without_stations=bare["passes_to_first"])
+    without_rows = [{"seed": str(seed), **r} for r in summarize_run(without_patch_rows, [], without_kinds, dry_km, 0,
+                                                                     0)]
     return SeedResult(seed, scenario, run, warnings, kinds, patch_rows, cell_scores, rows, dry_km, driven_total,
-                      evidence_total, measured_total, simulate_s, truth, start_ms)
+                      evidence_total, measured_total, simulate_s, truth, start_ms, without_rows, without_patch_rows,
+                      without_kinds, matches)
 
 
 def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetConfig = FleetConfig(),
@@ -186,6 +212,11 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
         sum(res.driven_cells for res in results), sum(res.cells_with_evidence for res in results),
         sum(res.cells_measured for res in results))]
     rows = [r for res in results for r in res.rows] + pooled
+    pooled_without = [{"seed": "pooled", **r} for r in summarize_run(
+        [r for res in results for r in res.without_patch_rows], [], [k for res in results for k in res.without_kinds],
+        sum(res.dry_km for res in results), 0, 0)]
+    station_rows = station_comparison(rows, [r for res in results for r in res.without_rows] + pooled_without)
+    pacsv.write_csv(pa.Table.from_pylist(station_rows), out / "stations.csv")
     columns = list(dict.fromkeys(k for r in rows for k in r))
     pacsv.write_csv(pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows]), out / "metrics.csv")
     pacsv.write_csv(pa.Table.from_pylist(patch_rows), out / "patches.csv")
@@ -193,13 +224,14 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
     from roadgrip.evaluation.fleet_plots import plot_detection_delay, plot_map_vs_truth
 
     paths = {"metrics": out / "metrics.csv", "patches": out / "patches.csv", "cells": out / "cells.csv",
+             "stations": out / "stations.csv",
              "report": out / "fleet.md",
              "log": out / "cloud.log",
              "map_vs_truth": plot_map_vs_truth(results[0], out / "map_vs_truth.png"),
              "detection_delay": plot_detection_delay(patch_rows, out / "detection_delay.png")}
     for res in results:
         paths[f"estimates_seed{res.seed}"] = out / f"estimates_seed{res.seed}.parquet"
-    report = fleet_markdown(rows, patch_rows, results, config, wall_s)
+    report = fleet_markdown(rows, patch_rows, results, config, wall_s) + "\n" + stations_markdown(station_rows, results)
     if sweep_rows is not None:
         from roadgrip.evaluation.fleet_plots import plot_tradeoff
         from roadgrip.evaluation.fleet_sweep import choose, tradeoff_markdown
@@ -211,6 +243,48 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
         report += "\n" + tradeoff_markdown(sweep_rows, chosen, sweep_s)
     (out / "fleet.md").write_text(report)
     return {"paths": paths, "rows": rows, "wall_s": wall_s, "sweep": sweep_rows}
+
+
+STATION_GROUPS = ("mu<=0.2", "0.2-0.4", "0.4-0.6", "mu<=0.3", "all")
+STATION_METRICS = ("recall", "recall_all", "within_3rd_pass", "time_to_first_median_s", "passes_to_first_median",
+                   "linger_max_s", "linger_over_10min", "warnings", "warnings_beside", "false_warnings")
+
+
+def station_comparison(with_rows: list[dict], without_rows: list[dict]) -> list[dict]:
+    """One row per seed (and pooled) and group: each of STATION_METRICS with the stations and without them."""
+    bare = {(r["seed"], r["group"]): r for r in without_rows}
+    out = []
+    for r in with_rows:
+        if r["group"] not in STATION_GROUPS:
+            continue
+        b = bare[(r["seed"], r["group"])]
+        row = {"seed": r["seed"], "group": r["group"], "patches": r["patches"], "eligible": r["eligible"]}
+        for name in STATION_METRICS:  # warnings are counted over the whole run ("all") only
+            row[f"{name}_with"], row[f"{name}_without"] = r.get(name), b.get(name)
+        out.append(row)
+    return out
+
+
+def stations_markdown(rows: list[dict], results: list[SeedResult]) -> str:
+    lines = ["## Roadside stations: detection with and without them", ""]
+    for res in results:
+        sites = ", ".join(f"{s.station_id} at {s.patch or 'dry road'}{' (friction sensor)' if s.friction_sensor else ''}"
+                          for s in res.run.station_sites)
+        lines.append(f"- seed {res.seed}: {res.run.station_reports} reports from {len(res.run.station_sites)} stations "
+                     f"({sites}); replaying the engine's input with the stations' rounds gives the service's warnings: "
+                     f"{'yes' if res.replay_matches_service else 'NO'}")
+    lines += ["", ("| seed | group | eligible | recall (with / without) | recall, all patches | by 3rd pass | "
+                   "time to 1st, median (min) | passes to 1st, median | longest linger (min) | warnings | "
+                   "beside or after | false |"),
+              "| --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        def pair(name, convert=_fmt):
+            return f"{convert(r.get(f'{name}_with'))} / {convert(r.get(f'{name}_without'))}"
+        lines.append(f"| {r['seed']} | {r['group']} | {r['eligible']} | {pair('recall')} | {pair('recall_all')} | "
+                     f"{pair('within_3rd_pass')} | {pair('time_to_first_median_s', _minutes)} | "
+                     f"{pair('passes_to_first_median')} | {pair('linger_max_s', _minutes)} | {pair('warnings')} | "
+                     f"{pair('warnings_beside')} | {pair('false_warnings')} |")
+    return "\n".join(lines) + "\n"
 
 
 def _fmt(value, digits: int = 2) -> str:

@@ -2,7 +2,8 @@
 fleet benchmark run (fleet_benchmark.EngineRecorder: per round, its clock and its rows) are replayed offline into
 engines with other settings, and each setting is scored by the benchmark's own scoring (fleet_report.score_warnings,
 fleet_metrics.summarize_run). Replaying at the service's settings gives the service's warnings exactly (checked on
-every run: `replay_matches_service`), since the engine is a pure function of its calls.
+every run: `replay_matches_service`), since the engine is a pure function of its calls; the roadside stations'
+evidence (EngineRecorder.station_table) is replayed in its rounds too (`WarningEngine.station_evidence`).
 
 The product's setting is chosen from the curve by RULE (`choose`).
 """
@@ -54,14 +55,20 @@ def grid_settings(grid: dict = GRID) -> list[dict]:
     return [dict(zip(names, values)) for values in itertools.product(*(grid[n] for n in names))]
 
 
-def rounds_of(estimates: pa.Table) -> list[tuple[int, list[dict]]]:
-    """(now_ms, rows) per recorded round, in order."""
-    rows = estimates.drop_columns(["round", "now_ms"]).to_pylist()
-    rounds = estimates["round"].to_numpy()
-    now = estimates["now_ms"].to_numpy()
+def _numbered_rounds(table: pa.Table) -> list[tuple[int, int, list[dict]]]:
+    rows = table.drop_columns(["round", "now_ms"]).to_pylist()
+    rounds = table["round"].to_numpy()
+    now = table["now_ms"].to_numpy()
     starts = np.concatenate([[0], np.flatnonzero(np.diff(rounds)) + 1]) if rounds.size else np.array([], int)
     ends = np.concatenate([starts[1:], [rounds.size]]) if rounds.size else np.array([], int)
-    return [(int(now[a]), rows[a:b]) for a, b in zip(starts.tolist(), ends.tolist())]
+    return [(int(rounds[a]), int(now[a]), rows[a:b]) for a, b in zip(starts.tolist(), ends.tolist())]
+
+
+def rounds_of(estimates: pa.Table, stations: pa.Table | None = None) -> list[tuple[int, list[dict]]]:
+    """(now_ms, rows) per recorded round, in order: the estimates' rounds and, when given, the stations' (whose rows
+    hold a "cell")."""
+    numbered = _numbered_rounds(estimates) + ([] if stations is None else _numbered_rounds(stations))
+    return [(now_ms, rows) for _, now_ms, rows in sorted(numbered, key=lambda r: r[0])]
 
 
 def replay(rounds: list[tuple[int, list[dict]]], **engine_kwargs) -> dict[str, tuple]:
@@ -70,7 +77,8 @@ def replay(rounds: list[tuple[int, list[dict]]], **engine_kwargs) -> dict[str, t
     engine = WarningEngine(**engine_kwargs)
     latest: dict[str, tuple] = {}
     for now_ms, rows in rounds:
-        for e in engine.update(rows, now_ms):
+        events = engine.station_evidence(rows, now_ms) if "cell" in rows[0] else engine.update(rows, now_ms)
+        for e in events:
             latest[e.warning_id] = (e.cell, e.detection_ms, e.status, e.reason, e.evidence_ms)
     return latest
 
@@ -111,7 +119,7 @@ def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings
         candidates.append(product)
     say = progress or (lambda message, fraction: None)
     global _ROUNDS
-    _ROUNDS = [(rounds_of(res.run.estimates), res.start_ms) for res in results]  # the workers inherit them (fork)
+    _ROUNDS = [(rounds_of(res.run.estimates, res.run.stations), res.start_ms) for res in results]  # the workers inherit them (fork)
     jobs = [{**base, **setting} for setting in candidates]
     try:
         if workers > 1:

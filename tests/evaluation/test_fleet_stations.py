@@ -1,0 +1,78 @@
+"""The fleet benchmark's roadside stations (roadgrip/evaluation/fleet_benchmark.py, simulate_station_reports): placed
+at patches and beside dry road, seeded, reports every 60 s in format v1 that read the truth with some noise and fail
+now and then; and the with / without comparison of a tiny run (roadgrip/evaluation/fleet_report.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import orjson
+import pyarrow.csv as pacsv
+
+from roadgrip.cloud.stations import parse_reports
+from roadgrip.evaluation.fleet_benchmark import (
+    STATION_CLEARANCE_M,
+    STATION_REPORT_S,
+    FleetConfig,
+    make_scenario,
+    simulate_station_reports,
+    state_of,
+)
+from roadgrip.evaluation.fleet_report import run_fleet_benchmark
+
+START_MS = 1_700_000_000_000
+CONFIG = FleetConfig(vehicles=2, duration_s=3600.0)
+
+
+def test_state_of_reads_the_bands_of_the_benchmark():
+    rng = np.random.default_rng(0)
+    assert [state_of(mu, rng)[0] for mu in (0.05, 0.2, 0.3, 0.5, 0.8, 1.17)] == ["ice", "ice", "snow", "wet", "wet",
+                                                                                   "dry"]
+    assert state_of(0.5, rng)[1] > state_of(0.8, rng)[1]  # a slippery wet patch holds more water
+
+
+def test_stations_are_seeded_placed_and_report_in_format_v1_with_failures():
+    scenario = make_scenario(3, CONFIG)
+    stations, reports = simulate_station_reports(scenario, START_MS)
+    again, reports_again = simulate_station_reports(scenario, START_MS)
+    assert stations == again and reports == reports_again
+    assert [s.patch is not None for s in stations] == [True] * 4 + [False] * 2
+    patches = {p.name: p for p in scenario.network.patches}
+    for station in stations:
+        if station.patch is None:
+            assert all(math.hypot(station.east_m - p.east_m, station.north_m - p.north_m) > p.radius_m +
+                       STATION_CLEARANCE_M for p in patches.values())
+        else:
+            assert patches[station.patch].mu < 0.65
+    for _, report in reports:  # every report passes the service's own validation
+        parse_reports(orjson.dumps(report), station_id=report["station_id"], now_ms=START_MS + 3_600_000)
+    for station in stations:
+        times = np.array([t for t, r in reports if r["station_id"] == station.station_id])
+        off = np.diff(times) % STATION_REPORT_S
+        assert np.all(np.minimum(off, STATION_REPORT_S - off) < 0.2) and len(times) <= 60
+    assert len(reports) < 6 * 60  # lost reports and outages
+    at_patch = [s for s in stations if s.patch is not None]
+    for station in at_patch:  # while its patch is there the station mostly reads it slippery
+        patch = patches[station.patch]
+        states = [r["surface_state"] for t, r in reports
+                  if r["station_id"] == station.station_id and patch.appear_s <= t < patch.dry_s]
+        if len(states) >= 10 and patch.mu <= 0.4:
+            assert sum(s in ("ice", "snow") for s in states) >= 0.6 * len(states)
+
+
+def test_a_tiny_run_reports_detection_with_and_without_stations(tmp_path):
+    config = FleetConfig(vehicles=3, duration_s=300.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
+                         life_s=(200.0, 250.0), snapshot_every_s=150.0, stations_at_patches=2, stations_on_dry_road=1)
+    result = run_fleet_benchmark(tmp_path, seed=2, seeds=1, config=config)
+    rows = pacsv.read_csv(tmp_path / "stations.csv").to_pylist()
+    assert {r["seed"] for r in rows} == {"2", "pooled"}
+    assert {r["group"] for r in rows} == {"mu<=0.2", "0.2-0.4", "0.4-0.6", "mu<=0.3", "all"}
+    overall = next(r for r in rows if r["seed"] == "pooled" and r["group"] == "all")
+    assert overall["warnings_with"] >= overall["warnings_without"]
+    report = (tmp_path / "fleet.md").read_text()
+    assert "## Roadside stations: detection with and without them" in report
+    assert "gives the service's warnings: yes" in report
+    patches = pacsv.read_csv(tmp_path / "patches.csv").to_pylist()
+    assert sum(bool(p["station"]) for p in patches) == 2 and "detected_without_stations" in patches[0]
+    assert result["paths"]["stations"] == tmp_path / "stations.csv"
