@@ -13,11 +13,14 @@ Rules
    a row older than its vehicle's current pass from another cell, or older than the vehicle's last judged pass, arrives
    too late to change a verdict and is dropped (counted in `late_rows_`). A late row of the current pass's cell joins
    the pass.
-2. Verdict of a pass, from its excited estimates only (a non-excited estimate says nothing about mu):
-   "low" with at least min_excited_per_pass of them and their median mu_upper < threshold_mu (even the optimistic
-   bound is slippery); "dry" with at least min_excited_per_pass and their median mu_lower >= threshold_mu (even the
-   pessimistic bound has grip); otherwise "unknown", which changes nothing. Medians, so that a few outliers in a pass of
-   tens of samples cannot decide it. The two are exclusive since mu_lower <= mu_upper sample by sample.
+2. Verdict of a pass, from its excited estimates (a non-excited estimate's interval says nothing about mu) and from
+   what its estimates prove: "low" with at least min_excited_per_pass excited ones and their median mu_upper <
+   threshold_mu (even the optimistic bound is slippery); otherwise "dry" when the largest mu_proven of its estimates,
+   excited or not, reaches threshold_mu (the car's own acceleration showed that much grip there: a calm pass cornering
+   at 0.45 g is a dry pass), or with at least min_excited_per_pass excited ones whose median mu_lower >= threshold_mu
+   (even the pessimistic bound has grip); otherwise "unknown", which changes nothing. Medians, so that a few outliers
+   in a pass of tens of samples cannot decide it. "Low" is judged first: a pass whose estimates read low although one
+   of its samples proved grip straddles a patch's edge within the cell, and the low reading is the one that warns.
 3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (of two vehicles, or repeated passes
@@ -179,12 +182,13 @@ def _time_of(p: _LowPass) -> int:
 
 
 class _Pass:
-    __slots__ = ("cell", "first_ms", "last_ms", "lowers", "uppers", "vehicle_id")
+    __slots__ = ("cell", "first_ms", "last_ms", "lowers", "proven", "uppers", "vehicle_id")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
         self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
         self.uppers: list[float] = []
         self.lowers: list[float] = []
+        self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
 
 
 class _Warning:
@@ -286,6 +290,9 @@ class WarningEngine:
                 if current is not None:
                     closed.append(self._close(current))
                 current = open_passes[vehicle] = _Pass(vehicle, cell, t)
+            proven = row.get("mu_proven")
+            if proven is not None and proven > current.proven:
+                current.proven = proven
             if row["excited"]:
                 lo, hi = row["mu_lower"], row["mu_upper"]
                 if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -364,19 +371,19 @@ class WarningEngine:
         self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
         return finished
 
-    def verdict(self, uppers: list[float], lowers: list[float]) -> str:
-        """The verdict of a pass from the mu_upper and mu_lower of its excited estimates (rule 2)."""
-        if len(uppers) < self.min_excited_per_pass:
-            return UNKNOWN
-        if statistics.median(uppers) < self.threshold_mu:
+    def verdict(self, uppers: list[float], lowers: list[float], proven: float = 0.0) -> str:
+        """The verdict of a pass from the mu_upper and mu_lower of its excited estimates and the largest mu_proven of
+        all its estimates (rule 2)."""
+        judged = len(uppers) >= self.min_excited_per_pass
+        if judged and statistics.median(uppers) < self.threshold_mu:
             return LOW
-        if statistics.median(lowers) >= self.threshold_mu:
+        if proven >= self.threshold_mu or (judged and statistics.median(lowers) >= self.threshold_mu):
             return DRY
         return UNKNOWN
 
     def _apply(self, finished: _Pass, now_ms: int, events: list[WarningEvent], verdict: str | None = None) -> None:
         """Apply a judged pass to its cell (rules 4-7); its verdict by rule 2 unless given (a station's, rule 8)."""
-        verdict = self.verdict(finished.uppers, finished.lowers) if verdict is None else verdict
+        verdict = self.verdict(finished.uppers, finished.lowers, finished.proven) if verdict is None else verdict
         if verdict == UNKNOWN:
             return
         t = finished.last_ms

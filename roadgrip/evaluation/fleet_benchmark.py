@@ -385,14 +385,15 @@ class ServiceRun:
     station_sites: tuple = ()  # the SimStations
 
 
-REPLAY_FIELDS = ("vehicle_id", "timestamp_ms", "latitude_deg", "longitude_deg", "mu_lower", "mu_upper", "excited")
+REPLAY_FIELDS = ("vehicle_id", "timestamp_ms", "latitude_deg", "longitude_deg", "mu_lower", "mu_upper", "excited",
+                 "mu_proven")
 STATION_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("station_id", pa.string()),
                             ("cell", pa.string()), ("timestamp_ms", pa.int64()), ("mu", pa.float64()),
                             ("mu_lower", pa.float64()), ("mu_upper", pa.float64())])
 REPLAY_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("vehicle_id", pa.string()),
                            ("timestamp_ms", pa.int64()), ("latitude_deg", pa.float64()),
                            ("longitude_deg", pa.float64()), ("mu_lower", pa.float64()), ("mu_upper", pa.float64()),
-                           ("excited", pa.bool_())])
+                           ("excited", pa.bool_()), ("mu_proven", pa.float64())])
 
 
 class EngineRecorder:

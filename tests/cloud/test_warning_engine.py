@@ -127,6 +127,24 @@ def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
         assert denm["denm"]["management"]["actionID"]["sequenceNumber"] == event.action_sequence_number
 
 
+def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
+    engine = WarningEngine(min_dry_passes=1)
+    stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    calm = [{**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.45}
+            for r in drive("c", T0_MS + 300_000, slippery=set())]
+    events = stream(engine, calm)
+    assert {e.cell for e in events} == PATCH and engine.active() == []
+    assert {(e.status, e.reason) for e in events} == {("cancelled", "recovered")}
+
+
+def test_the_verdict_reads_low_before_what_a_sample_proved_and_proof_below_threshold_is_no_verdict():
+    engine = WarningEngine(threshold_mu=0.4, min_excited_per_pass=3)
+    assert engine.verdict([0.3, 0.3, 0.3], [0.1, 0.1, 0.1], proven=0.5) == "low"  # a pass across a patch's edge
+    assert engine.verdict([], [], proven=0.41) == "dry"
+    assert engine.verdict([], [], proven=0.39) == "unknown"
+    assert engine.verdict([0.9, 0.9], [0.5, 0.5], proven=0.0) == "unknown"  # too few excited estimates
+
+
 def test_one_dry_pass_does_not_cancel_when_two_are_needed():
     engine = WarningEngine(min_dry_passes=2)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
