@@ -1,5 +1,6 @@
 """The live dashboard of `roadgrip serve`: one page that shows the friction map, the active warnings, every vehicle's
-latest position and one chosen vehicle's mu with its 90 % interval over time.
+latest position, the roadside stations (their latest report: surface state, temperature, water film, friction, the mu
+it gave and its age) and one chosen vehicle's mu with its 90 % interval over time.
 
 | route | who | does |
 | --- | --- | --- |
@@ -8,7 +9,7 @@ latest position and one chosen vehicle's mu with its 90 % interval over time.
 | GET /dashboard/static/... | anyone | the page's script and style, and Leaflet 1.9.4 (vendored: no internet needed) |
 | GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate (DESIGN 3.4) with its position |
 
-Data. The page is a reader like any other: it calls /v1/map, /v1/warnings, /v1/vehicles/latest and
+Data. The page is a reader like any other: it calls /v1/map, /v1/warnings, /v1/vehicles/latest, /v1/stations and
 /v1/vehicles/{id}/estimates with HTTP Basic credentials. It takes them from the URL fragment
 (`/dashboard#operator:SECRET`: a browser never sends the fragment to the server, nor in a Referer) or from its login
 form, keeps them in the tab's sessionStorage and removes the fragment from the address bar.
@@ -16,7 +17,7 @@ form, keeps them in the tab's sessionStorage and removes the fragment from the a
 Live by polling, every REFRESH_INTERVAL_S, not by a websocket: each view is a snapshot the server computes on request
 anyway (the map at this instant, the active warnings), so polling needs no connection state or fan-out in the service,
 authenticates every request the same way as any API call, passes proxies and load balancers that do not upgrade
-connections, and recovers from a restart by itself. At 1 s it costs four small requests a second per open page, the
+connections, and recovers from a restart by itself. At 1 s it costs five small requests a second per open page, the
 chart's only asking for the estimates newer than those it has. A push channel pays off for sub-second latency or many
 viewers, neither of which a control-room page has.
 
@@ -26,7 +27,7 @@ makes no request outside this server. The page's Content-Security-Policy admits 
 and nothing else from outside.
 
 Test hook: when the page has drawn, its root element (#dashboard) carries data-status ("ok", "login", "unauthorized",
-"forbidden", "error", "unreachable"), data-cells, data-cells-measured, data-warnings, data-vehicles, data-chart-vehicle,
+"forbidden", "error", "unreachable"), data-cells, data-cells-measured, data-warnings, data-vehicles, data-stations, data-chart-vehicle,
 data-chart-points and data-updated (ms since the epoch, browser clock), which `chromium --headless --dump-dom` shows.
 """
 

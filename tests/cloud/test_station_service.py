@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import time
 
+import httpx
 import pytest
 import sqlalchemy as sa
 from broker_fixtures import wait_until
@@ -212,3 +213,23 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
     assert (ended.status, ended.reason, ended.evidence_ms) == ("cancelled", "recovered", 180_000)
     with pytest.raises(ValueError, match="mu_lower"):
         engine.station_evidence([row(240_000, 0.5, 0.3)], 240_000)
+
+
+def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
+    from test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
+
+    require_chromium()
+    now = int(time.time() * 1000)
+    with serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (service, base_url), \
+            httpx.Client(base_url=base_url, timeout=30) as client:
+        stations = [add_station(client, name) for name in ("rws-icy", "rws-dry")]
+        for (name, secret), state in zip(stations, ("ice", "dry")):
+            answer = client.post(f"/v1/stations/{name}/reports", json=report(name, now - 300_000, state),
+                                 auth=(name, secret))
+            assert answer.status_code == 200, answer.text
+        secret = client.post("/v1/readers", json={"name": "operator"}, auth=ADMIN).json()["secret"]
+        dom = run_chromium(f"{base_url}/dashboard#operator:{secret}", "--dump-dom")
+    shown = attributes_by_id(dom)["dashboard"]
+    assert shown["data-status"] == "ok", shown
+    assert shown["data-stations"] == "2" and dom.count("station-icon") == 2
+    assert "rws-icy" in dom and "ice, -3.0 °C" in dom and "5 min ago" in dom

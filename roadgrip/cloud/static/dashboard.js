@@ -19,7 +19,7 @@
     config: null, auth: null, map: null, fitted: false, timer: null, busy: false, again: false,
     vehicle: new URLSearchParams(location.search).get('vehicle'),
     series: [], seriesVehicle: null,  // the chosen vehicle's estimates in the chart, oldest first
-    cells: new Map(), warnings: new Map(), vehicles: new Map(),  // drawn layers by key
+    cells: new Map(), warnings: new Map(), vehicles: new Map(), stations: new Map(),  // drawn layers by key
     cellRings: new Map(),  // H3 cell id -> its polygon [[lat, lon], ...], for the warnings' outlines
   };
 
@@ -126,7 +126,7 @@
   // ------------------------------------------------------------------------------------------------ map
   function initMap() {
     const map = L.map('map', {zoomSnap: 0.25}).setView([20, 0], 2);
-    for (const [pane, z] of [['cells', 410], ['warnings', 420], ['vehicles', 430]]) {
+    for (const [pane, z] of [['cells', 410], ['warnings', 420], ['stations', 425], ['vehicles', 430]]) {
       map.createPane(pane).style.zIndex = String(z);
     }
     if (state.config.map_tiles_url) {
@@ -258,11 +258,62 @@
     return placed.length;
   }
 
+  // Roadside stations (roadgrip/cloud/stations.py): a diamond at the station, filled with the colour of the mu its
+  // latest report gave (white: no evidence, surface state unknown), dashed once the report is older than STALE_S.
+  const STALE_S = 300;  // five missed reports of a station reporting every minute
+
+  function age(seconds) {
+    return seconds < 120 ? `${Math.round(seconds)} s` : `${Math.round(seconds / 60)} min`;
+  }
+
+  function stationText(s, ageS) {
+    const parts = [s.surface_state];
+    if (s.surface_temperature_c !== null) parts.push(`${fmt(s.surface_temperature_c, 1)} \u00b0C`);
+    if (s.water_film_thickness_mm !== null) parts.push(`film ${fmt(s.water_film_thickness_mm)} mm`);
+    if (s.friction !== null) parts.push(`friction ${fmt(s.friction)}`);
+    return parts.join(', ') + (s.mu !== null ? `; mu ${fmt(s.mu)} (90 %: ${fmt(s.mu_lower)} to ${fmt(s.mu_upper)})`
+                                             : '; no friction evidence') + `; ${age(ageS)} ago`;
+  }
+
+  function drawStations(answer) {
+    const now = answer.server_time_ms;
+    sync(state.stations, answer.stations, (s) => s.station_id,
+      (s) => L.marker([s.latitude_deg, s.longitude_deg], {pane: 'stations', keyboard: false,
+                                                           icon: L.divIcon({className: 'station-icon', iconSize: [14, 14]})})
+        .bindTooltip(''),
+      (layer, s) => {
+        const ageS = Math.max(0, (now - s.timestamp_ms) / 1000);
+        layer.setLatLng([s.latitude_deg, s.longitude_deg]);
+        const element = layer.getElement();
+        if (element) {
+          element.style.background = s.mu !== null ? muColour(s.mu) : '#fff';
+          element.classList.toggle('stale', ageS > STALE_S);
+        }
+        layer.setTooltipContent(`<b>station ${esc(s.station_id)}</b><br>${esc(stationText(s, ageS))}`);
+      });
+    $('station-count').textContent = `(${answer.stations.length})`;
+    $('station-list').replaceChildren(...answer.stations.map((s) => {
+      const li = document.createElement('li');
+      const swatch = document.createElement('i');
+      swatch.className = 'swatch station';
+      swatch.style.background = s.mu !== null ? muColour(s.mu) : '#fff';
+      const name = document.createElement('span');
+      name.textContent = s.station_id;
+      const text = document.createElement('span');
+      text.className = 'mu';
+      text.textContent = stationText(s, Math.max(0, (now - s.timestamp_ms) / 1000));
+      li.append(swatch, name, text);
+      return li;
+    }));
+    return answer.stations.length;
+  }
+
   function fitOnce() {
     if (state.fitted) return;
     const bounds = L.latLngBounds([]);
     for (const cell of state.cells.values()) bounds.extend(cell.getBounds());
     for (const vehicle of state.vehicles.values()) bounds.extend(vehicle.getLatLng());
+    for (const station of state.stations.values()) bounds.extend(station.getLatLng());
     if (bounds.isValid()) {
       state.map.fitBounds(bounds, {padding: [40, 40], maxZoom: 17, animate: false});
       state.fitted = true;
@@ -369,19 +420,20 @@
 
   // ------------------------------------------------------------------------------------------------ the loop
   async function refresh() {
-    const [geojson, warnings, latest] = await Promise.all([
-      api('/v1/map'), api('/v1/warnings'), api('/v1/vehicles/latest')]);
+    const [geojson, warnings, latest, stations] = await Promise.all([
+      api('/v1/map'), api('/v1/warnings'), api('/v1/vehicles/latest'), api('/v1/stations')]);
     const cells = drawCells(geojson);
     const nWarnings = drawWarnings(warnings.warnings);
     if (!state.vehicle && latest.vehicles.length) state.vehicle = latest.vehicles[0].vehicle_id;
     const nVehicles = drawVehicles(latest.vehicles);
+    const nStations = drawStations(stations);
     fitOnce();
     await refreshChart(latest.vehicles);
     const dataUntil = Math.max(0, ...latest.vehicles.map((v) => v.timestamp_ms));
     setData({cells: cells.cells, cellsMeasured: cells.measured, warnings: nWarnings, vehicles: nVehicles,
-             updated: Date.now()});
+             stations: nStations, updated: Date.now()});
     setStatus('ok', `live: ${cells.cells} cells (${cells.measured} with mu), ${nWarnings} warning(s), ` +
-                    `${latest.vehicles.length} vehicle(s)` +
+                    `${latest.vehicles.length} vehicle(s), ${nStations} station(s)` +
                     (dataUntil ? `; newest estimate ${new Date(dataUntil).toISOString().slice(0, 19)} UTC` : ''));
   }
 
