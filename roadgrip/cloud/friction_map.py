@@ -6,7 +6,8 @@ longitude_deg, mu, mu_lower, mu_upper, excited and, from a guarded estimator, mu
 stations' friction evidence (roadgrip/cloud/stations.py); `cells(now_ms)` summarises every cell with evidence younger
 than `max_age_s`. Rows without a position are ignored.
 
-Evidence, on a grid of mu (MU_GRID: 0 to 1.2 in steps of 0.02; the prior is flat over it)
+Evidence, on a grid of mu (MU_GRID: 0 to 1.5 in steps of 0.02, the range a road may be given, roadgrip/sim/roads.py;
+the prior is flat over it)
 - An estimate's 90 % interval [l, u] says "mu is above l" and "mu is below u". Each side is a soft step:
 
       L_low(mu) = eps + (1 - eps) Phi((mu - l) / s),   L_high(mu) = eps + (1 - eps) Phi((u - mu) / s)
@@ -15,14 +16,15 @@ Evidence, on a grid of mu (MU_GRID: 0 to 1.2 in steps of 0.02; the prior is flat
   inside a wide interval is mostly the estimator's prior (pmf: "mu >= 0.3, most probably 0.8" from a car that only
   proved 0.3); multiplying such points would make the prior look like evidence. The edge s = W / 8 (W = u - l, at
   least min_interval_width = 0.1): a plateau of width W puts about 0.4 s / W = 5 % of its mass beyond each end, so that
-  one estimate alone gives back its own 90 % interval. The upper side is skipped where u reaches the grid's end (it
-  says nothing).
+  one estimate alone gives back its own 90 % interval. The upper side is skipped where u is at least the estimators'
+  "nothing known above" end, 1.2 (roadgrip/estimators/guard.py PRIOR_UPPER_MU): an interval [0.6, 1.2] says mu >= 0.6,
+  nothing more, and dry asphalt (1.17 in the simulator) must stay inside the cell's interval.
 - eps = outlier_rate (0.005), the chance that a piece of evidence is wrong beyond its interval (a mislocated sample,
   an estimator's model error), keeps the fusion robust: Gaussian tails alone would let one confident, wrong estimate
   veto any number of others (log Phi(-7) = -27); with eps, evidence that disagrees costs at most log(1/eps) = 5.3 a
   pass, so a road that changed (ice that dried) is decided by how many recent passes say which, and a cell split
-  between two surfaces shows both in its interval. It costs a single narrow estimate little: eps (1.2 - W) / W of
-  extra mass outside (2.5 % for W = 0.2).
+  between two surfaces shows both in its interval. It costs a single narrow estimate little: eps (1.5 - W) / W of
+  extra mass outside (3 % for W = 0.2).
 - What a pass proves even without excitation (a car cornering at 0.4 g proves mu >= 0.37): the largest mu_proven of
   the pass's estimates, b, as a sharp lower side Phi((mu - b) / proven_sigma) (0.02: the guard's bound already leaves
   two sigma of the accelerometer's noise and bias, roadgrip/estimators/guard.py), with the same eps. Bounds below
@@ -43,7 +45,8 @@ Cell values: the posterior p(mu) ~ exp(sum_passes w ll_pass + sum_stations w ll_
 (a plateau has no single most probable value), mu_lower and mu_upper its 5 % and 95 % quantiles (linear between grid
 points). `weight` is sum w: the effective number of passes and station reports. Status:
 - "measured": recent excited estimates or a station report in the cell;
-- "bounded": only proven lower bounds (calm passes); mu_lower is then about the largest bound, mu_upper the grid's end;
+- "bounded": only proven lower bounds (calm passes); mu_lower is then about the largest bound, mu_upper near the
+  grid's end;
 - "no_recent_excited_evidence": the cell was driven but nothing in the window says anything about its mu; mu,
   mu_lower, mu_upper are None.
 
@@ -72,8 +75,10 @@ import numpy as np
 from scipy.special import ndtr
 
 from roadgrip.cloud.exports import geojson
+from roadgrip.estimators.guard import PRIOR_UPPER_MU
+from roadgrip.sim.roads import MU_MAX as SIM_MU_MAX
 
-MU_GRID = np.linspace(0.0, 1.2, 61)  # the map's mu values: the estimators' prior range (guard.py PRIOR_UPPER_MU)
+MU_GRID = np.linspace(0.0, SIM_MU_MAX, int(round(SIM_MU_MAX / 0.02)) + 1)  # the map's mu values, 0.02 apart
 MU_MAX = float(MU_GRID[-1])
 EDGE_PER_WIDTH = 0.125  # an interval's soft edge per its width: 0.4 s / W = 5 % of a plateau beyond each end
 BUCKETS_PER_MAX_AGE = 6  # time buckets per max_age_s: memory per cell against how long old evidence lingers
@@ -206,7 +211,7 @@ class FrictionMap:
         upper = np.asarray(upper, dtype=np.float64)[:, None]
         edge = EDGE_PER_WIDTH * np.maximum(upper - lower, self.min_interval_width)
         ll = self._soft((MU_GRID - lower) / edge)
-        return ll + np.where(upper < MU_MAX, self._soft((upper - MU_GRID) / edge), 0.0)
+        return ll + np.where(upper < PRIOR_UPPER_MU, self._soft((upper - MU_GRID) / edge), 0.0)
 
     def proven_log_likelihood(self, proven: float) -> np.ndarray:
         """Log-likelihood on MU_GRID of "mu >= proven" (a pass's largest bound)."""

@@ -73,8 +73,16 @@ def test_a_calm_pass_proves_its_bound():
     fmap.add([est(mu=0.8, lo=0.1, hi=1.2, excited=False, proven=0.4)])
     cell = only_cell(fmap, T0_MS)
     assert cell.status == "bounded" and cell.mu_proven == pytest.approx(0.4)
-    assert cell.mu_lower == pytest.approx(0.4, abs=0.04) and cell.mu_upper > 1.1
+    # the posterior is flat above the bound: its 5 % quantile lies 5 % of the way from the bound to the grid's end
+    assert cell.mu_lower == pytest.approx(0.4 + 0.05 * (1.5 - 0.4), abs=0.02) and cell.mu_upper > 1.4
     assert cell.n_excited == 0 and cell.last_excited_ms is None
+
+
+def test_an_interval_open_above_leaves_dry_asphalt_inside():
+    fmap = FrictionMap()
+    fmap.add([est(mu=0.9, lo=0.6, hi=1.2, vehicle=f"v{k}") for k in range(4)])  # "mu >= 0.6": nothing more
+    cell = only_cell(fmap, T0_MS)
+    assert 0.6 < cell.mu_lower < 0.75 and cell.mu_lower < 1.17 < cell.mu_upper
 
 
 def test_a_bound_below_min_proven_is_no_evidence():
@@ -151,7 +159,7 @@ def brute_force(rows, now_ms, fmap: FrictionMap):
             for r in excited:
                 s = max(r["mu_upper"] - r["mu_lower"], fmap.min_interval_width) / 8
                 step = soft((MU_GRID - r["mu_lower"]) / s)
-                if r["mu_upper"] < MU_GRID[-1]:
+                if r["mu_upper"] < 1.2:  # the estimators' "nothing known above"
                     step = step + soft((r["mu_upper"] - MU_GRID) / s)
                 ll += step / len(excited)
                 informative = True
