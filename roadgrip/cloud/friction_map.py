@@ -54,10 +54,10 @@ Storage: no estimate is kept. A vehicle's pass in progress holds the sum of its 
 pass is folded into its cell's running sums per time bucket (bucket_s = max_age_s / 6, keyed by the pass's last
 timestamp // bucket_ms), anchored at the bucket's newest pass time: a later pass first re-anchors the sums (multiplies
 them by 2^((ref - t) / half_life)), so that no exponent is ever positive, and `cells(now)` multiplies each bucket by
-2^((ref - now) / half_life): the fade is exact and lazy. Passes in progress are counted in `cells` as they stand. A bucket
-leaves when its newest pass is older than max_age_s, so evidence counts for at least max_age_s and at most max_age_s +
-bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` frees buckets, cells and passes whose
-vehicle has been gone for pass_gap_s; `add` calls it once per bucket_s of clock.
+2^((ref - now) / half_life): the fade is exact and lazy. Passes in progress are counted in `cells` as they stand. A
+bucket leaves when its newest pass is older than max_age_s, so evidence counts for at least max_age_s and at most
+max_age_s + bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` frees buckets, cells and
+passes whose vehicle has been gone for pass_gap_s; `add` calls it once per bucket_s of clock.
 
 Time: ages use the caller's now_ms. If now_ms precedes a cell's newest evidence (a terminal's clock ahead of the
 server's), ages in that cell are taken from its newest evidence instead, so that no age is negative.

@@ -327,7 +327,7 @@ def fleet_markdown(rows: list[dict], patch_rows: list[dict], results: list[SeedR
     lines += ["", ("## Map (cells with evidence at every snapshot, against the true mu of their road) and false "
                    "warnings"), "",
               ("Measured: cells with recent excited estimates or a station's report; bounded: cells where only calm "
-               "passes proved a lower bound (the interval is [bound, 1.2])."), "",
+               "passes proved a lower bound (the interval runs from about the bound to the grid's end, 1.5)."), "",
               ("| seed | group | measured cells | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
                "90 % coverage (lowest mu) | bounded cells | bounded: coverage (range) | bounded: coverage "
                "(lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]

@@ -112,7 +112,7 @@ def test_a_pause_shorter_than_the_gap_is_one_pass():
 
 
 def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
-    engine = WarningEngine(min_dry_passes=1)
+    engine = WarningEngine(min_dry_passes=1, corroboration_ring=0)  # each cell raised once, by its own second pass
     first = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     events = stream(engine, drive("c", T0_MS + 300_000, slippery=set()))
     assert {e.cell for e in events} == PATCH and engine.active() == []
@@ -145,6 +145,38 @@ def test_the_verdict_reads_low_before_what_a_sample_proved_and_proof_below_thres
     assert engine.verdict([0.9, 0.9], [0.5, 0.5], proven=0.0) == "unknown"  # too few excited estimates
 
 
+def one_low_pass(vehicle, cell, t_ms, n=5):
+    lat, lon = h3.cell_to_latlng(cell)
+    return [{"vehicle_id": vehicle, "timestamp_ms": t_ms + 100 * k, "latitude_deg": lat, "longitude_deg": lon,
+             "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3, "excited": True} for k in range(n)]
+
+
+def test_low_passes_of_two_vehicles_in_neighbouring_cells_corroborate_each_other():
+    a, b = sorted(PATCH)[:2]
+    assert h3.grid_distance(a, b) == 1
+    far = next(c for c in h3.grid_ring(a, 3))
+    rows = one_low_pass("v1", a, T0_MS) + one_low_pass("v2", b, T0_MS + 120_000) + one_low_pass("v3", far, T0_MS)
+    assert raised(stream(WarningEngine(corroboration_ring=0), rows)) == set()  # one low pass per cell
+    events = stream(WarningEngine(corroboration_ring=1), rows)
+    assert raised(events) == {a, b}  # never `far`, nor a cell without a low pass of its own
+    assert {e.detection_ms for e in events} == {T0_MS + 120_400}  # the second vehicle's pass completed both
+
+
+def test_one_vehicle_crossing_neighbouring_cells_is_one_observation():
+    a, b = sorted(PATCH)[:2]
+    rows = one_low_pass("v1", a, T0_MS) + one_low_pass("v1", b, T0_MS + 1000)
+    assert raised(stream(WarningEngine(corroboration_ring=1), rows)) == set()
+    later = rows + one_low_pass("v1", b, T0_MS + 120_000)  # back more than pass_gap_s later: a second observation
+    assert raised(stream(WarningEngine(corroboration_ring=1), later)) == {a, b}
+
+
+def test_a_dry_pass_in_a_neighbour_removes_its_low_passes_from_the_count():
+    a, b = sorted(PATCH)[:2]
+    dry = [{**r, "mu_lower": 0.6, "mu_upper": 0.95} for r in one_low_pass("v3", a, T0_MS + 60_000)]
+    rows = one_low_pass("v1", a, T0_MS) + dry + one_low_pass("v2", b, T0_MS + 120_000)
+    assert raised(stream(WarningEngine(corroboration_ring=1), rows)) == set()
+
+
 def test_one_dry_pass_does_not_cancel_when_two_are_needed():
     engine = WarningEngine(min_dry_passes=2)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
@@ -167,7 +199,7 @@ def test_without_a_refresh_the_warning_expires_after_validity():
 
 
 def test_a_low_pass_refreshes_and_extends_the_warning():
-    engine = WarningEngine(validity_s=600.0)
+    engine = WarningEngine(validity_s=600.0, corroboration_ring=0)
     first = {e.cell: e for e in stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))}
     refreshed = stream(engine, drive("c", T0_MS + 500_000))
     assert {e.cell for e in refreshed} == PATCH
@@ -250,7 +282,8 @@ def test_denm_of_a_raised_warning():
 
 @pytest.mark.parametrize(("name", "value"), [
     ("resolution", 16), ("threshold_mu", 0), ("min_low_passes", 0), ("min_dry_passes", 1.5),
-    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1)])
+    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1),
+    ("corroboration_ring", 3), ("corroboration_ring", True)])
 def test_arguments_are_validated(name, value):
     with pytest.raises(ValueError, match=rf"{name}.*{value!r}"):
         WarningEngine(**{name: value})
