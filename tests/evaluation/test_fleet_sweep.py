@@ -27,8 +27,8 @@ def _latest(events):
 def _rounds():
     """Five vehicles over the icy patch, in rounds of uneven size (as the pipeline batches), then a dry one; the clock
     of each round is its newest sample (map_clock data)."""
-    rows = [r for k in range(5) for r in drive(f"v{k}", T0_MS + 40_000 * k)]
-    rows += drive("dry", T0_MS + 400_000, slippery=set())
+    rows = [{**r, "mu_proven": 0.1} for k in range(5) for r in drive(f"v{k}", T0_MS + 40_000 * k)]
+    rows += [{**r, "mu_proven": 0.5} for r in drive("dry", T0_MS + 400_000, slippery=set())]  # it proves grip
     rows.sort(key=lambda r: r["timestamp_ms"])
     rounds, start = [], 0
     for size in (7, 300, 1, 900, 2000, 50):
