@@ -1,6 +1,12 @@
 """The road-friction map (DESIGN 3.6): per H3 cell, a posterior over mu that fuses what vehicles and roadside stations
 prove, aged.
 
+What a cell's value means: the friction a vehicle can count on in the cell, that is its lowest. A cell (76 m across at
+resolution 10) holds 100 m or more of road; a patch of ice may cover part of it. A low reading proves that a
+slippery spot is in the cell, wherever it was taken; a reading of grip proves grip only where that vehicle loaded its
+tires. The evidence model below says so (grip_locality), and the fleet benchmark measured why it matters: without it,
+calm passes over the dry half of a patch's cells hid the patch (docs/RESULTS.md, "The map").
+
 Pure and in memory: `add` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms, latitude_deg,
 longitude_deg, mu, mu_lower, mu_upper, excited and, from a guarded estimator, mu_proven); `add_station` takes roadside
 stations' friction evidence (roadgrip/cloud/stations.py); `cells(now_ms)` summarises every cell with evidence younger
@@ -12,41 +18,54 @@ the prior is flat over it)
 
       L_low(mu) = eps + (1 - eps) Phi((mu - l) / s),   L_high(mu) = eps + (1 - eps) Phi((u - mu) / s)
 
-  Their product is a plateau over [l, u]: the map takes what the estimate proves, not its point value. The point value
+  (eps is eps_low = grip_locality for the lower side, eps_high = outlier_rate for the upper side, below.) Their
+  product is a plateau over [l, u]: the map takes what the estimate proves, not its point value. The point value
   inside a wide interval is mostly the estimator's prior (pmf: "mu >= 0.3, most probably 0.8" from a car that only
   proved 0.3); multiplying such points would make the prior look like evidence. The edge s = W / 8 (W = u - l, at
   least min_interval_width = 0.1): a plateau of width W puts about 0.4 s / W = 5 % of its mass beyond each end, so that
-  one estimate alone gives back its own 90 % interval. The upper side is skipped where u is at least the estimators'
-  "nothing known above" end, 1.2 (roadgrip/estimators/guard.py PRIOR_UPPER_MU): an interval [0.6, 1.2] says mu >= 0.6,
-  nothing more, and dry asphalt (1.17 in the simulator) must stay inside the cell's interval.
-- eps = outlier_rate (0.005), the chance that a piece of evidence is wrong beyond its interval (a mislocated sample,
+  one estimate alone would give back its own 90 % interval if both sides held for the whole cell. The upper side is
+  skipped where u is at least the estimators' "nothing known above" end, 1.2 (roadgrip/estimators/guard.py
+  PRIOR_UPPER_MU): an interval [0.6, 1.2] says mu >= 0.6, nothing more, and dry asphalt (1.17 in the simulator) must
+  stay inside the cell's interval.
+- eps_high = outlier_rate (0.005), the chance that a low reading is wrong beyond its interval (a mislocated sample,
   an estimator's model error), keeps the fusion robust: Gaussian tails alone would let one confident, wrong estimate
   veto any number of others (log Phi(-7) = -27); with eps, evidence that disagrees costs at most log(1/eps) = 5.3 a
   pass, so a road that changed (ice that dried) is decided by how many recent passes say which, and a cell split
   between two surfaces shows both in its interval. It costs a single narrow estimate little: eps (1.5 - W) / W of
   extra mass outside (3 % for W = 0.2).
+- eps_low = grip_locality (0.5), the chance that the grip a pass proved does not hold for the whole cell: it loaded its
+  tires over a few metres of it. A pass proving grip thus halves the odds of lower mu, where a low reading cuts the
+  odds of higher mu 200-fold; three passes proving grip make a cell's 5 % quantile reach their bound. Chosen from the
+  fleet benchmark's recorded estimates, replayed into the map (0.005, 0.2, 0.3 and 0.5 tried, docs/RESULTS.md): 0.5
+  keeps the patches in their cells (90 % coverage of the lowest true mu 0.93-1.00 against 0.18-0.78 with 0.005) at
+  no cost in coverage on dry road; checked on held-out seeds.
 - What a pass proves even without excitation (a car cornering at 0.4 g proves mu >= 0.37): the largest mu_proven of
   the pass's estimates, b, as a sharp lower side Phi((mu - b) / proven_sigma) (0.02: the guard's bound already leaves
-  two sigma of the accelerometer's noise and bias, roadgrip/estimators/guard.py), with the same eps. Bounds below
+  two sigma of the accelerometer's noise and bias, roadgrip/estimators/guard.py), with eps_low: it too is grip where
+  the vehicle was. Bounds below
   min_proven_mu (0.1) are not counted: a calm pass proves nothing a map reader needs.
 
 Passes: a pass is one vehicle's consecutive estimates in one cell (it ends when the vehicle is seen in another cell or
 after pass_gap_s without an estimate there, as in the warning engine). One vehicle's estimates of one pass share its
 estimator's state, tires and bias: they are one piece of evidence, not tens. A pass's log-likelihood is the mean of its
 excited estimates' log-likelihoods (a geometric mean of their plateaus) plus its proven bound's. Passes of different
-vehicles, and one vehicle's passes on different visits, are taken as independent.
+vehicles, and one vehicle's passes on different visits, add up, to a point: they share the estimator's systematic error
+on a surface (pmf reads ice of 0.056 as 0.08), so however many agree, the cell claims no more than max_independent (3)
+passes would: the summed log-likelihood is scaled by min(1, max_independent / weight), which keeps the proportions of
+what the passes say and bounds how sharp it gets.
 
 Ageing: a pass weighs w = 2^(-age / half_life_s) (age from its last estimate; half_life_s = 600 s by default: roads
 change with rain, freezing and salting over tens of minutes), its log-likelihood multiplied by w (a tempered
 likelihood: old evidence counts as a fraction of a pass); evidence older than max_age_s is dropped. A station's newest
 report in a cell replaces its earlier ones there (one station's readings share its sensor's bias) and is aged the same.
 
-Cell values: the posterior p(mu) ~ exp(sum_passes w ll_pass + sum_stations w ll_station) on the grid; mu is its median
+Cell values: the posterior p(mu) ~ exp(c (sum_passes w ll_pass + sum_stations w ll_station)) on the grid, c the cap's
+scale; mu is its median
 (a plateau has no single most probable value), mu_lower and mu_upper its 5 % and 95 % quantiles (linear between grid
 points). `weight` is sum w: the effective number of passes and station reports. Status:
 - "measured": recent excited estimates or a station report in the cell;
-- "bounded": only proven lower bounds (calm passes); mu_lower is then about the largest bound, mu_upper near the
-  grid's end;
+- "bounded": only proven lower bounds (calm passes); mu_lower approaches the largest bound as passes prove it again
+  (about three), mu_upper is near the grid's end;
 - "no_recent_excited_evidence": the cell was driven but nothing in the window says anything about its mu; mu,
   mu_lower, mu_upper are None.
 
@@ -178,7 +197,8 @@ class FrictionMap:
 
     def __init__(self, resolution: int = 10, half_life_s: float = 600.0, max_age_s: float = 3600.0,
                  min_interval_width: float = 0.1, outlier_rate: float = 0.005, proven_sigma: float = 0.02,
-                 min_proven_mu: float = 0.1, pass_gap_s: float = 30.0):
+                 min_proven_mu: float = 0.1, pass_gap_s: float = 30.0, max_independent: float = 3.0,
+                 grip_locality: float = 0.5):
         self.resolution = validate_resolution(resolution)
         self.half_life_s = _positive_finite("half_life_s", half_life_s)
         self.max_age_s = _positive_finite("max_age_s", max_age_s)
@@ -187,6 +207,8 @@ class FrictionMap:
         self.proven_sigma = _positive_finite("proven_sigma", proven_sigma)
         self.min_proven_mu = _positive_finite("min_proven_mu", min_proven_mu)
         self.pass_gap_s = _positive_finite("pass_gap_s", pass_gap_s)
+        self.max_independent = _positive_finite("max_independent", max_independent)
+        self.grip_locality = _probability("grip_locality", grip_locality)
         self.cells_by_id_: dict[str, _Cell] = {}
         self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
         self.newest_ms_: int | None = None  # newest timestamp_ms seen: the pruning clock when add() gets no now_ms
@@ -201,8 +223,8 @@ class FrictionMap:
 
     # ------------------------------------------------------------------------------------------------- evidence
 
-    def _soft(self, z: np.ndarray) -> np.ndarray:
-        eps = self.outlier_rate
+    def _soft(self, z: np.ndarray, eps: float | None = None) -> np.ndarray:
+        eps = self.outlier_rate if eps is None else eps
         return np.log(eps + (1.0 - eps) * ndtr(z))
 
     def interval_log_likelihood(self, lower, upper) -> np.ndarray:
@@ -210,12 +232,12 @@ class FrictionMap:
         lower = np.asarray(lower, dtype=np.float64)[:, None]
         upper = np.asarray(upper, dtype=np.float64)[:, None]
         edge = EDGE_PER_WIDTH * np.maximum(upper - lower, self.min_interval_width)
-        ll = self._soft((MU_GRID - lower) / edge)
+        ll = self._soft((MU_GRID - lower) / edge, self.grip_locality)
         return ll + np.where(upper < PRIOR_UPPER_MU, self._soft((upper - MU_GRID) / edge), 0.0)
 
     def proven_log_likelihood(self, proven: float) -> np.ndarray:
         """Log-likelihood on MU_GRID of "mu >= proven" (a pass's largest bound)."""
-        return self._soft((MU_GRID - proven) / self.proven_sigma)
+        return self._soft((MU_GRID - proven) / self.proven_sigma, self.grip_locality)
 
     def _pass_log_likelihood(self, p: _Pass) -> np.ndarray | None:
         ll = p.ll / p.n_exc if p.n_exc else None
@@ -445,7 +467,7 @@ class FrictionMap:
             rows.append((cell_id, cell, w, n, n_excited, n_vehicles, last_excited, status, n_passes, n_stations,
                          proven))
             if ll is not None:
-                logps.append(ll)
+                logps.append(ll * min(1.0, self.max_independent / w))
         quantiles = iter(posterior_quantiles(np.array(logps)) if logps else ())
         out = []
         for cell_id, cell, w, n, n_excited, n_vehicles, last_excited, status, n_passes, n_stations, proven in rows:

@@ -35,13 +35,23 @@ def test_quantiles_of_a_flat_posterior_are_its_closed_form():
     assert lower == pytest.approx(0.2 + 0.05 * 0.4, abs=0.011) and upper == pytest.approx(0.6 - 0.05 * 0.4, abs=0.011)
 
 
-def test_a_single_estimate_gives_back_about_its_interval():
+def single(lo, hi, **options) -> CellSummary:
+    fmap = FrictionMap(**options)
+    fmap.add([est(mu=(lo + hi) / 2, lo=lo, hi=hi)])
+    return only_cell(fmap, T0_MS)
+
+
+def test_a_single_estimate_bounds_the_cell_from_above_and_proves_grip_only_where_it_drove():
     fmap = FrictionMap()
     touched = fmap.add([est(mu=0.31, lo=0.2, hi=0.6)])
     cell = only_cell(fmap, T0_MS)
     assert touched == {cell.cell} == {h3.latlng_to_cell(*HEBEI, 10)}
-    assert cell.mu_lower == pytest.approx(0.2, abs=0.03) and cell.mu_upper == pytest.approx(0.6, abs=0.03)
-    assert cell.mu == pytest.approx(0.4, abs=0.01)  # the plateau's median, not the estimator's point
+    assert cell.mu_upper == pytest.approx(0.6, abs=0.03)  # a low reading proves a slippery spot in the cell
+    assert cell.mu_lower < 0.1  # grip at the spot it braked on: the rest of the cell may hold a patch
+    # without that locality the plateau gives back the estimate's own 90 % interval, and its middle
+    local = single(0.2, 0.6, grip_locality=0.005)
+    assert local.mu_lower == pytest.approx(0.2, abs=0.03) and local.mu_upper == pytest.approx(0.6, abs=0.03)
+    assert local.mu == pytest.approx(0.4, abs=0.01)
     assert cell.weight == pytest.approx(1.0)
     assert (cell.n_estimates, cell.n_excited, cell.n_vehicles, cell.n_passes) == (1, 1, 1, 1)
     assert cell.status == "measured" and cell.last_ms == cell.last_excited_ms == T0_MS
@@ -64,25 +74,28 @@ def test_independent_passes_that_agree_narrow_the_interval():
     fmap.add([est(lo=0.1, hi=0.3, vehicle=f"v{k}") for k in range(2, 6)])
     fused = only_cell(fmap, T0_MS)
     assert fused.mu_upper - fused.mu_lower < single.mu_upper - single.mu_lower
-    assert 0.08 < fused.mu_lower < fused.mu < fused.mu_upper < 0.32
+    assert 0.05 < fused.mu_lower < fused.mu < fused.mu_upper < 0.32
     assert fused.n_vehicles == 5 and fused.weight == pytest.approx(5.0)
 
 
-def test_a_calm_pass_proves_its_bound():
+def test_calm_passes_prove_their_bound():
     fmap = FrictionMap()
     fmap.add([est(mu=0.8, lo=0.1, hi=1.2, excited=False, proven=0.4)])
-    cell = only_cell(fmap, T0_MS)
-    assert cell.status == "bounded" and cell.mu_proven == pytest.approx(0.4)
-    # the posterior is flat above the bound: its 5 % quantile lies 5 % of the way from the bound to the grid's end
-    assert cell.mu_lower == pytest.approx(0.4 + 0.05 * (1.5 - 0.4), abs=0.02) and cell.mu_upper > 1.4
-    assert cell.n_excited == 0 and cell.last_excited_ms is None
+    one = only_cell(fmap, T0_MS)
+    assert one.status == "bounded" and one.mu_proven == pytest.approx(0.4)
+    assert 0.0 < one.mu_lower < 0.4 < one.mu and one.mu_upper > 1.4  # one pass: grip where it cornered
+    assert one.n_excited == 0 and one.last_excited_ms is None
+    fmap.add([est(mu=0.8, lo=0.1, hi=1.2, excited=False, proven=0.4, vehicle=f"v{k}") for k in range(2, 5)])
+    four = only_cell(fmap, T0_MS)
+    # four passes: below the bound the likelihood is 0.5^4 (capped at 3 independent passes: 0.5^3) of above it
+    assert 0.35 < four.mu_lower < 0.5 and four.mu_upper > 1.4
 
 
 def test_an_interval_open_above_leaves_dry_asphalt_inside():
     fmap = FrictionMap()
     fmap.add([est(mu=0.9, lo=0.6, hi=1.2, vehicle=f"v{k}") for k in range(4)])  # "mu >= 0.6": nothing more
     cell = only_cell(fmap, T0_MS)
-    assert 0.6 < cell.mu_lower < 0.75 and cell.mu_lower < 1.17 < cell.mu_upper
+    assert cell.mu_lower < 0.6 < cell.mu and cell.mu_lower < 1.17 < cell.mu_upper
 
 
 def test_a_bound_below_min_proven_is_no_evidence():
@@ -98,7 +111,7 @@ def test_non_excited_intervals_do_not_pull_the_cell():
     fmap.add([est(mu=0.9, lo=0.5, hi=1.2, excited=False, vehicle=f"v{k}") for k in range(5)])
     fmap.add([est(mu=0.2, lo=0.1, hi=0.3, vehicle="ice")])
     cell = only_cell(fmap, T0_MS)
-    assert cell.mu == pytest.approx(0.2, abs=0.02) and cell.n_estimates == 6
+    assert cell.mu == pytest.approx(single(0.1, 0.3).mu, abs=1e-12) and cell.n_estimates == 6
 
 
 def test_one_confident_wrong_estimate_does_not_veto_the_others():
@@ -108,14 +121,18 @@ def test_one_confident_wrong_estimate_does_not_veto_the_others():
     assert 0.6 < cell.mu < 1.0 and cell.mu_upper > 0.9
 
 
-def test_a_dried_patch_is_read_from_the_recent_passes():
+def test_a_dried_patch_holds_until_its_evidence_fades_under_recent_grip():
     fmap = FrictionMap(half_life_s=600.0)
     fmap.add([est(t_ms=T0_MS, lo=0.05, hi=0.25, vehicle=f"ice{k}") for k in range(3)])
-    dry_ms = T0_MS + 20 * MIN_MS
-    fmap.add([est(t_ms=dry_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"dry{k}")
-              for k in range(3)])
-    cell = only_cell(fmap, dry_ms)
-    assert cell.mu > 0.55 and cell.mu_lower > 0.3
+    soon_ms = T0_MS + 5 * MIN_MS
+    fmap.add([est(t_ms=soon_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"dry{k}")
+              for k in range(4)])
+    assert only_cell(fmap, soon_ms).mu < 0.25  # slippery readings of 5 minutes ago still hold the cell
+    late_ms = T0_MS + 30 * MIN_MS
+    fmap.add([est(t_ms=late_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"late{k}")
+              for k in range(4)])
+    cell = only_cell(fmap, late_ms)
+    assert cell.mu > 0.55 and cell.mu_upper > 1.17  # three half-lives on, passes proving grip outweigh them
 
 
 def test_a_pass_one_half_life_old_weighs_half():
@@ -137,9 +154,7 @@ def test_ages_are_never_negative():
 def brute_force(rows, now_ms, fmap: FrictionMap):
     """The module docstring's posterior over the given rows, written out directly: passes per vehicle and cell in time
     order, the mean of their excited rows' two soft steps plus the soft step of their largest bound, aged."""
-    eps = fmap.outlier_rate
-
-    def soft(z):
+    def soft(z, eps=fmap.outlier_rate):
         return np.log(eps + (1 - eps) * norm.cdf(z))
 
     by_cell = {}
@@ -158,14 +173,14 @@ def brute_force(rows, now_ms, fmap: FrictionMap):
             informative = False
             for r in excited:
                 s = max(r["mu_upper"] - r["mu_lower"], fmap.min_interval_width) / 8
-                step = soft((MU_GRID - r["mu_lower"]) / s)
+                step = soft((MU_GRID - r["mu_lower"]) / s, fmap.grip_locality)
                 if r["mu_upper"] < 1.2:  # the estimators' "nothing known above"
                     step = step + soft((r["mu_upper"] - MU_GRID) / s)
                 ll += step / len(excited)
                 informative = True
             proven = max((r["mu_proven"] or 0.0 for r in members), default=0.0)
             if proven >= fmap.min_proven_mu:
-                ll += soft((MU_GRID - proven) / fmap.proven_sigma)
+                ll += soft((MU_GRID - proven) / fmap.proven_sigma, fmap.grip_locality)
                 informative = True
             age_s = (now_ms - members[-1]["timestamp_ms"]) / 1000.0
             entry = by_cell.setdefault(cell, [np.zeros_like(MU_GRID), 0.0, 0])
@@ -208,7 +223,9 @@ def test_agrees_with_a_brute_force_implementation():
         if weight == 0.0:
             assert cell.mu is None
             continue
-        assert (cell.mu_lower, cell.mu, cell.mu_upper) == pytest.approx(tuple(posterior_quantiles(ll)[0]), abs=1e-9)
+        capped = ll * min(1.0, fmap.max_independent / weight)
+        assert (cell.mu_lower, cell.mu, cell.mu_upper) == pytest.approx(tuple(posterior_quantiles(capped)[0]),
+                                                                        abs=1e-9)
         assert 0.0 <= cell.mu_lower <= cell.mu <= cell.mu_upper <= MU_GRID[-1]
 
 
@@ -220,11 +237,11 @@ def test_a_station_report_is_evidence_and_its_newest_replaces_the_older():
     assert fmap.add_station([report]) == {cell_id}
     cell = only_cell(fmap, T0_MS)
     assert cell.status == "measured" and cell.n_stations == 1 and cell.n_estimates == 0
-    assert 0.03 < cell.mu_lower < cell.mu < cell.mu_upper < 0.33
+    assert cell.mu_lower < cell.mu < cell.mu_upper < 0.33
     fmap.add_station([{**report, "timestamp_ms": T0_MS + MIN_MS, "mu": 0.8, "mu_lower": 0.6, "mu_upper": 1.0},
                       {**report, "timestamp_ms": T0_MS - MIN_MS}])  # an older report arriving late is ignored
     cell = only_cell(fmap, T0_MS + MIN_MS)
-    assert cell.n_stations == 1 and 0.58 < cell.mu_lower < cell.mu < cell.mu_upper < 1.02
+    assert cell.n_stations == 1 and cell.mu_lower < 0.6 < cell.mu < cell.mu_upper < 1.02
     with pytest.raises(ValueError, match="resolution 10"):
         fmap.add_station([{**report, "cell": h3.latlng_to_cell(*HEBEI, 9)}])
     with pytest.raises(ValueError, match="station 'rws-1'.*mu_lower 0.9"):
@@ -262,7 +279,7 @@ def test_evidence_beyond_max_age_no_longer_counts_in_a_living_cell():
     late_ms = T0_MS + 3_600_000 + fmap.bucket_ms + 1
     fmap.add([est(t_ms=T0_MS, lo=0.1, hi=0.3, vehicle="old"), est(t_ms=late_ms, lo=0.7, hi=0.9)])
     cell = only_cell(fmap, late_ms)
-    assert cell.mu == pytest.approx(0.8, abs=0.01) and cell.n_estimates == 1  # faded is not enough: it is gone
+    assert cell.mu == pytest.approx(single(0.7, 0.9).mu, abs=1e-12) and cell.n_estimates == 1  # gone, not faded
 
 
 def test_bad_excited_estimates_are_refused_with_their_values():
@@ -294,7 +311,7 @@ def test_resolution_is_validated(resolution):
 
 
 @pytest.mark.parametrize("name", ["half_life_s", "max_age_s", "min_interval_width", "proven_sigma", "min_proven_mu",
-                                  "pass_gap_s", "outlier_rate"])
+                                  "pass_gap_s", "outlier_rate", "max_independent", "grip_locality"])
 @pytest.mark.parametrize("value", [0, -1.0, float("inf"), float("nan")])
 def test_parameters_are_validated(name, value):
     with pytest.raises(ValueError, match=name):
