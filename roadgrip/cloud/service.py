@@ -77,8 +77,7 @@ class CloudService:
             resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
             min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
             pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
-            validity_s=settings.warning_validity_s, station_id=settings.station_id,
-            corroboration_ring=settings.warning_corroboration_ring)
+            validity_s=settings.warning_validity_s, station_id=settings.station_id)
         self.mqtt_rejected = 0
         self.estimate_messages_dropped = 0
         self._station_worker: ThreadPoolExecutor | None = None  # MQTT station reports, off paho's network thread

@@ -81,8 +81,6 @@ class Settings(BaseSettings):
     warning_min_excited_per_pass: int = Field(we.MIN_EXCITED_PER_PASS, ge=1)
     warning_validity_s: float = Field(we.VALIDITY_S, gt=0,
                                       description="DENM validity; a warning not refreshed expires")
-    warning_corroboration_ring: int = Field(we.CORROBORATION_RING, ge=0, le=2,
-                                            description="H3 rings around a cell whose low passes count with its own")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
 
     # dashboard

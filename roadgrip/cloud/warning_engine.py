@@ -23,15 +23,11 @@ Rules
    of its samples proved grip straddles a patch's edge within the cell, and the low reading is the one that warns.
 3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
    compares pass times, not arrival order, so that how the estimates are batched matters little.
-4. Raise: a cell gets a warning when it holds a low pass of its own and, together with the cells within
-   corroboration_ring H3 rings of it (1: its six neighbours), at least min_low_passes low passes (of two vehicles, or
-   repeated passes of one), each later than its own cell's last dry pass and at most validity_s old. One vehicle's
-   passes less than pass_gap_s apart count once, across cells too (`_Evidence`): GNSS noise along a cell border splits
-   one visit into several passes, and a vehicle crossing two cells of a patch makes one observation, not two. Why the
-   ring: a patch of ice or snow is larger than a cell (76 m at resolution 10), and a vehicle shows its mu only where it
-   happens to brake or turn, so two vehicles reading low in neighbouring cells of one patch corroborate each other;
-   requiring both in the same cell left patches with many low passes unwarned (docs/RESULTS.md, fleet benchmark).
-   A warning never appears in a cell without a low pass of its own; a low pass re-checks its ring's cells too.
+4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
+   excited estimates say mu_upper < threshold_mu is evidence enough; with 2, two vehicles or repeated passes of one)
+   later than its last dry pass and at most validity_s old. One vehicle's passes less than pass_gap_s apart
+   count once (`_Evidence`): GNSS noise along a cell border splits one visit into several passes. Only low
+   passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): min_dry_passes dry passes later than the detection cancel it. A dry pass also clears the
    cell's earlier low passes (rule 4 counts only low passes after the last dry one).
@@ -67,16 +63,16 @@ import h3
 from roadgrip.cloud.exports import MAX_VALIDITY_S, denm
 from roadgrip.cloud.friction_map import validate_resolution
 
-# The product's settings, in this one place (Settings.warning_* take them as defaults). The fleet benchmark's trade-off
-# curve (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py) would take
-# MIN_LOW_PASSES = 1; it stays 2 until warnings in the cells beside a patch are scored (see there).
+# The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
+# trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
+# one low pass raises (recall 1.00 against 0.92 with two on seeds 0-2, 0.90 against 0.70 on held-out seeds 3-4, no
+# false warning on either), at the price of warnings in the cell beside a patch where braking begun on it ends.
 THRESHOLD_MU = 0.4
-MIN_LOW_PASSES = 2
+MIN_LOW_PASSES = 1
 MIN_DRY_PASSES = 1
 PASS_GAP_S = 30.0
 MIN_EXCITED_PER_PASS = 3
 VALIDITY_S = 600.0
-CORROBORATION_RING = 1
 
 LOW, DRY, UNKNOWN = "low", "dry", "unknown"
 ACTIVE, CANCELLED = "active", "cancelled"
@@ -182,13 +178,6 @@ class _Evidence:
     def clear(self) -> None:
         self.drop_older(math.inf)
 
-    def times_by_vehicle(self) -> dict[str, list[int]]:
-        """vehicle_id -> the times of its low passes here, sorted (a view: do not change it)."""
-        return self._by_vehicle
-
-    def newest_ms(self) -> float:
-        return self._passes[-1].time_ms if self._passes else -math.inf
-
 
 def _time_of(p: _LowPass) -> int:
     return p.time_ms
@@ -249,7 +238,7 @@ class WarningEngine:
     def __init__(self, resolution: int = 10, threshold_mu: float = THRESHOLD_MU,
                  min_low_passes: int = MIN_LOW_PASSES, min_dry_passes: int = MIN_DRY_PASSES,
                  pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
-                 validity_s: float = VALIDITY_S, station_id: int = 1, corroboration_ring: int = CORROBORATION_RING):
+                 validity_s: float = VALIDITY_S, station_id: int = 1):
         self.resolution = validate_resolution(resolution)
         self.threshold_mu = _positive("threshold_mu", threshold_mu)
         self.min_low_passes = _count("min_low_passes", min_low_passes)
@@ -260,9 +249,6 @@ class WarningEngine:
         if isinstance(station_id, bool) or not isinstance(station_id, int) or not 0 <= station_id <= 4294967295:
             raise ValueError(f"station_id must be an integer StationID in 0..4294967295, got {station_id!r}")
         self.station_id = station_id
-        if isinstance(corroboration_ring, bool) or corroboration_ring not in range(3):
-            raise ValueError(f"corroboration_ring must be 0, 1 or 2 (H3 rings), got {corroboration_ring!r}")
-        self.corroboration_ring = corroboration_ring
         self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
         self.last_judged_ms_: dict[str, int] = {}  # vehicle_id -> time of its last judged pass
         self.cell_states_: dict[str, _CellState] = {}
@@ -423,44 +409,15 @@ class WarningEngine:
         state.low_passes.drop_older(horizon)
         state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
         if warning is None:
-            if self._corroborating(finished.cell, horizon) >= self.min_low_passes:
-                self._raise(finished.cell, state, t, now_ms, events)
+            if state.low_passes.independent >= self.min_low_passes:
+                warning = state.warning = _Warning(f"{finished.cell}-{t}", t, self.next_action_sequence_number_)
+                self.next_action_sequence_number_ = (self.next_action_sequence_number_ + 1) % 65536
+                self.active_cells_.add(finished.cell)
+                events.append(self._event(finished.cell, state, ACTIVE, LOW_FRICTION, now_ms))
         else:
             warning.evidence_ms = max(warning.evidence_ms, t)
             warning.sequence_number += 1
             events.append(self._event(finished.cell, state, ACTIVE, LOW_FRICTION, now_ms))
-        if self.corroboration_ring:  # this pass may complete the evidence of a neighbour with low passes of its own
-            for cell in sorted(h3.grid_disk(finished.cell, self.corroboration_ring)):
-                neighbour = self.cell_states_.get(cell)
-                if (cell != finished.cell and neighbour is not None and neighbour.warning is None
-                        and neighbour.low_passes.newest_ms() >= horizon
-                        and self._corroborating(cell, horizon) >= self.min_low_passes):
-                    self._raise(cell, neighbour, t, now_ms, events)
-
-    def _corroborating(self, cell: str, horizon: float) -> int:
-        """Independent low passes at most validity_s old (after `horizon`) in the cell and its corroboration ring,
-        each cell's counted after its own last dry pass (rule 4); one vehicle's passes less than pass_gap_s apart count
-        once, across cells too."""
-        if not self.corroboration_ring:
-            return self._cell(cell).low_passes.independent
-        times: dict[str, list[int]] = {}
-        for near in h3.grid_disk(cell, self.corroboration_ring):
-            state = self.cell_states_.get(near)
-            if state is not None:
-                for vehicle, ts in state.low_passes.times_by_vehicle().items():
-                    times.setdefault(vehicle, []).extend(t for t in ts if t > horizon)
-        gap_ms = self.pass_gap_s * 1000.0
-        count = 0
-        for ts in times.values():
-            ts.sort()
-            count += sum(1 for i, t in enumerate(ts) if i == 0 or t - ts[i - 1] > gap_ms)
-        return count
-
-    def _raise(self, cell: str, state: _CellState, t: int, now_ms: int, events: list[WarningEvent]) -> None:
-        state.warning = _Warning(f"{cell}-{t}", t, self.next_action_sequence_number_)
-        self.next_action_sequence_number_ = (self.next_action_sequence_number_ + 1) % 65536
-        self.active_cells_.add(cell)
-        events.append(self._event(cell, state, ACTIVE, LOW_FRICTION, now_ms))
 
     # --------------------------------------------------------------------------------------------------- warnings
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from roadgrip.cloud.exports import ITS_EPOCH_UNIX_MS, timestamp_its_ms
-from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent, _Evidence, _LowPass
+from roadgrip.cloud.warning_engine import MIN_LOW_PASSES, WarningEngine, WarningEvent, _Evidence, _LowPass
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 LAT_DEG, LON0_DEG = 38.0, 114.5  # Hebei
@@ -73,12 +73,18 @@ def stream(engine, rows, batch_ms=1000, settle_s=31.0):
     return events
 
 
+def two_pass_engine(**settings) -> WarningEngine:
+    """The rules' mechanics with two low passes to raise; the product raises on one (MIN_LOW_PASSES, chosen by the fleet
+    benchmark), which `test_the_product_raises_on_one_low_pass` checks."""
+    return WarningEngine(**{"min_low_passes": 2, **settings})
+
+
 def raised(events):
     return {e.cell for e in events if e.status == "active" and e.sequence_number == 0}
 
 
 def test_a_patch_driven_by_two_vehicles_raises_exactly_its_cells():
-    engine = WarningEngine()
+    engine = two_pass_engine()
     events = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     assert raised(events) == PATCH == {e.cell for e in engine.active()}
     assert all(e.status == "active" for e in events)  # nothing cancelled
@@ -90,21 +96,27 @@ def test_a_patch_driven_by_two_vehicles_raises_exactly_its_cells():
         assert T0_MS + 60_000 < event.detection_ms < T0_MS + 130_000  # raised by b's pass
 
 
+def test_the_product_raises_on_one_low_pass():
+    assert WarningEngine().min_low_passes == MIN_LOW_PASSES == 1
+    events = stream(WarningEngine(), drive("a", T0_MS))
+    assert raised(events) == PATCH  # one vehicle braking on the patch, one low pass in each of its cells
+
+
 def test_one_pass_of_one_vehicle_raises_nothing():
-    engine = WarningEngine()
+    engine = two_pass_engine()
     assert stream(engine, drive("a", T0_MS)) == []
     assert engine.active() == []
 
 
 def test_two_passes_of_one_vehicle_raise_when_apart_by_more_than_the_gap():
-    engine = WarningEngine(pass_gap_s=30.0)
+    engine = two_pass_engine(pass_gap_s=30.0)
     events = stream(engine, drive("a", T0_MS) + drive("a", T0_MS + 110_000, reverse=True))  # back after 40 s or more
     assert raised(events) == PATCH
     assert all(e.n_vehicles == 1 and e.n_passes == 2 for e in engine.active())
 
 
 def test_a_pause_shorter_than_the_gap_is_one_pass():
-    engine = WarningEngine(pass_gap_s=30.0)
+    engine = two_pass_engine(pass_gap_s=30.0)
     rows = drive("a", T0_MS)
     patch_rows = [r for r in rows if h3.latlng_to_cell(r["latitude_deg"], r["longitude_deg"], 10) in PATCH]
     again = [{**r, "timestamp_ms": r["timestamp_ms"] + 20_000} for r in patch_rows[-5:]]  # stood 20 s, went on
@@ -112,7 +124,7 @@ def test_a_pause_shorter_than_the_gap_is_one_pass():
 
 
 def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
-    engine = WarningEngine(min_dry_passes=1, corroboration_ring=0)  # each cell raised once, by its own second pass
+    engine = two_pass_engine(min_dry_passes=1)
     first = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     events = stream(engine, drive("c", T0_MS + 300_000, slippery=set()))
     assert {e.cell for e in events} == PATCH and engine.active() == []
@@ -128,7 +140,7 @@ def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
 
 
 def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
-    engine = WarningEngine(min_dry_passes=1)
+    engine = two_pass_engine(min_dry_passes=1)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     calm = [{**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.45}
             for r in drive("c", T0_MS + 300_000, slippery=set())]
@@ -138,47 +150,15 @@ def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
 
 
 def test_the_verdict_reads_low_before_what_a_sample_proved_and_proof_below_threshold_is_no_verdict():
-    engine = WarningEngine(threshold_mu=0.4, min_excited_per_pass=3)
+    engine = two_pass_engine(threshold_mu=0.4, min_excited_per_pass=3)
     assert engine.verdict([0.3, 0.3, 0.3], [0.1, 0.1, 0.1], proven=0.5) == "low"  # a pass across a patch's edge
     assert engine.verdict([], [], proven=0.41) == "dry"
     assert engine.verdict([], [], proven=0.39) == "unknown"
     assert engine.verdict([0.9, 0.9], [0.5, 0.5], proven=0.0) == "unknown"  # too few excited estimates
 
 
-def one_low_pass(vehicle, cell, t_ms, n=5):
-    lat, lon = h3.cell_to_latlng(cell)
-    return [{"vehicle_id": vehicle, "timestamp_ms": t_ms + 100 * k, "latitude_deg": lat, "longitude_deg": lon,
-             "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3, "excited": True} for k in range(n)]
-
-
-def test_low_passes_of_two_vehicles_in_neighbouring_cells_corroborate_each_other():
-    a, b = sorted(PATCH)[:2]
-    assert h3.grid_distance(a, b) == 1
-    far = next(c for c in h3.grid_ring(a, 3))
-    rows = one_low_pass("v1", a, T0_MS) + one_low_pass("v2", b, T0_MS + 120_000) + one_low_pass("v3", far, T0_MS)
-    assert raised(stream(WarningEngine(corroboration_ring=0), rows)) == set()  # one low pass per cell
-    events = stream(WarningEngine(corroboration_ring=1), rows)
-    assert raised(events) == {a, b}  # never `far`, nor a cell without a low pass of its own
-    assert {e.detection_ms for e in events} == {T0_MS + 120_400}  # the second vehicle's pass completed both
-
-
-def test_one_vehicle_crossing_neighbouring_cells_is_one_observation():
-    a, b = sorted(PATCH)[:2]
-    rows = one_low_pass("v1", a, T0_MS) + one_low_pass("v1", b, T0_MS + 1000)
-    assert raised(stream(WarningEngine(corroboration_ring=1), rows)) == set()
-    later = rows + one_low_pass("v1", b, T0_MS + 120_000)  # back more than pass_gap_s later: a second observation
-    assert raised(stream(WarningEngine(corroboration_ring=1), later)) == {a, b}
-
-
-def test_a_dry_pass_in_a_neighbour_removes_its_low_passes_from_the_count():
-    a, b = sorted(PATCH)[:2]
-    dry = [{**r, "mu_lower": 0.6, "mu_upper": 0.95} for r in one_low_pass("v3", a, T0_MS + 60_000)]
-    rows = one_low_pass("v1", a, T0_MS) + dry + one_low_pass("v2", b, T0_MS + 120_000)
-    assert raised(stream(WarningEngine(corroboration_ring=1), rows)) == set()
-
-
 def test_one_dry_pass_does_not_cancel_when_two_are_needed():
-    engine = WarningEngine(min_dry_passes=2)
+    engine = two_pass_engine(min_dry_passes=2)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     assert stream(engine, drive("c", T0_MS + 300_000, slippery=set())) == []
     events = stream(engine, drive("d", T0_MS + 400_000, slippery=set()))
@@ -186,7 +166,7 @@ def test_one_dry_pass_does_not_cancel_when_two_are_needed():
 
 
 def test_without_a_refresh_the_warning_expires_after_validity():
-    engine = WarningEngine(validity_s=600.0)
+    engine = two_pass_engine(validity_s=600.0)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     last_low_ms = {e.cell: e.evidence_ms for e in engine.active()}
     lapse_ms = max(last_low_ms.values()) + 600_000
@@ -199,7 +179,7 @@ def test_without_a_refresh_the_warning_expires_after_validity():
 
 
 def test_a_low_pass_refreshes_and_extends_the_warning():
-    engine = WarningEngine(validity_s=600.0, corroboration_ring=0)
+    engine = two_pass_engine(validity_s=600.0)
     first = {e.cell: e for e in stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))}
     refreshed = stream(engine, drive("c", T0_MS + 500_000))
     assert {e.cell for e in refreshed} == PATCH
@@ -213,7 +193,7 @@ def test_a_low_pass_refreshes_and_extends_the_warning():
 
 
 def test_low_passes_before_a_dry_one_do_not_count():
-    engine = WarningEngine()
+    engine = two_pass_engine()
     events = stream(engine, drive("a", T0_MS) + drive("c", T0_MS + 100_000, slippery=set())
                     + drive("b", T0_MS + 200_000))
     assert raised(events) == set()
@@ -221,17 +201,17 @@ def test_low_passes_before_a_dry_one_do_not_count():
 
 def test_batching_and_order_do_not_change_the_warnings():
     rows = drive("a", T0_MS) + drive("b", T0_MS + 60_000)
-    streamed = stream(WarningEngine(), rows)
+    streamed = stream(two_pass_engine(), rows)
     shuffled = rows[:]
     random.Random(3).shuffle(shuffled)
-    at_once = WarningEngine().update(shuffled, T0_MS + 200_000)
+    at_once = two_pass_engine().update(shuffled, T0_MS + 200_000)
     key = sorted((e.warning_id, e.n_passes, e.mu_upper) for e in streamed)
     assert sorted((e.warning_id, e.n_passes, e.mu_upper) for e in at_once) == key
     # one vehicle's rows slightly late, across batch boundaries (swapped in pairs)
     late = rows[:]
     for i in range(0, len(late) - 1, 2):
         late[i], late[i + 1] = late[i + 1], late[i]
-    engine = WarningEngine()
+    engine = two_pass_engine()
     events = []
     for start in range(0, len(late), 7):
         batch = late[start:start + 7]
@@ -242,14 +222,14 @@ def test_batching_and_order_do_not_change_the_warnings():
 
 def test_rows_without_position_are_ignored():
     rows = [{**r, "latitude_deg": None} for r in drive("a", T0_MS) + drive("b", T0_MS + 60_000)]
-    assert stream(WarningEngine(), rows) == []
+    assert stream(two_pass_engine(), rows) == []
 
 
 def test_restore_brings_back_active_warnings():
-    engine = WarningEngine()
+    engine = two_pass_engine()
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     saved = engine.active()
-    restarted = WarningEngine()
+    restarted = two_pass_engine()
     restarted.restore(saved)
     assert restarted.active() == saved
     events = stream(restarted, drive("c", T0_MS + 300_000, slippery=set()))
@@ -260,7 +240,7 @@ def test_restore_brings_back_active_warnings():
 
 
 def test_denm_of_a_raised_warning():
-    engine = WarningEngine(station_id=4242)
+    engine = two_pass_engine(station_id=4242)
     events = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     event = events[0]
     message = event.to_denm()
@@ -282,8 +262,7 @@ def test_denm_of_a_raised_warning():
 
 @pytest.mark.parametrize(("name", "value"), [
     ("resolution", 16), ("threshold_mu", 0), ("min_low_passes", 0), ("min_dry_passes", 1.5),
-    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1),
-    ("corroboration_ring", 3), ("corroboration_ring", True)])
+    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1)])
 def test_arguments_are_validated(name, value):
     with pytest.raises(ValueError, match=rf"{name}.*{value!r}"):
         WarningEngine(**{name: value})
@@ -301,7 +280,7 @@ def test_event_is_frozen():
 def test_one_vehicle_in_and_out_of_a_cell_along_its_border_is_one_pass():
     """GNSS noise on a road along a cell border: the vehicle alternates between two icy cells every few samples.
     That is one visit of each cell, however many passes it splits into: no warning from one vehicle."""
-    engine = WarningEngine()
+    engine = two_pass_engine()
     a, b = sorted(PATCH)[:2]
     (lat_a, lon_a), (lat_b, lon_b) = h3.cell_to_latlng(a), h3.cell_to_latlng(b)
     rows = []
