@@ -124,7 +124,8 @@ class _Paced(threading.Thread):
 
 class MqttTerminal(_Paced):
     """A vehicle over MQTT (module docstring). `sent`, `acknowledged()`, `refused`; `connection_log` holds
-    (monotonic time, connected) at every change the sending loop saw."""
+    (monotonic time, connected) at every change paho reported (its connect and disconnect callbacks: the sending loop
+    may be done before a reconnect it would have seen)."""
 
     def __init__(self, url: str, vehicle_id: str, secret: str, samples: list[dict], per_message: int,
                  period_s: float):
@@ -143,11 +144,15 @@ class MqttTerminal(_Paced):
             userclient_on_publish(client, userdata, mid, reason_code, properties)
 
         self.client.paho.on_publish = on_publish
+        self.client.paho.on_connect = (lambda client, userdata, flags, reason_code, properties:
+                                       self._log(not reason_code.is_failure))
+        self.client.paho.on_disconnect = lambda client, userdata, flags, reason_code, properties: self._log(False)
 
-    def send(self, chunk: list[dict]) -> None:
-        connected = self.client.paho.is_connected()
+    def _log(self, connected: bool) -> None:
         if connected != self.connection_log[-1][1]:
             self.connection_log.append((time.monotonic(), connected))
+
+    def send(self, chunk: list[dict]) -> None:
         self.messages.append((time.monotonic(), self.client.publish_nowait(self.topic, json.dumps(chunk)).mid, chunk))
 
     @property
