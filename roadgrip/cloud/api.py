@@ -17,6 +17,7 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | GET /v1/map/datex2 | admin, reader | the map as DATEX II v3 (RoadSurfaceConditionMeasurements, friction) |
 | GET /v1/warnings | admin, reader, vehicles | slippery-road warnings as DENMs |
 | GET /v1/health | anyone authenticated | storage, broker and pipeline state; 503 when storage is down |
+| GET /metrics | anyone authenticated | Prometheus metrics (docs/CLOUD.md "Metrics (Prometheus)") |
 | GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate and position (roadgrip.cloud.dashboard) |
 | GET /dashboard | anyone (the page holds no data; it calls the API with a reader's credentials) | the live map |
 
@@ -42,6 +43,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBasic, HTTPBasicCredentials
+from prometheus_client import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -49,7 +51,9 @@ from roadgrip.cloud.auth import AuthError
 from roadgrip.cloud.dashboard import mount_dashboard
 from roadgrip.cloud.exports import datex2_xml
 from roadgrip.cloud.ingest import RateLimited
+from roadgrip.cloud.metrics import ServiceCollector, registry_with
 from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.shards import IngestUnavailable
 from roadgrip.cloud.stations import ReportError, parse_reports
 from roadgrip.cloud.storage import Credential, StorageUnavailable
@@ -339,18 +343,11 @@ def create_app(service: CloudService) -> FastAPI:
                                                             {"type": "array", "items": {"type": "object"}}]}}}}})
     async def ingest(request: Request, caller: Caller):
         require(caller, "vehicle")
-        s = service.settings
-        declared = request.headers.get("content-length")
-        if declared is not None and declared.isdigit() and int(declared) > s.max_payload_bytes:
-            raise HTTPException(413, f"body of {declared} bytes exceeds the limit of {s.max_payload_bytes}")
-        body = await _read_limited(request, s.max_payload_bytes)
         try:
-            samples, errors = parse_payload(body, content_type=request.headers.get("content-type"),
-                                            max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
-                                            now_ms=int(time.time() * 1000),
-                                            max_future_ms=int(s.max_future_s * 1000), vehicle_id=caller.vehicle_id)
-        except PayloadError as exc:
-            raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
+            samples, errors = await _read_telemetry(request, service.settings, caller.vehicle_id)
+        except HTTPException:  # refused whole (400, 413, 415)
+            service.http_payloads_rejected += 1
+            raise
         rejected = [_escaped(e.to_dict()) for e in errors]
         received = len(samples) + len(errors)
         try:  # the rate limit first (all received count), then the samples stored
@@ -403,8 +400,32 @@ def create_app(service: CloudService) -> FastAPI:
         status = service.health()
         return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)
 
+    registry = registry_with(ServiceCollector(service))
+
+    @app.get("/metrics", response_class=Response,
+             responses={200: {"content": {"text/plain": {}},
+                              "description": "Prometheus text exposition format (docs/CLOUD.md, \"Metrics\")"}})
+    def metrics(caller: Caller) -> Response:
+        """Prometheus metrics of this service and its ingest processes; who may read them: as /v1/health."""
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_PLAIN_0_0_4)
+
     mount_dashboard(app, service)
     return app
+
+
+async def _read_telemetry(request: Request, s: Settings, vehicle_id: str) -> tuple[list[dict], list]:
+    """A telemetry request's valid samples and rejections (roadgrip/cloud/wire.py); HTTPException (400, 413, 415) for
+    a body refused whole."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > s.max_payload_bytes:
+        raise HTTPException(413, f"body of {declared} bytes exceeds the limit of {s.max_payload_bytes}")
+    body = await _read_limited(request, s.max_payload_bytes)
+    try:
+        return parse_payload(body, content_type=request.headers.get("content-type"), max_bytes=s.max_payload_bytes,
+                             max_samples=s.max_samples_per_payload, now_ms=int(time.time() * 1000),
+                             max_future_ms=int(s.max_future_s * 1000), vehicle_id=vehicle_id)
+    except PayloadError as exc:
+        raise HTTPException(exc.status, {"field": exc.field, "reason": str(exc)}) from None
 
 
 async def _read_limited(request: Request, max_bytes: int) -> bytes:

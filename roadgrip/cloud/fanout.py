@@ -20,19 +20,28 @@ import orjson
 
 from roadgrip.cloud.friction_map import FrictionMap
 from roadgrip.cloud.latency import LatencyRecorder
+from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage
-from roadgrip.cloud.warning_engine import WarningEngine
+from roadgrip.cloud.warning_engine import ACTIVE, EXPIRED, WarningEngine
 
 log = logging.getLogger(__name__)
 
+WARNING_CHANGES = ("raised", "refreshed", "cancelled", "expired")
 ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator", "mu_proven",
                    "latitude_deg", "longitude_deg", "h3_cell")
 
 
 def _estimate_message(row: dict) -> dict:
     return {k: row[k] for k in ESTIMATE_FIELDS}
+
+
+def _change(event) -> str:
+    """A warning event as one of WARNING_CHANGES (roadgrip/cloud/warning_engine.py: status, reason, sequence_number)."""
+    if event.status == ACTIVE:
+        return "refreshed" if event.sequence_number else "raised"
+    return "expired" if event.reason == EXPIRED else "cancelled"
 
 
 class Fanout:
@@ -44,6 +53,8 @@ class Fanout:
         self.warning_engine = warning_engine
         self.publish = publish  # callable(topic, payload bytes) or None
         self.latency = LatencyRecorder()  # sample time to stored estimate
+        self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # the same, in seconds, for the metrics
+        self.warning_changes = dict.fromkeys(WARNING_CHANGES, 0)  # warning events by change (metrics)
         self.busy_s = 0.0  # seconds spent in `stored` since start (health: pipeline.fanout_s)
         self._newest_data_ms = 0
         # vehicle -> (when its oldest unpublished estimate was queued, monotonic s; the estimate messages)
@@ -62,8 +73,9 @@ class Fanout:
             started = time.perf_counter()
             self._newest_data_ms = max(self._newest_data_ms, newest_data_ms)
             if estimates:
-                self.latency.add(stored_ms - np.fromiter((e["timestamp_ms"] for e in estimates), float,
-                                                         len(estimates)))
+                latencies_ms = stored_ms - np.fromiter((e["timestamp_ms"] for e in estimates), float, len(estimates))
+                self.latency.add(latencies_ms)
+                self.latency_histogram.add(latencies_ms / 1000.0)
                 self._after_store(estimates)
             self.busy_s += time.perf_counter() - started
 
@@ -89,6 +101,7 @@ class Fanout:
                                     "message": {"denm": d, "event": dataclasses.asdict(e)}}
                                    for e, d in zip(events, denms)])
         for event in events:  # raised and ended at WARNING; a refresh (every low pass in a warned cell) at DEBUG
+            self.warning_changes[_change(event)] += 1
             log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
                     "warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
         if self.publish is None:
@@ -115,6 +128,7 @@ class Fanout:
                                         "message": {"denm": d, "event": dataclasses.asdict(e)}}
                                        for e, d in zip(events, denms)])
             for event in events:
+                self.warning_changes[_change(event)] += 1
                 log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
                         "warning %s %s in cell %s (%s, roadside station)", event.warning_id, event.status,
                         event.cell, event.reason)

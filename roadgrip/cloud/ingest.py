@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 
+from roadgrip.cloud.metrics import MAIN_PROCESS, TRANSPORTS, IngestCounters, ProcessView
 from roadgrip.cloud.pipeline import Pipeline, SubmitResult
 from roadgrip.cloud.ratelimit import RateLimiter
 from roadgrip.cloud.settings import Settings
@@ -47,6 +48,7 @@ class Ingest:
         self.pipeline = pipeline
         self.rate_limiter = RateLimiter(settings.rate_limit_samples_per_s, settings.rate_limit_burst_s)
         self.reject = reject
+        self.counters = IngestCounters()
 
     def start(self) -> None:
         self.pipeline.start()
@@ -59,18 +61,27 @@ class Ingest:
         """Samples submitted and not yet taken by a round."""
         return self.pipeline.backlog
 
-    def submit(self, vehicle_id: str, samples: list[dict], received: int, *, retry: bool = False) -> Future:
+    def submit(self, vehicle_id: str, samples: list[dict], received: int, *, retry: bool = False,
+               transport: str = "http") -> Future:
         """Valid samples of one vehicle, out of `received` (rejected ones included: all count against the rate
-        limit). The future resolves to a SubmitResult once they are stored (at once when there are none), or fails
-        with RateLimited, or with StorageUnavailable while storage is down unless `retry` (Pipeline.submit)."""
+        limit), arrived over `transport` (http or mqtt: counted for the metrics). The future resolves to a
+        SubmitResult once they are stored (at once when there are none), or fails with RateLimited, or with
+        StorageUnavailable while storage is down unless `retry` (Pipeline.submit)."""
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
         decision = self.rate_limiter.allow(vehicle_id, received, time.monotonic())
-        if decision.allowed and samples:
-            return self.pipeline.submit(vehicle_id, samples, retry=retry)
-        future: Future = Future()
-        if decision.allowed:
-            future.set_result(SubmitResult(0, 0))
-        else:
+        counters = vars(self.counters)
+        counters[f"received_{transport}"] += received
+        if not decision.allowed:
+            counters[f"rate_limited_{transport}"] += received
+            future: Future = Future()
             future.set_exception(RateLimited(decision.reason, decision.retry_after_s))
+            return future
+        counters[f"invalid_{transport}"] += received - len(samples)
+        if samples:
+            return self.pipeline.submit(vehicle_id, samples, retry=retry)
+        future = Future()
+        future.set_result(SubmitResult(0, 0))
         return future
 
     def mqtt_message(self, vehicle_id: str, payload: bytes, ack: Callable[[], None]) -> None:
@@ -83,12 +94,13 @@ class Ingest:
                                             max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
                                             max_future_ms=int(s.max_future_s * 1000))
         except PayloadError as exc:
+            self.counters.unreadable_mqtt += 1
             self.reject(vehicle_id, [{"index": None, "field": exc.field, "reason": str(exc)}])
             ack()
             return
         while samples and self.pipeline.backlog > MAX_MQTT_BACKLOG and self.pipeline.running:
             time.sleep(0.01)  # backpressure: no more is read until the pipeline has caught up (MAX_MQTT_BACKLOG)
-        future = self.submit(vehicle_id, samples, len(samples) + len(errors), retry=True)
+        future = self.submit(vehicle_id, samples, len(samples) + len(errors), retry=True, transport="mqtt")
         if isinstance(future.exception() if future.done() else None, RateLimited):
             self.reject(vehicle_id, [{"index": None, "field": None, "reason": str(future.exception())}])
             ack()
@@ -104,3 +116,12 @@ class Ingest:
         """The pipeline's counters, its backlog and whether its writes fail (health: `pipeline`)."""
         return {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
                 "storage_down": self.pipeline.storage_down}
+
+    def metrics(self) -> dict:
+        """What the metrics need beside `stats` (roadgrip/cloud/metrics.py): the admission counters and the
+        estimator's time per update."""
+        return {"ingest": self.counters.to_dict(), "estimator_seconds": self.pipeline.estimator_time.state()}
+
+    def views(self) -> list[ProcessView]:
+        """This process's pipeline, for the metrics."""
+        return [ProcessView(MAIN_PROCESS, self.stats(), self.metrics())]

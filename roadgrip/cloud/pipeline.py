@@ -46,6 +46,7 @@ from typing import Protocol
 import h3
 
 from roadgrip.cloud.checkpoints import Checkpoints
+from roadgrip.cloud.metrics import ESTIMATOR_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Storage, StorageUnavailable
 from roadgrip.estimators.base import Estimator
@@ -144,6 +145,7 @@ class Pipeline:
         self.estimator = estimator
         self.sink = sink
         self.counters = PipelineCounters()
+        self.estimator_time = BatchHistogram(ESTIMATOR_BUCKETS_S)  # seconds per estimator update (metrics)
         self._inbox: list[_Submission] = []
         self._queued = 0
         self._lock = threading.Lock()
@@ -395,6 +397,7 @@ class Pipeline:
         gap_ms = self.settings.max_gap_s * 1000.0
         resolution = self.settings.h3_resolution
         estimates: list[dict] = []
+        update_s: list[float] = []  # each update's time, into estimator_time once for the round
         for vehicle_id, stream in self._streams.items():
             if not stream.pending:
                 continue
@@ -410,7 +413,9 @@ class Pipeline:
                     self.estimator.reset(stream.state)
                     self.counters.restarts += 1
                 stream.last_estimated_ms = ts
+                started = time.perf_counter()
                 estimate = self.estimator.update(stream.state, sample)
+                update_s.append(time.perf_counter() - started)
                 if estimate is None:
                     continue
                 row = estimate.to_dict()
@@ -420,4 +425,5 @@ class Pipeline:
                 estimates.append(row)
             if stream.last_estimated_ms is not None and stream.last_estimated_ms >= stream.checkpoint_at_ms:
                 self.checkpoints.due(vehicle_id, stream)
+        self.estimator_time.add(update_s)
         return estimates

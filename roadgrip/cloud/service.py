@@ -80,6 +80,7 @@ class CloudService:
             validity_s=settings.warning_validity_s, station_id=settings.station_id)
         self.mqtt_rejected = 0
         self.estimate_messages_dropped = 0
+        self.http_payloads_rejected = 0  # telemetry requests refused whole: 400, 413, 415 (metrics)
         self._station_worker: ThreadPoolExecutor | None = None  # MQTT station reports, off paho's network thread
 
     # ------------------------------------------------------------------------------------------------- lifecycle

@@ -12,7 +12,8 @@ interpreter lock 82 % of the time (docs/RELIABILITY.md).
   samples are stored (or at once when it refused the message whole), and `reject` with the rejections, which the
   service publishes on the vehicle's error topic. An HTTP request is parsed in the service (its errors are HTTP's)
   and its samples are submitted to the owner, whose answer resolves the request's future. After each round the
-  ingest process sends what it stored to the fan-out, and its counters every STATS_INTERVAL_S (health sums them).
+  ingest process sends what it stored to the fan-out, and its counters every STATS_INTERVAL_S (health sums them; the
+  metrics, roadgrip/cloud/metrics.py, show them per process with their own).
 - Backpressure as with no ingest processes: an ingest process whose pipeline has MAX_MQTT_BACKLOG samples waiting
   stops reading its channel, the channel fills, and paho's network thread waits to forward the next message.
 - Each ingest process's pipeline checkpoints the estimator states of its own vehicles and restores them when it first
@@ -28,7 +29,7 @@ interpreter lock 82 % of the time (docs/RELIABILITY.md).
 Channel messages, pickled over a `multiprocessing` pipe; service to ingest process: ("mqtt", token, vehicle_id,
 payload), ("submit", request, vehicle_id, samples, received), ("forget", vehicle_id), ("stop",); back: ("ready",) or
 ("failed", traceback) once, then ("ack", token), ("reject", vehicle_id, rejections), ("result", request, SubmitResult
-or exception), ("stored", estimates, stored_ms, newest_data_ms), ("stats", counters).
+or exception), ("stored", estimates, stored_ms, newest_data_ms), ("stats", counters, metrics).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 from roadgrip.cloud.fanout import Fanout
 from roadgrip.cloud.ingest import Ingest, Rejecter
+from roadgrip.cloud.metrics import ProcessView
 from roadgrip.cloud.pipeline import Pipeline, PipelineCounters
 from roadgrip.cloud.process import rss_mb, tune_memory_for_serving, warm_up
 from roadgrip.cloud.settings import Settings
@@ -78,6 +80,7 @@ class _Shard:
         self.pending: dict[int, tuple[str, bytes, object]] = {}  # token -> (vehicle_id, payload, ack): unacknowledged
         self.requests: dict[int, Future] = {}  # HTTP submissions waiting for their answer
         self.stats: dict = {}
+        self.metrics: dict = {}  # Ingest.metrics of the process, sent with its stats
         self.restarts = 0
         self.reader: threading.Thread | None = None
 
@@ -212,6 +215,18 @@ class IngestShards:
                                       for shard in self._shards]
         return summed
 
+    def views(self) -> list[ProcessView]:
+        """Each ingest process's pipeline as of its last counters (none before its first), for the metrics."""
+        views = []
+        for shard in self._shards:
+            if not shard.stats:
+                continue
+            rss = rss_mb(shard.process.pid)
+            views.append(ProcessView(f"ingest-{shard.index}", shard.stats, shard.metrics, restarts=shard.restarts,
+                                     alive=shard.process.is_alive(), rss_bytes=None if rss is None else rss * 2**20,
+                                     forwarded_unacknowledged=len(shard.pending)))
+        return views
+
     # ------------------------------------------------------------------------------------------------- the channels
     def _send(self, shard: _Shard, message: tuple) -> None:
         """Send under shard.lock. A dead channel is left as it is: the reader starts the process again and forwards
@@ -245,7 +260,7 @@ class IngestShards:
         elif kind == "stored":
             self.fanout.stored(*message[1:])
         elif kind == "stats":
-            shard.stats = message[1]
+            shard.stats, shard.metrics = message[1], message[2]
         elif kind == "reject":
             self.reject(message[1], message[2])
         elif kind == "result":
@@ -312,7 +327,7 @@ class _ToService:
 
     def send_stats(self) -> None:
         self._next_stats = time.monotonic() + STATS_INTERVAL_S
-        self.send(("stats", self.ingest.stats()))
+        self.send(("stats", self.ingest.stats(), self.ingest.metrics()))
 
 
 def _answer(send, request: int, future: Future) -> None:
