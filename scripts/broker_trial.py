@@ -38,7 +38,8 @@ HOST = "127.0.0.1"
 SERVICE_USER = "svc"
 TOPIC = "roadgrip/v1/vehicles/{}/telemetry"
 NATS_PARTITION_PREFIX = "rgp"
-NATS_STREAM = "$MQTT_msgs"
+NATS_MQTT_STREAM = "$MQTT_msgs"
+NATS_OWN_STREAM = "RG_TELEMETRY"
 RABBIT_EXCHANGE = "rg.telemetry"
 RABBIT_BINDING = "roadgrip.v1.vehicles.*.telemetry"
 MAX_INFLIGHT = 20  # per vehicle, paho's default
@@ -78,12 +79,15 @@ def vehicle_ids(n: int) -> list[str]:
 
 class NatsCluster:
     """Three nats-server processes with routes, JetStream and an MQTT listener each. Vehicles' telemetry subjects are
-    mapped to `rgp.{{partition(N,1)}}.<subject>`; a vehicle may publish only its own (mapped) telemetry subject."""
+    mapped to `rgp.{{partition(N,1)}}.<subject>`; a vehicle may publish only its own (mapped) telemetry subject.
+    Consumers read the server's own `$MQTT_msgs` stream, or with `own_stream` a stream of ours capturing `rgp.>`."""
 
     name = "nats"
 
-    def __init__(self, root: Path, vehicles: list[str], partitions: int, secret: str):
+    def __init__(self, root: Path, vehicles: list[str], partitions: int, secret: str, own_stream: bool = False):
         self.root, self.vehicles, self.partitions, self.secret = root, vehicles, partitions, secret
+        self.stream = NATS_OWN_STREAM if own_stream else NATS_MQTT_STREAM
+        self.filter_prefix = "" if own_stream else "$MQTT.msgs."
         ports = free_ports(12)
         self.client_ports, self.route_ports = ports[0:3], ports[3:6]
         self.mqtt_ports, self.http_ports = ports[6:9], ports[9:12]
@@ -153,29 +157,32 @@ class NatsCluster:
         asyncio.run(self._setup())
 
     async def _setup(self) -> None:
-        from nats.js.api import AckPolicy, ConsumerConfig
+        from nats.js.api import AckPolicy, ConsumerConfig, StreamConfig
         nc = await self._connect()
         js = nc.jetstream()
         deadline = time.monotonic() + 30
         while True:
             try:
-                await js.stream_info(NATS_STREAM)
+                await js.stream_info(NATS_MQTT_STREAM)
                 break
             except Exception:
                 if time.monotonic() > deadline:
                     raise
                 await asyncio.sleep(0.2)
+        if self.stream == NATS_OWN_STREAM:
+            await js.add_stream(StreamConfig(name=NATS_OWN_STREAM, subjects=[f"{NATS_PARTITION_PREFIX}.>"],
+                                             num_replicas=3))
         for p in range(self.partitions):
-            await js.add_consumer(NATS_STREAM, ConsumerConfig(
-                durable_name=f"p{p}", filter_subject=f"$MQTT.msgs.{NATS_PARTITION_PREFIX}.{p}.>",
+            await js.add_consumer(self.stream, ConsumerConfig(
+                durable_name=f"p{p}", filter_subject=f"{self.filter_prefix}{NATS_PARTITION_PREFIX}.{p}.>",
                 ack_policy=AckPolicy.EXPLICIT, ack_wait=5.0, max_ack_pending=10000))
         await nc.close()
 
     def leader_of_partition(self, partition: int) -> int:
-        """The node leading `$MQTT_msgs` (every partition lives in that one stream, so one leader for all)."""
+        """The node leading the stream (every partition lives in that one stream, so one leader for all)."""
         async def leader() -> str:
             nc = await self._connect()
-            info = await nc.jetstream().stream_info(NATS_STREAM)
+            info = await nc.jetstream().stream_info(self.stream)
             await nc.close()
             return info.cluster.leader
         name = asyncio.run(leader())
@@ -184,9 +191,9 @@ class NatsCluster:
     def describe(self) -> dict:
         async def info():
             nc = await self._connect()
-            si = await nc.jetstream().stream_info(NATS_STREAM)
+            si = await nc.jetstream().stream_info(self.stream)
             await nc.close()
-            return {"stream": NATS_STREAM, "replicas": si.config.num_replicas, "retention": si.config.retention,
+            return {"stream": self.stream, "replicas": si.config.num_replicas, "retention": si.config.retention,
                     "leader": si.cluster.leader, "followers": [r.name for r in si.cluster.replicas]}
         return asyncio.run(info())
 
@@ -398,7 +405,7 @@ def payload(vehicle: str, seq: int) -> str:
 def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: float, rate: float, out: str,
                  publishing: mp.Event) -> None:
     """One paho client per vehicle, spread over the nodes' MQTT ports; on a lost connection a vehicle reconnects
-    to the next node. Publishes for `seconds` (`rate` messages/s in all, 0 = as fast as the PUBACKs come, at most
+    to the next node. A PUBACK is matched to its message by packet id (fewer than 65,536 messages per vehicle). Publishes for `seconds` (`rate` messages/s in all, 0 = as fast as the PUBACKs come, at most
     MAX_INFLIGHT unacknowledged per vehicle), then waits up to 30 s for the last PUBACKs."""
     clients, sent, acks, infos = {}, {}, {}, {}
     for k, v in enumerate(vehicles):
@@ -412,7 +419,7 @@ def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: fl
             c.connect_async(HOST, ports[state["node"]])
 
         def on_publish(c, u, mid, rc, props, v=v):
-            acks[v].append(time.monotonic())
+            acks[v].append((mid, time.monotonic()))
 
         client.on_disconnect = on_disconnect
         client.on_publish = on_publish
@@ -428,7 +435,7 @@ def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: fl
             due = int((now - start) * rate)
             while n < due:
                 v = vehicles[n % len(vehicles)]
-                infos[v].append((sent[v], clients[v].publish(TOPIC.format(v), payload(v, sent[v]), qos=1)))
+                infos[v].append((sent[v], clients[v].publish(TOPIC.format(v), payload(v, sent[v]), qos=1).mid))
                 sent[v] += 1
                 n += 1
             time.sleep(0.005)
@@ -436,7 +443,7 @@ def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: fl
             progressed = False
             for v in vehicles:
                 if sent[v] - len(acks[v]) < MAX_INFLIGHT:
-                    infos[v].append((sent[v], clients[v].publish(TOPIC.format(v), payload(v, sent[v]), qos=1)))
+                    infos[v].append((sent[v], clients[v].publish(TOPIC.format(v), payload(v, sent[v]), qos=1).mid))
                     sent[v] += 1
                     progressed = True
             if not progressed:
@@ -449,9 +456,9 @@ def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: fl
     for v in vehicles:
         clients[v].disconnect()
         clients[v].loop_stop()
-        times = acks[v]
-        result["vehicles"][v] = {"sent": sent[v], "acked": [seq for seq, info in infos[v] if info.is_published()],
-                                 "ack_times": times}
+        acked_mids = {mid for mid, _ in acks[v]}
+        result["vehicles"][v] = {"sent": sent[v], "acked": [seq for seq, mid in infos[v] if mid in acked_mids],
+                                 "ack_times": [t for _, t in acks[v]]}
     Path(out).write_text(json.dumps(result))
 
 
@@ -464,7 +471,7 @@ async def nats_consume(cluster: NatsCluster, partition: int, store: Path, stop: 
         while not stop.is_set():
             try:
                 if sub is None:
-                    sub = await js.pull_subscribe_bind(f"p{partition}", NATS_STREAM)
+                    sub = await js.pull_subscribe_bind(f"p{partition}", cluster.stream)
                 msgs = await sub.fetch(200, timeout=0.5)
             except nats.errors.TimeoutError:
                 continue
@@ -600,9 +607,11 @@ def trial(args) -> dict:
     root = Path(tempfile.mkdtemp(prefix=f"broker-trial-{args.broker}-"))
     vehicles = vehicle_ids(args.vehicles)
     secret = secrets.token_hex(8)
-    cluster_cls = NatsCluster if args.broker == "nats" else RabbitCluster
-    cluster = cluster_cls(root, vehicles, args.partitions, secret)
-    report = {"broker": args.broker, "vehicles": args.vehicles, "partitions": args.partitions,
+    if args.broker == "nats":
+        cluster = NatsCluster(root, vehicles, args.partitions, secret, own_stream=args.nats_stream == "own")
+    else:
+        cluster = RabbitCluster(root, vehicles, args.partitions, secret)
+    report = {"broker": args.broker, "nats_stream": args.nats_stream, "vehicles": args.vehicles, "partitions": args.partitions,
               "seconds": args.seconds, "rate": args.rate, "kill": args.kill, "cpus": os.cpu_count()}
     stop = threading.Event()
     consumer = None
@@ -677,6 +686,8 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=0, help="messages/s in all; 0: as fast as PUBACKs come")
     parser.add_argument("--kill", choices=["none", "leader"], default="none",
                         help="leader: kill -9 the node leading partition 0 halfway through")
+    parser.add_argument("--nats-stream", choices=["mqtt", "own"], default="mqtt",
+                        help="nats: consume the server's $MQTT_msgs stream, or a stream of ours capturing rgp.>")
     parser.add_argument("--drain-s", type=float, default=60)
     parser.add_argument("--keep", action="store_true", help="keep the servers' directory and logs")
     parser.add_argument("--out", type=Path)
