@@ -8,8 +8,9 @@ has the results and the commands.
     python scripts/broker_trial.py rabbitmq --vehicles 100 --seconds 20 --kill leader --out runs/cluster/rabbit.json
 
 `NatsCluster` and `RabbitCluster` start, kill and stop the servers (every process they start, by its pid) so that they
-can become the cluster's test fixtures. Needs the Debian packages nats-server and rabbitmq-server and the Python
-packages nats-py and pika.
+can become the cluster's test fixtures. Needs the Debian packages nats-server and rabbitmq-server
+(`apt-get install -y nats-server rabbitmq-server`) and the Python packages nats-py and pika (`pip install -e
+'.[cluster]'`).
 """
 
 from __future__ import annotations
