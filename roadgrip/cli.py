@@ -471,6 +471,36 @@ def serve(
         service.stop()
 
 
+@app.command()
+@friendly_errors
+def worker(
+    broker: list[str] = typer.Option(..., help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
+                                               "(repeatable: partition p connects to the (p mod count)-th, the next "
+                                               "one after a failure)"),
+    database: str = typer.Option(..., help="postgresql://... shared by every worker"),
+    partitions: int = typer.Option(..., min=1, help="partition queues rg.telemetry.p0..pN-1 (the same N everywhere)"),
+    prefetch: int = typer.Option(100, min=1, help="unacknowledged messages per partition"),
+    config: Path | None = typer.Option(None, help="settings file (YAML; the estimator, ingest and pipeline settings "
+                                                  "of `serve` apply); environment variables ROADGRIP_* override it"),
+    estimator: str | None = typer.Option(None, help="pmf (default), ekf, ukf, default (learned) or a model file"),
+):
+    """A cluster worker: consumes the partition queues of RabbitMQ (single active consumer per queue), estimates
+    and stores in PostgreSQL, acknowledges after storing (docs/CLUSTER.md, "Workers")."""
+    import logging
+    import signal
+    import threading
+
+    from roadgrip.cloud.settings import load_settings
+    from roadgrip.cloud.worker import run_worker
+
+    settings = load_settings(config, database_url=database, estimator=estimator)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda _signum, _frame: stop.set())
+    run_worker(broker, settings, partitions, prefetch, stop)
+
+
 @bench_app.command("estimate")
 @friendly_errors
 def bench_estimate_command(
