@@ -565,7 +565,10 @@ def _sample_vector(sample: dict) -> np.ndarray:
                 continue
             raise ValueError(f"pmf: telemetry sample lacks the field {column!r}")
         value = sample[column]
-        smp[k] = np.nan if value is None else float(value)
+        if value is None:  # not reported: an optional flag is taken as not acting, as in the batch path
+            smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
+        else:
+            smp[k] = float(value)
     return smp
 
 

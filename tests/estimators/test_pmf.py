@@ -134,6 +134,16 @@ def test_self_calibration_converges_on_ordinary_driving():
     assert 1.0 / cal["slip_slope"] == pytest.approx(c, rel=0.1)
 
 
+def test_controller_flags_the_wire_leaves_empty_are_taken_as_not_acting():
+    """The wire parser gives an optional field the vehicle does not send as None: the same estimates and calibration
+    as without the field (self-calibration used to stall on None)."""
+    samples, _ = worn_tire_drive(600)
+    absent, estimator, state_absent = _run(samples)
+    empty, _, state_empty = _run([{**s, "tcs_active": None, "esc_active": None} for s in samples])
+    assert [(e.mu, e.mu_lower, e.mu_upper) for e in empty] == [(e.mu, e.mu_lower, e.mu_upper) for e in absent]
+    assert estimator.calibration(state_empty) == estimator.calibration(state_absent)
+
+
 def test_state_round_trip_continues_identically():
     n = 200
     ax = np.where(np.arange(n) < 100, 0.0, -3.0)
