@@ -9,8 +9,8 @@ has the results and the commands.
 
 `NatsCluster` and `RabbitCluster` (roadgrip/cloud/rabbitmq.py, also the workers' test fixture) start, kill and stop
 the servers (every process they start, by its pid). Needs the Debian packages nats-server and rabbitmq-server
-(`apt-get install -y nats-server rabbitmq-server`) and the Python packages nats-py and pika (`pip install -e
-'.[cluster]'`).
+(`apt-get install -y nats-server rabbitmq-server`) and the Python packages nats-py (`pip install -e '.[cluster]'`)
+and pika (a dependency of the package: `roadgrip worker` uses it).
 """
 
 from __future__ import annotations
