@@ -7,7 +7,7 @@
   // ColorBrewer RdYlGn, low mu red: [mu, [r, g, b]], linear in between; mu outside 0..1 takes the end colour.
   const STOPS = [[0.0, [165, 0, 38]], [0.2, [215, 48, 39]], [0.4, [253, 174, 97]], [0.6, [254, 224, 139]],
                  [0.8, [102, 189, 99]], [1.0, [26, 152, 80]]];
-  const GREY = '#9aa0a6';  // a cell driven without recent excited evidence: no mu to show
+  const GREY = '#9aa0a6';  // a cell driven without recent evidence about mu: no mu to show
   const AUTH_KEY = 'roadgrip.dashboard.auth';  // sessionStorage: this tab only, gone when it closes
   const GAP_MS = 1000;  // the chart breaks its line where estimates are further apart (the estimator restarted)
   const PAGE = 10000;  // estimates per request (the API's default limit)
@@ -176,12 +176,15 @@
       (layer, f) => {
         const p = f.properties;
         const measured = p.status === 'measured' && p.mu !== null;
-        layer.setStyle({fillColor: measured ? muColour(p.mu) : GREY, fillOpacity: measured ? 0.72 : 0.45,
-                        opacity: measured ? 0.6 : 0.35});
+        const bounded = p.status === 'bounded' && p.mu_lower !== null;  // calm passes proved a lower bound only
+        layer.setStyle({fillColor: measured ? muColour(p.mu) : bounded ? muColour(p.mu_lower) : GREY,
+                        fillOpacity: measured ? 0.72 : bounded ? 0.3 : 0.45, opacity: measured ? 0.6 : 0.35});
         layer.setTooltipContent(
           `<b>cell ${esc(p.cell)}</b><br>` +
           (measured ? `mu ${fmt(p.mu)} (90 %: ${fmt(p.mu_lower)} to ${fmt(p.mu_upper)})`
-                    : 'no recent excited evidence') +
+            : bounded ? `mu at least ${fmt(p.mu_lower)} (90 %), what calm passes proved`
+              : 'no recent evidence about mu') +
+          (p.n_stations ? `<br>${p.n_stations} roadside station(s)` : '') +
           `<br>${p.n_vehicles} vehicle(s), ${p.n_estimates} estimates, ${p.n_excited} excited` +
           `<br>last ${utcTime(p.last_ms)} UTC`);
       });
