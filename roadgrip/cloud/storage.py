@@ -35,7 +35,7 @@ import logging
 import operator
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,6 +71,15 @@ class Written:
 
 class _Repeats(Exception):
     """Raised inside write_batch's first try, to roll it back: some telemetry rows were stored already."""
+
+
+class Fenced(RuntimeError):
+    """A fenced write named a partition that another worker has taken since (`Storage.write_batch`): nothing of it
+    was stored."""
+
+    def __init__(self, partitions: set[int]):
+        super().__init__(f"partitions {sorted(partitions)} were taken by another worker")
+        self.partitions = partitions
 
 
 class StorageUnavailable(RuntimeError):
@@ -149,6 +158,16 @@ estimator_states_table = Table(
     Column("state", _JSON, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
+
+# Cluster workers' ownership of partitions (roadgrip/cloud/worker.py): a worker that takes a partition raises its
+# epoch; a write fenced with an older epoch fails (`Storage.write_batch`'s `fences`), so that a worker that lost a
+# partition without noticing stores nothing of it after the next owner has begun.
+partition_owners_table = Table(
+    "partition_owners", metadata,
+    Column("partition_id", sa.Integer, primary_key=True, autoincrement=False),
+    Column("epoch", sa.BigInteger, nullable=False),
+    Column("owner", sa.String, nullable=False),
+    Column("taken_ms", sa.BigInteger, nullable=False))
 
 # columns added after their table was first released: (table, column), added by open_storage where missing
 ADDED_COLUMNS = ((estimates_table, "mu_proven"),)
@@ -376,12 +395,17 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ telemetry and estimates
 
-    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
+    def write_batch(self, telemetry: list[dict], estimates: list[dict],
+                    fences: Mapping[int, int] | None = None) -> Written:
         """Store telemetry rows (keys: TELEMETRY's column names; optional ones may be None or absent) and estimate
         rows (keys: the estimates table's columns; position and h3_cell may be None or absent) in one transaction.
         Rows whose (vehicle_id, timestamp_ms) is stored already, or came earlier in the same list, are skipped.
         Returns what was newly stored and which telemetry rows were stored before (`Written`). Values go to the
         database driver as they are: Python str, int, float, bool (not 0/1 for the flags) or None.
+
+        `fences` (partition -> the epoch `take_partition` gave the writer): the transaction first reads those
+        partitions' epochs, locked against a take until it commits, and raises Fenced, storing nothing, if another
+        worker has taken one since.
 
         Two tries at most. The first counts the rows each INSERT stored (`rowcount`); when every telemetry row was
         new (the usual case) that is all. Otherwise it is rolled back and done again with RETURNING, which names the
@@ -393,6 +417,7 @@ class Storage:
         estimates = _checked_rows("estimate", estimates, estimates_table)
         try:
             with self._transaction() as conn:
+                self._check_fences(conn, fences)
                 stored = self._insert_new(conn, telemetry_table, telemetry)
                 if stored < len(telemetry):
                     raise _Repeats
@@ -400,10 +425,33 @@ class Storage:
         except _Repeats:
             pass
         with self._transaction() as conn:
+            self._check_fences(conn, fences)
             inserted = set(self._insert_new(conn, telemetry_table, telemetry, returning=True))
             return Written(len(inserted), self._insert_new(conn, estimates_table, estimates),
                            frozenset(key for row in telemetry if (key := (row["vehicle_id"], row["timestamp_ms"]))
                                      not in inserted))
+
+    def _check_fences(self, conn: Connection, fences: Mapping[int, int] | None) -> None:
+        if not fences:
+            return
+        c = partition_owners_table.c
+        query = select(c.partition_id, c.epoch).where(c.partition_id.in_(sorted(fences))).with_for_update(read=True)
+        epochs = dict(conn.execute(query).all())
+        stale = {p for p, epoch in fences.items() if epochs.get(p) != epoch}
+        if stale:
+            raise Fenced(stale)
+
+    def take_partition(self, partition_id: int, owner: str) -> int:
+        """Raise the partition's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
+        which the owner's fenced writes carry (`write_batch`). Waits for fenced writes of the partition in progress."""
+        insert = self._insert(partition_owners_table).values(partition_id=partition_id, epoch=1, owner=owner,
+                                                             taken_ms=_now_ms())
+        upsert = insert.on_conflict_do_update(
+            index_elements=["partition_id"],
+            set_={"epoch": partition_owners_table.c.epoch + 1, "owner": insert.excluded.owner,
+                  "taken_ms": insert.excluded.taken_ms}).returning(partition_owners_table.c.epoch)
+        with self._transaction() as conn:
+            return conn.execute(upsert).scalar_one()
 
     def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
         """Insert `rows`, skipping keys stored already: the number inserted, or with `returning` the keys inserted.

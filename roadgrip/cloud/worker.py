@@ -17,6 +17,14 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   the highest tag below which every tag is done, so a message is never acknowledged before an earlier one of its queue.
   Per-vehicle order: a queue delivers in order, the pipeline takes submissions in order and its reorder buffer
   estimates each vehicle's samples in time order.
+- Fencing (a partial handover: a worker whose connection died through a dead node, or that has not noticed yet,
+  still holds rounds of that partition while the new owner starts on the redelivered messages): the first delivery
+  on a partition's channel takes the partition in the database (`Storage.take_partition`: its epoch + 1); every
+  round's write carries the epochs of its vehicles' partitions and fails in the same transaction if one was taken
+  since (`Fenced`). The worker then drops that partition's rows from the round and writes the rest, acknowledges
+  nothing more on that channel, and gives it up (re-registering as a standby). A partition whose connection is lost
+  is fenced at once, without asking the database. So a vehicle's estimates are stored by one owner at a time, in
+  order.
 - Vehicles taken over: the pipeline meets a vehicle for the first time and goes on from its stored estimator state
   (roadgrip/cloud/checkpoints.py); when a partition's connection is lost the worker forgets that partition's vehicles,
   so that it restores them afresh from the database should the partition come back to it.
@@ -30,8 +38,11 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
+import os
+import socket
 import threading
 import time
 
@@ -44,7 +55,7 @@ from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage import open_storage
+from roadgrip.cloud.storage import Fenced, Storage, StorageUnavailable, Written, open_storage
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
@@ -63,21 +74,34 @@ def swap_dots_and_slashes(text: str) -> str:
     return text.translate(str.maketrans("./", "/."))
 
 
+class _PartitionLost(Exception):
+    """A partition's channel was fenced: another worker took the partition."""
+
+
 class _Acks:
-    """Delivery tags of one channel (1, 2, 3, ...): marked done from any thread, acknowledged in order."""
+    """Delivery tags of one channel (1, 2, 3, ...): marked done from any thread, acknowledged in order; the
+    partition's epoch while this channel holds it; fenced: nothing more is acknowledged or stored."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._done: set[int] = set()
         self.acknowledged = 0  # every tag up to this one is acknowledged
+        self.epoch: int | None = None  # taken at the channel's first delivery
+        self.fenced = False
 
     def done(self, tag: int) -> None:
         with self._lock:
             self._done.add(tag)
 
-    def flush(self, channel) -> None:
-        """One multiple-ack up to the highest tag below which all are done (none if the next is not)."""
+    def fence(self) -> None:
         with self._lock:
+            self.fenced = True
+
+    def flush(self, channel) -> None:
+        """One multiple-ack up to the highest tag below which all are done (none if the next is not, or fenced)."""
+        with self._lock:
+            if self.fenced:
+                return
             upto = self.acknowledged
             while upto + 1 in self._done:
                 upto += 1
@@ -95,6 +119,42 @@ class _StoredOnly:
 
     def tick(self, final: bool) -> None:
         """Nothing to do between rounds."""
+
+
+class _FencedStorage:
+    """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` is fenced with the epochs of the
+    partitions the round's vehicles came from (module docstring)."""
+
+    def __init__(self, storage: Storage, worker: Worker):
+        self._storage = storage
+        self._worker = worker
+
+    def __getattr__(self, name: str):
+        return getattr(self._storage, name)
+
+    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
+        """Write what this worker still owns; the rows of partitions taken from it are left out, and their telemetry
+        counted as stored before (their submitters' acknowledgements go to a fenced channel, which sends none)."""
+        dropped: set[tuple[str, int]] = set()
+        partition_of = self._worker.partition_of
+        while True:
+            acks = {p: self._worker.channel_acks(p) for p in {partition_of[row["vehicle_id"]]
+                                                               for row in itertools.chain(telemetry, estimates)}}
+            stale = {p for p, a in acks.items() if a is None or a.fenced or a.epoch is None}
+            if not stale:
+                try:
+                    written = self._storage.write_batch(telemetry, estimates,
+                                                        fences={p: a.epoch for p, a in acks.items()})
+                    return Written(written.telemetry, written.estimates, written.already_stored | dropped)
+                except Fenced as exc:
+                    stale = exc.partitions
+            self._worker.fence(stale)
+            dropped |= {(row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
+                        if partition_of[row["vehicle_id"]] in stale}
+            telemetry = [row for row in telemetry if partition_of[row["vehicle_id"]] not in stale]
+            estimates = [row for row in estimates if partition_of[row["vehicle_id"]] not in stale]
+            if not telemetry and not estimates:
+                return Written(0, 0, frozenset(dropped))
 
 
 class Worker:
@@ -119,6 +179,10 @@ class Worker:
         self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
+        self.fenced = 0  # rounds' writes that found a partition taken by another worker
+        self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
+        self.partition_of: dict[str, int] = {}  # vehicle -> the partition it arrives on (fixed by the hash)
+        self._acks: list[_Acks | None] = [None] * partitions  # each partition's current channel
         self._taking = threading.Event()  # deliveries go to the pipeline (cleared at a stop)
         self._closing = threading.Event()
         self._registered = [threading.Event() for _ in range(partitions)]
@@ -140,7 +204,8 @@ class Worker:
         self.storage = open_storage(s.database_url)
         estimator = load_estimator(s.estimator)
         warm_up(estimator)
-        self.ingest = Ingest(s, Pipeline(self.storage, s, estimator, _StoredOnly()), reject=self._reject)
+        self.ingest = Ingest(s, Pipeline(_FencedStorage(self.storage, self), s, estimator, _StoredOnly()),
+                             reject=self._reject)
         self._declare()
         self.ingest.start()
         self._taking.set()
@@ -186,8 +251,21 @@ class Worker:
 
     def stats(self) -> dict:
         return {"partitions_connected": sum(self.connected), "deliveries": list(self.deliveries),
-                "connections_lost": self.lost, "rejected": self.rejected,
+                "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
                 **(self.ingest.stats() if self.ingest is not None else {})}
+
+    def channel_acks(self, partition: int) -> _Acks | None:
+        return self._acks[partition]
+
+    def fence(self, partitions: set[int]) -> None:
+        """Partitions taken by another worker: their channels acknowledge nothing more and are given up."""
+        self.fenced += 1
+        log.warning("partitions %s were taken by another worker: their rows are dropped, their channels given up",
+                    sorted(partitions))
+        for p in partitions:
+            acks = self._acks[p]
+            if acks is not None:
+                acks.fence()
 
     # ------------------------------------------------------------------------------------------------- consumers
     def _consume(self, partition: int) -> None:
@@ -203,10 +281,11 @@ class Worker:
                 index += 1
                 time.sleep(RECONNECT_S)
                 continue
+            acks = _Acks()
             try:
                 channel = connection.channel()
                 channel.basic_qos(prefetch_count=self.prefetch)
-                acks = _Acks()
+                self._acks[partition] = acks
                 self._channel.channel = channel
                 channel.basic_consume(partition_queue(partition), functools.partial(
                     self._on_message, partition, acks, vehicles))
@@ -214,10 +293,18 @@ class Worker:
                 self._registered[partition].set()
                 while not self._closing.is_set():
                     connection.process_data_events(time_limit=FLUSH_S)
+                    if acks.fenced:
+                        raise _PartitionLost("taken by another worker")
                     acks.flush(channel)
                 acks.flush(channel)
                 connection.close()
-            except (pika.exceptions.AMQPError, OSError) as exc:
+            except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost) as exc:
+                acks.fence()  # nothing it took may be stored or acknowledged any more
+                if connection.is_open:  # given up: what it holds goes back to the queue
+                    try:
+                        connection.close()
+                    except (pika.exceptions.AMQPError, OSError):
+                        log.debug("partition %d: closing the given-up connection failed", partition, exc_info=True)
                 if self._closing.is_set():
                     return
                 self.lost += 1
@@ -232,8 +319,11 @@ class Worker:
 
     def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
                     body: bytes) -> None:
-        if not self._taking.is_set():
-            return  # stopping: left unacknowledged, it goes back to the queue when the connection closes
+        if not self._taking.is_set() or acks.fenced:
+            return  # stopping or given up: left unacknowledged, it goes back to the queue when the connection closes
+        if acks.epoch is None:  # the channel's first delivery: this consumer is the partition's active one
+            acks.epoch = self.storage.take_partition(partition, self.owner)
+            log.info("partition %d taken, epoch %d", partition, acks.epoch)
         self.deliveries[partition] += 1
         vehicle_id = vehicle_of_topic(swap_dots_and_slashes(method.routing_key))
         if vehicle_id is None:
@@ -242,6 +332,7 @@ class Worker:
             acks.done(method.delivery_tag)
             return
         vehicles.add(vehicle_id)
+        self.partition_of[vehicle_id] = partition
         self.ingest.mqtt_message(vehicle_id, body, functools.partial(acks.done, method.delivery_tag))
 
     def _reject(self, vehicle_id: str, errors: list[dict]) -> None:

@@ -27,6 +27,9 @@ from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.mqtt import telemetry_topic
 from roadgrip.cloud.rabbitmq import HOST, RabbitCluster, partition_queue
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage import Fenced, open_storage
+from roadgrip.cloud.worker import Worker, _Acks, _FencedStorage
 from roadgrip.estimators.pmf import CALIBRATION
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -101,8 +104,8 @@ class WorkerProcess:
 
 class Fleet:
     """Vehicles on MQTT 3.1.1, QoS 1, clean session, spread over the nodes; on a lost connection or a refused connect
-    a vehicle tries the next node (as a load balancer in front of the nodes would send it to a live one). Each sends a message of ten samples (1 s of steady driving) every 0.1 s; a PUBACK is matched to
-    its message by packet id."""
+    a vehicle tries the next node (as a load balancer in front of the nodes would send it to a live one). Each sends
+    a message of ten samples (1 s of steady driving) every 0.1 s; a PUBACK is matched to its message by packet id."""
 
     def __init__(self, cluster: RabbitCluster, vehicles: list[str]):
         self.vehicles = vehicles
@@ -347,3 +350,58 @@ def test_broker_node_killed_partitions_served_again(cluster, postgres_database_u
         db.close()
         cluster.start_node(killed)
         cluster.ctl(killed, "wait", str(cluster.root / f"rg{killed}" / "pid"), "--timeout", "120", timeout_s=150)
+
+
+def telemetry_row(vehicle: str, timestamp_ms: int) -> dict:
+    w = 20.0 / PAPER_SUV.wheel_radius_m
+    return {"vehicle_id": vehicle, "timestamp_ms": timestamp_ms, "latitude_deg": 48.1, "longitude_deg": 11.5,
+            "speed_mps": 20.0, "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0,
+            "steering_wheel_angle_rad": 0.0, "wheel_speed_fl_radps": w, "wheel_speed_fr_radps": w,
+            "wheel_speed_rl_radps": w, "wheel_speed_rr_radps": w, "abs_active": False, "acc_active": False}
+
+
+def estimate_row(vehicle: str, timestamp_ms: int) -> dict:
+    return {"vehicle_id": vehicle, "timestamp_ms": timestamp_ms, "mu": 0.8, "mu_lower": 0.7, "mu_upper": 0.9,
+            "excited": False, "estimator": "pmf"}
+
+
+def test_a_write_fenced_by_a_later_take_stores_nothing(postgres_database_url):
+    storage = open_storage(postgres_database_url)
+    try:
+        first = storage.take_partition(0, "worker-a")
+        second = storage.take_partition(0, "worker-b")
+        assert second == first + 1
+        with pytest.raises(Fenced) as fenced:
+            storage.write_batch([telemetry_row("f0", 1000)], [estimate_row("f0", 1000)], fences={0: first})
+        assert fenced.value.partitions == {0}
+        assert storage.counts()["telemetry"] == 0 and storage.counts()["estimates"] == 0
+        written = storage.write_batch([telemetry_row("f0", 1000)], [estimate_row("f0", 1000)], fences={0: second})
+        assert (written.telemetry, written.estimates) == (1, 1)
+    finally:
+        storage.close()
+
+
+def test_worker_that_lost_a_partition_stores_only_what_it_still_owns(postgres_database_url):
+    """A partial handover: worker a holds a round of vehicles from partitions 0 and 1 when worker b takes partition
+    0. a's write stores partition 1's rows only, counts partition 0's telemetry as stored before (not by it), and
+    the channel of partition 0 acknowledges nothing more; partition 1 stays a's."""
+    worker = Worker(["amqp://unused"], Settings(database_url=postgres_database_url), partitions=2)
+    worker.storage = open_storage(postgres_database_url)
+    try:
+        for p in (0, 1):
+            worker._acks[p] = _Acks()
+            worker._acks[p].epoch = worker.storage.take_partition(p, worker.owner)
+        worker.partition_of.update({"f0": 0, "f1": 1})
+        fenced = _FencedStorage(worker.storage, worker)
+        fenced.write_batch([telemetry_row("f0", 1000), telemetry_row("f1", 1000)], [])
+        worker.storage.take_partition(0, "worker-b")
+        written = fenced.write_batch([telemetry_row("f0", 1100), telemetry_row("f1", 1100)],
+                                     [estimate_row("f0", 1100), estimate_row("f1", 1100)])
+        assert (written.telemetry, written.estimates) == (1, 1)
+        assert written.already_stored == {("f0", 1100)}
+        assert [len(worker.storage.telemetry(v)) for v in ("f0", "f1")] == [1, 2]
+        assert [len(worker.storage.estimates(v)) for v in ("f0", "f1")] == [0, 1]
+        assert worker._acks[0].fenced and not worker._acks[1].fenced
+        assert worker.stats()["fenced"] == 1
+    finally:
+        worker.storage.close()
