@@ -139,11 +139,18 @@ class PipelineCounters:
 
 
 class Pipeline:
-    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, sink: StoredSink):
+    """`skip_estimated`: a vehicle first seen is not estimated at or before its newest estimate stored from its first
+    sample on: those samples are redeliveries of what another owner estimated (and may have checkpointed into the
+    state this pipeline restores, whose calibration would count them twice). A cluster worker sets it
+    (roadgrip/cloud/worker.py); `roadgrip serve` does not."""
+
+    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, sink: StoredSink,
+                 skip_estimated: bool = False):
         self.storage = storage
         self.settings = settings
         self.estimator = estimator
         self.sink = sink
+        self.skip_estimated = skip_estimated
         self.counters = PipelineCounters()
         self.estimator_time = BatchHistogram(ESTIMATOR_BUCKETS_S)  # seconds per estimator update (metrics)
         self._inbox: list[_Submission] = []
@@ -373,9 +380,16 @@ class Pipeline:
         if not first_ms:
             return
         states = self.checkpoints.start_states({v: self._profiles[v] for v in first_ms})
+        estimated_ms = {}  # vehicle -> its newest estimate stored from its first sample on
+        if self.skip_estimated:
+            for vehicle_id, first in first_ms.items():
+                stored = self.storage.estimates(vehicle_id, start_ms=int(first))
+                if stored:
+                    estimated_ms[vehicle_id] = stored[-1]["timestamp_ms"]
         for vehicle_id, state in states.items():
             self._streams[vehicle_id] = _VehicleStream(
-                state, checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]))
+                state, last_estimated_ms=estimated_ms.get(vehicle_id),
+                checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]))
 
     def _profile(self, vehicle_id: str) -> VehicleParams:
         params = self._profiles.get(vehicle_id)

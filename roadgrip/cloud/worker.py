@@ -26,8 +26,10 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   is fenced at once, without asking the database. So a vehicle's estimates are stored by one owner at a time, in
   order.
 - Vehicles taken over: the pipeline meets a vehicle for the first time and goes on from its stored estimator state
-  (roadgrip/cloud/checkpoints.py); when a partition's connection is lost the worker forgets that partition's vehicles,
-  so that it restores them afresh from the database should the partition come back to it.
+  (roadgrip/cloud/checkpoints.py), estimating only its samples after its newest stored estimate (`skip_estimated`:
+  the redelivered ones before it were estimated by the previous owner, and may be in the restored calibration); when
+  a partition's connection is lost the worker forgets that partition's vehicles, so that it restores them afresh from
+  the database should the partition come back to it.
 - Checkpoints every 60 s of a vehicle's data and at a clean stop (SIGTERM, SIGINT): the worker stops taking new
   deliveries (they stay unacknowledged), lets the pipeline store what it took and every vehicle's state, acknowledges,
   then closes its connections: what it did not take goes back to the queues, in order, for the next owner.
@@ -204,8 +206,8 @@ class Worker:
         self.storage = open_storage(s.database_url)
         estimator = load_estimator(s.estimator)
         warm_up(estimator)
-        self.ingest = Ingest(s, Pipeline(_FencedStorage(self.storage, self), s, estimator, _StoredOnly()),
-                             reject=self._reject)
+        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator, _StoredOnly(), skip_estimated=True)
+        self.ingest = Ingest(s, pipeline, reject=self._reject)
         self._declare()
         self.ingest.start()
         self._taking.set()

@@ -27,9 +27,11 @@ from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.mqtt import telemetry_topic
 from roadgrip.cloud.rabbitmq import HOST, RabbitCluster, partition_queue
+from roadgrip.cloud.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage import Fenced, open_storage
-from roadgrip.cloud.worker import Worker, _Acks, _FencedStorage
+from roadgrip.cloud.worker import Worker, _Acks, _FencedStorage, _StoredOnly
+from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import CALIBRATION
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -405,3 +407,32 @@ def test_worker_that_lost_a_partition_stores_only_what_it_still_owns(postgres_da
         assert worker.stats()["fenced"] == 1
     finally:
         worker.storage.close()
+
+
+def drive(database_url: str, messages: range, skip_estimated: bool) -> float:
+    """A pipeline (as a worker's, or as serve's) meets the vehicle for the first time, takes `messages` (1 s of
+    driving each) and stops, storing its state: the seconds of driving in the stored calibration."""
+    settings = Settings(database_url=database_url)
+    storage = open_storage(database_url)
+    estimator = load_estimator(settings.estimator)
+    pipeline = Pipeline(storage, settings, estimator, _StoredOnly(), skip_estimated=skip_estimated)
+    pipeline.start()
+    futures = [pipeline.submit("h0", [{**row, "tcs_active": False, "esc_active": False}
+                                      for row in (telemetry_row("h0", 1000 * m + 100 * k) for k in range(10))],
+                               retry=True)
+               for m in messages]
+    for future in futures:
+        future.result(30)
+    pipeline.stop()
+    storage.close()
+    return Database(database_url).calibration_weight_s()["h0"]
+
+
+@pytest.mark.parametrize("skip_estimated", [True, False], ids=["worker", "serve"])
+def test_redelivered_samples_not_counted_twice_by_a_restored_calibration(postgres_database_url, skip_estimated):
+    """A takeover: the new owner restores the state checkpointed after message 29 and gets messages 20-39 (20-29
+    redelivered: stored and in the state already). A worker's pipeline feeds only 30-39 to the calibration; serve's
+    (skip_estimated off, unchanged) feeds 20-39 again."""
+    before = drive(postgres_database_url, range(30), skip_estimated)
+    after = drive(postgres_database_url, range(20, 40), skip_estimated)
+    assert after - before == pytest.approx(10.0 if skip_estimated else 20.0, abs=0.2)
