@@ -93,21 +93,9 @@ class Fanout:
     def _after_store(self, estimates: list[dict]) -> None:
         now_ms = self.now_ms()
         self.friction_map.add(estimates, now_ms)
-        events = self.warning_engine.update(estimates, now_ms)
-        denms = [event.to_denm() for event in events]
-        # the DENM for readers, the event itself to restore the engine after a restart; one transaction a round
-        self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
-                                    "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
-                                    "message": {"denm": d, "event": dataclasses.asdict(e)}}
-                                   for e, d in zip(events, denms)])
-        for event in events:  # raised and ended at WARNING; a refresh (every low pass in a warned cell) at DEBUG
-            self.warning_changes[_change(event)] += 1
-            log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
-                    "warning %s %s in cell %s (%s)", event.warning_id, event.status, event.cell, event.reason)
+        self._warnings_out(self.warning_engine.update(estimates, now_ms), "")
         if self.publish is None:
             return
-        for denm in denms:
-            self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
         now_s = time.monotonic()
         for row in estimates:
             self._outbox.setdefault(row["vehicle_id"], (now_s, []))[1].append(_estimate_message(row))
@@ -121,17 +109,21 @@ class Fanout:
         with self._lock:
             now_ms = self.now_ms()
             self.friction_map.add_station(rows, now_ms)
-            events = self.warning_engine.station_evidence(rows, now_ms)
-            denms = [event.to_denm() for event in events]
-            self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
-                                        "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
-                                        "message": {"denm": d, "event": dataclasses.asdict(e)}}
-                                       for e, d in zip(events, denms)])
-            for event in events:
-                self.warning_changes[_change(event)] += 1
-                log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
-                        "warning %s %s in cell %s (%s, roadside station)", event.warning_id, event.status,
-                        event.cell, event.reason)
-            if self.publish is not None:
-                for denm in denms:
-                    self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
+            self._warnings_out(self.warning_engine.station_evidence(rows, now_ms), ", roadside station")
+
+    def _warnings_out(self, events: list, source: str) -> None:
+        """Warning changes stored (the DENM for readers, the event itself to restore the engine after a restart; one
+        transaction), counted, logged (raised and ended at WARNING; a refresh, every low pass in a warned cell, at
+        DEBUG) and their DENMs published."""
+        denms = [event.to_denm() for event in events]
+        self.storage.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
+                                    "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
+                                    "message": {"denm": d, "event": dataclasses.asdict(e)}}
+                                   for e, d in zip(events, denms)])
+        for event in events:
+            self.warning_changes[_change(event)] += 1
+            log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
+                    "warning %s %s in cell %s (%s%s)", event.warning_id, event.status, event.cell, event.reason, source)
+        if self.publish is not None:
+            for denm in denms:
+                self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
