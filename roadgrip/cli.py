@@ -445,7 +445,7 @@ def serve(
 
     import uvicorn
 
-    from roadgrip.cloud.api import create_app
+    from roadgrip.cloud.api.app import create_app
     from roadgrip.cloud.process import tune_memory_for_serving
     from roadgrip.cloud.service import CloudService
     from roadgrip.cloud.settings import load_settings
@@ -491,7 +491,7 @@ def worker(
     import threading
 
     from roadgrip.cloud.settings import load_settings
-    from roadgrip.cloud.worker import run_worker
+    from roadgrip.cloud.worker.consumer import run_worker
 
     settings = load_settings(config, database_url=database, estimator=estimator)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

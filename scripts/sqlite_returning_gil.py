@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from roadgrip.cloud.bench import _message, sample_bodies
-from roadgrip.cloud.storage import open_storage, telemetry_table
+from roadgrip.cloud.storage.database import open_storage, telemetry_table
 
 STATEMENT_ROWS = 500
 

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from roadgrip.cloud.bench import _message, sample_bodies
-from roadgrip.cloud.storage import open_storage
+from roadgrip.cloud.storage.database import open_storage
 
 VEHICLES = 1000
 SAMPLE_MS = 100

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import httpx
 
-from roadgrip.cloud.broker import free_port
-from roadgrip.cloud.storage import open_storage
+from roadgrip.cloud.edge.broker import free_port
+from roadgrip.cloud.storage.database import open_storage
 from roadgrip.fleet.terminal import wire_samples
 
 SAMPLE_PERIOD_MS = 100
@@ -53,7 +53,7 @@ class IngestCase:
     seconds: float
     batch: int            # samples per message
     workers: int = 2      # load-generator processes (MQTT: at least vehicles / MQTT_CLIENTS_PER_PROCESS)
-    ingest_processes: int = 0  # the service's setting (roadgrip/cloud/shards.py); 0: ingest in its own process
+    ingest_processes: int = 0  # the service's setting (roadgrip/cloud/worker/shards.py); 0: ingest in its own process
 
     def __post_init__(self):
         if self.transport == "mqtt":
@@ -92,7 +92,7 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
     sent = acked = refused = 0
     lag_s = 0.0  # how late the most belated batch left: the generator itself falling behind
     if case.transport == "mqtt":
-        from roadgrip.cloud.mqtt import UserClient, telemetry_topic
+        from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
         clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
         topics = [telemetry_topic(vid) for vid, _ in vehicles]
         infos = []
@@ -315,7 +315,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
             "slowest_round_s": round(pipeline["slowest_round_s"], 2), "slow_rounds": pipeline["slow_rounds"],
             "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
             "estimate_messages_dropped": pipeline["estimate_messages_dropped"],
-            # estimator state checkpoints while serving (roadgrip/cloud/checkpoints.py; not those of the stop)
+            # estimator state checkpoints while serving (roadgrip/cloud/worker/checkpoints.py; not those of the stop)
             "checkpoints_written": pipeline["checkpoints_written"], "checkpoint_s": round(pipeline["checkpoint_s"], 3),
             **memory_trend(timeline), "timeline": timeline,
             "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
@@ -356,8 +356,8 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
     this machine) deliver with nothing else to do."""
     import threading
 
-    from roadgrip.cloud.broker import ManagedBroker
-    from roadgrip.cloud.mqtt import MqttClient
+    from roadgrip.cloud.edge.broker import ManagedBroker
+    from roadgrip.cloud.edge.mqtt import MqttClient
 
     with tempfile.TemporaryDirectory(prefix="roadgrip-bench-mqtt-") as tmp, ManagedBroker(Path(tmp)) as broker:
         logins = [(f"raw-{i:05d}", secrets.token_urlsafe(16)) for i in range(vehicles)]

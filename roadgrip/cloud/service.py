@@ -2,14 +2,14 @@
 storage; in this process, or sharded over `ingest_processes`), the fan-out (map, warnings, publishing), the MQTT side
 (a broker given by URL, or a Mosquitto started here), and the HTTP API.
 
-Roadside stations (roadgrip/cloud/stations.py) do not go through the vehicles' pipeline: `station_reports` stores a
+Roadside stations (roadgrip/cloud/fanout/stations.py) do not go through the vehicles' pipeline: `station_reports` stores a
 station's validated reports (idempotent on station_id and timestamp_ms) and hands the evidence of the new ones to the
 fan-out (map and warnings, under its lock), in this process, from the HTTP route or from the MQTT handler's own
 thread (a station reports about once a minute; the vehicles' queue is not needed).
 
     service = CloudService(load_settings())
     service.start()          # storage opened, pipeline running, MQTT connected when configured
-    app = create_app(service) # roadgrip.cloud.api
+    app = create_app(service) # roadgrip.cloud.api.app
     ...
     service.stop()
 """
@@ -25,19 +25,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
 
-from roadgrip.cloud.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
-from roadgrip.cloud.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
-from roadgrip.cloud.fanout import Fanout
-from roadgrip.cloud.friction_map import FrictionMap
-from roadgrip.cloud.ingest import Ingest
-from roadgrip.cloud.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
-from roadgrip.cloud.pipeline import Pipeline
+from roadgrip.cloud.edge.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
+from roadgrip.cloud.edge.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
+from roadgrip.cloud.fanout.fanout import Fanout
+from roadgrip.cloud.fanout.friction_map import FrictionMap
+from roadgrip.cloud.edge.ingest import Ingest
+from roadgrip.cloud.edge.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
+from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.cloud.process import rss_mb, warm_up
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.shards import IngestShards
-from roadgrip.cloud.stations import ReportError, StationReport, covered_cells, evidence, evidence_rows, parse_reports
-from roadgrip.cloud.storage import Storage, StorageUnavailable, open_storage
-from roadgrip.cloud.warning_engine import WarningEngine, WarningEvent
+from roadgrip.cloud.worker.shards import IngestShards
+from roadgrip.cloud.fanout.stations import ReportError, StationReport, covered_cells, evidence, evidence_rows, parse_reports
+from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
+from roadgrip.cloud.fanout.warning_engine import WarningEngine, WarningEvent
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.vehicle.params import VehicleParams
 
@@ -201,7 +201,7 @@ class CloudService:
         self.mqtt.publish(topic, payload)
 
     def _reject_mqtt(self, vehicle_id: str, errors: list[dict]) -> None:
-        """Rejections of an MQTT message (roadgrip/cloud/ingest.py): counted, logged, published on the vehicle's error
+        """Rejections of an MQTT message (roadgrip/cloud/edge/ingest.py): counted, logged, published on the vehicle's error
         topic."""
         self.mqtt_rejected += len(errors)
         log.warning("rejected %d sample(s) from vehicle %s over MQTT: %s", len(errors), vehicle_id,
@@ -211,7 +211,7 @@ class CloudService:
 
     # ------------------------------------------------------------------------------------------------- stations
     def station_reports(self, reports: list[StationReport]) -> StationIngest:
-        """Store validated reports (roadgrip/cloud/stations.py) and hand the evidence of the new ones to the map and
+        """Store validated reports (roadgrip/cloud/fanout/stations.py) and hand the evidence of the new ones to the map and
         the warning engine. StorageUnavailable when the database is down (nothing stored)."""
         resolution = self.settings.h3_resolution
         rows, evidence_of = [], {}

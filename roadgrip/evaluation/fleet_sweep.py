@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.warning_engine import CANCELLED, WarningEngine
+from roadgrip.cloud.fanout.warning_engine import CANCELLED, WarningEngine
 from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value

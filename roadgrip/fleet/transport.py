@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 
-from roadgrip.cloud.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from roadgrip.cloud.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
+from roadgrip.cloud.edge.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
 
 
 @pytest.fixture

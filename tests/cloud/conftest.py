@@ -5,7 +5,7 @@
 - `postgres_database_url`: a fresh, empty database on that server for one test, dropped after it.
 - `storage_url`: parametrized over "sqlite" and "postgresql", so that a test using it runs on both: a fresh SQLite file
   in the test's tmp_path, or `postgres_database_url`.
-- `storage`: `roadgrip.cloud.storage.open_storage(storage_url)`, closed after the test.
+- `storage`: `roadgrip.cloud.storage.database.open_storage(storage_url)`, closed after the test.
 
 The server needs the Debian packages of `scripts/install_system_deps.sh`; without them the fixture fails (it never skips),
 because "passes on SQLite and PostgreSQL" is part of what the tests check.
@@ -25,8 +25,8 @@ import psycopg
 import pytest
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.broker import free_port
-from roadgrip.cloud.storage import open_storage
+from roadgrip.cloud.edge.broker import free_port
+from roadgrip.cloud.storage.database import open_storage
 
 PG_BIN = Path("/usr/lib/postgresql/15/bin")
 

@@ -43,11 +43,11 @@ import sqlalchemy as sa
 import uvicorn
 from drives import patch_drive
 
-from roadgrip.cloud.api import create_app
-from roadgrip.cloud.broker import free_port
-from roadgrip.cloud.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.edge.broker import free_port
+from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
 from roadgrip.cloud.service import CloudService
-from roadgrip.cloud.storage import normalise_url
+from roadgrip.cloud.storage.database import normalise_url
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import PAPER_SUV

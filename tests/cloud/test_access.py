@@ -20,9 +20,9 @@ from broker_fixtures import wait_until
 from drives import patch_drive
 from fastapi.testclient import TestClient
 
-from roadgrip.cloud.api import create_app
-from roadgrip.cloud.broker import mosquitto_available
-from roadgrip.cloud.mqtt import (
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.edge.broker import mosquitto_available
+from roadgrip.cloud.edge.mqtt import (
     FRICTION_SUBSCRIPTION,
     WARNINGS_TOPIC,
     BrokerRefused,
@@ -35,7 +35,7 @@ from roadgrip.cloud.mqtt import (
 )
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage import metadata, normalise_url
+from roadgrip.cloud.storage.database import metadata, normalise_url
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle

@@ -14,8 +14,8 @@ import pytest
 from drives import PATCH_M, patch_drive
 from fastapi.testclient import TestClient
 
-from roadgrip.cloud.api import create_app
-from roadgrip.cloud.pipeline import DEDUP_HORIZON_MS
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.worker.pipeline import DEDUP_HORIZON_MS
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.estimators.learned import load_estimator

@@ -30,7 +30,7 @@ from fault_fixtures import (
     warm_estimator,
 )
 
-from roadgrip.cloud.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
+from roadgrip.cloud.edge.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.vehicle.params import vehicle_by_name

@@ -14,9 +14,9 @@ from drives import patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud import service as service_module
-from roadgrip.cloud.api import create_app
-from roadgrip.cloud.broker import mosquitto_available
-from roadgrip.cloud.mqtt import PublishRefused, UserClient, errors_topic, friction_topic, telemetry_topic
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.edge.broker import mosquitto_available
+from roadgrip.cloud.edge.mqtt import PublishRefused, UserClient, errors_topic, friction_topic, telemetry_topic
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.fleet.demo import settle

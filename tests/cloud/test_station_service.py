@@ -16,8 +16,8 @@ from broker_fixtures import wait_until
 from fastapi.testclient import TestClient
 from test_access import ADMIN, add_reader, collect, register, samples_of, settings_for
 
-from roadgrip.cloud.api import create_app
-from roadgrip.cloud.mqtt import (
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.edge.mqtt import (
     PublishRefused,
     UserClient,
     station_errors_topic,
@@ -25,9 +25,9 @@ from roadgrip.cloud.mqtt import (
     telemetry_topic,
 )
 from roadgrip.cloud.service import CloudService
-from roadgrip.cloud.stations import covered_cells
-from roadgrip.cloud.storage import normalise_url, open_storage
-from roadgrip.cloud.warning_engine import WarningEngine
+from roadgrip.cloud.fanout.stations import covered_cells
+from roadgrip.cloud.storage.database import normalise_url, open_storage
+from roadgrip.cloud.fanout.warning_engine import WarningEngine
 
 NOT_AUTHORIZED = 0x87
 LAT, LON = 48.1372, 11.5755

@@ -1,0 +1,1 @@
+"""Storage of telemetry, estimates, warnings, credentials and estimator states: SQLite or PostgreSQL (SQLAlchemy)."""

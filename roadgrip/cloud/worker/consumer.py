@@ -1,0 +1,360 @@
+"""A cluster worker (`roadgrip worker`, issue 17 item 2): consumes the partition queues of RabbitMQ
+(roadgrip/cloud/edge/rabbitmq.py), runs the vehicles' estimators and stores telemetry and estimates in PostgreSQL, through
+the same admission, pipeline, estimator, checkpoints and storage as `roadgrip serve` (roadgrip/cloud/edge/ingest.py,
+pipeline.py); only how messages arrive and who owns which vehicles differ.
+
+- Ownership: every worker registers a consumer on every partition queue; single-active-consumer makes one of them
+  active per queue, and when its channel or connection dies (the worker killed, its broker node killed) RabbitMQ makes
+  another registered consumer active. The first worker to register is active on every partition: the others are hot
+  standbys (spreading partitions over workers is not done here).
+- One connection per partition (a thread each), to the node `partition mod len(brokers)` of the worker's list, the
+  next one after a failure: a dead node costs only the partitions consumed through it.
+- A message is an MQTT publish as the broker's MQTT plugin forwarded it: the routing key is the topic with '/' and '.'
+  swapped, the body the vehicle's payload. The vehicle is the one of the topic (the broker's topic permissions made
+  sure the publisher is that vehicle); `Ingest.mqtt_message` parses it as serve does and queues its samples.
+- Acknowledgement after storing: a delivery's tag is done when the pipeline's round that stored its samples committed
+  (or at once for a message refused whole); every FLUSH_S the consumer thread acknowledges, with one multiple-ack, up to
+  the highest tag below which every tag is done, so a message is never acknowledged before an earlier one of its queue.
+  Per-vehicle order: a queue delivers in order, the pipeline takes submissions in order and its reorder buffer
+  estimates each vehicle's samples in time order.
+- Fencing (a partial handover: a worker whose connection died through a dead node, or that has not noticed yet,
+  still holds rounds of that partition while the new owner starts on the redelivered messages): the first delivery
+  on a partition's channel takes the partition in the database (`Storage.take_partition`: its epoch + 1); every
+  round's write carries the epochs of its vehicles' partitions and fails in the same transaction if one was taken
+  since (`Fenced`). The worker then drops that partition's rows from the round and writes the rest, acknowledges
+  nothing more on that channel, and gives it up (re-registering as a standby). A partition whose connection is lost
+  is fenced at once, without asking the database. So a vehicle's estimates are stored by one owner at a time, in
+  order.
+- Vehicles taken over: the pipeline meets a vehicle for the first time and goes on from its stored estimator state
+  (roadgrip/cloud/worker/checkpoints.py), estimating only its samples after its newest stored estimate (`skip_estimated`:
+  the redelivered ones before it were estimated by the previous owner, and may be in the restored calibration); when
+  a partition's connection is lost the worker forgets that partition's vehicles, so that it restores them afresh from
+  the database should the partition come back to it.
+- Checkpoints every 60 s of a vehicle's data and at a clean stop (SIGTERM, SIGINT): the worker stops taking new
+  deliveries (they stay unacknowledged), lets the pipeline store what it took and every vehicle's state, acknowledges,
+  then closes its connections: what it did not take goes back to the queues, in order, for the next owner.
+- Estimates are stored only; nothing is published (the map and the warnings by region are item 3).
+- Rejected samples are published, as serve does, on the vehicle's MQTT errors topic (through amq.topic).
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import logging
+import os
+import socket
+import threading
+import time
+
+import pika
+import pika.exceptions
+
+from roadgrip.cloud.edge.ingest import Ingest
+from roadgrip.cloud.edge.mqtt import errors_topic, vehicle_of_topic
+from roadgrip.cloud.worker.pipeline import Pipeline
+from roadgrip.cloud.process import warm_up
+from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
+from roadgrip.estimators.learned import load_estimator
+
+log = logging.getLogger(__name__)
+
+# Unacknowledged messages a partition's consumer holds: 100 messages of 10 samples (a terminal's second) over 16
+# partitions are 16,000 samples, under the pipeline's MAX_MQTT_BACKLOG (20,000), so admission never waits on it.
+DEFAULT_PREFETCH = 100
+FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowledges what was stored
+HEARTBEAT_S = 5  # AMQP heartbeat: a silent broker (a node frozen, not killed) is given up after about 2x this
+RECONNECT_S = 0.2  # wait before connecting again after a failure (to the next node)
+STATS_S = 10.0  # how often the worker logs its counters
+
+
+def swap_dots_and_slashes(text: str) -> str:
+    """An MQTT topic from its AMQP routing key and back (RabbitMQ's MQTT plugin swaps '/' and '.')."""
+    return text.translate(str.maketrans("./", "/."))
+
+
+class _PartitionLost(Exception):
+    """A partition's channel was fenced: another worker took the partition."""
+
+
+class _Acks:
+    """Delivery tags of one channel (1, 2, 3, ...): marked done from any thread, acknowledged in order; the
+    partition's epoch while this channel holds it; fenced: nothing more is acknowledged or stored."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._done: set[int] = set()
+        self.acknowledged = 0  # every tag up to this one is acknowledged
+        self.epoch: int | None = None  # taken at the channel's first delivery
+        self.fenced = False
+
+    def done(self, tag: int) -> None:
+        with self._lock:
+            self._done.add(tag)
+
+    def fence(self) -> None:
+        with self._lock:
+            self.fenced = True
+
+    def flush(self, channel) -> None:
+        """One multiple-ack up to the highest tag below which all are done (none if the next is not, or fenced)."""
+        with self._lock:
+            if self.fenced:
+                return
+            upto = self.acknowledged
+            while upto + 1 in self._done:
+                upto += 1
+                self._done.discard(upto)
+        if upto > self.acknowledged:
+            channel.basic_ack(upto, multiple=True)
+            self.acknowledged = upto
+
+
+class _StoredOnly:
+    """The pipeline's sink in a worker: the estimates stay in the database (the fan-out by region is item 3)."""
+
+    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
+        """Nothing to hand on."""
+
+    def tick(self, final: bool) -> None:
+        """Nothing to do between rounds."""
+
+
+class _FencedStorage:
+    """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` is fenced with the epochs of the
+    partitions the round's vehicles came from (module docstring)."""
+
+    def __init__(self, storage: Storage, worker: Worker):
+        self._storage = storage
+        self._worker = worker
+
+    def __getattr__(self, name: str):
+        return getattr(self._storage, name)
+
+    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
+        """Write what this worker still owns; the rows of partitions taken from it are left out, and their telemetry
+        counted as stored before (their submitters' acknowledgements go to a fenced channel, which sends none)."""
+        dropped: set[tuple[str, int]] = set()
+        partition_of = self._worker.partition_of
+        while True:
+            acks = {p: self._worker.channel_acks(p) for p in {partition_of[row["vehicle_id"]]
+                                                               for row in itertools.chain(telemetry, estimates)}}
+            stale = {p for p, a in acks.items() if a is None or a.fenced or a.epoch is None}
+            if not stale:
+                try:
+                    written = self._storage.write_batch(telemetry, estimates,
+                                                        fences={p: a.epoch for p, a in acks.items()})
+                    return Written(written.telemetry, written.estimates, written.already_stored | dropped)
+                except Fenced as exc:
+                    stale = exc.partitions
+            self._worker.fence(stale)
+            dropped |= {(row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
+                        if partition_of[row["vehicle_id"]] in stale}
+            telemetry = [row for row in telemetry if partition_of[row["vehicle_id"]] not in stale]
+            estimates = [row for row in estimates if partition_of[row["vehicle_id"]] not in stale]
+            if not telemetry and not estimates:
+                return Written(0, 0, frozenset(dropped))
+
+
+class Worker:
+    """Consumes `partitions` partition queues through the brokers' AMQP URLs (module docstring)."""
+
+    def __init__(self, brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH):
+        if not brokers:
+            raise ValueError("brokers must name at least one AMQP URL, got none")
+        if not isinstance(partitions, int) or partitions < 1:
+            raise ValueError(f"partitions must be a positive integer, got {partitions!r}")
+        if not isinstance(prefetch, int) or prefetch < 1:
+            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
+        if settings.database_url is None:
+            raise ValueError("settings.database_url must name the shared database (postgresql://...), got None")
+        self.brokers = brokers
+        self.settings = settings
+        self.partitions = partitions
+        self.prefetch = prefetch
+        self.storage = None
+        self.ingest: Ingest | None = None
+        self.rejected = 0
+        self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
+        self.connected = [False] * partitions  # a consumer registered, per partition
+        self.lost = 0  # partition connections lost
+        self.fenced = 0  # rounds' writes that found a partition taken by another worker
+        self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
+        self.partition_of: dict[str, int] = {}  # vehicle -> the partition it arrives on (fixed by the hash)
+        self._acks: list[_Acks | None] = [None] * partitions  # each partition's current channel
+        self._taking = threading.Event()  # deliveries go to the pipeline (cleared at a stop)
+        self._closing = threading.Event()
+        self._registered = [threading.Event() for _ in range(partitions)]
+        self._threads: list[threading.Thread] = []
+        self._channel = threading.local()  # the consumer thread's channel, for rejections
+
+    def _parameters(self, index: int) -> pika.URLParameters:
+        parameters = pika.URLParameters(self.brokers[index % len(self.brokers)])
+        parameters.heartbeat = HEARTBEAT_S
+        parameters.connection_attempts = 1
+        parameters.socket_timeout = 2
+        parameters.blocked_connection_timeout = 10
+        return parameters
+
+    def start(self, ready_timeout_s: float = 60.0) -> None:
+        """Open the database and the pipeline, declare the topology, register a consumer on every partition; returns
+        once all are registered (TimeoutError after `ready_timeout_s`)."""
+        s = self.settings
+        self.storage = open_storage(s.database_url)
+        estimator = load_estimator(s.estimator)
+        warm_up(estimator)
+        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator, _StoredOnly(), skip_estimated=True)
+        self.ingest = Ingest(s, pipeline, reject=self._reject)
+        self._declare()
+        self.ingest.start()
+        self._taking.set()
+        for p in range(self.partitions):
+            thread = threading.Thread(target=self._consume, args=(p,), name=f"partition-{p}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        deadline = time.monotonic() + ready_timeout_s
+        for event in self._registered:
+            if not event.wait(max(0.0, deadline - time.monotonic())):
+                raise TimeoutError(f"not every partition consumer registered within {ready_timeout_s} s: "
+                                   f"{self.connected}")
+        log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
+                 len(self.brokers), s.estimator, self.storage)
+
+    def _declare(self) -> None:
+        for index in range(len(self.brokers)):
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("broker %d unreachable for declaring the topology: %r", index, exc)
+                continue
+            try:
+                declare_topology(connection.channel(), self.partitions)
+            finally:
+                connection.close()
+            return
+        raise ConnectionError(f"no broker of {len(self.brokers)} reachable to declare the topology")
+
+    def stop(self) -> None:
+        """Stop taking deliveries, store what was taken and every vehicle's estimator state, acknowledge it, close."""
+        self._taking.clear()
+        if self.ingest is not None:
+            self.ingest.stop()
+        self._closing.set()
+        for thread in self._threads:
+            thread.join(30)
+        self._threads = []
+        log.info("worker stopped: %s", json.dumps(self.stats()))
+        if self.storage is not None:
+            self.storage.close()
+            self.storage = None
+
+    def stats(self) -> dict:
+        return {"partitions_connected": sum(self.connected), "deliveries": list(self.deliveries),
+                "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
+                **(self.ingest.stats() if self.ingest is not None else {})}
+
+    def channel_acks(self, partition: int) -> _Acks | None:
+        return self._acks[partition]
+
+    def fence(self, partitions: set[int]) -> None:
+        """Partitions taken by another worker: their channels acknowledge nothing more and are given up."""
+        self.fenced += 1
+        log.warning("partitions %s were taken by another worker: their rows are dropped, their channels given up",
+                    sorted(partitions))
+        for p in partitions:
+            acks = self._acks[p]
+            if acks is not None:
+                acks.fence()
+
+    # ------------------------------------------------------------------------------------------------- consumers
+    def _consume(self, partition: int) -> None:
+        """A partition's consumer: connect, register, hand deliveries over and acknowledge until the stop; after a
+        failure forget the partition's vehicles and register again through the next broker."""
+        index = partition
+        while not self._closing.is_set():
+            vehicles: set[str] = set()
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("partition %d: broker %d unreachable: %r", partition, index % len(self.brokers), exc)
+                index += 1
+                time.sleep(RECONNECT_S)
+                continue
+            acks = _Acks()
+            try:
+                channel = connection.channel()
+                channel.basic_qos(prefetch_count=self.prefetch)
+                self._acks[partition] = acks
+                self._channel.channel = channel
+                channel.basic_consume(partition_queue(partition), functools.partial(
+                    self._on_message, partition, acks, vehicles))
+                self.connected[partition] = True
+                self._registered[partition].set()
+                while not self._closing.is_set():
+                    connection.process_data_events(time_limit=FLUSH_S)
+                    if acks.fenced:
+                        raise _PartitionLost("taken by another worker")
+                    acks.flush(channel)
+                acks.flush(channel)
+                connection.close()
+            except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost) as exc:
+                acks.fence()  # nothing it took may be stored or acknowledged any more
+                if connection.is_open:  # given up: what it holds goes back to the queue
+                    try:
+                        connection.close()
+                    except (pika.exceptions.AMQPError, OSError):
+                        log.debug("partition %d: closing the given-up connection failed", partition, exc_info=True)
+                if self._closing.is_set():
+                    return
+                self.lost += 1
+                log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
+                            partition, index % len(self.brokers), exc, len(vehicles))
+                for vehicle_id in vehicles:  # another worker may own them meanwhile: restore them if they come back
+                    self.ingest.forget_vehicle(vehicle_id)
+                index += 1
+                time.sleep(RECONNECT_S)
+            finally:
+                self.connected[partition] = False
+
+    def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
+                    body: bytes) -> None:
+        if not self._taking.is_set() or acks.fenced:
+            return  # stopping or given up: left unacknowledged, it goes back to the queue when the connection closes
+        if acks.epoch is None:  # the channel's first delivery: this consumer is the partition's active one
+            acks.epoch = self.storage.take_partition(partition, self.owner)
+            log.info("partition %d taken, epoch %d", partition, acks.epoch)
+        self.deliveries[partition] += 1
+        vehicle_id = vehicle_of_topic(swap_dots_and_slashes(method.routing_key))
+        if vehicle_id is None:
+            log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition,
+                        method.routing_key)
+            acks.done(method.delivery_tag)
+            return
+        vehicles.add(vehicle_id)
+        self.partition_of[vehicle_id] = partition
+        self.ingest.mqtt_message(vehicle_id, body, functools.partial(acks.done, method.delivery_tag))
+
+    def _reject(self, vehicle_id: str, errors: list[dict]) -> None:
+        """Rejections of a message (called by Ingest.mqtt_message in the consumer's thread): counted, logged,
+        published on the vehicle's errors topic."""
+        self.rejected += len(errors)
+        log.warning("rejected %d sample(s) from vehicle %s: %s", len(errors), vehicle_id, errors[0]["reason"])
+        self._channel.channel.basic_publish(MQTT_EXCHANGE, swap_dots_and_slashes(errors_topic(vehicle_id)),
+                                            json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
+
+
+def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH,
+               stop: threading.Event | None = None) -> None:
+    """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
+    STATS_S."""
+    stop = stop or threading.Event()
+    worker = Worker(brokers, settings, partitions, prefetch)
+    worker.start()
+    try:
+        while not stop.wait(STATS_S):
+            log.info("worker: %s", json.dumps(worker.stats()))
+    finally:
+        worker.stop()

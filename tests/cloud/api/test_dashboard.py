@@ -1,0 +1,226 @@
+"""The live dashboard (roadgrip/cloud/api/dashboard.py) in a real browser: the service runs in-process under uvicorn on
+127.0.0.1 (SQLite, no MQTT, the map's clock on the data), the patch drives of drives.py go in over HTTP, and headless
+Chromium loads /dashboard with a reader's credentials in the URL fragment. The page's data-* attributes, read from
+`--dump-dom`, say what it drew. `scripts/dashboard_screenshot.py` uses the same setup for docs/dashboard.png.
+
+Chromium is part of what is tested: without it the test fails (install it with `bash scripts/install_system_deps.sh`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import socket
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from html.parser import HTMLParser
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+from drives import patch_drive
+from fastapi.testclient import TestClient
+
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.api.dashboard import content_security_policy, tile_source
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.settings import Settings, load_settings
+from roadgrip.fleet.terminal import wire_samples
+
+ADMIN = ("admin", "admin-secret-for-tests-0123456789")
+READER = "operator"
+START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
+CHOSEN = "suv-w"
+VIRTUAL_TIME_BUDGET_MS = 5000  # page time Chromium lets pass (fetches pause it): about five polling rounds
+CHROMIUM_TIMEOUT_S = 90
+INSTALL_HINT = "run `bash scripts/install_system_deps.sh`"
+
+
+def dashboard_settings(data_dir: Path, **overrides) -> Settings:
+    return Settings(data_dir=data_dir, mqtt="off", admin_secret=ADMIN[1], flush_interval_s=0.01,
+                    reorder_window_s=0.2, map_clock="data", **overrides)
+
+
+@contextlib.contextmanager
+def serving(settings: Settings) -> Iterator[tuple[CloudService, str]]:
+    """The service with its HTTP API under uvicorn in a thread, on 127.0.0.1 at a free port; (service, base URL)."""
+    with CloudService(settings) as service, socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        server = uvicorn.Server(uvicorn.Config(create_app(service), log_level="warning", lifespan="off"))
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+        thread.start()
+        deadline = time.monotonic() + 30
+        while not server.started:
+            if not thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("uvicorn did not start")
+            time.sleep(0.02)
+        try:
+            yield service, f"http://127.0.0.1:{sock.getsockname()[1]}"
+        finally:
+            server.should_exit = True
+            thread.join(timeout=30)
+
+
+def _post(client: httpx.Client, auth: tuple[str, str], samples: list[dict], chunk: int = 50) -> None:
+    for start in range(0, len(samples), chunk):
+        answer = client.post("/v1/telemetry", json=samples[start:start + chunk], auth=auth)
+        answer.raise_for_status()
+
+
+def _register(client: httpx.Client, vehicle_id: str, profile: str) -> tuple[str, str]:
+    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
+    answer.raise_for_status()
+    return vehicle_id, answer.json()["secret"]
+
+
+def _settle(service: CloudService) -> None:
+    """Let the pipeline release what its reorder window still holds."""
+    time.sleep(service.settings.reorder_window_s + 0.1)
+    deadline = time.monotonic() + 10
+    while service.ingest.backlog and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(3 * service.settings.flush_interval_s)
+
+
+def load_patch_drives(service: CloudService, base_url: str) -> str:
+    """The drives of test_api's patch test: an SUV and a sedan brake on the slippery patch (mu 0.2), which raises a
+    warning; a hatchback on the dry road two minutes later closes their passes. Then a reader; its secret."""
+    with httpx.Client(base_url=base_url, timeout=60) as client:
+        for vehicle_id, profile, seed in ((CHOSEN, "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):
+            auth = _register(client, vehicle_id, profile)
+            _post(client, auth, wire_samples(patch_drive(0.2, seed, profile), vehicle_id, START_MS))
+        auth = _register(client, "hatch-d", "compact-hatchback")
+        _post(client, auth, wire_samples(patch_drive(0.9, 4, "compact-hatchback"), "hatch-d", START_MS + 120_000))
+        _settle(service)
+        answer = client.post("/v1/readers", json={"name": READER}, auth=ADMIN)
+        answer.raise_for_status()
+        return answer.json()["secret"]
+
+
+def chromium_binary() -> str:
+    found = shutil.which("chromium") or shutil.which("chromium-browser")
+    if found is None:
+        raise RuntimeError(f"chromium is not installed: {INSTALL_HINT}")
+    return found
+
+
+def run_chromium(url: str, *options: str, budget_ms: int = VIRTUAL_TIME_BUDGET_MS) -> str:
+    """Headless Chromium on `url` with a fresh profile and no network but this server's; its stdout."""
+    with tempfile.TemporaryDirectory(prefix="roadgrip-chromium-", ignore_cleanup_errors=True) as profile:
+        command = [chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
+                   "--disable-background-networking", "--no-first-run", f"--user-data-dir={profile}",
+                   f"--virtual-time-budget={budget_ms}", *options, url]
+        done = subprocess.run(command, check=False, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
+    if done.returncode != 0:
+        raise RuntimeError(f"chromium exited with {done.returncode}: {done.stderr[-2000:]}")
+    return done.stdout
+
+
+class _Attributes(HTMLParser):
+    """The attributes of every element with an id, by id."""
+
+    def __init__(self):
+        super().__init__()
+        self.by_id: dict[str, dict[str, str | None]] = {}
+
+    def handle_starttag(self, tag, attrs):
+        attributes = dict(attrs)
+        if "id" in attributes:
+            self.by_id[attributes["id"]] = attributes
+
+
+def attributes_by_id(dom: str) -> dict[str, dict[str, str | None]]:
+    parser = _Attributes()
+    parser.feed(dom)
+    return parser.by_id
+
+
+def require_chromium() -> None:
+    """Fail (never skip) without Chromium: the page in a real browser is what these tests are for."""
+    if shutil.which("chromium") is None and shutil.which("chromium-browser") is None:
+        pytest.fail(f"chromium is not installed: {INSTALL_HINT}", pytrace=False)
+
+
+def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicles_chart(tmp_path):
+    require_chromium()
+    with serving(dashboard_settings(tmp_path)) as (service, base_url):
+        secret = load_patch_drives(service, base_url)
+        reader = (READER, secret)
+        with httpx.Client(base_url=base_url, auth=reader) as client:
+            features = client.get("/v1/map").json()["features"]
+            warnings = client.get("/v1/warnings").json()["warnings"]
+            chosen = client.get(f"/v1/vehicles/{CHOSEN}/estimates").json()["estimates"]
+        measured = [f for f in features if f["properties"]["status"] == "measured"]
+        assert measured and warnings and chosen, "the drives gave no map, warning or estimates to show"
+
+        map_requests = []
+        to_geojson = service.friction_map.to_geojson
+        service.friction_map.to_geojson = lambda now_ms: map_requests.append(now_ms) or to_geojson(now_ms)
+        dom = run_chromium(f"{base_url}/dashboard?vehicle={CHOSEN}#{READER}:{secret}", "--dump-dom")
+        page = attributes_by_id(dom)
+        shown = page["dashboard"]
+        assert len(map_requests) >= 3  # it polls: about one round per second of the page's 5 s
+        assert shown["data-status"] == "ok", shown
+        assert int(shown["data-cells"]) == len(features)
+        assert int(shown["data-cells-measured"]) == len(measured) > 0
+        assert int(shown["data-warnings"]) == len(warnings) > 0
+        assert int(shown["data-vehicles"]) == 3
+        assert shown["data-chart-vehicle"] == CHOSEN
+        assert int(shown["data-chart-points"]) == len(chosen)  # the 30 s drive lies inside the chart's 5 min
+        assert int(shown["data-updated"]) > 0
+        assert "hidden" in page["login"]
+        assert dom.count("warning-icon") == len(warnings)
+        assert 'class="band"' in dom and 'class="line"' in dom
+        assert secret not in dom
+
+        dom = run_chromium(f"{base_url}/dashboard#{READER}:not-the-secret", "--dump-dom")
+        page = attributes_by_id(dom)
+        assert page["dashboard"]["data-status"] == "unauthorized", page["dashboard"]
+        assert page["dashboard"]["data-cells"] == "0"
+        assert "hidden" not in page["login"]
+
+
+def test_the_page_is_public_and_the_latest_positions_need_a_reader(tmp_path):
+    tiles = "https://{s}.tile.openstreetmap.org/{z}/{x}/{y}.png"
+    with CloudService(dashboard_settings(tmp_path, map_tiles_url=tiles)) as service, \
+            TestClient(create_app(service)) as client:
+        page = client.get("/dashboard")
+        assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+        assert 'id="dashboard"' in page.text
+        assert "img-src 'self' data: https://*.tile.openstreetmap.org;" in page.headers["content-security-policy"]
+        config = client.get("/dashboard/config.json").json()
+        assert config["map_tiles_url"] == tiles and "OpenStreetMap" in config["map_tiles_attribution"]
+        assert (config["h3_resolution"], config["refresh_interval_s"]) == (10, 1.0)
+        assert ADMIN[1] not in client.get("/dashboard/config.json").text
+        for path in ("dashboard.js", "dashboard.css", "leaflet/leaflet.js", "leaflet/leaflet.css",
+                     "leaflet/images/layers.png", "leaflet/LICENSE"):
+            assert client.get(f"/dashboard/static/{path}").status_code == 200, path
+
+        assert client.get("/v1/vehicles/latest").status_code == 401
+        vehicle = _register(client, "car-1", "paper-suv")
+        assert client.get("/v1/vehicles/latest", auth=vehicle).status_code == 403
+        reader = (READER, client.post("/v1/readers", json={"name": READER}, auth=ADMIN).json()["secret"])
+        assert client.get("/v1/vehicles/latest", auth=reader).json() == {"vehicles": []}
+        _post(client, vehicle, wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:30])
+        _settle(service)
+        latest = client.get("/v1/vehicles/latest", auth=reader).json()["vehicles"]
+        newest = client.get("/v1/vehicles/car-1/estimates", auth=reader).json()["estimates"][-1]
+        assert latest == [newest] and newest["latitude_deg"] is not None
+        assert client.get("/v1/vehicles/latest", auth=ADMIN).json()["vehicles"] == latest
+        assert client.get("/v1/vehicles/car-1", auth=reader).json()["vehicle_id"] == "car-1"  # still its profile
+        assert "/v1/vehicles/latest" in client.get("/openapi.json").json()["paths"]
+
+
+def test_tile_sources_and_the_policy_without_tiles():
+    assert tile_source(None) is None and tile_source("/tiles/{z}/{x}/{y}.png") is None
+    assert tile_source("https://tile.openstreetmap.org/{z}/{x}/{y}.png") == "https://tile.openstreetmap.org"
+    assert tile_source("https://{s}.tile.example.org/{z}/{x}/{y}.png") == "https://*.tile.example.org"
+    assert tile_source("https://tiles-{s}.example.org/{z}/{x}/{y}.png") == "https:"
+    policy = content_security_policy(None)
+    assert "img-src 'self' data:;" in policy and "connect-src 'self'" in policy and "form-action 'none'" in policy
+    with pytest.raises(ValueError, match="map_tiles_url"):
+        load_settings(map_tiles_url="javascript:alert(1)")
