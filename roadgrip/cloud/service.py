@@ -27,17 +27,24 @@ from typing import Self
 
 from roadgrip.cloud.edge.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.edge.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
-from roadgrip.cloud.fanout.fanout import Fanout
-from roadgrip.cloud.fanout.friction_map import FrictionMap
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
-from roadgrip.cloud.worker.pipeline import Pipeline
+from roadgrip.cloud.fanout.fanout import Fanout
+from roadgrip.cloud.fanout.friction_map import FrictionMap
+from roadgrip.cloud.fanout.stations import (
+    ReportError,
+    StationReport,
+    covered_cells,
+    evidence,
+    evidence_rows,
+    parse_reports,
+)
+from roadgrip.cloud.fanout.warning_engine import WarningEngine, WarningEvent
 from roadgrip.cloud.process import rss_mb, warm_up
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.worker.shards import IngestShards
-from roadgrip.cloud.fanout.stations import ReportError, StationReport, covered_cells, evidence, evidence_rows, parse_reports
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
-from roadgrip.cloud.fanout.warning_engine import WarningEngine, WarningEvent
+from roadgrip.cloud.worker.pipeline import Pipeline
+from roadgrip.cloud.worker.shards import IngestShards
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.vehicle.params import VehicleParams
 

@@ -13,84 +13,35 @@ because "passes on SQLite and PostgreSQL" is part of what the tests check.
 
 from __future__ import annotations
 
-import os
-import pwd
-import shutil
-import subprocess
-import tempfile
 import uuid
-from pathlib import Path
 
-import psycopg
 import pytest
-from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.edge.broker import free_port
 from roadgrip.cloud.storage.database import open_storage
-
-PG_BIN = Path("/usr/lib/postgresql/15/bin")
-
-
-def _admin_conninfo(url: str) -> str:
-    """libpq conninfo for the maintenance database `postgres` of the server that `url` points at."""
-    u = make_url(url)
-    return f"host={u.host} port={u.port} user={u.username} dbname=postgres"
-
-
-def _create_database(url: str, name: str) -> str:
-    """Create database `name` on the server of `url` (a PostgreSQL URL); return the URL of the new database."""
-    with psycopg.connect(_admin_conninfo(url), autocommit=True) as conn:
-        conn.execute(f'CREATE DATABASE "{name}"')
-    return make_url(url).set(database=name).render_as_string(hide_password=False)
-
-
-def _drop_database(url: str, name: str) -> None:
-    with psycopg.connect(_admin_conninfo(url), autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+from roadgrip.cloud.storage.local_postgres import LocalPostgres, PostgresUnavailable, create_database, drop_database
 
 
 @pytest.fixture(scope="session")
 def postgres_url():
     """A PostgreSQL 15 server of our own for the session; yields the URL of its empty database `roadgrip_test`."""
-    missing = [p.name for p in (PG_BIN / "initdb", PG_BIN / "pg_ctl") if not p.exists()]
-    if missing:
-        pytest.fail(f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): "
-                    "run `bash scripts/install_system_deps.sh`", pytrace=False)
-    as_postgres: list[str] = []
-    root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-"))  # not under pytest's tmp: its parents are private to root
-    if os.geteuid() == 0:  # initdb refuses to run as root
-        pw = pwd.getpwnam("postgres")
-        os.chown(root, pw.pw_uid, pw.pw_gid)
-        as_postgres = ["runuser", "-u", "postgres", "--"]
-
-    def pg(*args: str) -> None:
-        subprocess.run([*as_postgres, *args], check=True, capture_output=True, text=True)
-
-    data, log = root / "data", root / "server.log"
-    pg(str(PG_BIN / "initdb"), "-D", str(data), "-U", "postgres", "-A", "trust", "-E", "UTF8", "--locale=C")
-    # Trust, but only on the unix socket (in `root`, private to postgres) and on 127.0.0.1.
-    (data / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
-    port = free_port()
-    options = f"-c listen_addresses=127.0.0.1 -c port={port} -k {root} -c fsync=on"
+    server = LocalPostgres()
     try:
-        pg(str(PG_BIN / "pg_ctl"), "start", "-w", "-D", str(data), "-l", str(log), "-o", options)
-    except subprocess.CalledProcessError as err:
-        server_log = log.read_text() if log.exists() else ""
-        shutil.rmtree(root, ignore_errors=True)
-        pytest.fail(f"PostgreSQL did not start: {err.stderr}\n{server_log}", pytrace=False)
+        server.start()
+    except PostgresUnavailable as err:
+        server.close()
+        pytest.fail(str(err), pytrace=False)
     try:
-        yield _create_database(f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres", "roadgrip_test")
+        yield server.create_database("roadgrip_test")
     finally:
-        pg(str(PG_BIN / "pg_ctl"), "stop", "-w", "-m", "fast", "-D", str(data))
-        shutil.rmtree(root, ignore_errors=True)
+        server.close()
 
 
 @pytest.fixture
 def postgres_database_url(postgres_url):
     """The URL of a new, empty database on the session's PostgreSQL server, dropped after the test."""
     name = f"test_{uuid.uuid4().hex[:16]}"
-    yield _create_database(postgres_url, name)
-    _drop_database(postgres_url, name)
+    yield create_database(postgres_url, name)
+    drop_database(postgres_url, name)
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

@@ -27,13 +27,10 @@ import contextlib
 import json
 import math
 import os
-import pwd
-import shutil
 import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -48,11 +45,11 @@ from roadgrip.cloud.edge.broker import free_port
 from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.storage.database import normalise_url
+from roadgrip.cloud.storage.local_postgres import LocalPostgres
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import PAPER_SUV
 
-PG_BIN = Path("/usr/lib/postgresql/15/bin")
 RUN_MS = 30_000  # one patch_drive run: 300 samples, 0 to 29,900 ms
 START_MS = int(time.time() * 1000) - 600_000
 
@@ -298,51 +295,14 @@ def serving_http(service: CloudService):
             thread.join(timeout=30)
 
 
-class PostgresCluster:
-    """A PostgreSQL 15 cluster of its own on 127.0.0.1 at a free port (fixed for its life), trust authentication;
-    `url` is its database `roadgrip_faults`. `stop()` is `pg_ctl stop -m fast` (clients are disconnected at once),
-    `start()` starts it again on the same port."""
+class PostgresCluster(LocalPostgres):
+    """A PostgreSQL 15 server of its own (roadgrip/cloud/storage/local_postgres.py), started; `url` is its database
+    `roadgrip_faults`. `stop()` and `start()` stop it and start it again on the same port; `close()` deletes it."""
 
     def __init__(self):
-        missing = [p.name for p in (PG_BIN / "initdb", PG_BIN / "pg_ctl") if not p.exists()]
-        if missing:
-            raise RuntimeError(f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): run "
-                               "`bash scripts/install_system_deps.sh`")
-        self.root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-faults-"))  # not under pytest's tmp: private to root
-        self._as_postgres: list[str] = []
-        if os.geteuid() == 0:  # initdb refuses to run as root
-            pw = pwd.getpwnam("postgres")
-            os.chown(self.root, pw.pw_uid, pw.pw_gid)
-            self._as_postgres = ["runuser", "-u", "postgres", "--"]
-        self.data = self.root / "data"
-        self.port = free_port()
-        self._pg(PG_BIN / "initdb", "-D", self.data, "-U", "postgres", "-A", "trust", "-E", "UTF8", "--locale=C")
-        (self.data / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
+        super().__init__()
         self.start()
-        self._pg(PG_BIN / "createdb", "-h", "127.0.0.1", "-p", str(self.port), "-U", "postgres", "roadgrip_faults")
-
-    @property
-    def url(self) -> str:
-        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/roadgrip_faults"
-
-    def start(self) -> None:
-        options = f"-c listen_addresses=127.0.0.1 -c port={self.port} -k {self.root} -c fsync=on"
-        self._pg(PG_BIN / "pg_ctl", "start", "-w", "-D", self.data, "-l", self.root / "server.log", "-o", options)
-
-    def stop(self) -> None:
-        self._pg(PG_BIN / "pg_ctl", "stop", "-w", "-m", "fast", "-D", self.data)
-
-    def close(self) -> None:
-        """Stop the server (if it runs) and delete its files."""
-        subprocess.run([*self._as_postgres, str(PG_BIN / "pg_ctl"), "stop", "-w", "-m", "immediate", "-D",
-                        str(self.data)], check=False, capture_output=True)
-        shutil.rmtree(self.root, ignore_errors=True)
-
-    def _pg(self, *args) -> None:
-        done = subprocess.run([*self._as_postgres, *map(str, args)], check=False, capture_output=True, text=True)
-        if done.returncode != 0:
-            log = (self.root / "server.log").read_text() if (self.root / "server.log").exists() else ""
-            raise RuntimeError(f"{Path(str(args[0])).name} failed: {done.stderr}\n{log[-2000:]}")
+        self.url = self.create_database("roadgrip_faults")
 
 
 def stored_keys(url: str, table: str) -> list[Key]:

@@ -16,8 +16,8 @@ from test_api import running_cloud
 from test_service_mqtt import ADMIN, register
 
 from roadgrip.cloud.edge.broker import mosquitto_available
-from roadgrip.cloud.metrics import BatchHistogram
 from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.metrics import BatchHistogram
 from roadgrip.fleet.terminal import wire_samples
 
 START_MS = int(time.time() * 1000) - 600_000

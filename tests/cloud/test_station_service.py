@@ -24,10 +24,10 @@ from roadgrip.cloud.edge.mqtt import (
     station_reports_topic,
     telemetry_topic,
 )
-from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.fanout.stations import covered_cells
-from roadgrip.cloud.storage.database import normalise_url, open_storage
 from roadgrip.cloud.fanout.warning_engine import WarningEngine
+from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.storage.database import normalise_url, open_storage
 
 NOT_AUTHORIZED = 0x87
 LAT, LON = 48.1372, 11.5755

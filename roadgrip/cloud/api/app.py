@@ -47,17 +47,17 @@ from prometheus_client import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from roadgrip.cloud.edge.auth import AuthError
 from roadgrip.cloud.api.dashboard import mount_dashboard
 from roadgrip.cloud.api.exports import datex2_xml
+from roadgrip.cloud.edge.auth import AuthError
 from roadgrip.cloud.edge.ingest import RateLimited
+from roadgrip.cloud.edge.wire import PayloadError, parse_payload
+from roadgrip.cloud.fanout.stations import ReportError, parse_reports
 from roadgrip.cloud.metrics import ServiceCollector, registry_with
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.worker.shards import IngestUnavailable
-from roadgrip.cloud.fanout.stations import ReportError, parse_reports
 from roadgrip.cloud.storage.database import Credential, StorageUnavailable
-from roadgrip.cloud.edge.wire import PayloadError, parse_payload
+from roadgrip.cloud.worker.shards import IngestUnavailable
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.vehicle.params import VEHICLES, VehicleParams, vehicle_by_name
 

@@ -12,11 +12,11 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 
-from roadgrip.cloud.metrics import MAIN_PROCESS, TRANSPORTS, IngestCounters, ProcessView
-from roadgrip.cloud.worker.pipeline import Pipeline, SubmitResult
 from roadgrip.cloud.edge.ratelimit import RateLimiter
-from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.edge.wire import PayloadError, parse_payload
+from roadgrip.cloud.metrics import MAIN_PROCESS, TRANSPORTS, IngestCounters, ProcessView
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.worker.pipeline import Pipeline, SubmitResult
 
 # Samples the MQTT side may queue for a pipeline (2 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
 # so paho's network thread stops reading: TCP pushes back and the broker keeps the rest in the service's persistent

@@ -18,13 +18,13 @@ import time
 import numpy as np
 import orjson
 
+from roadgrip.cloud.edge.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.fanout.friction_map import FrictionMap
+from roadgrip.cloud.fanout.warning_engine import ACTIVE, EXPIRED, WarningEngine
 from roadgrip.cloud.latency import LatencyRecorder
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
-from roadgrip.cloud.edge.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
-from roadgrip.cloud.fanout.warning_engine import ACTIVE, EXPIRED, WarningEngine
 
 log = logging.getLogger(__name__)
 

@@ -53,11 +53,11 @@ import pika.exceptions
 
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import errors_topic, vehicle_of_topic
-from roadgrip.cloud.worker.pipeline import Pipeline
-from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
+from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
+from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)

@@ -45,10 +45,10 @@ from typing import Protocol
 
 import h3
 
-from roadgrip.cloud.worker.checkpoints import Checkpoints
 from roadgrip.cloud.metrics import ESTIMATOR_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable
+from roadgrip.cloud.worker.checkpoints import Checkpoints
 from roadgrip.estimators.base import Estimator
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 

@@ -45,13 +45,13 @@ import traceback
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from roadgrip.cloud.fanout.fanout import Fanout
 from roadgrip.cloud.edge.ingest import Ingest, Rejecter
+from roadgrip.cloud.fanout.fanout import Fanout
 from roadgrip.cloud.metrics import ProcessView
-from roadgrip.cloud.worker.pipeline import Pipeline, PipelineCounters
 from roadgrip.cloud.process import rss_mb, tune_memory_for_serving, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
+from roadgrip.cloud.worker.pipeline import Pipeline, PipelineCounters
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)

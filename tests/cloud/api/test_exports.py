@@ -9,7 +9,14 @@ import h3
 import pytest
 
 from roadgrip.cloud.api import exports
-from roadgrip.cloud.api.exports import datex2_xml, denm, geojson, information_quality, relevance_distance, timestamp_its_ms
+from roadgrip.cloud.api.exports import (
+    datex2_xml,
+    denm,
+    geojson,
+    information_quality,
+    relevance_distance,
+    timestamp_its_ms,
+)
 from roadgrip.cloud.fanout.friction_map import FrictionMap
 from roadgrip.cloud.fanout.warning_engine import WarningEvent
 

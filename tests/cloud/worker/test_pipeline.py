@@ -9,14 +9,14 @@ import time
 import pytest
 from drives import patch_drive
 
-from roadgrip.cloud.worker import pipeline as pipeline_module
+from roadgrip.cloud.edge.mqtt import friction_topic
 from roadgrip.cloud.fanout.fanout import Fanout
 from roadgrip.cloud.fanout.friction_map import FrictionMap
-from roadgrip.cloud.edge.mqtt import friction_topic
-from roadgrip.cloud.worker.pipeline import Pipeline
+from roadgrip.cloud.fanout.warning_engine import WarningEngine
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, open_storage
-from roadgrip.cloud.fanout.warning_engine import WarningEngine
+from roadgrip.cloud.worker import pipeline as pipeline_module
+from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 

@@ -27,10 +27,10 @@ from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.edge.mqtt import telemetry_topic
 from roadgrip.cloud.edge.rabbitmq import HOST, RabbitCluster, partition_queue
-from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
 from roadgrip.cloud.worker.consumer import Worker, _Acks, _FencedStorage, _StoredOnly
+from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import CALIBRATION
 from roadgrip.vehicle.params import PAPER_SUV
