@@ -85,6 +85,7 @@ server's), ages in that cell are taken from its newest evidence instead, so that
 
 from __future__ import annotations
 
+import base64
 import math
 import operator
 from collections.abc import Iterable
@@ -179,6 +180,14 @@ def _check_interval(what: str, mu, lo, hi) -> None:
     if not (math.isfinite(mu) and math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
         raise ValueError(f"{what}: mu {mu!r}, mu_lower {lo!r}, mu_upper {hi!r} must be finite with "
                          f"mu_lower <= mu_upper")
+
+
+def _pack(ll: np.ndarray | None) -> str | None:
+    return None if ll is None else base64.b64encode(np.asarray(ll, dtype="<f8").tobytes()).decode("ascii")
+
+
+def _unpack(packed: str | None) -> np.ndarray | None:
+    return None if packed is None else np.frombuffer(base64.b64decode(packed), dtype="<f8").astype(np.float64)
 
 
 def posterior_quantiles(log_posterior: np.ndarray, quantiles=QUANTILES) -> np.ndarray:
@@ -481,6 +490,56 @@ class FrictionMap:
                 n_vehicles=n_vehicles, last_ms=cell.last_ms, last_excited_ms=last_excited, status=status,
                 n_passes=n_passes, n_stations=n_stations, mu_proven=proven if proven > 0.0 else None))
         return out
+
+    # -------------------------------------------------------------------------------------------- cell states
+
+    def cell_states(self, cell_ids: Iterable[str]) -> dict[str, dict]:
+        """The state of each of `cell_ids` the map holds, as JSON-able dicts (`load_cell_states` takes them back):
+        its time buckets, the passes in progress in it, its station reports and vehicles. What `cells(now)` says of
+        the cell at any later `now` follows from it alone, so a reader that loads the states of a region gets the same
+        summaries, faded the same (cluster mode, roadgrip/cloud/fanout/regions.py). Log-likelihoods travel as base64
+        of little-endian float64: exact."""
+        open_by_cell: dict[str, list[_Pass]] = {}
+        for p in self.open_passes_.values():
+            open_by_cell.setdefault(p.cell, []).append(p)
+        states = {}
+        for cell_id in cell_ids:
+            cell = self.cells_by_id_.get(cell_id)
+            if cell is None:
+                continue
+            states[cell_id] = {
+                "last_ms": cell.last_ms,
+                "buckets": [[key, *b[:_LL], _pack(b[_LL]), *b[_LL + 1:]] for key, b in sorted(cell.buckets.items())],
+                "open": [[p.vehicle_id, p.first_ms, p.last_ms, _pack(p.ll), p.n, p.n_exc, p.last_exc_ms, p.proven]
+                         for p in sorted(open_by_cell.get(cell_id, ()), key=operator.attrgetter("vehicle_id"))],
+                "stations": [[station, t, _pack(ll)] for station, (t, ll) in sorted(cell.stations.items())],
+                "vehicles": dict(sorted(cell.vehicles.items())),
+            }
+        return states
+
+    def load_cell_states(self, states: dict[str, dict]) -> None:
+        """Take cells back from `cell_states` (replacing cells of the same id). A vehicle's pass in progress stays in
+        progress unless the map holds a newer one of it (a state saved before the vehicle moved on): that older one
+        is folded into its cell, as the map that saved it did when the vehicle moved on."""
+        for cell_id, state in states.items():
+            cell = self.cells_by_id_[cell_id] = _Cell(cell_id)
+            cell.last_ms = int(state["last_ms"])
+            cell.buckets = {int(key): [ref, w, _unpack(ll), *rest] for key, ref, w, ll, *rest in state["buckets"]}
+            cell.stations = {station: (int(t), _unpack(ll)) for station, t, ll in state["stations"]}
+            cell.vehicles = {vehicle: int(t) for vehicle, t in state["vehicles"].items()}
+            for vehicle, first_ms, last_ms, ll, n, n_exc, last_exc_ms, proven in state["open"]:
+                p = _Pass(vehicle, cell_id, int(first_ms))
+                p.last_ms, p.ll, p.n, p.n_exc = int(last_ms), _unpack(ll), n, n_exc
+                p.last_exc_ms, p.proven = last_exc_ms, float(proven)
+                current = self.open_passes_.get(vehicle)
+                if current is not None and current.last_ms >= p.last_ms:
+                    self._fold(p)
+                    continue
+                if current is not None:
+                    self._fold(current)
+                self.open_passes_[vehicle] = p
+            if self.newest_ms_ is None or cell.last_ms > self.newest_ms_:
+                self.newest_ms_ = cell.last_ms
 
     def to_geojson(self, now_ms: int) -> dict:
         """The cells at now_ms as a GeoJSON FeatureCollection (roadgrip.cloud.api.exports.geojson)."""

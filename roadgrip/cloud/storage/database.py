@@ -13,6 +13,8 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | credentials | name | role (vehicle, reader, admin or station), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
 | estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/worker/checkpoints.py), updated_ms |
+| map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/fanout/regions.py) |
+| region_owners | region_queue | cluster mode: epoch, owner, taken_ms of each region queue (fencing, as partition_owners) |
 | station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/fanout/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
@@ -165,6 +167,24 @@ estimator_states_table = Table(
 partition_owners_table = Table(
     "partition_owners", metadata,
     Column("partition_id", sa.Integer, primary_key=True, autoincrement=False),
+    Column("epoch", sa.BigInteger, nullable=False),
+    Column("owner", sa.String, nullable=False),
+    Column("taken_ms", sa.BigInteger, nullable=False))
+
+# Cluster mode's friction map (roadgrip/cloud/fanout/regions.py): each cell's state as its region's owner last saved it
+# (`FrictionMap.cell_states`), for the API replicas to render the map from and a new owner to go on from; the owners of
+# region queues, with an epoch each, fence those writes and the region's warnings as partition_owners fence telemetry.
+map_cells_table = Table(
+    "map_cells", metadata,
+    Column("cell", sa.String, primary_key=True),
+    Column("region", sa.String, nullable=False),
+    Column("last_ms", sa.BigInteger, nullable=False),
+    Column("updated_ms", sa.BigInteger, nullable=False),
+    Column("state", _JSON, nullable=False),
+    sa.Index("ix_map_cells_region", "region"), sa.Index("ix_map_cells_last_ms", "last_ms"))
+region_owners_table = Table(
+    "region_owners", metadata,
+    Column("region_queue", sa.Integer, primary_key=True, autoincrement=False),
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
     Column("taken_ms", sa.BigInteger, nullable=False))
@@ -639,6 +659,76 @@ class Storage:
             set_={name: insert.excluded[name] for name in ("cell", "status", "detection_ms", "updated_ms", "message")})
         with self._transaction() as conn:
             conn.execute(upsert, rows)
+
+    def put_region_output(self, warnings: list[dict], cells: list[dict], fence: tuple[int, int] | None = None) -> None:
+        """Store a region's warnings (rows as `put_warnings` takes them) and map cells (cell, region, last_ms, state;
+        updated_ms defaults to now; a stored cell is replaced) in one transaction. `fence` (region queue, the epoch
+        `take_region_queue` gave the writer): read under a share lock first; Fenced, storing nothing, if another owner
+        has taken that queue since."""
+        latest = {}
+        for row in warnings:
+            if not isinstance(row.get("message"), dict):
+                raise TypeError(f"message of warning {row.get('warning_id')!r} must be a dict, got "
+                                f"{type(row.get('message')).__name__}")
+            latest[row["warning_id"]] = row
+        now_ms = _now_ms()
+        warnings = _checked_rows("warning", list(latest.values()), warnings_table)
+        cells = _checked_rows("map cell", list({row["cell"]: {"updated_ms": now_ms, **row} for row in cells}.values()),
+                              map_cells_table)
+        if not warnings and not cells:
+            return
+        with self._transaction() as conn:
+            if fence is not None:
+                c = region_owners_table.c
+                epoch = conn.execute(select(c.epoch).where(c.region_queue == fence[0])
+                                     .with_for_update(read=True)).scalar()
+                if epoch != fence[1]:
+                    raise Fenced({fence[0]})
+            if warnings:
+                insert = self._insert(warnings_table)
+                conn.execute(insert.on_conflict_do_update(index_elements=["warning_id"], set_={
+                    name: insert.excluded[name] for name in ("cell", "status", "detection_ms", "updated_ms",
+                                                             "message")}), warnings)
+            if cells:
+                insert = self._insert(map_cells_table)
+                conn.execute(insert.on_conflict_do_update(index_elements=["cell"], set_={
+                    name: insert.excluded[name] for name in ("region", "last_ms", "updated_ms", "state")}), cells)
+
+    def map_cells(self, region: str | None = None, since_ms: int | None = None) -> list[dict]:
+        """Stored map cells (cell, region, last_ms, updated_ms, state), of one region or all, with last_ms >= since_ms
+        when given, by cell."""
+        c = map_cells_table.c
+        query = select(map_cells_table).order_by(c.cell)
+        if region is not None:
+            query = query.where(c.region == region)
+        if since_ms is not None:
+            query = query.where(c.last_ms >= since_ms)
+        return self._all(query)
+
+    def delete_map_cells(self, region: str, before_ms: int, fence: tuple[int, int] | None = None) -> int:
+        """Delete a region's map cells whose newest evidence is older than before_ms (fenced as `put_region_output`);
+        how many."""
+        c = map_cells_table.c
+        with self._transaction() as conn:
+            if fence is not None:
+                o = region_owners_table.c
+                epoch = conn.execute(select(o.epoch).where(o.region_queue == fence[0])
+                                     .with_for_update(read=True)).scalar()
+                if epoch != fence[1]:
+                    raise Fenced({fence[0]})
+            return conn.execute(map_cells_table.delete().where(c.region == region, c.last_ms < before_ms)).rowcount
+
+    def take_region_queue(self, region_queue: int, owner: str) -> int:
+        """Raise the region queue's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
+        which the owner's fenced writes carry (`put_region_output`)."""
+        insert = self._insert(region_owners_table).values(region_queue=region_queue, epoch=1, owner=owner,
+                                                          taken_ms=_now_ms())
+        upsert = insert.on_conflict_do_update(
+            index_elements=["region_queue"],
+            set_={"epoch": region_owners_table.c.epoch + 1, "owner": insert.excluded.owner,
+                  "taken_ms": insert.excluded.taken_ms}).returning(region_owners_table.c.epoch)
+        with self._transaction() as conn:
+            return conn.execute(upsert).scalar_one()
 
     def warnings(self, active_only: bool = False) -> list[dict]:
         """All warnings (or only those whose status is "active"), by detection time."""
