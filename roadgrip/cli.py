@@ -316,6 +316,13 @@ def fleet(
     importer: str | None = typer.Option(None, help="importer of the log (default: detected)"),
     vehicle: str | None = typer.Option(None, help="profile of the replayed vehicle: a known name or a YAML file "
                                                   "(default: the importer's own, else paper-suv)"),
+    mqtt_urls: list[str] | None = typer.Option(None, "--mqtt", help="broker to send to instead of the one the "
+                                                                   "registration names (repeatable: vehicles are "
+                                                                   "spread over them, e.g. a cluster's nodes)"),
+    mqtt_protocol: str = typer.Option("auto", help="auto (MQTT 5, else 3.1.1 when the broker does not take 5: "
+                                                   "RabbitMQ 3.10) | 5 | 3.1.1"),
+    read_url: str | None = typer.Option(None, help="after the drive, read each vehicle's estimates and the map back "
+                                                   "from this cloud (e.g. another API replica of a cluster)"),
 ):
     """Drive simulated vehicles (or replay a log) against a running cloud: each vehicle registers, then sends its
     telemetry at 10 Hz with its own credentials."""
@@ -325,10 +332,12 @@ def fleet(
     from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
     from roadgrip.fleet.network import generated_network, network_from_geojson
     from roadgrip.fleet.replay import replay
-    from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, register_fleet
+    from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, read_back, register_fleet
 
     if transport not in ("auto", "mqtt", "http"):
         raise ValueError(f"--transport must be auto, mqtt or http, got {transport!r}")
+    if mqtt_protocol not in ("auto", "5", "3.1.1"):
+        raise ValueError(f"--mqtt-protocol must be auto, 5 or 3.1.1, got {mqtt_protocol!r}")
     secret = os.environ.get("ROADGRIP_ADMIN_SECRET") or (admin_secret_file.read_text().strip()
                                                           if admin_secret_file.is_file() else None)
     if not secret:
@@ -344,10 +353,11 @@ def fleet(
             samples = simulate_fleet(plans, network)
         profiles = {p.vehicle_id: p.vehicle.name for p in plans}
     secrets, mqtt_url = register_fleet(url, secret, list(profiles.items()))
-    use_mqtt = transport == "mqtt" or (transport == "auto" and mqtt_url is not None)
-    if use_mqtt and mqtt_url is None:
-        raise ValueError("--transport mqtt, but the cloud runs without a broker")
-    terminals = MqttTerminals(mqtt_url, secrets) if use_mqtt else HttpTerminals(url, secrets)
+    brokers = mqtt_urls or ([mqtt_url] if mqtt_url is not None else [])
+    use_mqtt = transport == "mqtt" or (transport == "auto" and bool(brokers))
+    if use_mqtt and not brokers:
+        raise ValueError("--transport mqtt, but the cloud runs without a broker (and no --mqtt was given)")
+    terminals = MqttTerminals(brokers, secrets, mqtt_protocol) if use_mqtt else HttpTerminals(url, secrets)
     total = sum(len(run) for run in samples.values())
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console) as bar:
@@ -361,8 +371,16 @@ def fleet(
                         batch=1 if use_mqtt else 10)
         terminals.close()
     acknowledged = terminals.acknowledged if use_mqtt else terminals.stored
+    over = f" over MQTT {terminals.protocol} to {len(brokers)} broker(s)" if use_mqtt else ""
     console.print(f"sent {result.samples:,} samples in {result.batches:,} messages over {result.wall_s:.1f} s "
-                  f"({result.late_batches} late); {'acknowledged' if use_mqtt else 'stored'}: {acknowledged:,}")
+                  f"({result.late_batches} late){over}; {'acknowledged' if use_mqtt else 'stored'}: {acknowledged:,}")
+    if read_url is not None:
+        with console.status(f"reading the estimates and the map back from {read_url}..."):
+            stored = read_back(read_url, secret, list(samples))
+        counts = stored["estimates"]
+        console.print(f"read back from {read_url}: {sum(counts.values()):,} estimates of "
+                      f"{sum(1 for n in counts.values() if n)} of {len(counts)} vehicles, {stored['map_cells']} map "
+                      f"cells ({'settled' if stored['settled'] else 'still growing'} after {stored['wait_s']:.0f} s)")
 
 
 def _replay_samples(log: Path, importer: str | None, vehicle: str | None,

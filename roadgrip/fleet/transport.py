@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
@@ -69,13 +70,24 @@ class HttpTerminals:
 
 class MqttTerminals:
     """One MQTT connection per vehicle, logged in as that vehicle; messages are queued in paho (QoS 1) and `close()`
-    waits for every PUBACK."""
+    waits for every PUBACK.
 
-    def __init__(self, mqtt_url: str, secrets: dict[str, str]):
+    `mqtt_url`: one broker, or a list (the nodes of a cluster without a load balancer in front): vehicle k connects to
+    the (k mod n)-th. `protocol`: "5", "3.1.1" or "auto" (roadgrip.cloud.edge.mqtt.UserClient); with "auto" the first
+    vehicle finds the version the broker takes and the others use it, so that each connects once."""
+
+    def __init__(self, mqtt_url: str | list[str], secrets: dict[str, str], protocol: str = "5"):
         if len(secrets) > MAX_MQTT_VEHICLES:
             raise ValueError(f"at most {MAX_MQTT_VEHICLES} MQTT vehicles in one process (paho uses select()), got "
                              f"{len(secrets)}: use --transport http or several fleet processes")
-        self.clients = {vid: UserClient(mqtt_url, vid, secret).connect() for vid, secret in secrets.items()}
+        urls = [mqtt_url] if isinstance(mqtt_url, str) else list(mqtt_url)
+        if not urls:
+            raise ValueError("mqtt_url must name at least one broker, got an empty list")
+        self.clients = {}
+        for k, (vid, secret) in enumerate(secrets.items()):
+            self.clients[vid] = UserClient(urls[k % len(urls)], vid, secret, protocol=protocol).connect()
+            protocol = self.clients[vid].protocol
+        self.protocol = protocol
         self.pending = []
         self.acknowledged = self.refused = 0
 
@@ -94,3 +106,35 @@ class MqttTerminals:
         finally:
             for client in self.clients.values():
                 client.close()
+
+
+def read_back(base_url: str, admin_secret: str, vehicle_ids: list[str], timeout_s: float = 60.0,
+              poll_s: float = 1.0) -> dict:
+    """What a cloud (any API replica of a cluster) has stored of the fleet: each vehicle's estimates, counted, and the
+    cells of the friction map. The telemetry is still on its way through the broker and the workers when the drive
+    ends, so this waits until every vehicle has estimates and two polls `poll_s` apart counted the same, or until
+    `timeout_s`; `settled` says which. Returns {"estimates": {vehicle_id: n}, "map_cells": n, "settled": bool,
+    "wait_s": s}."""
+    started = time.monotonic()
+    auth = ("admin", admin_secret)
+    with httpx.Client(base_url=base_url, auth=auth, timeout=30.0) as client:
+        def get(path: str, **params) -> dict:
+            try:
+                answer = client.get(path, params=params)
+            except httpx.HTTPError as exc:
+                raise FleetError(f"cannot read from the cloud at {base_url}: {exc}") from None
+            if answer.status_code != 200:
+                raise FleetError(f"GET {path} failed: HTTP {answer.status_code} {answer.text[:300]}")
+            return answer.json()
+
+        previous = None
+        while True:
+            counts = {vid: len(get(f"/v1/vehicles/{vid}/estimates", limit=100_000)["estimates"])
+                      for vid in vehicle_ids}
+            settled = counts == previous and all(counts.values())
+            if settled or time.monotonic() - started > timeout_s:
+                break
+            previous = counts
+            time.sleep(poll_s)
+        cells = len(get("/v1/map")["features"])
+    return {"estimates": counts, "map_cells": cells, "settled": settled, "wait_s": time.monotonic() - started}

@@ -37,6 +37,22 @@ def test_simulated_vehicles_drive_against_the_cloud(cloud, transport):
     assert sorted(cloud.service.storage.vehicle_ids()) == [f"cli-{transport}-{k:03d}" for k in range(3)]
 
 
+def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read_back(cloud):
+    """The options a cluster needs (--mqtt for each node, --mqtt-protocol 3.1.1, --read-url for another replica),
+    here against serve's own broker and API."""
+    mqtt_url = cloud.service.mqtt_url
+    result = runner.invoke(app, ["fleet", "--url", cloud.url, "--vehicles", "2", "--speed", "50", "--duration", "20",
+                                 "--mqtt", mqtt_url, "--mqtt", mqtt_url, "--mqtt-protocol", "3.1.1",
+                                 "--read-url", cloud.url, "--prefix", "spread"])
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())  # rich wraps long lines
+    assert "over MQTT 3.1.1 to 2 broker(s)" in said
+    settle(cloud.service)
+    stored = {v: len(cloud.service.storage.estimates(v, limit=100_000)) for v in ("spread-000", "spread-001")}
+    assert cloud.service.storage.counts()["telemetry"] == 2 * 200 and all(stored.values())
+    assert f"read back from {cloud.url}: {sum(stored.values()):,} estimates of 2 of 2 vehicles" in said
+
+
 def test_the_real_log_is_replayed_as_its_own_vehicle(cloud):
     result = runner.invoke(app, ["fleet", "--url", cloud.url, "--replay", str(LOG), "--speed", "50",
                                  "--transport", "http", "--prefix", "m8"])

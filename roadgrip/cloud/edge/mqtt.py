@@ -22,6 +22,12 @@ What Mosquitto 2.0.11 answers to a request outside a client's ACL (tests/cloud/t
   instead, so nothing outside the ACL ever arrives on such a subscription.
 - CONNECT with a wrong password, an unknown user or none: CONNACK 0x87 (Not authorized).
 
+Protocol versions: the service's connection speaks MQTT 5 (it needs Receive Maximum and session expiry). `UserClient`
+and `VehicleClient` speak MQTT 5 by default, MQTT 3.1.1 when asked (`protocol="3.1.1"`), or the first of the two the
+broker accepts (`protocol="auto"`): RabbitMQ 3.10's MQTT plugin, the cluster mode's broker (docs/CLUSTER.md), knows
+MQTT 3.1 and 3.1.1 only and closes an MQTT 5 CONNECT without a CONNACK. Under 3.1.1 a PUBACK carries no reason code, so
+a refused publish is not seen as such (Mosquitto drops it after a PUBACK; RabbitMQ closes the connection instead).
+
 `MqttClient`, the service's connection, in short: paho-mqtt 2.x, MQTT 5, a persistent session (clean start off, a session
 expiry interval), so that the broker keeps the service's subscription and queues QoS 1 telemetry while the service is
 away (`max_queued_messages` in `roadgrip.cloud.edge.broker`); manual acknowledgement, so that a message the service has not
@@ -64,6 +70,8 @@ DEFAULT_PORT = 1883
 RECONNECT_MIN_DELAY_S = 0.25  # doubling after each failed attempt, up to the max
 RECONNECT_MAX_DELAY_S = 10.0
 DEFAULT_MAX_INFLIGHT = 20  # own QoS 1 publishes unacknowledged at once: paho's default, and Mosquitto's Receive Maximum
+MQTT_PROTOCOLS = {"5": paho.MQTTv5, "3.1.1": paho.MQTTv311}  # what a client may be asked to speak, besides "auto"
+UNSUPPORTED_PROTOCOL_VERSION = 0x84  # MQTT 5's CONNACK reason code for a protocol version the broker does not speak
 
 TelemetryHandler = Callable[[str, bytes, Callable[[], None]], None]
 
@@ -146,17 +154,23 @@ class PublishRefused(RuntimeError):
 
 def connect_paho(url: str, username: str, password: str, *, client_id: str | None = None, timeout_s: float = 10,
                  clean_start: bool = True, properties: Properties | None = None,
-                 manual_ack: bool = False) -> paho.Client:
-    """A paho client (MQTT 5) connected to `url` as `username`, its network loop then running in paho's thread (which
-    reconnects by itself after a drop).
+                 manual_ack: bool = False, protocol: str = "5") -> paho.Client:
+    """A paho client (MQTT 5, or `protocol` "3.1.1": clean session as `clean_start`, no properties) connected to `url`
+    as `username`, its network loop then running in paho's thread (which reconnects by itself after a drop).
 
     Returns once the broker accepted the connection. Raises `BrokerRefused` when the CONNACK carries a failure, `OSError`
     when nothing listens at `url` or the connection closes before the CONNACK, `TimeoutError` when no CONNACK came within
     `timeout_s`; the client is disconnected then.
     The caller owns the client: `client.disconnect(); client.loop_stop()` ends it."""
     host, port = parse_url(url)
+    if protocol not in MQTT_PROTOCOLS:
+        raise ValueError(f"protocol must be one of {list(MQTT_PROTOCOLS)}, got {protocol!r}")
+    if protocol != "5" and properties is not None:
+        raise ValueError(f"properties are MQTT 5 only, got some for protocol {protocol!r}")
+    v5 = protocol == "5"
     client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id or f"roadgrip-{secrets.token_hex(6)}",
-                         protocol=paho.MQTTv5, manual_ack=manual_ack)
+                         protocol=MQTT_PROTOCOLS[protocol], manual_ack=manual_ack,
+                         clean_session=None if v5 else clean_start)
     client.username_pw_set(username, password)
     answered = threading.Event()
     reply: list[ReasonCode] = []
@@ -168,7 +182,10 @@ def connect_paho(url: str, username: str, password: str, *, client_id: str | Non
 
     client.on_connect = on_connect
     client.reconnect_delay_set(RECONNECT_MIN_DELAY_S, RECONNECT_MAX_DELAY_S)
-    client.connect(host, port, keepalive=30, clean_start=clean_start, properties=properties)
+    if v5:
+        client.connect(host, port, keepalive=30, clean_start=clean_start, properties=properties)
+    else:
+        client.connect(host, port, keepalive=30)
     deadline = time.monotonic() + timeout_s
     while not answered.is_set() and time.monotonic() < deadline:  # in this thread, until the CONNACK
         if client.loop(timeout=0.05) != MQTTErrorCode.MQTT_ERR_SUCCESS:
@@ -422,16 +439,22 @@ class MqttClient:
 
 
 class UserClient:
-    """A plain connection as one login (MQTT 5, clean start), for vehicles, readers, tests and the fleet simulator.
+    """A plain connection as one login (clean start), for vehicles, readers, tests and the fleet simulator.
 
-    `connect()` returns the client itself; `with UserClient(url, name, secret) as c:` connects too. `publish` waits for
-    the PUBACK and raises `PublishRefused` when its reason code is a failure (Mosquitto 2.0 sends 0x87 for a topic
-    outside the ACL); `publish_nowait` only queues and counts refusals in `refused`. Messages on the subscriptions made
-    with `subscribe` land in `messages`, a queue of (topic, payload). `paho` is the underlying paho client."""
+    `protocol`: "5" (the default), "3.1.1", or "auto": MQTT 5, and MQTT 3.1.1 when the broker does not take it (it
+    closes the connection before its CONNACK, as RabbitMQ 3.10 does, or answers 0x84 Unsupported protocol version);
+    `protocol` then holds the version connected with. `connect()` returns the client itself;
+    `with UserClient(url, name, secret) as c:` connects too. `publish` waits for the PUBACK and raises `PublishRefused`
+    when its reason code is a failure (Mosquitto 2.0 sends 0x87 for a topic outside the ACL; MQTT 3.1.1 has no reason
+    codes); `publish_nowait` only queues and counts refusals in `refused`. Messages on the subscriptions made with
+    `subscribe` land in `messages`, a queue of (topic, payload). `paho` is the underlying paho client."""
 
-    def __init__(self, url: str, username: str, password: str, client_id: str | None = None):
+    def __init__(self, url: str, username: str, password: str, client_id: str | None = None, protocol: str = "5"):
         parse_url(url)
+        if protocol != "auto" and protocol not in MQTT_PROTOCOLS:
+            raise ValueError(f"protocol must be auto or one of {list(MQTT_PROTOCOLS)}, got {protocol!r}")
         self.url = url
+        self.protocol = protocol
         self.username = username
         self.client_id = client_id or f"{username}-{secrets.token_hex(4)}"
         self.messages: queue.Queue[tuple[str, bytes]] = queue.Queue()
@@ -446,7 +469,22 @@ class UserClient:
         """Connect (raises like `connect_paho`) and return self."""
         if self.paho is not None:
             raise RuntimeError("connect() called twice: close() first")
-        client = connect_paho(self.url, self.username, self._password, client_id=self.client_id, timeout_s=timeout_s)
+        if self.protocol != "auto":
+            client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
+                                  timeout_s=timeout_s, protocol=self.protocol)
+        else:
+            try:
+                client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
+                                      timeout_s=timeout_s, protocol="5")
+                self.protocol = "5"
+            except ConnectionError as exc:
+                if isinstance(exc, BrokerRefused) and exc.reason_code.value != UNSUPPORTED_PROTOCOL_VERSION:
+                    raise
+                log.info("%s: %s did not take MQTT 5 (%s); connecting with MQTT 3.1.1", self.client_id, self.url,
+                         exc)
+                client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
+                                      timeout_s=timeout_s, protocol="3.1.1")
+                self.protocol = "3.1.1"
         client.on_publish = self._on_publish
         client.on_subscribe = self._on_subscribe
         client.on_message = lambda _client, _userdata, message: self.messages.put((message.topic, message.payload))
@@ -520,8 +558,8 @@ class VehicleClient(UserClient):
     """A vehicle's connection: its login name is its vehicle_id; `publish_telemetry` publishes on its own telemetry
     topic (waiting for the PUBACK, like `publish`), `publish_telemetry_nowait` only queues (for the fleet simulator)."""
 
-    def __init__(self, url: str, vehicle_id: str, secret: str, client_id: str | None = None):
-        super().__init__(url, check_vehicle_id(vehicle_id), secret, client_id)
+    def __init__(self, url: str, vehicle_id: str, secret: str, client_id: str | None = None, protocol: str = "5"):
+        super().__init__(url, check_vehicle_id(vehicle_id), secret, client_id, protocol)
         self.vehicle_id = vehicle_id
         self.topic = telemetry_topic(vehicle_id)
 

@@ -182,6 +182,28 @@ def test_refused_service_login_raises_with_the_reason_code(fleet):
         MqttClient("mqtt://127.0.0.1:1", "u", "p", "svc").connect(timeout_s=5)
 
 
+def test_a_vehicle_speaks_mqtt_3_1_1_when_asked_and_auto_keeps_5_where_the_broker_takes_it(fleet):
+    """The fleet's "auto" falls back to 3.1.1 only for a broker that does not take MQTT 5 (RabbitMQ 3.10: the local
+    cluster's test, tests/cloud/test_local_cluster.py); Mosquitto does, so nothing changes for serve."""
+    inbox = Inbox()
+    with service(fleet, inbox):
+        with VehicleClient(fleet.url, "A", "secret-A", protocol="3.1.1") as old, \
+                VehicleClient(fleet.url, "B", "secret-B", protocol="auto") as new:
+            assert old.protocol == "3.1.1" and old.paho.protocol == paho.MQTTv311
+            assert new.protocol == "5" and new.paho.protocol == paho.MQTTv5
+            old.publish_telemetry(b"over 3.1.1")
+            new.publish_telemetry(b"over 5")
+            assert sorted(inbox.payloads(2)) == [("A", b"over 3.1.1"), ("B", b"over 5")]
+
+
+def test_auto_does_not_fall_back_on_a_refused_login(fleet):
+    with pytest.raises(BrokerRefused) as refused:
+        UserClient(fleet.url, "A", "wrong", protocol="auto").connect(timeout_s=5)
+    assert refused.value.reason_code.value == NOT_AUTHORIZED
+    with pytest.raises(ValueError, match="protocol must be"):
+        UserClient(fleet.url, "A", "secret-A", protocol="3")
+
+
 def test_telemetry_published_while_the_service_is_away_is_delivered_when_it_returns(fleet):
     with service(fleet, Inbox()):
         pass  # the persistent session, with its subscription, now waits in the broker
