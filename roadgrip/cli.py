@@ -501,6 +501,9 @@ def worker(
     config: Path | None = typer.Option(None, help="settings file (YAML; the estimator, ingest and pipeline settings "
                                                   "of `serve` apply); environment variables ROADGRIP_* override it"),
     estimator: str | None = typer.Option(None, help="pmf (default), ekf, ukf, default (learned) or a model file"),
+    metrics_port: int | None = typer.Option(None, min=0, max=65535, help="serve Prometheus metrics at "
+                                            "http://METRICS_HOST:PORT/metrics (0: a free port, logged)"),
+    metrics_host: str = typer.Option("127.0.0.1", help="address the metrics listen on (0.0.0.0: every interface)"),
 ):
     """A cluster worker: consumes the partition queues of RabbitMQ (single active consumer per queue), estimates
     and stores in PostgreSQL, acknowledges after storing (docs/CLUSTER.md, "Workers")."""
@@ -516,7 +519,7 @@ def worker(
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda _signum, _frame: stop.set())
-    run_worker(broker, settings, partitions, prefetch, stop)
+    run_worker(broker, settings, partitions, prefetch, stop, metrics_port, metrics_host)
 
 
 @bench_app.command("estimate")

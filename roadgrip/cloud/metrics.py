@@ -141,6 +141,61 @@ def registry_with(collector: Collector) -> CollectorRegistry:
     return registry
 
 
+def pipeline_metrics(views: list[ProcessView], http_payloads_rejected: int | None = None) -> Iterator[Metric]:
+    """The families of every process that runs pipelines (`roadgrip serve`, `roadgrip worker`): admission, storage,
+    estimation and checkpoints, per process (`Ingest.views()`). `http_payloads_rejected`: the HTTP requests refused
+    whole by a service (None where there is no HTTP ingest)."""
+
+    def per(key: str) -> list[tuple[list[str], float]]:
+        return [([v.process], v.stats[key]) for v in views]
+    ingest = [(v.process, v.metrics["ingest"]) for v in views]
+    yield counter("roadgrip_samples_received", "Samples received in readable payloads (valid or not), by the "
+                  "process that admitted them and transport",
+                  [([p, t], c[f"received_{t}"]) for p, c in ingest for t in TRANSPORTS], ["process", "transport"])
+    yield counter("roadgrip_samples_rejected", "Samples refused: invalid (validation) or rate_limited",
+                  [([p, t, reason], c[f"{reason}_{t}"]) for p, c in ingest for t in TRANSPORTS
+                   for reason in ("invalid", "rate_limited")], ["process", "transport", "reason"])
+    yield counter("roadgrip_payloads_rejected", "HTTP requests and MQTT messages refused whole before any sample "
+                  "was read (not UTF-8 or JSON, empty, too large, too many samples, wrong content type)",
+                  ([] if http_payloads_rejected is None else [([MAIN_PROCESS, "http"], http_payloads_rejected)])
+                  + [([p, "mqtt"], c["unreadable_mqtt"]) for p, c in ingest], ["process", "transport"])
+    yield counter("roadgrip_samples_stored", "Samples newly stored", per("stored"), ["process"])
+    yield counter("roadgrip_samples_duplicate", "Samples already stored (a repeated request or MQTT redelivery)",
+                  per("duplicates"), ["process"])
+    yield counter("roadgrip_samples_late", "Samples stored but not estimated: older than one already estimated",
+                  per("late"), ["process"])
+    yield counter("roadgrip_estimates", "Estimates made and stored", per("estimates"), ["process"])
+    yield counter("roadgrip_estimator_restarts", "Estimators restarted after a gap longer than max_gap_s",
+                  per("restarts"), ["process"])
+    yield counter("roadgrip_pipeline_rounds", "Pipeline rounds run", per("rounds"), ["process"])
+    yield counter("roadgrip_pipeline_failed_rounds", "Pipeline rounds whose write failed (storage down: retried)",
+                  per("failed_rounds"), ["process"])
+    yield counter("roadgrip_pipeline_slow_rounds", "Pipeline rounds that took over 1 s", per("slow_rounds"),
+                  ["process"])
+    yield counter("roadgrip_pipeline_estimate_seconds", "Seconds spent in reorder buffers and estimators",
+                  per("estimate_s"), ["process"])
+    yield counter("roadgrip_pipeline_write_seconds", "Seconds spent writing rounds (telemetry and estimates)",
+                  per("write_s"), ["process"])
+    yield counter("roadgrip_checkpoints_written", "Estimator states stored", per("checkpoints_written"),
+                  ["process"])
+    yield counter("roadgrip_checkpoints_restored", "Vehicles that went on from a stored estimator state",
+                  per("checkpoints_restored"), ["process"])
+    yield gauge("roadgrip_pipeline_backlog_samples", "Samples submitted and not yet taken by a round",
+                per("backlog"), ["process"])
+    yield gauge("roadgrip_pipeline_last_round_seconds", "Duration of the last pipeline round",
+                per("last_round_s"), ["process"])
+    yield gauge("roadgrip_pipeline_storage_failing", "1 while the pipeline's writes fail and it holds a round",
+                [([v.process], float(v.stats["storage_down"])) for v in views], ["process"])
+    yield histogram("roadgrip_estimator_update_seconds", "Time of one estimator update", ESTIMATOR_BUCKETS_S,
+                    [([v.process], v.metrics["estimator_seconds"]) for v in views], ["process"])
+
+
+def estimate_latency(latency: BatchHistogram) -> HistogramMetricFamily:
+    """The latency family from a BatchHistogram of LATENCY_BUCKETS_S, in seconds."""
+    return histogram("roadgrip_estimate_latency_seconds", "From a sample's own time (timestamp_ms) to its stored "
+                     "estimate", LATENCY_BUCKETS_S, [([], latency.state())])
+
+
 class ServiceCollector(Collector):
     """The metrics of `roadgrip serve` (docs/CLOUD.md "Metrics (Prometheus)"), read from a started CloudService
     (roadgrip/cloud/service.py) at each scrape: each process's pipeline from `service.ingest.views()`, the rest from
@@ -152,49 +207,7 @@ class ServiceCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         service = self.service
         views = service.ingest.views()
-
-        def per(key: str) -> list[tuple[list[str], float]]:
-            return [([v.process], v.stats[key]) for v in views]
-        ingest = [(v.process, v.metrics["ingest"]) for v in views]
-        yield counter("roadgrip_samples_received", "Samples received in readable payloads (valid or not), by the "
-                      "process that admitted them and transport",
-                      [([p, t], c[f"received_{t}"]) for p, c in ingest for t in TRANSPORTS], ["process", "transport"])
-        yield counter("roadgrip_samples_rejected", "Samples refused: invalid (validation) or rate_limited",
-                      [([p, t, reason], c[f"{reason}_{t}"]) for p, c in ingest for t in TRANSPORTS
-                       for reason in ("invalid", "rate_limited")], ["process", "transport", "reason"])
-        yield counter("roadgrip_payloads_rejected", "HTTP requests and MQTT messages refused whole before any sample "
-                      "was read (not UTF-8 or JSON, empty, too large, too many samples, wrong content type)",
-                      [([MAIN_PROCESS, "http"], service.http_payloads_rejected)]
-                      + [([p, "mqtt"], c["unreadable_mqtt"]) for p, c in ingest], ["process", "transport"])
-        yield counter("roadgrip_samples_stored", "Samples newly stored", per("stored"), ["process"])
-        yield counter("roadgrip_samples_duplicate", "Samples already stored (a repeated request or MQTT redelivery)",
-                      per("duplicates"), ["process"])
-        yield counter("roadgrip_samples_late", "Samples stored but not estimated: older than one already estimated",
-                      per("late"), ["process"])
-        yield counter("roadgrip_estimates", "Estimates made and stored", per("estimates"), ["process"])
-        yield counter("roadgrip_estimator_restarts", "Estimators restarted after a gap longer than max_gap_s",
-                      per("restarts"), ["process"])
-        yield counter("roadgrip_pipeline_rounds", "Pipeline rounds run", per("rounds"), ["process"])
-        yield counter("roadgrip_pipeline_failed_rounds", "Pipeline rounds whose write failed (storage down: retried)",
-                      per("failed_rounds"), ["process"])
-        yield counter("roadgrip_pipeline_slow_rounds", "Pipeline rounds that took over 1 s", per("slow_rounds"),
-                      ["process"])
-        yield counter("roadgrip_pipeline_estimate_seconds", "Seconds spent in reorder buffers and estimators",
-                      per("estimate_s"), ["process"])
-        yield counter("roadgrip_pipeline_write_seconds", "Seconds spent writing rounds (telemetry and estimates)",
-                      per("write_s"), ["process"])
-        yield counter("roadgrip_checkpoints_written", "Estimator states stored", per("checkpoints_written"),
-                      ["process"])
-        yield counter("roadgrip_checkpoints_restored", "Vehicles that went on from a stored estimator state",
-                      per("checkpoints_restored"), ["process"])
-        yield gauge("roadgrip_pipeline_backlog_samples", "Samples submitted and not yet taken by a round",
-                    per("backlog"), ["process"])
-        yield gauge("roadgrip_pipeline_last_round_seconds", "Duration of the last pipeline round",
-                    per("last_round_s"), ["process"])
-        yield gauge("roadgrip_pipeline_storage_failing", "1 while the pipeline's writes fail and it holds a round",
-                    [([v.process], float(v.stats["storage_down"])) for v in views], ["process"])
-        yield histogram("roadgrip_estimator_update_seconds", "Time of one estimator update", ESTIMATOR_BUCKETS_S,
-                        [([v.process], v.metrics["estimator_seconds"]) for v in views], ["process"])
+        yield from pipeline_metrics(views, http_payloads_rejected=service.http_payloads_rejected)
         shards = [v for v in views if v.restarts is not None]
         if shards:
             yield counter("roadgrip_ingest_process_restarts", "Ingest processes started again after they stopped",
@@ -207,8 +220,7 @@ class ServiceCollector(Collector):
                         "process and not yet acknowledged by it (stored)",
                         [([v.process], v.forwarded_unacknowledged) for v in shards], ["process"])
         fanout = service.fanout
-        yield histogram("roadgrip_estimate_latency_seconds", "From a sample's own time (timestamp_ms) to its stored "
-                        "estimate", LATENCY_BUCKETS_S, [([], fanout.latency_histogram.state())])
+        yield estimate_latency(fanout.latency_histogram)
         yield counter("roadgrip_warnings", "Warning changes: raised, refreshed, cancelled, expired",
                       [([change], n) for change, n in fanout.warning_changes.items()], ["change"])
         mqtt = service.mqtt

@@ -473,6 +473,11 @@ class Storage:
         with self._transaction() as conn:
             return conn.execute(upsert).scalar_one()
 
+    def partition_owners(self) -> dict[int, str]:
+        """partition -> the owner that took it last (`take_partition`), for the partitions taken at least once."""
+        c = partition_owners_table.c
+        return {row["partition_id"]: row["owner"] for row in self._all(select(c.partition_id, c.owner))}
+
     def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
         """Insert `rows`, skipping keys stored already: the number inserted, or with `returning` the keys inserted.
         Multi-row INSERTs of INSERT_SIZES rows, each compiled once by SQLAlchemy for this database and then executed
@@ -572,9 +577,11 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ estimator states
 
-    def put_estimator_states(self, rows: list[dict]) -> None:
+    def put_estimator_states(self, rows: list[dict], fences: Mapping[int, int] | None = None) -> None:
         """Store (or replace) estimator states in one transaction: each row holds vehicle_id, estimator (its name),
-        state (a JSON-able dict) and optionally updated_ms (default: now). Of rows with the same key the last wins."""
+        state (a JSON-able dict) and optionally updated_ms (default: now). Of rows with the same key the last wins.
+        `fences` as in `write_batch`: Fenced, nothing stored, if another worker has taken one of those partitions
+        since (a stale owner's checkpoint must not overwrite the new owner's)."""
         now_ms = _now_ms()
         latest = {}
         for row in rows:
@@ -590,6 +597,7 @@ class Storage:
                                               set_={"state": insert.excluded.state,
                                                     "updated_ms": insert.excluded.updated_ms})
         with self._transaction() as conn:
+            self._check_fences(conn, fences)
             conn.execute(upsert, rows)
 
     def estimator_states(self, vehicle_ids: list[str], estimator: str) -> dict[str, dict]:

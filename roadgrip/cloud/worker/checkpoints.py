@@ -183,6 +183,16 @@ class Checkpoints:
                 return
         self._due.clear()
 
+    def write(self, vehicle_ids: list[str], streams: Mapping[str, _Stream]) -> int | None:
+        """Store these vehicles' states now, in one transaction (they leave the pipeline: `Pipeline.hand_over`): the
+        number written, None while the database is down."""
+        before = self.counters.checkpoints_written
+        if not self._write(vehicle_ids, streams):
+            return None
+        for vehicle_id in vehicle_ids:
+            self._due.pop(vehicle_id, None)
+        return self.counters.checkpoints_written - before
+
     def _write(self, vehicle_ids: list[str], streams: Mapping[str, _Stream]) -> bool:
         """Store these vehicles' states in one transaction; False (kept due) while the database is down."""
         started = time.perf_counter()

@@ -5,8 +5,21 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 
 - Ownership: every worker registers a consumer on every partition queue; single-active-consumer makes one of them
   active per queue, and when its channel or connection dies (the worker killed, its broker node killed) RabbitMQ makes
-  another registered consumer active. The first worker to register is active on every partition: the others are hot
-  standbys (spreading partitions over workers is not done here).
+  another registered consumer active. The first worker to register is active on every partition; the others wait.
+- Spreading partitions (`_watch`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
+  (consumer priorities do not choose the single active consumer of a quorum queue there), so workers hand partitions
+  over themselves. Live workers are counted by the broker: each worker holds a consumer on the quorum queue
+  WORKERS_QUEUE (nothing is ever published to it), whose consumer count a passive declare returns (a queue with
+  single-active-consumer counts only its active consumer). A worker that holds more than ceil(partitions / workers)
+  partitions, or holds more than floor(partitions / workers) >= 1 while a live worker holds none (the owners in
+  partition_owners) and is the one holding most (ties: the smallest owner name), releases the partition it took
+  last: it stops handing that queue's deliveries to the pipeline, waits until what it handed over is stored and
+  acknowledged, lets the pipeline store those vehicles' states and forget them (`Pipeline.hand_over`), closes that
+  connection (the next waiting consumer becomes active; what was delivered and not taken goes back to the queue) and
+  registers again, at the end of the waiting list. Against flapping: nothing moves until the count of live workers
+  has held for WORKERS_SETTLE_S, a worker releases at most one partition every MOVE_INTERVAL_S, and nothing moves
+  while every worker is within [floor, ceil]. A worker that receives a partition it does not need passes it on the
+  same way, to the next in that queue's waiting list. Each move is logged.
 - One connection per partition (a thread each), to the node `partition mod len(brokers)` of the worker's list, the
   next one after a failure: a dead node costs only the partitions consumed through it.
 - A message is an MQTT publish as the broker's MQTT plugin forwarded it: the routing key is the topic with '/' and '.'
@@ -39,6 +52,7 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import json
@@ -54,10 +68,11 @@ import pika.exceptions
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import errors_topic, vehicle_of_topic
 from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
+from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
-from roadgrip.cloud.worker.pipeline import Pipeline
+from roadgrip.cloud.worker.pipeline import Pipeline, StoredSink
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
@@ -69,6 +84,11 @@ FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowle
 HEARTBEAT_S = 5  # AMQP heartbeat: a silent broker (a node frozen, not killed) is given up after about 2x this
 RECONNECT_S = 0.2  # wait before connecting again after a failure (to the next node)
 STATS_S = 10.0  # how often the worker logs its counters
+WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
+WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
+WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before partitions move
+MOVE_INTERVAL_S = 3.0  # a worker releases at most one partition in this time
+HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
 
 
 def swap_dots_and_slashes(text: str) -> str:
@@ -77,7 +97,7 @@ def swap_dots_and_slashes(text: str) -> str:
 
 
 class _PartitionLost(Exception):
-    """A partition's channel was fenced: another worker took the partition."""
+    """A partition's channel was fenced (another worker took the partition), or its hand-over did not finish."""
 
 
 class _Acks:
@@ -89,6 +109,10 @@ class _Acks:
         self._done: set[int] = set()
         self.acknowledged = 0  # every tag up to this one is acknowledged
         self.epoch: int | None = None  # taken at the channel's first delivery
+        self.taken_at = 0.0  # when (monotonic s)
+        self.delivered = 0  # the last tag delivered
+        self.handed = 0  # the last tag handed to the pipeline
+        self.releasing = False  # the partition is being handed over: no more deliveries are taken
         self.fenced = False
 
     def done(self, tag: int) -> None:
@@ -113,6 +137,23 @@ class _Acks:
             self.acknowledged = upto
 
 
+class _Timed:
+    """The pipeline's sink in a worker: each stored estimate's latency from its sample's time into the worker's
+    histogram (metrics), then on to `sink`."""
+
+    def __init__(self, latency: BatchHistogram, sink: StoredSink):
+        self.latency = latency
+        self.sink = sink
+
+    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
+        if estimates:
+            self.latency.add([(stored_ms - e["timestamp_ms"]) / 1000.0 for e in estimates])
+        self.sink.stored(estimates, stored_ms, newest_data_ms)
+
+    def tick(self, final: bool) -> None:
+        self.sink.tick(final)
+
+
 class _StoredOnly:
     """The pipeline's sink in a worker: the estimates stay in the database (the fan-out by region is item 3)."""
 
@@ -124,8 +165,8 @@ class _StoredOnly:
 
 
 class _FencedStorage:
-    """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` is fenced with the epochs of the
-    partitions the round's vehicles came from (module docstring)."""
+    """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` and `put_estimator_states` are
+    fenced with the epochs of the partitions the rows' vehicles came from (module docstring)."""
 
     def __init__(self, storage: Storage, worker: Worker):
         self._storage = storage
@@ -137,26 +178,41 @@ class _FencedStorage:
     def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
         """Write what this worker still owns; the rows of partitions taken from it are left out, and their telemetry
         counted as stored before (their submitters' acknowledgements go to a fenced channel, which sends none)."""
-        dropped: set[tuple[str, int]] = set()
         partition_of = self._worker.partition_of
+        written, stale = self._owned(lambda fences, t, e: self._storage.write_batch(t, e, fences=fences),
+                                     telemetry, estimates)
+        dropped = frozenset((row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
+                            if partition_of[row["vehicle_id"]] in stale)
+        if written is None:
+            return Written(0, 0, dropped)
+        return Written(written.telemetry, written.estimates, written.already_stored | dropped)
+
+    def put_estimator_states(self, rows: list[dict]) -> None:
+        """Store the states of the vehicles whose partitions this worker still owns; the others are left out (their
+        new owner's states must not be overwritten by this worker's older ones)."""
+        self._owned(lambda fences, r: self._storage.put_estimator_states(r, fences=fences), rows)
+
+    def _owned(self, write, *tables: list[dict]):
+        """`write(fences, *tables)` with the epochs of the rows' partitions. The rows of partitions this worker no
+        longer holds (fenced, lost, handed over) are left out; a partition found taken by another worker is fenced
+        here, its rows left out, and the rest written again. Returns what `write` returned (None when nothing was
+        left to write) and the partitions left out."""
+        partition_of = self._worker.partition_of
+        stale_all: set[int] = set()
         while True:
             acks = {p: self._worker.channel_acks(p) for p in {partition_of[row["vehicle_id"]]
-                                                               for row in itertools.chain(telemetry, estimates)}}
+                                                               for row in itertools.chain(*tables)}}
             stale = {p for p, a in acks.items() if a is None or a.fenced or a.epoch is None}
             if not stale:
                 try:
-                    written = self._storage.write_batch(telemetry, estimates,
-                                                        fences={p: a.epoch for p, a in acks.items()})
-                    return Written(written.telemetry, written.estimates, written.already_stored | dropped)
+                    return write({p: a.epoch for p, a in acks.items()}, *tables), stale_all
                 except Fenced as exc:
                     stale = exc.partitions
-            self._worker.fence(stale)
-            dropped |= {(row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
-                        if partition_of[row["vehicle_id"]] in stale}
-            telemetry = [row for row in telemetry if partition_of[row["vehicle_id"]] not in stale]
-            estimates = [row for row in estimates if partition_of[row["vehicle_id"]] not in stale]
-            if not telemetry and not estimates:
-                return Written(0, 0, frozenset(dropped))
+                    self._worker.fence(stale)
+            stale_all |= stale
+            tables = tuple([row for row in rows if partition_of[row["vehicle_id"]] not in stale] for rows in tables)
+            if not any(tables):
+                return None, stale_all
 
 
 class Worker:
@@ -182,12 +238,20 @@ class Worker:
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
         self.fenced = 0  # rounds' writes that found a partition taken by another worker
+        self.moves = 0  # partitions released to spread them over the workers
+        self.live_workers: int | None = None  # consumers of WORKERS_QUEUE (this one included), read every WATCH_S
+        self.messages_ready: list[int | None] = [None] * partitions  # each partition queue's, read every WATCH_S
+        self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # sample time to stored estimate (metrics)
         self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
         self.partition_of: dict[str, int] = {}  # vehicle -> the partition it arrives on (fixed by the hash)
         self._acks: list[_Acks | None] = [None] * partitions  # each partition's current channel
         self._taking = threading.Event()  # deliveries go to the pipeline (cleared at a stop)
         self._closing = threading.Event()
         self._registered = [threading.Event() for _ in range(partitions)]
+        self._release = [threading.Event() for _ in range(partitions)]  # set by _watch, done by the consumer
+        self._workers_seen: int | None = None  # live_workers as _balance last saw it ...
+        self._workers_since = 0.0  # ... since then (monotonic s)
+        self._next_move_at = 0.0
         self._threads: list[threading.Thread] = []
         self._channel = threading.local()  # the consumer thread's channel, for rejections
 
@@ -206,7 +270,8 @@ class Worker:
         self.storage = open_storage(s.database_url)
         estimator = load_estimator(s.estimator)
         warm_up(estimator)
-        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator, _StoredOnly(), skip_estimated=True)
+        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator,
+                            _Timed(self.latency_histogram, _StoredOnly()), skip_estimated=True)
         self.ingest = Ingest(s, pipeline, reject=self._reject)
         self._declare()
         self.ingest.start()
@@ -220,6 +285,9 @@ class Worker:
             if not event.wait(max(0.0, deadline - time.monotonic())):
                 raise TimeoutError(f"not every partition consumer registered within {ready_timeout_s} s: "
                                    f"{self.connected}")
+        watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
+        watcher.start()
+        self._threads.append(watcher)
         log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
                  len(self.brokers), s.estimator, self.storage)
 
@@ -252,12 +320,23 @@ class Worker:
             self.storage = None
 
     def stats(self) -> dict:
-        return {"partitions_connected": sum(self.connected), "deliveries": list(self.deliveries),
+        return {"partitions_connected": sum(self.connected), "partitions_held": self.held_partitions(),
+                "live_workers": self.live_workers, "moves": self.moves, "deliveries": list(self.deliveries),
                 "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
                 **(self.ingest.stats() if self.ingest is not None else {})}
 
     def channel_acks(self, partition: int) -> _Acks | None:
         return self._acks[partition]
+
+    def unacknowledged(self, partition: int) -> int:
+        """Messages of the partition delivered to this worker's current channel and not yet acknowledged."""
+        acks = self._acks[partition]
+        return 0 if acks is None or not self.connected[partition] else acks.delivered - acks.acknowledged
+
+    def held_partitions(self) -> list[int]:
+        """The partitions this worker is the active consumer of (it took them: a delivery came), not being released."""
+        return [p for p, a in enumerate(self._acks) if a is not None and a.epoch is not None and not a.fenced
+                and not a.releasing and self.connected[p]]
 
     def fence(self, partitions: set[int]) -> None:
         """Partitions taken by another worker: their channels acknowledge nothing more and are given up."""
@@ -287,6 +366,7 @@ class Worker:
             try:
                 channel = connection.channel()
                 channel.basic_qos(prefetch_count=self.prefetch)
+                self._release[partition].clear()
                 self._acks[partition] = acks
                 self._channel.channel = channel
                 channel.basic_consume(partition_queue(partition), functools.partial(
@@ -298,8 +378,11 @@ class Worker:
                     if acks.fenced:
                         raise _PartitionLost("taken by another worker")
                     acks.flush(channel)
+                    if self._release[partition].is_set():
+                        self._hand_over(partition, connection, channel, acks, vehicles)
+                        break
                 acks.flush(channel)
-                connection.close()
+                connection.close()  # a consumer that released the partition registers again, at the end of the list
             except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost) as exc:
                 acks.fence()  # nothing it took may be stored or acknowledged any more
                 if connection.is_open:  # given up: what it holds goes back to the queue
@@ -321,11 +404,14 @@ class Worker:
 
     def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
                     body: bytes) -> None:
-        if not self._taking.is_set() or acks.fenced:
-            return  # stopping or given up: left unacknowledged, it goes back to the queue when the connection closes
+        acks.delivered = method.delivery_tag
+        if not self._taking.is_set() or acks.fenced or acks.releasing:
+            return  # stopping, given up or handed over: left unacknowledged, it goes back to the queue at the close
         if acks.epoch is None:  # the channel's first delivery: this consumer is the partition's active one
             acks.epoch = self.storage.take_partition(partition, self.owner)
+            acks.taken_at = time.monotonic()
             log.info("partition %d taken, epoch %d", partition, acks.epoch)
+        acks.handed = method.delivery_tag
         self.deliveries[partition] += 1
         vehicle_id = vehicle_of_topic(swap_dots_and_slashes(method.routing_key))
         if vehicle_id is None:
@@ -337,6 +423,93 @@ class Worker:
         self.partition_of[vehicle_id] = partition
         self.ingest.mqtt_message(vehicle_id, body, functools.partial(acks.done, method.delivery_tag))
 
+    def _hand_over(self, partition: int, connection, channel, acks: _Acks, vehicles: set[str]) -> None:
+        """Release a partition this worker holds (module docstring, "Spreading partitions"): take no more deliveries,
+        wait until what was taken is stored and acknowledged and the pipeline has stored its vehicles' states and
+        forgotten them; the caller then closes the connection. _PartitionLost if that is not done within
+        HANDOVER_TIMEOUT_S (the partition is then given up as after a fence)."""
+        started = time.monotonic()
+        acks.releasing = True
+        while acks.acknowledged < acks.handed:
+            if acks.fenced or time.monotonic() - started > HANDOVER_TIMEOUT_S:
+                raise _PartitionLost(f"hand-over: {acks.handed - acks.acknowledged} deliveries not stored")
+            connection.process_data_events(time_limit=FLUSH_S)
+            acks.flush(channel)
+        states = self.ingest.pipeline.hand_over(vehicles)
+        while not states.done():
+            if time.monotonic() - started > HANDOVER_TIMEOUT_S:
+                raise _PartitionLost("hand-over: the vehicles' states were not stored")
+            connection.process_data_events(time_limit=FLUSH_S)
+        log.info("partition %d released: %d deliveries stored and acknowledged, the states of %d vehicles stored, "
+                 "in %.2f s", partition, acks.acknowledged, states.result(), time.monotonic() - started)
+
+    # ------------------------------------------------------------------------------------------------- spreading
+    def _watch(self) -> None:
+        """Hold a consumer on WORKERS_QUEUE (this worker counts as live while it has it); every WATCH_S read the live
+        workers and the partition queues' depth, and release a partition when this worker holds more than its share
+        (`_balance`). After a failure, the same through the next broker."""
+        index = 0
+        while not self._closing.is_set():
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("watcher: broker %d unreachable: %r", index % len(self.brokers), exc)
+                index += 1
+                time.sleep(RECONNECT_S)
+                continue
+            try:
+                channel = connection.channel()
+                channel.queue_declare(WORKERS_QUEUE, durable=True, arguments={"x-queue-type": "quorum"})
+                channel.basic_consume(WORKERS_QUEUE, lambda *_: None, auto_ack=True)  # nothing is published there
+                while not self._closing.is_set():
+                    self.live_workers = channel.queue_declare(WORKERS_QUEUE, passive=True).method.consumer_count
+                    for p in range(self.partitions):
+                        self.messages_ready[p] = channel.queue_declare(partition_queue(p),
+                                                                       passive=True).method.message_count
+                    self._balance(time.monotonic())
+                    connection.process_data_events(time_limit=WATCH_S)
+                connection.close()
+            except (pika.exceptions.AMQPError, OSError, StorageUnavailable) as exc:
+                self.live_workers = None
+                log.warning("watcher: connection through broker %d lost: %r", index % len(self.brokers), exc)
+                if connection.is_open:
+                    try:
+                        connection.close()
+                    except (pika.exceptions.AMQPError, OSError):
+                        log.debug("watcher: closing the failed connection failed", exc_info=True)
+                index += 1
+                time.sleep(RECONNECT_S)
+
+    def _balance(self, now: float) -> None:
+        """Release the partition taken last if this worker holds more than its share (module docstring)."""
+        workers = self.live_workers
+        if workers != self._workers_seen:
+            self._workers_seen, self._workers_since = workers, now
+            log.info("live workers: %s", workers)
+        if (not workers or now - self._workers_since < WORKERS_SETTLE_S or now < self._next_move_at
+                or any(e.is_set() for e in self._release)):
+            return
+        held = self.held_partitions()
+        high, low = -(-self.partitions // workers), self.partitions // workers
+        reason = None
+        if len(held) > high:
+            reason = f"holds {len(held)} of {self.partitions} partitions, more than ceil(partitions / {workers} " \
+                     f"live workers) = {high}"
+        elif low >= 1 and len(held) > low:
+            owners = collections.Counter(self.storage.partition_owners().values())
+            idle = workers - len(owners)  # live workers holding none (fewer where a dead owner is still named)
+            most = max(owners.values(), default=0)
+            if idle > 0 and owners.get(self.owner) == most == len(held) \
+                    and min(o for o, n in owners.items() if n == most) == self.owner:
+                reason = f"holds {len(held)}, the most, while {idle} of {workers} live workers hold none"
+        if reason is None:
+            return
+        partition = max(held, key=lambda p: self._acks[p].taken_at)
+        log.info("releasing partition %d: this worker %s", partition, reason)
+        self.moves += 1
+        self._next_move_at = now + MOVE_INTERVAL_S
+        self._release[partition].set()
+
     def _reject(self, vehicle_id: str, errors: list[dict]) -> None:
         """Rejections of a message (called by Ingest.mqtt_message in the consumer's thread): counted, logged,
         published on the vehicle's errors topic."""
@@ -347,14 +520,25 @@ class Worker:
 
 
 def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH,
-               stop: threading.Event | None = None) -> None:
+               stop: threading.Event | None = None, metrics_port: int | None = None,
+               metrics_host: str = "127.0.0.1") -> None:
     """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
-    STATS_S."""
+    STATS_S; with `metrics_port`, its Prometheus metrics at http://metrics_host:metrics_port/metrics
+    (roadgrip/cloud/worker/metrics.py)."""
+    from roadgrip.cloud.worker.metrics import serve_metrics
+
     stop = stop or threading.Event()
     worker = Worker(brokers, settings, partitions, prefetch)
     worker.start()
+    server = None
     try:
+        if metrics_port is not None:
+            server = serve_metrics(worker, metrics_port, metrics_host)
+            log.info("metrics at http://%s:%d/metrics", metrics_host, server.server_port)
         while not stop.wait(STATS_S):
             log.info("worker: %s", json.dumps(worker.stats()))
     finally:
+        if server is not None:
+            server.shutdown()
+            server.server_close()
         worker.stop()

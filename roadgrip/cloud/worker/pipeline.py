@@ -163,6 +163,7 @@ class Pipeline:
         self._newest_data_ms = 0
         self._seq = 0
         self._forget: set[str] = set()
+        self._handovers: list[tuple[set[str], Future]] = []  # vehicles leaving, and who waits for their states
         self._held: _Held | None = None
         self._failures = 0
         self._retry_at = 0.0
@@ -210,6 +211,18 @@ class Pipeline:
         with self._lock:
             self._forget.add(vehicle_id)
 
+    def hand_over(self, vehicle_ids: set[str]) -> Future:
+        """Vehicles that leave this pipeline (a cluster worker gives their partition to another worker,
+        roadgrip/cloud/worker/consumer.py): once nothing submitted of theirs waits (in the inbox, a reorder buffer or
+        a held round), their estimator states are stored (one transaction) and they are forgotten. The submitter must
+        have stopped submitting them. The future resolves to the number of states stored; while storage is down it
+        waits."""
+        future: Future = Future()
+        with self._lock:
+            self._handovers.append((set(vehicle_ids), future))
+        self._wake.set()
+        return future
+
     # ------------------------------------------------------------------------------------------------- the loop
     def _run(self) -> None:
         while True:
@@ -219,6 +232,7 @@ class Pipeline:
             try:
                 self.run_round(final=stopping)
                 self.sink.tick(final=stopping)
+                self._hand_over_ready()
             except Exception:  # a bug must not kill the service's only worker: log it and go on
                 log.exception("pipeline round failed")
             took = self.counters.last_round_s = time.perf_counter() - started
@@ -231,6 +245,26 @@ class Pipeline:
                 continue
             self._wake.wait(max(0.0, self.settings.flush_interval_s - (time.perf_counter() - started)))
             self._wake.clear()
+
+    def _hand_over_ready(self) -> None:
+        """Store the states of the vehicles handed over whose samples are all stored and estimated, and forget them."""
+        if not self._handovers or self._held is not None:
+            return
+        with self._lock:
+            waiting = {sub.vehicle_id for sub in self._inbox}
+            handovers = list(self._handovers)
+        for vehicles, future in handovers:
+            if vehicles & waiting or any(self._streams[v].pending for v in vehicles & self._streams.keys()):
+                continue  # the reorder buffers release them once the vehicles are silent for reorder_window_s
+            written = self.checkpoints.write(sorted(vehicles & self._streams.keys()), self._streams)
+            if written is None:
+                continue  # storage down: tried again after the next round
+            for vehicle_id in vehicles:
+                self._profiles.pop(vehicle_id, None)
+                self._streams.pop(vehicle_id, None)
+            with self._lock:
+                self._handovers.remove((vehicles, future))
+            future.set_result(written)
 
     def _checkpoint_all(self) -> None:
         if self.storage_down:

@@ -18,15 +18,17 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import paho.mqtt.client as paho
 import pika
 import psycopg
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
+from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.edge.mqtt import telemetry_topic
-from roadgrip.cloud.edge.rabbitmq import HOST, RabbitCluster, partition_queue
+from roadgrip.cloud.edge.rabbitmq import HOST, RabbitCluster, free_ports, partition_queue
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
 from roadgrip.cloud.worker.consumer import Worker, _Acks, _FencedStorage, _StoredOnly
@@ -37,8 +39,9 @@ from roadgrip.vehicle.params import PAPER_SUV
 
 PARTITIONS = 4
 VEHICLES_PER_TEST = 8
-GROUPS = ("a", "b", "c")  # one set of vehicles per test (their users exist from the cluster's start)
+GROUPS = ("a", "b", "c", "d", "e")  # one set of vehicles per test (their users exist from the cluster's start)
 FAILOVER_LIMIT_S = 10.0
+SPREAD_LIMIT_S = 45.0  # from a change in the live workers to the partitions spread (settle 5 s, a move every 3 s)
 ROADGRIP = Path(sys.executable).parent / "roadgrip"
 
 
@@ -71,13 +74,14 @@ def purge(cluster: RabbitCluster, node: int) -> None:
 class WorkerProcess:
     """`roadgrip worker` in a process of its own, with the brokers in the order given."""
 
-    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path):
+    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path,
+                 options: tuple[str, ...] = ()):
         self.log_path = log_path
         brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
         env = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0"}  # ten times real time is no abuse here
         with open(log_path, "wb") as log:
             self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
-                                          "--partitions", str(PARTITIONS), *brokers],
+                                          "--partitions", str(PARTITIONS), *brokers, *options],
                                          stdout=log, stderr=subprocess.STDOUT, env=env)
 
     def log(self) -> str:
@@ -151,14 +155,18 @@ class Fleet:
                 for k in range(10)]
 
     def run(self, seconds: float) -> None:
+        """Publish for `seconds`, or until `stop_publishing`."""
         started = time.monotonic()
         message = 0
-        while time.monotonic() - started < seconds:
+        while time.monotonic() - started < seconds and not self._stop.is_set():
             for v in self.vehicles:
                 info = self.clients[v].publish(telemetry_topic(v), json.dumps(self.samples(v, message)), qos=1)
                 self.sent[v].append((message, info.mid))
             message += 1
             time.sleep(max(0.0, started + 0.1 * message - time.monotonic()))
+
+    def stop_publishing(self) -> None:
+        self._stop.set()
 
     def finish(self, timeout_s: float = 30.0) -> set[tuple[str, int]]:
         """Wait for the last PUBACKs; the (vehicle_id, timestamp_ms) of every PUBACKed sample."""
@@ -191,6 +199,9 @@ class Database:
         from roadgrip.cloud.worker.checkpoints import unpack_state
         rows = self.conn.execute("SELECT vehicle_id, state FROM estimator_states WHERE estimator = 'pmf'").fetchall()
         return {v: unpack_state(state)["inner"]["memory"][CALIBRATION["accel_bias_weight_s"]] for v, state in rows}
+
+    def partition_owners(self) -> dict[int, str]:
+        return dict(self.conn.execute("SELECT partition_id, owner FROM partition_owners").fetchall())
 
     def estimates_out_of_order(self) -> int:
         """Estimates stored in a later transaction than a newer estimate of the same vehicle."""
@@ -242,7 +253,8 @@ def stop_running(*workers: WorkerProcess) -> None:
 
 
 def start_workers(cluster, database_url, tmp_path) -> tuple[WorkerProcess, WorkerProcess]:
-    """Worker a first (active on every partition), then b (standby); each through the nodes in its own order."""
+    """Worker a first (active on every partition until it hands two over to b), then b; each through the nodes in
+    its own order."""
     purge(cluster, 0)
     first = WorkerProcess(cluster, [0, 1, 2], database_url, tmp_path / "worker-a.log")
     first.wait_ready()
@@ -303,6 +315,117 @@ def test_worker_killed_partitions_taken_over_with_state(cluster, postgres_databa
             assert final[v] >= checkpointed[v] + (rows_after[v] - rows_at_kill[v]) / 10 - 1.0, v
     finally:
         stop_running(first, second)
+        db.close()
+
+
+def held_by(db: Database, workers: dict[str, WorkerProcess]) -> dict[str, int]:
+    """Partitions held by each running worker (named by its key in `workers`), as partition_owners records them."""
+    names = {str(w.proc.pid): key for key, w in workers.items() if w.proc.poll() is None}
+    held = dict.fromkeys(names.values(), 0)
+    for owner in db.partition_owners().values():
+        key = names.get(owner.rsplit(":", 1)[1])
+        if key is not None:
+            held[key] += 1
+    return held
+
+
+def wait_spread(db: Database, workers: dict[str, WorkerProcess], expected: list[int], since: float) -> float:
+    """Seconds from `since` until the running workers hold `expected` partitions (sorted counts); fails after
+    SPREAD_LIMIT_S with the workers' logs."""
+    while sorted(held_by(db, workers).values()) != expected:
+        if time.monotonic() - since > SPREAD_LIMIT_S:
+            logs = "\n".join(f"--- worker {k}:\n{w.log()[-3000:]}" for k, w in workers.items())
+            pytest.fail(f"partitions held {held_by(db, workers)}, expected {expected} within {SPREAD_LIMIT_S} s\n"
+                        f"{logs}", pytrace=False)
+        time.sleep(0.2)
+    return time.monotonic() - since
+
+
+def test_partitions_spread_over_workers(cluster, postgres_database_url, tmp_path):
+    """While 8 vehicles (2, 2, 1 and 3 on partitions 0-3) publish: worker a alone holds the 4 partitions; b joins and
+    they end with 2 each; c joins and one of them hands one to c (2, 1, 1); a stops and b and c end with 2 each.
+    Every PUBACKed sample stored once, estimates in order, no sample estimated out of order (late) by a new owner."""
+    vehicles = vehicles_of("d")
+    purge(cluster, 0)
+    db = Database(postgres_database_url)
+    fleet = Fleet(cluster, vehicles)
+    publisher = threading.Thread(target=fleet.run, args=(600.0,))
+    workers: dict[str, WorkerProcess] = {}
+    try:
+        workers["a"] = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+        workers["a"].wait_ready()
+        publisher.start()
+        wait_spread(db, workers, [4], time.monotonic())
+        workers["b"] = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+        workers["b"].wait_ready()
+        took = [wait_spread(db, workers, [2, 2], time.monotonic())]
+        workers["c"] = WorkerProcess(cluster, [2, 0, 1], postgres_database_url, tmp_path / "worker-c.log")
+        workers["c"].wait_ready()
+        took.append(wait_spread(db, workers, [1, 1, 2], time.monotonic()))
+        stopped = time.monotonic()
+        stats = {"a": workers["a"].stop()}
+        took.append(wait_spread(db, workers, [2, 2], stopped))
+        print(f"\npartitions spread {took[0]:.1f} s after b was ready, {took[1]:.1f} s after c, "
+              f"{took[2]:.1f} s after a's stop")
+        time.sleep(3.0)
+        fleet.stop_publishing()
+        publisher.join()
+        acked = fleet.finish()
+        db.wait_stored(acked)
+        assert_stored_exactly_once(db, acked, vehicles)
+        assert db.estimates_out_of_order() == 0
+        stats |= {k: workers[k].stop() for k in ("b", "c")}
+        assert sum(s["late"] for s in stats.values()) == 0, stats
+        assert sum(s["moves"] for s in stats.values()) >= 3, stats
+    finally:
+        fleet.stop_publishing()
+        if publisher.is_alive():
+            publisher.join()
+        stop_running(*workers.values())
+        db.close()
+
+
+def scrape(port: int) -> dict[str, dict[tuple, float]]:
+    """The worker's /metrics: family name -> {label values: value} of its samples (name with suffix)."""
+    answer = httpx.get(f"http://{HOST}:{port}/metrics", timeout=10)
+    assert answer.status_code == 200, answer.text
+    samples: dict[str, dict[tuple, float]] = {}
+    for family in text_string_to_metric_families(answer.text):
+        for sample in family.samples:
+            samples.setdefault(sample.name, {})[tuple(sorted(sample.labels.items()))] = sample.value
+    return samples
+
+
+def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
+    """A running worker's /metrics (`--metrics-port`): what it received and stored, the estimates' latency, the
+    estimator's time, each partition held (all four: it is alone) and the queues' depth."""
+    vehicles = vehicles_of("e")
+    purge(cluster, 0)
+    port = free_ports(1)[0]
+    worker = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker.log",
+                           ("--metrics-port", str(port)))
+    db = Database(postgres_database_url)
+    fleet = Fleet(cluster, vehicles)
+    try:
+        worker.wait_ready()
+        fleet.run(4.0)
+        acked = fleet.finish()
+        db.wait_stored(acked)
+        time.sleep(1.5)  # the watcher reads the queues every second
+        m = scrape(port)
+        assert m["roadgrip_samples_received_total"][(("process", "main"), ("transport", "mqtt"))] >= len(acked)
+        assert m["roadgrip_samples_stored_total"][(("process", "main"),)] == len(acked) == sum(db.counts().values())
+        assert m["roadgrip_estimates_total"][(("process", "main"),)] > 0
+        assert m["roadgrip_estimate_latency_seconds_count"][()] == m["roadgrip_estimates_total"][(("process", "main"),)]
+        assert m["roadgrip_estimator_update_seconds_count"][(("process", "main"),)] >= len(acked) - 10 * len(vehicles)
+        assert m["roadgrip_partition_active"] == {(("partition", str(p)),): 1.0 for p in range(PARTITIONS)}
+        assert m["roadgrip_partition_messages_ready"] == {(("partition", str(p)),): 0.0 for p in range(PARTITIONS)}
+        assert set(m["roadgrip_partition_messages_unacknowledged"].values()) == {0.0}
+        assert m["roadgrip_workers_live"][()] == 1.0
+        assert m["roadgrip_samples_rejected_total"][(("process", "main"), ("reason", "invalid"),
+                                                     ("transport", "mqtt"))] == 0
+    finally:
+        stop_running(worker)
         db.close()
 
 
@@ -404,6 +527,50 @@ def test_worker_that_lost_a_partition_stores_only_what_it_still_owns(postgres_da
         assert [len(worker.storage.telemetry(v)) for v in ("f0", "f1")] == [1, 2]
         assert [len(worker.storage.estimates(v)) for v in ("f0", "f1")] == [0, 1]
         assert worker._acks[0].fenced and not worker._acks[1].fenced
+        assert worker.stats()["fenced"] == 1
+    finally:
+        worker.storage.close()
+
+
+def state_row(vehicle: str, version: str) -> dict:
+    return {"vehicle_id": vehicle, "estimator": "pmf", "state": {"version": version}}
+
+
+def test_a_checkpoint_fenced_by_a_later_take_stores_nothing(postgres_database_url):
+    storage = open_storage(postgres_database_url)
+    try:
+        first = storage.take_partition(0, "worker-a")
+        storage.put_estimator_states([state_row("f0", "a")], fences={0: first})
+        second = storage.take_partition(0, "worker-b")
+        storage.put_estimator_states([state_row("f0", "b")], fences={0: second})
+        with pytest.raises(Fenced) as fenced:
+            storage.put_estimator_states([state_row("f0", "a, stale"), state_row("f1", "a")], fences={0: first})
+        assert fenced.value.partitions == {0}
+        assert {r["vehicle_id"]: r["state"] for r in storage.estimator_state_rows()} == {"f0": {"version": "b"}}
+    finally:
+        storage.close()
+
+
+def test_worker_that_lost_a_partition_checkpoints_only_what_it_still_owns(postgres_database_url):
+    """Worker a holds partitions 0 and 1; worker b takes 0 and checkpoints vehicle f0. a's next checkpoint of f0 and
+    f1 (through the pipeline's storage, as `Checkpoints` writes) stores f1's state only: b's state of f0 stays."""
+    worker = Worker(["amqp://unused"], Settings(database_url=postgres_database_url), partitions=2)
+    worker.storage = open_storage(postgres_database_url)
+    try:
+        for p in (0, 1):
+            worker._acks[p] = _Acks()
+            worker._acks[p].epoch = worker.storage.take_partition(p, worker.owner)
+        worker.partition_of.update({"f0": 0, "f1": 1})
+        fenced = _FencedStorage(worker.storage, worker)
+        fenced.put_estimator_states([state_row("f0", "a"), state_row("f1", "a")])
+        epoch = worker.storage.take_partition(0, "worker-b")
+        worker.storage.put_estimator_states([state_row("f0", "b")], fences={0: epoch})
+        fenced.put_estimator_states([state_row("f0", "a, stale"), state_row("f1", "a, later")])
+        states = {r["vehicle_id"]: r["state"]["version"] for r in worker.storage.estimator_state_rows()}
+        assert states == {"f0": "b", "f1": "a, later"}
+        assert worker._acks[0].fenced and not worker._acks[1].fenced
+        fenced.put_estimator_states([state_row("f0", "a, stale again")])  # fenced already: not even tried
+        assert worker.storage.estimator_state_rows()[0]["state"] == {"version": "b"}
         assert worker.stats()["fenced"] == 1
     finally:
         worker.storage.close()
