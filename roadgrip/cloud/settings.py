@@ -82,6 +82,12 @@ class Settings(BaseSettings):
     warning_validity_s: float = Field(we.VALIDITY_S, gt=0,
                                       description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
+    # cluster mode: the map and the warnings are kept per region, an H3 parent cell of the map's cells, by the worker
+    # that owns the region's queue (roadgrip/cloud/fanout/regions.py); resolution 5 cells are about 250 km^2
+    region_resolution: int = Field(5, ge=0, le=15, description="H3 resolution of the regions (at most "
+                                                               "h3_resolution; checked in cluster mode)")
+    region_queues: int = Field(4, ge=1, le=1024, description="queues the regions are spread over (fixed once "
+                                                             "declared, as the partitions)")
 
     # dashboard
     map_tiles_url: str | None = Field(None, pattern=r"^(https?://|/)",

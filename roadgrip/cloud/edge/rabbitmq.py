@@ -10,9 +10,12 @@ The topology (`topology`, declared idempotently by `declare_topology`):
 | amq.topic -> rg.telemetry | exchange-to-exchange binding, key `roadgrip.v1.vehicles.*.telemetry` | forwards telemetry only |
 | rg.telemetry | x-consistent-hash exchange | spreads by a hash of the routing key, hence of the vehicle id |
 | rg.telemetry.p0 .. pN-1 | quorum queues, x-single-active-consumer | one partition each, weight 1: every message of a vehicle in one queue, in order; one consumer of a queue active at a time |
+| rg.estimates | x-consistent-hash exchange | the second keyed stage (issue 17 item 3): workers publish stored estimates and station evidence there, routing key the region (H3 parent cell), spread by a hash of it |
+| rg.estimates.r0 .. rM-1 | quorum queues, x-single-active-consumer | one region queue each, weight 1: every message of a region in one queue; its active consumer owns those regions' map and warnings (roadgrip/cloud/fanout/regions.py) |
 
-N is fixed when the queues are first declared: another N re-hashes part of the vehicles onto other queues (do it
-only with the workers drained). Declaring a queue that exists with other arguments fails (PRECONDITION_FAILED).
+N and M are fixed when the queues are first declared: another N re-hashes part of the vehicles onto other queues,
+another M part of the regions (do it only with the workers drained). Declaring a queue that exists with other
+arguments fails (PRECONDITION_FAILED).
 """
 
 from __future__ import annotations
@@ -33,32 +36,52 @@ SERVICE_USER = "svc"  # RabbitCluster's administrator: the workers' login
 MQTT_EXCHANGE = "amq.topic"
 TELEMETRY_EXCHANGE = "rg.telemetry"
 TELEMETRY_BINDING = "roadgrip.v1.vehicles.*.telemetry"
+ESTIMATES_EXCHANGE = "rg.estimates"
+REGION_QUEUES = 4  # M, the region queues, unless the settings say otherwise (Settings.region_queues)
 
 
 def partition_queue(partition: int) -> str:
     return f"{TELEMETRY_EXCHANGE}.p{partition}"
 
 
-def topology(partitions: int) -> dict:
-    """The exchanges, queues and bindings of `partitions` partitions, as RabbitMQ's definitions (the keys of
-    `rabbitmqctl import_definitions`)."""
+def region_queue(index: int) -> str:
+    return f"{ESTIMATES_EXCHANGE}.r{index}"
+
+
+def mqtt_routing_key(topic: str) -> str:
+    """The routing key in amq.topic of an MQTT topic (the MQTT plugin swaps '/' and '.'), and back."""
+    return topic.translate(str.maketrans("./", "/."))
+
+
+def _keyed_queues(exchange: str, names: list[str]) -> tuple[list[dict], list[dict], dict]:
+    """Quorum queues with single-active-consumer behind a consistent-hash exchange, weight 1 each."""
+    queues = [{"name": name, "vhost": "/", "durable": True, "auto_delete": False,
+               "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True}} for name in names]
+    bindings = [{"source": exchange, "vhost": "/", "destination": name, "destination_type": "queue",
+                 "routing_key": "1", "arguments": {}} for name in names]  # the binding key is the queue's weight
+    return queues, bindings, {"name": exchange, "vhost": "/", "type": "x-consistent-hash", "durable": True,
+                              "auto_delete": False, "internal": False, "arguments": {}}
+
+
+def topology(partitions: int, region_queues: int = REGION_QUEUES) -> dict:
+    """The exchanges, queues and bindings of `partitions` partitions and `region_queues` region queues, as
+    RabbitMQ's definitions (the keys of `rabbitmqctl import_definitions`)."""
     if not isinstance(partitions, int) or partitions < 1:
         raise ValueError(f"partitions must be a positive integer, got {partitions!r}")
-    queues = [{"name": partition_queue(p), "vhost": "/", "durable": True, "auto_delete": False,
-               "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True}}
-              for p in range(partitions)]
-    bindings = [{"source": MQTT_EXCHANGE, "vhost": "/", "destination": TELEMETRY_EXCHANGE,
-                 "destination_type": "exchange", "routing_key": TELEMETRY_BINDING, "arguments": {}}]
-    bindings += [{"source": TELEMETRY_EXCHANGE, "vhost": "/", "destination": q["name"], "destination_type": "queue",
-                  "routing_key": "1", "arguments": {}} for q in queues]  # the binding key is the queue's weight
-    exchanges = [{"name": TELEMETRY_EXCHANGE, "vhost": "/", "type": "x-consistent-hash", "durable": True,
-                  "auto_delete": False, "internal": False, "arguments": {}}]
-    return {"exchanges": exchanges, "queues": queues, "bindings": bindings}
+    if isinstance(region_queues, bool) or not isinstance(region_queues, int) or region_queues < 1:
+        raise ValueError(f"region_queues must be a positive integer, got {region_queues!r}")
+    queues, bindings, telemetry = _keyed_queues(TELEMETRY_EXCHANGE, [partition_queue(p) for p in range(partitions)])
+    forward = {"source": MQTT_EXCHANGE, "vhost": "/", "destination": TELEMETRY_EXCHANGE,
+               "destination_type": "exchange", "routing_key": TELEMETRY_BINDING, "arguments": {}}
+    region_qs, region_bindings, estimates = _keyed_queues(ESTIMATES_EXCHANGE,
+                                                          [region_queue(r) for r in range(region_queues)])
+    return {"exchanges": [telemetry, estimates], "queues": queues + region_qs,
+            "bindings": [forward, *bindings, *region_bindings]}
 
 
-def declare_topology(channel, partitions: int) -> None:
-    """Declare `topology(partitions)` on a pika channel: a no-op where it exists as declared."""
-    t = topology(partitions)
+def declare_topology(channel, partitions: int, region_queues: int = REGION_QUEUES) -> None:
+    """Declare `topology(partitions, region_queues)` on a pika channel: a no-op where it exists as declared."""
+    t = topology(partitions, region_queues)
     for e in t["exchanges"]:
         channel.exchange_declare(e["name"], e["type"], durable=e["durable"], auto_delete=e["auto_delete"],
                                  internal=e["internal"], arguments=e["arguments"])

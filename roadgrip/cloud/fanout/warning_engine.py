@@ -45,7 +45,9 @@ Rules
 
 Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
 is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
-DENM ActionID sequenceNumber (0..65535), one per warning, kept through its updates and its cancellation.
+DENM ActionID sequenceNumber (0..65535), one per warning, kept through its updates and its cancellation: counted by
+the engine, or taken from `action_sequence` where several engines speak for one originating station (cluster mode's
+regions, roadgrip/cloud/fanout/regions.py).
 """
 
 from __future__ import annotations
@@ -238,7 +240,7 @@ class WarningEngine:
     def __init__(self, resolution: int = 10, threshold_mu: float = THRESHOLD_MU,
                  min_low_passes: int = MIN_LOW_PASSES, min_dry_passes: int = MIN_DRY_PASSES,
                  pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
-                 validity_s: float = VALIDITY_S, station_id: int = 1):
+                 validity_s: float = VALIDITY_S, station_id: int = 1, action_sequence=None):
         self.resolution = validate_resolution(resolution)
         self.threshold_mu = _positive("threshold_mu", threshold_mu)
         self.min_low_passes = _count("min_low_passes", min_low_passes)
@@ -249,6 +251,9 @@ class WarningEngine:
         if isinstance(station_id, bool) or not isinstance(station_id, int) or not 0 <= station_id <= 4294967295:
             raise ValueError(f"station_id must be an integer StationID in 0..4294967295, got {station_id!r}")
         self.station_id = station_id
+        # where a new warning's ActionID sequence number comes from: a callable shared by the engines of one
+        # originating station (cluster mode: one per region, numbered by the database), or None: this engine counts
+        self.action_sequence = action_sequence
         self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
         self.last_judged_ms_: dict[str, int] = {}  # vehicle_id -> time of its last judged pass
         self.cell_states_: dict[str, _CellState] = {}
@@ -410,8 +415,12 @@ class WarningEngine:
         state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
         if warning is None:
             if state.low_passes.independent >= self.min_low_passes:
-                warning = state.warning = _Warning(f"{finished.cell}-{t}", t, self.next_action_sequence_number_)
-                self.next_action_sequence_number_ = (self.next_action_sequence_number_ + 1) % 65536
+                if self.action_sequence is None:
+                    number = self.next_action_sequence_number_
+                    self.next_action_sequence_number_ = (number + 1) % 65536
+                else:
+                    number = self.action_sequence()
+                warning = state.warning = _Warning(f"{finished.cell}-{t}", t, number)
                 self.active_cells_.add(finished.cell)
                 events.append(self._event(finished.cell, state, ACTIVE, LOW_FRICTION, now_ms))
         else:

@@ -15,6 +15,7 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/worker/checkpoints.py), updated_ms |
 | map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/fanout/regions.py) |
 | region_owners | region_queue | cluster mode: epoch, owner, taken_ms of each region queue (fencing, as partition_owners) |
+| counters | name | value: cluster mode's shared counters (`action_sequence_number`: the regions' DENM ActionIDs) |
 | station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/fanout/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
@@ -188,6 +189,13 @@ region_owners_table = Table(
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
     Column("taken_ms", sa.BigInteger, nullable=False))
+
+# Counters shared by the processes of a cluster: the DENM ActionID sequence numbers of the regions' warning engines
+# (one originating station, many engines).
+counters_table = Table(
+    "counters", metadata,
+    Column("name", sa.String, primary_key=True),
+    Column("value", sa.BigInteger, nullable=False))
 
 # columns added after their table was first released: (table, column), added by open_storage where missing
 ADDED_COLUMNS = ((estimates_table, "mu_proven"),)
@@ -725,6 +733,15 @@ class Storage:
                 if epoch != fence[1]:
                     raise Fenced({fence[0]})
             return conn.execute(map_cells_table.delete().where(c.region == region, c.last_ms < before_ms)).rowcount
+
+    def next_action_sequence_number(self) -> int:
+        """The next DENM ActionID sequence number of the cluster's warnings (0, 1, ... 65535, 0, ...), one atomic
+        step of the counter `action_sequence_number`."""
+        c = counters_table.c
+        insert = self._insert(counters_table).values(name="action_sequence_number", value=0)
+        upsert = insert.on_conflict_do_update(index_elements=["name"], set_={"value": (c.value + 1) % 65536})
+        with self._transaction() as conn:
+            return conn.execute(upsert.returning(c.value)).scalar_one()
 
     def take_region_queue(self, region_queue: int, owner: str) -> int:
         """Raise the region queue's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,

@@ -13,7 +13,7 @@ import pytest
 from roadgrip.cloud.fanout.friction_map import FrictionMap
 from roadgrip.cloud.fanout.map_cells import cell_rows, new_friction_map, region_of, restore_region, stored_friction_map
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage.database import Fenced
+from roadgrip.cloud.storage.database import Fenced, counters_table
 
 T0_MS = 1_768_464_000_000
 REGION_RESOLUTION = 5
@@ -91,3 +91,10 @@ def test_a_region_is_restored_alone_and_writes_of_a_region_queue_taken_since_are
                                       if region_of(c.cell, REGION_RESOLUTION) == hebei]
     assert storage.delete_map_cells(hebei, T0_MS + 10**9, fence=(2, new)) == len(restored.cells_by_id_)
     assert storage.map_cells(region=hebei) == []
+
+
+def test_the_clusters_denm_action_ids_are_counted_in_the_database_and_wrap_at_65536(storage):
+    assert [storage.next_action_sequence_number() for _ in range(3)] == [0, 1, 2]
+    with storage._transaction() as conn:  # near the end of the 16-bit range
+        conn.execute(counters_table.update().values(value=65534))
+    assert [storage.next_action_sequence_number() for _ in range(3)] == [65535, 0, 1]
