@@ -594,6 +594,41 @@ def bench_ingest_command(
                       f"{plot_timelines(rows, out.with_suffix('.png'))}")
 
 
+@bench_app.command("cluster")
+@friendly_errors
+def bench_cluster_command(
+    vehicles: int = typer.Option(500, min=1, help="simulated vehicles, each its own MQTT 3.1.1 connection"),
+    seconds: float = typer.Option(20.0, min=1.0, help="measuring window of each case"),
+    workers: str = typer.Option("1,2,4", help="worker counts to measure, comma-separated"),
+    partitions: int = typer.Option(8, min=1, help="partition queues"),
+    rate: float = typer.Option(1.0, min=0.0, help="messages of 10 samples a second per vehicle in the worker cases "
+                                                  "(1: a terminal; 0: as fast as PUBACKs allow)"),
+    out: Path | None = typer.Option(None, help="write the results as JSON here"),
+):
+    """Cluster mode's capacity on this machine (docs/CLUSTER.md, "Capacity"): 3 RabbitMQ nodes and PostgreSQL on
+    127.0.0.1, vehicles publishing MQTT 3.1.1 QoS 1: the broker's own ceiling (as fast as PUBACKs allow, ack-only
+    consumers), then stored samples per second with each count of `roadgrip worker` processes (vehicles at --rate),
+    each for a fixed window."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from roadgrip.cloud.worker.bench import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
+
+    try:
+        counts = tuple(int(w) for w in workers.split(","))
+    except ValueError:
+        raise ValueError(f"--workers must be comma-separated counts like 1,2,4, got {workers!r}") from None
+    bench = ClusterBench(vehicles, seconds, counts, partitions, rate)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task("starting", total=1.0)
+        result = run_cluster_bench(bench, lambda message, fraction: bar.update(
+            task, description=message, **({} if fraction is None else {"completed": fraction})))
+    console.print(format_cluster_bench(result))
+    console.print(f"machine: {result['machine']}; {result['elapsed_s']:.0f} s in all")
+    if out is not None:
+        write_json(result, out)
+        console.print(f"results: {out}")
+
+
 @bench_app.command("sim")
 @friendly_errors
 def bench_sim_command(

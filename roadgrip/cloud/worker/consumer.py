@@ -431,12 +431,16 @@ class Worker:
         started = time.monotonic()
         acks.releasing = True
         while acks.acknowledged < acks.handed:
+            if self._closing.is_set():
+                return  # the worker stops: what was stored is acknowledged by the caller, the rest goes back
             if acks.fenced or time.monotonic() - started > HANDOVER_TIMEOUT_S:
                 raise _PartitionLost(f"hand-over: {acks.handed - acks.acknowledged} deliveries not stored")
             connection.process_data_events(time_limit=FLUSH_S)
             acks.flush(channel)
         states = self.ingest.pipeline.hand_over(vehicles)
         while not states.done():
+            if self._closing.is_set():
+                return  # the worker stops: its pipeline stored every state
             if time.monotonic() - started > HANDOVER_TIMEOUT_S:
                 raise _PartitionLost("hand-over: the vehicles' states were not stored")
             connection.process_data_events(time_limit=FLUSH_S)
