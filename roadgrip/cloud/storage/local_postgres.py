@@ -52,11 +52,16 @@ def drop_database(url: str, name: str) -> None:
 class LocalPostgres:
     """`start()` creates the server's files (initdb) the first time and starts it; `stop()` stops it (`pg_ctl stop -m
     fast`: clients are disconnected at once) and keeps its files, so that `start()` starts it again on the same port;
-    `close()` stops it if it runs and deletes its files."""
+    `close()` stops it if it runs and deletes its files.
 
-    def __init__(self, port: int | None = None):
+    `root`: the folder of the server's files (`data/`, `server.log`), created if missing; default a new temporary
+    folder. As root, the server runs as `postgres`, which must be able to reach it: every folder above it searchable
+    by others (o+x)."""
+
+    def __init__(self, port: int | None = None, root: Path | None = None):
         self.port = port or free_port()
         self.root: Path | None = None
+        self._given_root = root
         self._as_postgres: list[str] = []
 
     @property
@@ -79,11 +84,19 @@ class LocalPostgres:
         if missing:
             raise PostgresUnavailable(f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): "
                                       "run `bash scripts/install_system_deps.sh`")
-        self.root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-"))  # its parents must be reachable by postgres
+        if self._given_root is None:
+            self.root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-"))  # its parents must be reachable by postgres
+        else:
+            self.root = Path(self._given_root).resolve()
+            self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
         if os.geteuid() == 0:
             pw = pwd.getpwnam("postgres")
             os.chown(self.root, pw.pw_uid, pw.pw_gid)
             self._as_postgres = ["runuser", "-u", "postgres", "--"]
+            reach = subprocess.run([*self._as_postgres, "test", "-w", str(self.root)], check=False)
+            if reach.returncode != 0:
+                raise PostgresUnavailable(f"the user postgres, as which root runs the server, cannot reach {self.root}: "
+                                          "make every folder above it searchable by others (chmod o+x)")
         self._pg(PG_BIN / "initdb", "-D", self.root / "data", "-U", "postgres", "-A", "trust", "-E", "UTF8",
                  "--locale=C")
         (self.root / "data" / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
