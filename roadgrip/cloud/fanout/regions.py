@@ -212,6 +212,7 @@ class WorkerFanout:
         self.vehicles = VehicleFanout(settings, self, self.publisher.publish_mqtt)
         self.owns = owns
         self.region_messages = 0
+        self.window_s_max = 0.0  # longest time from a round's commit to its region messages' last confirm
         self._pending: list[Callable[[], None]] = []  # acknowledgements waiting for the round's confirms
         self._lock = threading.Lock()
 
@@ -233,9 +234,11 @@ class WorkerFanout:
         return pending
 
     def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
-        """A round stored (the pipeline resolved its deliveries just before): publish, then acknowledge."""
+        """A round stored (the pipeline resolved its deliveries just before): publish, then acknowledge. The time
+        from the round's commit to its last confirm is the crash window (module docstring); its longest is kept."""
         ready = self._take_pending()
         self.vehicles.stored(estimates, stored_ms, newest_data_ms)
+        self.window_s_max = max(self.window_s_max, time.time() - stored_ms / 1000.0)
         self._release(ready)
 
     def estimates(self, rows: list[dict], newest_data_ms: int) -> None:
@@ -258,7 +261,8 @@ class WorkerFanout:
         self.publisher.close()
 
     def stats(self) -> dict:
-        return {"region_messages": self.region_messages, "region_publish_failures": self.publisher.failures}
+        return {"region_messages_published": self.region_messages, "region_publish_failures": self.publisher.failures,
+                "region_publish_window_s_max": round(self.window_s_max, 4)}
 
 
 class _FencedWrites:
@@ -413,7 +417,7 @@ class RegionOwners:
             for change, n in regions.warning_changes().items():
                 changes[change] = changes.get(change, 0) + n
         return {"region_queues_held": [q for q, r in enumerate(self.held) if r is not None],
-                "regions_held": sum(len(r.held) for r in held), "region_messages": list(self.messages),
+                "regions_held": sum(len(r.held) for r in held), "region_messages_applied": list(self.messages),
                 "region_connections_lost": self.lost, "map_cells_saved": self.cells_saved,
                 "warning_changes": changes}
 

@@ -46,7 +46,9 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 - Checkpoints every 60 s of a vehicle's data and at a clean stop (SIGTERM, SIGINT): the worker stops taking new
   deliveries (they stay unacknowledged), lets the pipeline store what it took and every vehicle's state, acknowledges,
   then closes its connections: what it did not take goes back to the queues, in order, for the next owner.
-- Estimates are stored only; nothing is published (the map and the warnings by region are item 3).
+- After a round is stored, its estimates go out on the vehicles' friction topics and to the region stage, and the
+  round's deliveries are acknowledged only once its region messages are confirmed (roadgrip/cloud/fanout/regions.py
+  `WorkerFanout`); every worker also consumes the region queues (`RegionOwners`: the map and the warnings by region).
 - Rejected samples are published, as serve does, on the vehicle's MQTT errors topic (through amq.topic).
 """
 
@@ -68,6 +70,7 @@ import pika.exceptions
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import errors_topic, vehicle_of_topic
 from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
+from roadgrip.cloud.fanout.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
@@ -233,6 +236,8 @@ class Worker:
         self.prefetch = prefetch
         self.storage = None
         self.ingest: Ingest | None = None
+        self.fanout: WorkerFanout | None = None
+        self.regions: RegionOwners | None = None
         self.rejected = 0
         self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
         self.connected = [False] * partitions  # a consumer registered, per partition
@@ -270,8 +275,9 @@ class Worker:
         self.storage = open_storage(s.database_url)
         estimator = load_estimator(s.estimator)
         warm_up(estimator)
+        self.fanout = WorkerFanout(self.brokers, s, self.owns)  # friction topics; estimates to their regions
         pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator,
-                            _Timed(self.latency_histogram, _StoredOnly()), skip_estimated=True)
+                            _Timed(self.latency_histogram, self.fanout), skip_estimated=True)
         self.ingest = Ingest(s, pipeline, reject=self._reject)
         self._declare()
         self.ingest.start()
@@ -288,6 +294,8 @@ class Worker:
         watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
         watcher.start()
         self._threads.append(watcher)
+        self.regions = RegionOwners(self.brokers, s, self.storage, self.owner)  # the map and warnings by region
+        self.regions.start(max(1.0, deadline - time.monotonic()))
         log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
                  len(self.brokers), s.estimator, self.storage)
 
@@ -299,7 +307,7 @@ class Worker:
                 log.warning("broker %d unreachable for declaring the topology: %r", index, exc)
                 continue
             try:
-                declare_topology(connection.channel(), self.partitions)
+                declare_topology(connection.channel(), self.partitions, self.settings.region_queues)
             finally:
                 connection.close()
             return
@@ -310,10 +318,14 @@ class Worker:
         self._taking.clear()
         if self.ingest is not None:
             self.ingest.stop()
+        if self.fanout is not None:
+            self.fanout.close()
         self._closing.set()
         for thread in self._threads:
             thread.join(30)
         self._threads = []
+        if self.regions is not None:
+            self.regions.stop()
         log.info("worker stopped: %s", json.dumps(self.stats()))
         if self.storage is not None:
             self.storage.close()
@@ -323,10 +335,17 @@ class Worker:
         return {"partitions_connected": sum(self.connected), "partitions_held": self.held_partitions(),
                 "live_workers": self.live_workers, "moves": self.moves, "deliveries": list(self.deliveries),
                 "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
+                **(self.fanout.stats() if self.fanout is not None else {}),
+                **(self.regions.stats() if self.regions is not None else {}),
                 **(self.ingest.stats() if self.ingest is not None else {})}
 
     def channel_acks(self, partition: int) -> _Acks | None:
         return self._acks[partition]
+
+    def owns(self, vehicle_id: str) -> bool:
+        """Whether this worker still holds the vehicle's partition (its estimates go on to the regions)."""
+        acks = self._acks[self.partition_of[vehicle_id]]
+        return acks is not None and not acks.fenced
 
     def unacknowledged(self, partition: int) -> int:
         """Messages of the partition delivered to this worker's current channel and not yet acknowledged."""
@@ -421,7 +440,7 @@ class Worker:
             return
         vehicles.add(vehicle_id)
         self.partition_of[vehicle_id] = partition
-        self.ingest.mqtt_message(vehicle_id, body, functools.partial(acks.done, method.delivery_tag))
+        self.ingest.mqtt_message(vehicle_id, body, self.fanout.gate(functools.partial(acks.done, method.delivery_tag)))
 
     def _hand_over(self, partition: int, connection, channel, acks: _Acks, vehicles: set[str]) -> None:
         """Release a partition this worker holds (module docstring, "Spreading partitions"): take no more deliveries,
@@ -473,7 +492,7 @@ class Worker:
                     self._balance(time.monotonic())
                     connection.process_data_events(time_limit=WATCH_S)
                 connection.close()
-            except (pika.exceptions.AMQPError, OSError, StorageUnavailable) as exc:
+            except (pika.exceptions.AMQPError, OSError) as exc:
                 self.live_workers = None
                 log.warning("watcher: connection through broker %d lost: %r", index % len(self.brokers), exc)
                 if connection.is_open:
@@ -500,7 +519,11 @@ class Worker:
             reason = f"holds {len(held)} of {self.partitions} partitions, more than ceil(partitions / {workers} " \
                      f"live workers) = {high}"
         elif low >= 1 and len(held) > low:
-            owners = collections.Counter(self.storage.partition_owners().values())
+            try:
+                owners = collections.Counter(self.storage.partition_owners().values())
+            except StorageUnavailable as exc:
+                log.warning("partition owners not read (tried again in %.0f s): %s", WATCH_S, exc)
+                return
             idle = workers - len(owners)  # live workers holding none (fewer where a dead owner is still named)
             most = max(owners.values(), default=0)
             if idle > 0 and owners.get(self.owner) == most == len(held) \

@@ -1,0 +1,325 @@
+"""The region fan-out of cluster mode against real servers (issue 17 item 3): a 3-node RabbitMQ 3.10 cluster
+(roadgrip/cloud/edge/rabbitmq.py `RabbitCluster`, started once for the module), PostgreSQL (conftest.py), two
+`roadgrip worker` processes, vehicles publishing simulated drives over MQTT 3.1.1 QoS 1, and an MQTT 3.1.1 client
+subscribed to the warnings topic.
+
+- Vehicles in two distant regions: their estimates reach two region queues (chosen so by probing the broker's hash),
+  each region's patch of low mu raises warnings, stored in PostgreSQL and published as DENMs on the MQTT warnings
+  topic; the map the region owners saved, read back as an API replica would, shows the patch.
+- kill -9 of the worker that owns a region's queue: the other worker takes the queue over, restores the region's map
+  cells and active warnings from PostgreSQL, and a vehicle that then brakes on dry road where the ice was cancels the
+  warnings raised before the kill (stored, and published with the DENM's termination)."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h3
+import paho.mqtt.client as paho
+import pika
+import psycopg
+import pymap3d
+import pytest
+from drives import PATCH_M, patch_drive
+from paho.mqtt.enums import CallbackAPIVersion
+from sqlalchemy.engine import make_url
+
+from roadgrip.cloud.edge.mqtt import WARNINGS_TOPIC, telemetry_topic
+from roadgrip.cloud.edge.rabbitmq import (
+    ESTIMATES_EXCHANGE,
+    HOST,
+    SERVICE_USER,
+    RabbitCluster,
+    partition_queue,
+    region_queue,
+)
+from roadgrip.cloud.fanout.map_cells import region_of, stored_friction_map
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import open_storage
+from roadgrip.fleet.terminal import wire_samples
+from roadgrip.sim.sensors import HEBEI_ORIGIN
+
+PARTITIONS = 4
+REGION_QUEUES = 4
+ROADGRIP = Path(sys.executable).parent / "roadgrip"
+SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the map's clock is the data's
+START_MS = int(time.time() * 1000) - 3_600_000
+TAKEOVER_LIMIT_S = 10.0
+VEHICLES = [f"{tag}-{name}" for tag in ("x", "y") for name in ("ice1", "ice2", "close1", "dry", "close2")]
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
+        pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
+    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), VEHICLES, PARTITIONS, "region-test-secret")
+    try:
+        rabbit.start()
+        rabbit.setup()
+        yield rabbit
+    finally:
+        rabbit.stop()
+
+
+def queue_of_region(channel, region: str) -> int:
+    """Which region queue the broker's consistent hash sends `region` to: a probe message, found by the queues'
+    depths (a queue with single-active-consumer refuses basic.get), then purged."""
+    channel.confirm_delivery()
+    channel.basic_publish(ESTIMATES_EXCHANGE, region, b"probe")
+    deep = [q for q in range(REGION_QUEUES)
+            if channel.queue_declare(region_queue(q), passive=True).method.message_count]
+    for q in deep:
+        channel.queue_purge(region_queue(q))
+    assert len(deep) == 1, f"the probe for region {region} is in region queues {deep}"
+    return deep[0]
+
+
+def two_regions(cluster: RabbitCluster) -> tuple[float, dict[str, int]]:
+    """A latitude shift that puts a copy of the test road (at the Hebei origin) in a region far away on another
+    region queue; the queue of each region."""
+    connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(0)))
+    channel = connection.channel()
+    try:
+        for q in range(REGION_QUEUES):
+            channel.queue_purge(region_queue(q))
+        for p in range(PARTITIONS):
+            channel.queue_purge(partition_queue(p))
+        home = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0], HEBEI_ORIGIN[1], SETTINGS.h3_resolution),
+                         SETTINGS.region_resolution)
+        home_queue = queue_of_region(channel, home)
+        for shift_deg in range(5, 40):
+            far = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0] + shift_deg, HEBEI_ORIGIN[1], SETTINGS.h3_resolution),
+                            SETTINGS.region_resolution)
+            far_queue = queue_of_region(channel, far)
+            if far_queue != home_queue:
+                return float(shift_deg), {home: home_queue, far: far_queue}
+        raise AssertionError("no region 5-40 degrees north of the origin hashes to another queue")
+    finally:
+        connection.close()
+
+
+def patch_cells(shift_deg: float) -> set[str]:
+    """The cells of the road between the patch's ends (tests/cloud/drives.py), its copy shifted north by shift_deg."""
+    cells = set()
+    for east in range(int(PATCH_M[0]), int(PATCH_M[1]) + 1):
+        lat, lon, _ = pymap3d.enu2geodetic(east, 0.0, 0.0, *HEBEI_ORIGIN, 0.0)
+        cells.add(h3.latlng_to_cell(float(lat) + shift_deg, float(lon), SETTINGS.h3_resolution))
+    return cells
+
+
+class WorkerProcess:
+    """`roadgrip worker` in a process of its own, the map on the data's clock."""
+
+    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path):
+        self.log_path = log_path
+        brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
+        env = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0", "ROADGRIP_MAP_CLOCK": "data",
+               "ROADGRIP_REGION_QUEUES": str(REGION_QUEUES)}
+        with open(log_path, "wb") as log:
+            self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
+                                          "--partitions", str(PARTITIONS), *brokers],
+                                         stdout=log, stderr=subprocess.STDOUT, env=env)
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def wait_ready(self, timeout_s: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while "worker consuming" not in self.log():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"worker not ready:\n{self.log()[-3000:]}", pytrace=False)
+            time.sleep(0.2)
+
+    def stop(self) -> dict:
+        """SIGTERM; the counters it logged when it stopped ({} when it was killed)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(90)
+        lines = [line for line in self.log().splitlines() if "worker stopped: " in line]
+        return json.loads(lines[-1].split("worker stopped: ", 1)[1]) if lines else {}
+
+
+class WarningsSubscriber:
+    """An MQTT 3.1.1 client (the service user) subscribed to the warnings topic through node `node`."""
+
+    def __init__(self, cluster: RabbitCluster, node: int):
+        self.denms: queue.Queue = queue.Queue()
+        self.all: list[dict] = []
+        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id="warnings-reader", protocol=paho.MQTTv311)
+        self.client.username_pw_set(SERVICE_USER, cluster.secret)
+        subscribed = queue.Queue()
+        self.client.on_subscribe = lambda c, u, mid, codes, props: subscribed.put(codes)
+        self.client.on_message = lambda c, u, msg: self.denms.put(json.loads(msg.payload))
+        self.client.connect(HOST, cluster.mqtt_ports[node])
+        self.client.loop_start()
+        self.client.subscribe(WARNINGS_TOPIC, qos=1)
+        codes = subscribed.get(timeout=10)
+        assert not any(code.is_failure for code in codes), codes
+
+    def received(self) -> list[dict]:
+        """Every DENM received so far."""
+        while not self.denms.empty():
+            self.all.append(self.denms.get())
+        return self.all
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0) -> None:
+    """Each vehicle publishes its samples, ten a message, QoS 1; returns once every message is PUBACKed."""
+    clients = []
+    for vehicle, samples in runs:
+        client = paho.Client(CallbackAPIVersion.VERSION2, client_id=vehicle, protocol=paho.MQTTv311)
+        client.username_pw_set(vehicle, cluster.secret)
+        client.connect(HOST, cluster.mqtt_ports[node])
+        client.loop_start()
+        infos = [client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1)
+                 for k in range(0, len(samples), 10)]
+        clients.append((client, infos))
+    for client, infos in clients:
+        for info in infos:
+            info.wait_for_publish(30)
+            assert info.is_published()
+        client.disconnect()
+        client.loop_stop()
+
+
+def run_of(vehicle: str, patch_mu: float, seed: int, start_ms: int, shift_deg: float, brake_s: float = 10.5,
+           first: int | None = None) -> tuple[str, list[dict]]:
+    samples = wire_samples(patch_drive(patch_mu, seed, brake_s=brake_s), vehicle, start_ms)[:first]
+    for s in samples:
+        s["latitude_deg"] += shift_deg
+        s["tcs_active"] = s["esc_active"] = False  # stated: pmf calibrates only where they are known
+    return vehicle, samples
+
+
+class Database:
+    def __init__(self, url: str):
+        self.conn = psycopg.connect(make_url(url).set(drivername="postgresql").render_as_string(hide_password=False),
+                                    autocommit=True)
+
+    def warnings(self) -> dict[str, dict]:
+        rows = self.conn.execute("SELECT warning_id, cell, status, message FROM warnings").fetchall()
+        return {w: {"cell": c, "status": s, "message": m} for w, c, s, m in rows}
+
+    def region_owners(self) -> dict[int, tuple[int, str]]:
+        rows = self.conn.execute("SELECT region_queue, epoch, owner FROM region_owners").fetchall()
+        return {q: (epoch, owner) for q, epoch, owner in rows}
+
+    def map_regions(self) -> set[str]:
+        return {r for (r,) in self.conn.execute("SELECT DISTINCT region FROM map_cells").fetchall()}
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def wait_for(what: str, predicate, timeout_s: float, logs) -> float:
+    started = time.monotonic()
+    while not predicate():
+        if time.monotonic() - started > timeout_s:
+            pytest.fail(f"{what} not within {timeout_s} s; worker logs:\n" + "\n---\n".join(log()[-4000:] for log in logs),
+                        pytrace=False)
+        time.sleep(0.2)
+    return time.monotonic() - started
+
+
+def patch_warnings(db: Database, cells: set[str], status: str = "active") -> dict[str, dict]:
+    return {w: row for w, row in db.warnings().items() if row["cell"] in cells and row["status"] == status}
+
+
+def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(cluster, postgres_database_url, tmp_path):
+    shift_deg, queue_of = two_regions(cluster)
+    (home, home_queue), (far, far_queue) = queue_of.items()
+    patches = {"x": patch_cells(0.0), "y": patch_cells(shift_deg)}
+    shifts = {"x": 0.0, "y": shift_deg}
+    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first.wait_ready()
+    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second.wait_ready()
+    logs = (first.log, second.log)
+    subscriber = WarningsSubscriber(cluster, 1)
+    db = Database(postgres_database_url)
+    storage = open_storage(postgres_database_url)
+    try:
+        # two vehicles brake on each region's patch of ice; two minutes later one vehicle in each region ends their
+        # passes (the map's clock is the data's)
+        drive(cluster, [run_of(f"{tag}-ice{k}", 0.2, k, START_MS, shifts[tag]) for tag in "xy" for k in (1, 2)])
+        drive(cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xy"])
+        wait_for("warnings on both patches", lambda: all(patch_warnings(db, patches[t]) for t in "xy"), 60, logs)
+        raised = {t: patch_warnings(db, patches[t]) for t in "xy"}
+        owners = db.region_owners()
+        assert {home_queue, far_queue} <= owners.keys()  # the two regions' estimates reached their two queues
+        wait_for("both regions' map cells saved", lambda: {home, far} <= db.map_regions(), 10, logs)
+        # published: a DENM for each raised warning, on the MQTT warnings topic
+        wait_for("the DENMs", lambda: len({d["denm"]["management"]["actionID"]["sequenceNumber"]
+                                           for d in subscriber.received()}) >= len(raised["x"]) + len(raised["y"]),
+                 10, logs)
+        assert all(d["denm"]["situation"]["eventType"]["causeCode"] == 6 for d in subscriber.received())
+        # the saved map, read back as an API replica would: the patch is there, slippery
+        now_ms = START_MS + 120_500
+        cells = {c.cell: c for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
+        for t in "xy":
+            on_patch = [cells[c] for c in patches[t] if c in cells]
+            assert on_patch and min(c.mu_upper for c in on_patch if c.mu_upper is not None) < 0.4, t
+        # kill -9 the owner of the home region's queue: the other worker takes it over and goes on from the database
+        epoch, owner = db.region_owners()[home_queue]
+        victim, survivor = (first, second) if owner.endswith(f":{first.proc.pid}") else (second, first)
+        assert owner.endswith(f":{victim.proc.pid}")
+        vehicles_before = {c: cells[c].n_vehicles for c in patches["x"] if c in cells}
+        victim.proc.send_signal(signal.SIGKILL)
+        victim.proc.wait()
+        killed_at = time.monotonic()
+        later = START_MS + 300_000
+        drive(cluster, [run_of(f"{tag}-dry", 0.9, 3, later, shifts[tag]) for tag in "xy"], node=2)
+        drive(cluster, [run_of(f"{tag}-close2", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
+              node=2)
+        wait_for("the home region's queue taken over",
+                 lambda: db.region_owners()[home_queue][1].endswith(f":{survivor.proc.pid}"), 30, (survivor.log,))
+        took_s = time.monotonic() - killed_at
+        print(f"\nregion queue {home_queue} taken over {took_s:.2f} s after the kill (a queue is taken at its first "
+              f"delivery: the drives sent after the kill included)")
+        assert took_s < TAKEOVER_LIMIT_S
+        # the dry vehicle braked where the ice vehicles did: warnings raised before the kill are cancelled by the new
+        # owner, which knows them only from the database (same warning and ActionID); the others are still active
+        for t in "xy":
+            wait_for(f"a warning of region {t} raised before the kill cancelled",
+                     lambda t=t: any(db.warnings()[w]["status"] == "cancelled" for w in raised[t]), 60,
+                     (survivor.log,))
+        time.sleep(2 * 1.0)  # the owner's next saves
+        now = db.warnings()
+        for t in "xy":
+            for w, before in raised[t].items():
+                event, was = now[w]["message"]["event"], before["message"]["event"]
+                assert event["action_sequence_number"] == was["action_sequence_number"]
+                assert (now[w]["status"], event["reason"]) in (("cancelled", "recovered"), ("active", "low friction"))
+        assert db.region_owners()[home_queue][0] > epoch
+        # the new owner's map went on from the saved cells: the vehicles before the kill are still counted
+        wait_for("the map saved by the new owner", lambda: any(
+            c.n_vehicles > vehicles_before.get(c.cell, 0) for c in stored_friction_map(storage, SETTINGS).cells(
+                later + 120_500) if c.cell in vehicles_before), 10, (survivor.log,))
+        after = {c.cell: c for c in stored_friction_map(storage, SETTINGS).cells(later + 120_500)}
+        assert all(after[c].n_vehicles >= n for c, n in vehicles_before.items() if c in after)
+        # and published the cancellations
+        wait_for("the cancellations' DENMs", lambda: any(
+            d["denm"]["management"].get("termination") == "isCancellation" for d in subscriber.received()), 10,
+            (survivor.log,))
+        stats = survivor.stop()
+        assert stats["region_publish_failures"] == 0 and stats["region_messages_published"] > 0
+        print(f"longest time from a round's commit to its region messages' confirm (the crash window): "
+              f"{stats['region_publish_window_s_max']:.3f} s")
+    finally:
+        subscriber.close()
+        storage.close()
+        db.close()
+        first.stop()
+        second.stop()
+
