@@ -93,8 +93,8 @@ def _parameters(url: str) -> pika.URLParameters:
 
 class RegionPublisher:
     """Publishes to rg.estimates with publisher confirms through the brokers' AMQP URLs, moving to the next broker
-    after a failure; also publishes MQTT topics through amq.topic (unconfirmed). Thread-safe (one lock); its
-    connection lives in the thread that first uses it until `close`."""
+    after a failure; also publishes MQTT topics through amq.topic (unconfirmed). Calls from several threads are
+    serialised by one lock (pika's connection is not thread-safe); a worker uses it from its pipeline's thread only."""
 
     def __init__(self, brokers: list[str]):
         if not brokers:
@@ -124,10 +124,12 @@ class RegionPublisher:
             except (pika.exceptions.AMQPError, OSError):
                 log.debug("closing a failed publisher connection failed", exc_info=True)
 
-    def publish(self, region: str, body: bytes) -> None:
+    def publish(self, region: str, body: bytes, deadline_s: float | None = None) -> None:
         """Publish one message to rg.estimates keyed by `region` and wait for its confirm; on a failure (a nack, a
-        lost connection) publish it again through the next broker, until confirmed. RuntimeError once `close` was
-        called and it is still not confirmed."""
+        lost connection) publish it again through the next broker, until confirmed (a worker's pipeline waits so:
+        its deliveries stay unacknowledged meanwhile), or until `deadline_s` after the first try (TimeoutError: an
+        HTTP request cannot wait for ever). RuntimeError once `close` was called and it is still not confirmed."""
+        started = time.monotonic()
         with self._lock:
             while True:
                 try:
@@ -144,6 +146,8 @@ class RegionPublisher:
                     self._index += 1
                     if self._closing.is_set():
                         raise RuntimeError(f"region message for {region} not confirmed before the close") from exc
+                    if deadline_s is not None and time.monotonic() - started + RECONNECT_S > deadline_s:
+                        raise TimeoutError(f"region message for {region} not confirmed within {deadline_s} s") from exc
                     time.sleep(RECONNECT_S)
 
     def publish_mqtt(self, topic: str, payload: bytes) -> None:
@@ -177,16 +181,18 @@ class RegionPublisher:
             self._drop()
 
 
-def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], region_resolution: int) -> int:
+def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], region_resolution: int,
+                             deadline_s: float | None = None) -> int:
     """Hand the evidence of newly stored roadside station reports (roadgrip/cloud/fanout/stations.py `evidence_rows`:
     station_id, cell, timestamp_ms, mu, mu_lower, mu_upper; one row per covered cell) to the owners of their cells'
-    regions: one confirmed message per region. Returns the messages published. The stations route of `roadgrip api`
-    calls it after `Storage.put_station_reports`, with the rows of the reports newly stored."""
+    regions: one confirmed message per region (`deadline_s`: for each, as RegionPublisher.publish). Returns the
+    messages published. The stations route of `roadgrip api` calls it after `Storage.put_station_reports`, with the
+    rows of the reports newly stored."""
     by_region: dict[str, list[dict]] = {}
     for row in rows:
         by_region.setdefault(region_of(row["cell"], region_resolution), []).append(row)
     for region, group in sorted(by_region.items()):
-        publisher.publish(region, orjson.dumps({"stations": group}))
+        publisher.publish(region, orjson.dumps({"stations": group}), deadline_s)
     return len(by_region)
 
 

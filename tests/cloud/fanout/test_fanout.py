@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 
 import h3
 import pytest
@@ -171,4 +172,23 @@ def test_an_owner_whose_region_queue_was_taken_since_stores_nothing(settings, tm
                 stale.apply(region, message)
         stale.save()
     assert storage.warnings() == [] and storage.map_cells() == []
+    storage.close()
+
+
+def test_a_region_without_traffic_ends_passes_on_the_servers_clock(tmp_path):
+    """A vehicle stops on the ice: nothing more arrives in its region, yet its last pass ends pass_gap_s later on the
+    server's clock (a region owner's tick) and raises there, as serve's next round of any vehicle would."""
+    settings = Settings(data_dir=tmp_path, map_clock="wall", warning_pass_gap_s=1.0)
+    storage = open_storage(f"sqlite:///{tmp_path / 'cluster.db'}")
+    regions = Regions(settings, storage)
+    rows = drive("stopped", int(time.time() * 1000) - 100 * PATCH[1], HEBEI, icy=True, n=PATCH[1])
+    for region, message in region_messages(rows, rows[-1]["timestamp_ms"], settings.region_resolution).items():
+        regions.apply(region, message)
+    last_cell = rows[-1]["h3_cell"]
+    assert last_cell not in {w["cell"] for w in storage.warnings()}  # its pass there is still open
+    regions.tick()
+    assert last_cell not in {w["cell"] for w in storage.warnings()}  # not yet pass_gap_s
+    time.sleep(1.2)
+    regions.tick()
+    assert last_cell in {w["cell"] for w in storage.warnings(active_only=True)}
     storage.close()
