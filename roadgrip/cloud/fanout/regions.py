@@ -46,6 +46,7 @@ Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
 import threading
@@ -65,6 +66,9 @@ from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable
 
 log = logging.getLogger(__name__)
 
+SPREAD_WATCH_S = 1.0  # how often a region owner checks its share of the region queues
+WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before region queues move
+MOVE_INTERVAL_S = 3.0  # a worker releases at most one region queue in this time
 SAVE_S = 1.0  # how often a region owner saves the changed cells and acknowledges (so: at most once a second a cell)
 CLEANUP_S = 60.0  # how often it deletes its regions' cells older than map_max_age_s from the database
 REGION_PREFETCH = 1000  # unacknowledged region messages per queue: more than SAVE_S of them must fit
@@ -380,7 +384,8 @@ class _QueueState:
 class RegionOwners:
     """Every worker's consumers of the region queues (module docstring). `owner`: its name in region_owners."""
 
-    def __init__(self, brokers: list[str], settings: Settings, storage: Storage, owner: str):
+    def __init__(self, brokers: list[str], settings: Settings, storage: Storage, owner: str,
+                 live_workers: Callable[[], int | None] | None = None):
         if not brokers:
             raise ValueError("brokers must name at least one AMQP URL, got none")
         check_region_resolution(settings)
@@ -388,13 +393,20 @@ class RegionOwners:
         self.settings = settings
         self.storage = storage
         self.owner = owner
+        self.live_workers = live_workers  # how many workers are live (None: not known); None: queues are not spread
         self.queues = settings.region_queues
         self.held: list[Regions | None] = [None] * self.queues  # each queue's regions while this worker is active
         self.messages = [0] * self.queues  # region messages applied, per queue
         self.lost = 0  # queue connections lost or given up
+        self.moves = 0  # region queues released to spread them over the workers
         self.cells_saved = 0
         self._closing = threading.Event()
         self._registered = [threading.Event() for _ in range(self.queues)]
+        self._release = [threading.Event() for _ in range(self.queues)]  # set by _spread, done by the consumer
+        self._taken_at = [0.0] * self.queues  # when each queue held was taken (monotonic s)
+        self._workers_seen: int | None = None
+        self._workers_since = 0.0
+        self._next_move_at = 0.0
         self._threads: list[threading.Thread] = []
 
     def start(self, ready_timeout_s: float = 60.0) -> None:
@@ -408,6 +420,10 @@ class RegionOwners:
         for q, event in enumerate(self._registered):
             if not event.wait(max(0.0, deadline - time.monotonic())):
                 raise TimeoutError(f"region queue {q}: no consumer registered within {ready_timeout_s} s")
+        if self.live_workers is not None:
+            thread = threading.Thread(target=self._watch, name="region-spread", daemon=True)
+            thread.start()
+            self._threads.append(thread)
 
     def stop(self) -> None:
         """Save what was applied, acknowledge it, close (the queues go to the next registered consumers)."""
@@ -424,8 +440,50 @@ class RegionOwners:
                 changes[change] = changes.get(change, 0) + n
         return {"region_queues_held": [q for q, r in enumerate(self.held) if r is not None],
                 "regions_held": sum(len(r.held) for r in held), "region_messages_applied": list(self.messages),
-                "region_connections_lost": self.lost, "map_cells_saved": self.cells_saved,
-                "warning_changes": changes}
+                "region_connections_lost": self.lost, "region_queue_moves": self.moves,
+                "map_cells_saved": self.cells_saved, "warning_changes": changes}
+
+    # ----------------------------------------------------------------------------------------- spreading queues
+
+    def _watch(self) -> None:
+        while not self._closing.wait(SPREAD_WATCH_S):
+            try:
+                self._spread(time.monotonic())
+            except StorageUnavailable as exc:
+                log.warning("region owners not read (tried again in %.0f s): %s", SPREAD_WATCH_S, exc)
+
+    def _spread(self, now: float) -> None:
+        """Release the region queue taken last when this worker holds more than its share: more than
+        ceil(M / live workers), or more than floor(M / live workers) >= 1 while a live worker holds none and this one
+        holds the most (ties: the smallest owner name). As the worker spreads partitions (roadgrip/cloud/worker/
+        consumer.py): nothing moves until the live workers' count has held WORKERS_SETTLE_S, at most one queue
+        every MOVE_INTERVAL_S."""
+        workers = self.live_workers()
+        if workers != self._workers_seen:
+            self._workers_seen, self._workers_since = workers, now
+        if (not workers or now - self._workers_since < WORKERS_SETTLE_S or now < self._next_move_at
+                or any(e.is_set() for e in self._release)):
+            return
+        held = [q for q, r in enumerate(self.held) if r is not None]
+        high, low = -(-self.queues // workers), self.queues // workers
+        reason = None
+        if len(held) > high:
+            reason = f"holds {len(held)} of {self.queues} region queues, more than ceil(M / {workers} live " \
+                     f"workers) = {high}"
+        elif low >= 1 and len(held) > low:
+            owners = collections.Counter(self.storage.region_owners().values())
+            idle = workers - len(owners)  # live workers holding none (fewer where a dead owner is still named)
+            most = max(owners.values(), default=0)
+            if idle > 0 and owners.get(self.owner) == most == len(held) \
+                    and min(o for o, n in owners.items() if n == most) == self.owner:
+                reason = f"holds {len(held)}, the most, while {idle} of {workers} live workers hold none"
+        if reason is None:
+            return
+        q = max(held, key=lambda k: self._taken_at[k])
+        log.info("releasing region queue %d: this worker %s", q, reason)
+        self.moves += 1
+        self._next_move_at = now + MOVE_INTERVAL_S
+        self._release[q].set()
 
     def _consume(self, q: int) -> None:
         index = q
@@ -444,14 +502,18 @@ class RegionOwners:
                 tag = channel.basic_consume(region_queue(q), functools.partial(self._on_message, q, state))
                 self._registered[q].set()
                 next_save = time.monotonic() + SAVE_S
-                while not self._closing.is_set():
+                while not self._closing.is_set() and not self._release[q].is_set():
                     connection.process_data_events(time_limit=FLUSH_S)
                     if time.monotonic() >= next_save:
                         self._save(q, state, channel)
                         next_save = time.monotonic() + SAVE_S
                 channel.basic_cancel(tag)  # no more deliveries, then what was applied is saved and acknowledged
                 self._save(q, state, channel)
-                connection.close()
+                connection.close()  # the next waiting consumer becomes active; a released queue registers again
+                if self._release[q].is_set():
+                    log.info("region queue %d released: its %d regions saved and acknowledged", q,
+                             0 if state.regions is None else len(state.regions.held))
+                    self._release[q].clear()
             except (pika.exceptions.AMQPError, OSError, StorageUnavailable, Fenced) as exc:
                 if connection.is_open:  # given up: what it holds goes back to the queue
                     try:
@@ -471,6 +533,7 @@ class RegionOwners:
     def _on_message(self, q: int, state: _QueueState, channel, method, properties, body: bytes) -> None:
         if state.regions is None:  # the channel's first delivery: this consumer is the queue's active one
             epoch = self.storage.take_region_queue(q, self.owner)
+            self._taken_at[q] = time.monotonic()
             state.regions = Regions(self.settings, self.storage, functools.partial(self._publish, channel), (q, epoch))
             self.held[q] = state.regions
             log.info("region queue %d taken, epoch %d", q, epoch)

@@ -743,6 +743,11 @@ class Storage:
         with self._transaction() as conn:
             return conn.execute(upsert.returning(c.value)).scalar_one()
 
+    def region_owners(self) -> dict[int, str]:
+        """region_queue -> the owner that took it last (region_owners)."""
+        c = region_owners_table.c
+        return {row["region_queue"]: row["owner"] for row in self._all(select(c.region_queue, c.owner))}
+
     def take_region_queue(self, region_queue: int, owner: str) -> int:
         """Raise the region queue's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
         which the owner's fenced writes carry (`put_region_output`)."""

@@ -294,7 +294,8 @@ class Worker:
         watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
         watcher.start()
         self._threads.append(watcher)
-        self.regions = RegionOwners(self.brokers, s, self.storage, self.owner)  # the map and warnings by region
+        self.regions = RegionOwners(self.brokers, s, self.storage, self.owner,  # the map and warnings by region
+                                    live_workers=lambda: self.live_workers)
         self.regions.start(max(1.0, deadline - time.monotonic()))
         log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
                  len(self.brokers), s.estimator, self.storage)

@@ -12,6 +12,7 @@ subscribed to the warnings topic.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import queue
@@ -52,7 +53,7 @@ ROADGRIP = Path(sys.executable).parent / "roadgrip"
 SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the map's clock is the data's
 START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
-VEHICLES = [f"{tag}-{name}" for tag in ("x", "y") for name in ("ice1", "ice2", "close1", "dry", "close2")]
+VEHICLES = [f"{tag}-{name}" for tag in "xyz" for name in ("ice1", "ice2", "close1", "ping", "dry", "close2")]
 
 
 @pytest.fixture(scope="module")
@@ -81,9 +82,9 @@ def queue_of_region(channel, region: str) -> int:
     return deep[0]
 
 
-def two_regions(cluster: RabbitCluster) -> tuple[float, dict[str, int]]:
-    """A latitude shift that puts a copy of the test road (at the Hebei origin) in a region far away on another
-    region queue; the queue of each region."""
+def regions_on_distinct_queues(cluster: RabbitCluster, n: int) -> list[tuple[float, str, int]]:
+    """Latitude shifts (the first 0) that put copies of the test road (at the Hebei origin) in `n` regions far apart
+    on `n` different region queues: (shift in degrees, region, its queue) each."""
     connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(0)))
     channel = connection.channel()
     try:
@@ -91,16 +92,16 @@ def two_regions(cluster: RabbitCluster) -> tuple[float, dict[str, int]]:
             channel.queue_purge(region_queue(q))
         for p in range(PARTITIONS):
             channel.queue_purge(partition_queue(p))
-        home = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0], HEBEI_ORIGIN[1], SETTINGS.h3_resolution),
-                         SETTINGS.region_resolution)
-        home_queue = queue_of_region(channel, home)
-        for shift_deg in range(5, 40):
-            far = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0] + shift_deg, HEBEI_ORIGIN[1], SETTINGS.h3_resolution),
-                            SETTINGS.region_resolution)
-            far_queue = queue_of_region(channel, far)
-            if far_queue != home_queue:
-                return float(shift_deg), {home: home_queue, far: far_queue}
-        raise AssertionError("no region 5-40 degrees north of the origin hashes to another queue")
+        found: list[tuple[float, str, int]] = []
+        for shift_deg in [0, *range(5, 40)]:
+            region = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0] + shift_deg, HEBEI_ORIGIN[1],
+                                                 SETTINGS.h3_resolution), SETTINGS.region_resolution)
+            q = queue_of_region(channel, region)
+            if q not in {f[2] for f in found}:
+                found.append((float(shift_deg), region, q))
+            if len(found) == n:
+                return found
+        raise AssertionError(f"not {n} regions on distinct queues 0-40 degrees north of the origin: {found}")
     finally:
         connection.close()
 
@@ -237,10 +238,10 @@ def patch_warnings(db: Database, cells: set[str], status: str = "active") -> dic
 
 
 def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(cluster, postgres_database_url, tmp_path):
-    shift_deg, queue_of = two_regions(cluster)
-    (home, home_queue), (far, far_queue) = queue_of.items()
-    patches = {"x": patch_cells(0.0), "y": patch_cells(shift_deg)}
-    shifts = {"x": 0.0, "y": shift_deg}
+    found = regions_on_distinct_queues(cluster, 3)  # x: the home region, y: one with a patch too, z: a third
+    shifts = {tag: shift for tag, (shift, _, _) in zip("xyz", found)}
+    (_, home, home_queue), (_, far, far_queue), (_, _, third_queue) = found
+    patches = {"x": patch_cells(0.0), "y": patch_cells(shifts["y"])}
     first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
     first.wait_ready()
     second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
@@ -253,7 +254,7 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
         # two vehicles brake on each region's patch of ice; two minutes later one vehicle in each region ends their
         # passes (the map's clock is the data's)
         drive(cluster, [run_of(f"{tag}-ice{k}", 0.2, k, START_MS, shifts[tag]) for tag in "xy" for k in (1, 2)])
-        drive(cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xy"])
+        drive(cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xyz"])
         wait_for("warnings on both patches", lambda: all(patch_warnings(db, patches[t]) for t in "xy"), 60, logs)
         raised = {t: patch_warnings(db, patches[t]) for t in "xy"}
         owners = db.region_owners()
@@ -264,17 +265,42 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
                                            for d in subscriber.received()}) >= len(raised["x"]) + len(raised["y"]),
                  10, logs)
         assert all(d["denm"]["situation"]["eventType"]["causeCode"] == 6 for d in subscriber.received())
-        # the saved map, read back as an API replica would: the patch is there, slippery
+        # the saved map, read back as an API replica would: the patch is there, slippery (once both vehicles' passes,
+        # which may come through both workers, are in)
         now_ms = START_MS + 120_500
-        cells = {c.cell: c for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
-        for t in "xy":
-            on_patch = [cells[c] for c in patches[t] if c in cells]
-            assert on_patch and min(c.mu_upper for c in on_patch if c.mu_upper is not None) < 0.4, t
+
+        def saved_patch_cells() -> dict[str, list]:
+            cells = {c.cell: c for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
+            return {t: [cells[c] for c in patches[t] if c in cells] for t in "xy"}
+
+        wait_for("both ice vehicles in the saved map", lambda: all(
+            any(c.n_vehicles >= 2 for c in on_patch) for on_patch in saved_patch_cells().values()), 10, logs)
+        for t, on_patch in saved_patch_cells().items():
+            assert min(c.mu for c in on_patch if c.mu is not None) < 0.4, t
+            assert {c.status for c in on_patch} == {"measured"}, t
+        # the first worker took the three queues; with two live workers it holds more than ceil(4 / 2) and releases
+        # the one it took last, which the other takes at its next message (a vehicle at the road's start, off the
+        # patch, in each region every 2 s of the test)
+        pids = {str(first.proc.pid), str(second.proc.pid)}
+        queues = (home_queue, far_queue, third_queue)
+        pings = itertools.count()
+
+        def spread() -> bool:
+            owners = db.region_owners()
+            if {owners[q][1].rsplit(":", 1)[1] for q in queues if q in owners} == pids:
+                return True
+            drive(cluster, [run_of(f"{tag}-ping", 0.9, 3, START_MS + 130_000 + 5_000 * next(pings), shifts[tag],
+                                   first=5) for tag in "xyz"])
+            time.sleep(2.0)
+            return False
+
+        took_s = wait_for("the region queues spread over both workers", spread, 60, logs)
+        print(f"\nregion queues spread over the two workers {took_s:.1f} s after the warnings were stored")
         # kill -9 the owner of the home region's queue: the other worker takes it over and goes on from the database
         epoch, owner = db.region_owners()[home_queue]
         victim, survivor = (first, second) if owner.endswith(f":{first.proc.pid}") else (second, first)
         assert owner.endswith(f":{victim.proc.pid}")
-        vehicles_before = {c: cells[c].n_vehicles for c in patches["x"] if c in cells}
+        vehicles_before = {c.cell: c.n_vehicles for c in saved_patch_cells()["x"]}
         victim.proc.send_signal(signal.SIGKILL)
         victim.proc.wait()
         killed_at = time.monotonic()
