@@ -90,7 +90,7 @@ STATS_S = 10.0  # how often the worker logs its counters
 WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
 WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
 WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before partitions move
-MOVE_INTERVAL_S = 3.0  # a worker releases at most one partition in this time
+MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
 HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
 
 

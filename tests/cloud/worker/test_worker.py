@@ -41,7 +41,7 @@ PARTITIONS = 4
 VEHICLES_PER_TEST = 8
 GROUPS = ("a", "b", "c", "d", "e")  # one set of vehicles per test (their users exist from the cluster's start)
 FAILOVER_LIMIT_S = 10.0
-SPREAD_LIMIT_S = 45.0  # from a change in the live workers to the partitions spread (settle 5 s, a move every 3 s)
+SPREAD_LIMIT_S = 45.0  # from a change in the live workers to the partitions spread (settle 5 s, moves, hand-overs)
 ROADGRIP = Path(sys.executable).parent / "roadgrip"
 
 
