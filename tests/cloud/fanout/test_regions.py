@@ -19,6 +19,7 @@ import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -53,7 +54,8 @@ ROADGRIP = Path(sys.executable).parent / "roadgrip"
 SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the map's clock is the data's
 START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
-VEHICLES = [f"{tag}-{name}" for tag in "xyz" for name in ("ice1", "ice2", "close1", "ping", "dry", "close2")]
+VEHICLES = [f"{tag}-{name}" for tag in "xyz"
+            for name in ("ice1", "ice2", "close1", "ping", "dry", "close2", "ice3", "close3")]
 
 
 @pytest.fixture(scope="module")
@@ -175,21 +177,30 @@ class WarningsSubscriber:
         self.client.loop_stop()
 
 
-def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0) -> None:
-    """Each vehicle publishes its samples, ten a message, QoS 1; returns once every message is PUBACKed."""
+def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0, timeout_s: float = 60.0) -> None:
+    """Each vehicle publishes its samples, ten a message, QoS 1; returns once every message is PUBACKed. A vehicle
+    whose connection drops (RabbitMQ 3.10's MQTT plugin closes it on a quorum queue's nack during a leader election,
+    docs/CLUSTER.md, Workers) connects again and paho sends what was not PUBACKed again."""
     clients = []
     for vehicle, samples in runs:
         client = paho.Client(CallbackAPIVersion.VERSION2, client_id=vehicle, protocol=paho.MQTTv311)
         client.username_pw_set(vehicle, cluster.secret)
+        client.reconnect_delay_set(0.1, 1.0)
+        connected, acked = threading.Event(), set()
+        client.on_connect = lambda c, u, flags, rc, props, connected=connected: connected.set()
+        client.on_publish = lambda c, u, mid, rc, props, acked=acked: acked.add(mid)
         client.connect(HOST, cluster.mqtt_ports[node])
         client.loop_start()
-        infos = [client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1)
-                 for k in range(0, len(samples), 10)]
-        clients.append((client, infos))
-    for client, infos in clients:
-        for info in infos:
-            info.wait_for_publish(30)
-            assert info.is_published()
+        assert connected.wait(10), f"{vehicle} not connected to node {node}"
+        # a message published while the connection is down is queued (rc: not connected) and sent on the next one
+        mids = {client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1).mid
+                for k in range(0, len(samples), 10)}
+        clients.append((client, mids, acked))
+    deadline = time.monotonic() + timeout_s
+    while not all(mids <= acked for _, mids, acked in clients):
+        assert time.monotonic() < deadline, "messages not PUBACKed within the timeout"
+        time.sleep(0.05)
+    for client, _, _ in clients:
         client.disconnect()
         client.loop_stop()
 
@@ -349,3 +360,44 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
         first.stop()
         second.stop()
 
+
+def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, tmp_path):
+    """Last in the module: it leaves node 0 dead. Node 0 carries the first worker's first connections (publisher,
+    region queue 0, partitions) and some queue leaders; after its kill -9 a vehicle braking on each patch again
+    refreshes the region's warnings, through the connections the workers moved to the other nodes."""
+    found = regions_on_distinct_queues(cluster, 2)
+    shifts = {tag: shift for tag, (shift, _, _) in zip("xy", found)}
+    patches = {t: patch_cells(shifts[t]) for t in "xy"}
+    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first.wait_ready()
+    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second.wait_ready()
+    logs = (first.log, second.log)
+    db = Database(postgres_database_url)
+    try:
+        drive(cluster, [run_of(f"{tag}-ice1", 0.2, 1, START_MS, shifts[tag]) for tag in "xy"], node=1)
+        drive(cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xy"],
+              node=1)
+        wait_for("warnings on both patches", lambda: all(patch_warnings(db, patches[t]) for t in "xy"), 60, logs)
+        before = {w: row["message"]["event"]["sequence_number"] for t in "xy"
+                  for w, row in patch_warnings(db, patches[t]).items()}
+        cluster.kill(0)
+        killed_at = time.monotonic()
+        later = START_MS + 240_000  # within the warnings' validity
+        drive(cluster, [run_of(f"{tag}-ice3", 0.2, 2, later, shifts[tag]) for tag in "xy"], node=2)
+        drive(cluster, [run_of(f"{tag}-close3", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
+              node=2)
+
+        def refreshed(t: str) -> bool:
+            now = db.warnings()
+            return any(now[w]["message"]["event"]["sequence_number"] > n for w, n in before.items()
+                       if now[w]["cell"] in patches[t])
+
+        wait_for("the warnings refreshed in both regions after the node's kill",
+                 lambda: all(refreshed(t) for t in "xy"), 60, logs)
+        print(f"\nbroker node kill: both regions' warnings refreshed {time.monotonic() - killed_at:.1f} s after it "
+              f"(the drives sent after the kill included)")
+    finally:
+        db.close()
+        first.stop()
+        second.stop()
