@@ -522,6 +522,49 @@ def worker(
     run_worker(broker, settings, partitions, prefetch, stop, metrics_port, metrics_host)
 
 
+@app.command()
+@friendly_errors
+def api(
+    database: str = typer.Option(..., help="postgresql://... shared by every replica and worker"),
+    broker: list[str] = typer.Option(..., help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
+                                               "(repeatable: telemetry is published through them, the next one "
+                                               "after a failure)"),
+    management: list[str] = typer.Option(..., help="RabbitMQ management API of a node, http://host:15672 or "
+                                                   "http://user:password@host:15672 (repeatable; without a login, "
+                                                   "the first --broker's): vehicles' broker users"),
+    host: str | None = typer.Option(None, help="HTTP listen address (default 127.0.0.1)"),
+    port: int | None = typer.Option(None, help="HTTP port (default 8000)"),
+    mqtt: str | None = typer.Option(None, help="mqtt://host:port that registered vehicles are told to connect to "
+                                               "(the broker nodes' load balancer); default: none"),
+    config: Path | None = typer.Option(None, help="settings file (YAML; admin_secret, payload limits, rate limit, "
+                                                  "map settings of `serve` apply); environment variables ROADGRIP_* "
+                                                  "override it"),
+):
+    """A stateless API replica of the cluster: run any number behind a load balancer, all on one database and
+    broker (docs/CLUSTER.md, "Stateless API"). The admin secret comes from ROADGRIP_ADMIN_SECRET or --config."""
+    import logging
+    import signal
+    import sys
+
+    import uvicorn
+
+    from roadgrip.cloud.api.app import create_app
+    from roadgrip.cloud.api.cluster import ClusterBackend
+    from roadgrip.cloud.settings import load_settings
+
+    settings = load_settings(config, database_url=database, host=host, port=port, mqtt=mqtt)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
+    backend = ClusterBackend(settings, broker, management)
+    backend.start()
+    try:
+        console.print(f"roadgrip api: http://{settings.host}:{settings.port}/docs  storage {backend.storage}  "
+                      f"brokers {len(broker)}  mqtt for vehicles {backend.mqtt_url or 'none'}")
+        uvicorn.run(create_app(backend), host=settings.host, port=settings.port, log_level="warning")
+    finally:
+        backend.stop()
+
+
 @bench_app.command("estimate")
 @friendly_errors
 def bench_estimate_command(

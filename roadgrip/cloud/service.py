@@ -9,7 +9,7 @@ thread (a station reports about once a minute; the vehicles' queue is not needed
 
     service = CloudService(load_settings())
     service.start()          # storage opened, pipeline running, MQTT connected when configured
-    app = create_app(service) # roadgrip.cloud.api.app
+    app = create_app(service) # roadgrip.cloud.api.app (the service is its backend: roadgrip/cloud/api/backend.py)
     ...
     service.stop()
 """
@@ -20,26 +20,20 @@ import json
 import logging
 import secrets
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Self
 
+from roadgrip.cloud.api.backend import StationIngest
 from roadgrip.cloud.edge.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.edge.broker import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
 from roadgrip.cloud.fanout.fanout import Fanout
 from roadgrip.cloud.fanout.friction_map import FrictionMap
-from roadgrip.cloud.fanout.stations import (
-    ReportError,
-    StationReport,
-    covered_cells,
-    evidence,
-    evidence_rows,
-    parse_reports,
-)
+from roadgrip.cloud.fanout.stations import ReportError, StationReport, parse_reports, stored_rows
 from roadgrip.cloud.fanout.warning_engine import WarningEngine, WarningEvent
+from roadgrip.cloud.metrics import ServiceCollector
 from roadgrip.cloud.process import rss_mb, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
@@ -55,16 +49,6 @@ log = logging.getLogger(__name__)
 # in a stall; run e, with this bound, stayed level at 606 MB until its stall. The estimates stay stored and readable
 # over HTTP; warnings and error reports are never dropped.
 MAX_UNACKNOWLEDGED_ESTIMATES = 5_000
-
-
-@dataclass(frozen=True)
-class StationIngest:
-    """What `CloudService.station_reports` did with a payload of reports."""
-
-    received: int
-    stored: int  # new reports (a repeat of a stored one is a duplicate)
-    duplicates: int
-    evidence_cells: int  # cells that got evidence from the new reports
 
 
 class CloudService:
@@ -220,15 +204,7 @@ class CloudService:
     def station_reports(self, reports: list[StationReport]) -> StationIngest:
         """Store validated reports (roadgrip/cloud/fanout/stations.py) and hand the evidence of the new ones to the map and
         the warning engine. StorageUnavailable when the database is down (nothing stored)."""
-        resolution = self.settings.h3_resolution
-        rows, evidence_of = [], {}
-        for report in reports:
-            found = evidence(report)
-            evidence_of[(report.station_id, report.timestamp_ms)] = evidence_rows(report, resolution)
-            rows.append({**report.model_dump(), "mu": None if found is None else found.mu,
-                         "mu_lower": None if found is None else found.mu_lower,
-                         "mu_upper": None if found is None else found.mu_upper,
-                         "cells": covered_cells(report.latitude_deg, report.longitude_deg, resolution)})
+        rows, evidence_of = stored_rows(reports, self.settings.h3_resolution)
         new = self.storage.put_station_reports(rows)
         fresh = [row for key in sorted(new, key=lambda k: k[1]) for row in evidence_of[key]]
         self.fanout.station_reports(fresh)
@@ -295,6 +271,17 @@ class CloudService:
         if self.broker is not None:
             self.broker.remove_user(name)
         return revoked
+
+    # ------------------------------------------------------------------------------------------------- the API's backend
+    def submit_telemetry(self, vehicle_id: str, samples: list[dict], received: int) -> Future:
+        """HTTP telemetry into this process's ingest (rate limit, pipeline): resolves once stored."""
+        return self.ingest.submit(vehicle_id, samples, received)
+
+    def current_map(self) -> tuple[FrictionMap, int]:
+        return self.friction_map, self.fanout.now_ms()
+
+    def metrics_collector(self) -> ServiceCollector:
+        return ServiceCollector(self)
 
     def health(self) -> dict:
         status = {"status": "ok", "storage": "ok", "mqtt": "off" if self.mqtt is None else

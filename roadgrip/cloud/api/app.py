@@ -1,4 +1,7 @@
-"""The HTTP API (FastAPI; OpenAPI at /docs). Routes are thin: they authenticate, check the role, and call the service.
+"""The HTTP API (FastAPI; OpenAPI at /docs). Routes are thin: they authenticate, check the role, and call the backend
+(roadgrip/cloud/api/backend.py): the embedded service (`roadgrip serve`) or the cluster's (`roadgrip api`, any
+number of replicas on one PostgreSQL and one RabbitMQ cluster: roadgrip/cloud/api/cluster.py). The same routes serve
+both; what differs in the cluster is said below the table.
 
 Every call authenticates with HTTP Basic (name and secret; vehicles use their vehicle_id as name):
 
@@ -27,6 +30,25 @@ was stored: retry), 429 with Retry-After when the vehicle is over its rate limit
 a second, valid or not; nothing stored), and 413 for more samples in one request than the limit's whole burst.
 Every error status of every route is declared in the OpenAPI document, with its body (`ErrorAnswer`); the schemathesis
 tests of tests/cloud/test_fuzz.py hold the API to it.
+
+In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing another replica needs:
+- Credentials are read from PostgreSQL on every call (`Authenticator(revalidate=True)`): a credential revoked through
+  any replica is refused by every replica from the next call on. Registering a vehicle (or a reader) also creates its
+  RabbitMQ user with its permissions (roadgrip/cloud/edge/rabbit_users.py) before the database commits; revoking
+  deletes the user, which closes its open MQTT connections. A vehicle's `mqtt_url` is the `mqtt` setting (the
+  broker's load balancer); stations report over HTTP only.
+- POST /v1/telemetry validates as above, then publishes the valid samples to amq.topic with the vehicle's telemetry
+  routing key, as the vehicle's own MQTT publish would arrive, and answers **202** (`Accepted`) once the broker
+  confirmed the message: it is in the vehicle's partition queue, replicated on a quorum of nodes, and a worker will
+  store it; not "stored". 503 when no broker node confirmed it (retry: the worker stores a repeat once). The rate
+  limit answered with 429 is this replica's own (a vehicle spread over N replicas gets up to N times it through
+  them); the limit of the worker that owns the vehicle counts every replica's and MQTT's samples together and refuses
+  the excess on the vehicle's MQTT errors topic.
+- POST /v1/stations/{id}/reports: stored as embedded; the new reports' evidence is published to the owners of their
+  regions (roadgrip/cloud/fanout/regions.py), which add it to the map and the warnings.
+- GET /v1/map and /v1/map/datex2: the map the region owners saved (roadgrip/cloud/fanout/map_cells.py), at the
+  replica's clock, read again when a second old; GET /v1/warnings: the stored warnings.
+- GET /v1/health: storage and broker reachability; GET /metrics: the replica's own counters.
 """
 
 from __future__ import annotations
@@ -47,14 +69,15 @@ from prometheus_client import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from roadgrip.cloud.api.backend import Accepted, ApiBackend
 from roadgrip.cloud.api.dashboard import mount_dashboard
 from roadgrip.cloud.api.exports import datex2_xml
 from roadgrip.cloud.edge.auth import AuthError
 from roadgrip.cloud.edge.ingest import RateLimited
+from roadgrip.cloud.edge.rabbit_users import BrokerUnavailable
 from roadgrip.cloud.edge.wire import PayloadError, parse_payload
 from roadgrip.cloud.fanout.stations import ReportError, parse_reports
-from roadgrip.cloud.metrics import ServiceCollector, registry_with
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.metrics import registry_with
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Credential, StorageUnavailable
 from roadgrip.cloud.worker.shards import IngestUnavailable
@@ -122,6 +145,13 @@ class IngestAnswer(BaseModel):
     rejected: list[Rejection]
 
 
+class PublishedAnswer(BaseModel):
+    """Cluster mode: the valid samples are in the vehicle's partition queue, replicated; a worker stores them."""
+    received: int
+    accepted: int = Field(description="valid samples, confirmed by the broker")
+    rejected: list[Rejection]
+
+
 class NoValidSample(IngestAnswer):
     detail: str
 
@@ -153,7 +183,9 @@ ERRORS = {
          "whole rate-limit burst",
     415: "a content type other than JSON or NDJSON",
     422: "the request does not match this schema",
-    503: "storage unavailable: nothing was stored, retry",
+    503: "storage unavailable: nothing was stored, retry; in the cluster also: the broker did not confirm the "
+         "telemetry, or no broker node took a registration (nothing stored) or a revocation's user deletion (the "
+         "credential is revoked; revoke again to delete the broker user)",
 }
 
 
@@ -208,7 +240,7 @@ def single_query_values(request: Request) -> None:
                                        "input": request.query_params.getlist(k)} for k in repeated])
 
 
-def create_app(service: CloudService) -> FastAPI:
+def create_app(service: ApiBackend) -> FastAPI:
     app = FastAPI(title="roadgrip cloud", version="1",
                   description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
                   responses=_errors(401, 403, 503),  # every route authenticates and reads storage
@@ -237,6 +269,10 @@ def create_app(service: CloudService) -> FastAPI:
     @app.exception_handler(StorageUnavailable)
     async def storage_down(request: Request, exc: StorageUnavailable):
         return JSONResponse({"detail": f"storage unavailable, nothing was stored: {exc}"}, status_code=503)
+
+    @app.exception_handler(BrokerUnavailable)
+    async def broker_down(request: Request, exc: BrokerUnavailable):
+        return JSONResponse({"detail": f"broker unavailable: {exc}"}, status_code=503)
 
     @app.post("/v1/vehicles", status_code=201, response_model=Issued | list[Issued], responses=_errors(400, 409, 422))
     def register_vehicles(body: VehicleRegistration | list[VehicleRegistration], caller: Caller):
@@ -333,6 +369,8 @@ def create_app(service: CloudService) -> FastAPI:
 
     @app.post("/v1/telemetry", response_model=IngestAnswer, responses={
                   **_errors(400, 413, 415),
+                  202: {"model": PublishedAnswer, "description": "cluster mode: accepted by the broker and "
+                                                                 "replicated, not yet stored"},
                   422: {"model": NoValidSample, "description": "no valid sample: each rejection says why"},
                   429: {"model": ErrorAnswer, "description": "the vehicle is over its rate limit: nothing stored",
                         "headers": {"Retry-After": {"description": "seconds until the same request would pass",
@@ -351,7 +389,7 @@ def create_app(service: CloudService) -> FastAPI:
         rejected = [_escaped(e.to_dict()) for e in errors]
         received = len(samples) + len(errors)
         try:  # the rate limit first (all received count), then the samples stored
-            result = await asyncio.wrap_future(service.ingest.submit(caller.vehicle_id, samples, received))
+            result = await asyncio.wrap_future(service.submit_telemetry(caller.vehicle_id, samples, received))
         except RateLimited as exc:
             if exc.retry_after_s == math.inf:
                 raise HTTPException(413, exc.reason) from None
@@ -363,6 +401,9 @@ def create_app(service: CloudService) -> FastAPI:
         if not samples:
             return AsciiJSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
                                       "duplicates": 0, "rejected": rejected}, status_code=422)
+        if isinstance(result, Accepted):
+            return AsciiJSONResponse({"received": received, "accepted": result.samples, "rejected": rejected},
+                                     status_code=202)
         return IngestAnswer(received=received, accepted=len(samples), stored=result.stored,
                             duplicates=result.duplicates, rejected=rejected)
 
@@ -380,14 +421,15 @@ def create_app(service: CloudService) -> FastAPI:
     @app.get("/v1/map")
     def friction_map(caller: Caller) -> dict:
         require(caller, "admin", "reader")
-        return service.friction_map.to_geojson(service.fanout.now_ms())
+        friction_map, now = service.current_map()
+        return friction_map.to_geojson(now)
 
     @app.get("/v1/map/datex2", response_class=Response,
              responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}})
     def datex2(caller: Caller) -> Response:
         require(caller, "admin", "reader")
-        now = service.fanout.now_ms()
-        return Response(datex2_xml(service.friction_map.cells(now), now), media_type="application/xml")
+        friction_map, now = service.current_map()
+        return Response(datex2_xml(friction_map.cells(now), now), media_type="application/xml")
 
     @app.get("/v1/warnings")
     def warnings(caller: Caller, active: bool = True) -> dict:
@@ -400,7 +442,7 @@ def create_app(service: CloudService) -> FastAPI:
         status = service.health()
         return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)
 
-    registry = registry_with(ServiceCollector(service))
+    registry = registry_with(service.metrics_collector())
 
     @app.get("/metrics", response_class=Response,
              responses={200: {"content": {"text/plain": {}},

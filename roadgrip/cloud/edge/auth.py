@@ -11,6 +11,11 @@ plain SHA-256 of them cannot be reversed by guessing and costs microseconds, whi
 every 100 ms needs (the practice of API tokens). The admin's secret may be chosen by a person, so it gets a slow,
 salted scrypt hash (RFC 7914; n=2^14, r=8, p=1: ~40 ms a check). A verified secret is remembered in memory by its SHA-256
 (never its clear text) until the credential is revoked or its secret changes, so scrypt runs once per admin session.
+
+Several processes on one database (the cluster's API replicas, `Authenticator(storage, revalidate=True)`): a revocation
+or a new secret made by another process must count at once, which an in-process cache cannot know of. There every call
+reads the credential from storage (one primary-key query) and the cache only spares verifying again a secret whose
+stored hash is unchanged (the admin's scrypt).
 """
 
 from __future__ import annotations
@@ -65,10 +70,12 @@ def verify_secret(secret: str, stored: str) -> bool:
 
 
 class Authenticator:
-    """Checks name and secret against the stored credentials, with an in-memory cache of verified secrets."""
+    """Checks name and secret against the stored credentials, with an in-memory cache of verified secrets; with
+    `revalidate`, against storage on every call (the module docstring)."""
 
-    def __init__(self, storage: Storage):
+    def __init__(self, storage: Storage, revalidate: bool = False):
         self.storage = storage
+        self.revalidate = revalidate
         self._verified: dict[str, tuple[Credential, bytes]] = {}
         self._lock = threading.Lock()
 
@@ -76,10 +83,15 @@ class Authenticator:
         fingerprint = hashlib.sha256(secret.encode()).digest()
         with self._lock:
             cached = self._verified.get(name)
-        if cached is not None and hmac.compare_digest(cached[1], fingerprint):
+        if not self.revalidate and cached is not None and hmac.compare_digest(cached[1], fingerprint):
             return cached[0]
         credential = self.storage.credential(name)
-        if credential is None or credential.revoked or not verify_secret(secret, credential.secret_hash):
+        if credential is None or credential.revoked:
+            raise AuthError("invalid credentials")
+        if (cached is not None and cached[0].secret_hash == credential.secret_hash
+                and hmac.compare_digest(cached[1], fingerprint)):
+            return credential
+        if not verify_secret(secret, credential.secret_hash):
             raise AuthError("invalid credentials")
         with self._lock:
             self._verified[name] = (credential, fingerprint)

@@ -122,7 +122,9 @@ def rabbit_password_hash(password: str) -> str:
 
 class RabbitCluster:
     """Three RabbitMQ nodes (rg0..rg2@localhost) on their own epmd, joined with `rabbitmqctl join_cluster`, plugins
-    rabbitmq_mqtt and rabbitmq_consistent_hash_exchange. MQTT publishes land in amq.topic (routing key: the topic with
+    rabbitmq_mqtt, rabbitmq_consistent_hash_exchange and rabbitmq_management (the HTTP API through which `roadgrip
+    api` manages vehicles' broker users: roadgrip/cloud/edge/rabbit_users.py; a listener per node on 127.0.0.1,
+    `management_url`). MQTT publishes land in amq.topic (routing key: the topic with
     '/' as '.'); an exchange-to-exchange binding forwards telemetry to a consistent-hash exchange that spreads it, by a
     hash of the routing key (hence of the vehicle id), over N quorum queues with single-active-consumer. A vehicle may
     publish only its own telemetry topic (topic permissions on amq.topic)."""
@@ -132,9 +134,10 @@ class RabbitCluster:
 
     def __init__(self, root: Path, vehicles: list[str], partitions: int, secret: str):
         self.root, self.vehicles, self.partitions, self.secret = root, vehicles, partitions, secret
-        ports = free_ports(10)
+        ports = free_ports(13)
         self.amqp_ports, self.dist_ports, self.mqtt_ports = ports[0:3], ports[3:6], ports[6:9]
         self.epmd_port = ports[9]
+        self.management_ports = ports[10:13]
         self.procs: list[subprocess.Popen | None] = [None, None, None]
         self.epmd: subprocess.Popen | None = None
         self.home = root / "home"
@@ -166,6 +169,8 @@ class RabbitCluster:
             "mqtt.allow_anonymous = false",
             "mqtt.vhost = /",
             "mqtt.exchange = amq.topic",
+            f"management.tcp.ip = {HOST}",
+            f"management.tcp.port = {self.management_ports[i]}",
             "log.file.level = warning",
         ]) + "\n")
         log = open(base / "stdout.log", "ab")
@@ -179,7 +184,8 @@ class RabbitCluster:
         cookie.write_text(secrets.token_hex(16))
         cookie.chmod(0o400)
         (self.root / "rabbitmq-env.conf").write_text("")
-        (self.root / "enabled_plugins").write_text("[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange].\n")
+        (self.root / "enabled_plugins").write_text(
+            "[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange,rabbitmq_management].\n")
         self.epmd = subprocess.Popen(["epmd", "-port", str(self.epmd_port)], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL)
         wait_port(self.epmd_port, 10)
@@ -193,6 +199,7 @@ class RabbitCluster:
             self.ctl(i, "start_app")
         for i in range(3):
             wait_port(self.mqtt_ports[i], 60)
+            wait_port(self.management_ports[i], 60)
 
     def definitions(self) -> dict:
         users = [{"name": SERVICE_USER, "password_hash": rabbit_password_hash(self.secret),
@@ -227,6 +234,13 @@ class RabbitCluster:
     def amqp_url(self, i: int) -> str:
         """The service user's AMQP URL on node i (for workers)."""
         return f"amqp://{SERVICE_USER}:{self.secret}@{HOST}:{self.amqp_ports[i]}/%2F"
+
+    def management_url(self, i: int) -> str:
+        """The management HTTP API of node i (log in as the service user)."""
+        return f"http://{HOST}:{self.management_ports[i]}"
+
+    def mqtt_url(self, i: int) -> str:
+        return f"mqtt://{HOST}:{self.mqtt_ports[i]}"
 
     def pid(self, i: int) -> int:
         return int((self.root / f"rg{i}" / "pid").read_text().strip())

@@ -228,3 +228,18 @@ def evidence_rows(report: StationReport, resolution: int, radius_m: float = COVE
     return [{"station_id": report.station_id, "cell": cell, "timestamp_ms": report.timestamp_ms, "mu": found.mu,
              "mu_lower": found.mu_lower, "mu_upper": found.mu_upper}
             for cell in covered_cells(report.latitude_deg, report.longitude_deg, resolution, radius_m)]
+
+
+def stored_rows(reports: list[StationReport], resolution: int) -> tuple[list[dict], dict[tuple[str, int], list[dict]]]:
+    """What storing `reports` takes: the rows for `Storage.put_station_reports` (the report, its evidence's mu,
+    mu_lower and mu_upper, null for none, and its covered cells), and each report's `evidence_rows` by its key
+    (station_id, timestamp_ms), to hand on those of the reports newly stored."""
+    rows, evidence_of = [], {}
+    for report in reports:
+        found = evidence(report)
+        evidence_of[(report.station_id, report.timestamp_ms)] = evidence_rows(report, resolution)
+        rows.append({**report.model_dump(), "mu": None if found is None else found.mu,
+                     "mu_lower": None if found is None else found.mu_lower,
+                     "mu_upper": None if found is None else found.mu_upper,
+                     "cells": covered_cells(report.latitude_deg, report.longitude_deg, resolution)})
+    return rows, evidence_of

@@ -38,7 +38,7 @@ import logging
 import operator
 import time
 from collections import Counter
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -227,6 +227,9 @@ POSTGIS_DDL = (
 )
 
 
+SCHEMA_LOCK_KEY = 0x726F6164  # "road": the advisory lock of `_schema_lock`
+
+
 def _now_ms() -> int:
     return time.time_ns() // 1_000_000
 
@@ -329,9 +332,11 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ credentials and vehicles
 
-    def add_credential(self, name: str, role: str, secret_hash: str, vehicle_id: str | None = None) -> None:
+    def add_credential(self, name: str, role: str, secret_hash: str, vehicle_id: str | None = None,
+                       before_commit: Callable[[], None] | None = None) -> None:
         """Store a new credential. A "vehicle" credential's name is its vehicle's id (vehicle_id defaults to it);
-        readers and admins have no vehicle_id. ValueError if `name` is taken."""
+        readers and admins have no vehicle_id. ValueError if `name` is taken. `before_commit` (as in
+        `register_vehicles`) runs once the row is in, before the commit."""
         if not isinstance(name, str) or not name:
             raise ValueError(f"credential name must be a non-empty string, got {name!r}")
         if role not in ROLES:
@@ -348,8 +353,10 @@ class Storage:
         insert = self._insert(credentials_table).values(row).on_conflict_do_nothing()
         with self._transaction() as conn:
             added = conn.execute(insert.returning(credentials_table.c.name)).first()
-        if added is None:
-            raise ValueError(f"a credential named {name!r} exists already")
+            if added is None:
+                raise ValueError(f"a credential named {name!r} exists already")
+            if before_commit is not None:
+                before_commit()
 
     def credential(self, name: str) -> Credential | None:
         rows = self._all(select(credentials_table).where(credentials_table.c.name == name))
@@ -387,11 +394,13 @@ class Storage:
             index_elements=["vehicle_id"],
             set_={"profile": insert.excluded.profile, "updated_ms": insert.excluded.updated_ms})
 
-    def register_vehicles(self, vehicles: list[tuple[str, dict, str]]) -> None:
+    def register_vehicles(self, vehicles: list[tuple[str, dict, str]],
+                          before_commit: Callable[[], None] | None = None) -> None:
         """For each (vehicle_id, profile, secret_hash): store the profile (replacing a stored one) and a new "vehicle"
         credential named vehicle_id, all in one transaction, so that a failure part way leaves none of them stored
         (nor a credential whose secret nobody received). ValueError, storing nothing, when a vehicle_id is given twice
-        or its credential name is taken."""
+        or its credential name is taken. `before_commit` runs once every row is in, before the commit (the cluster
+        creates the vehicles' broker users there: roadgrip/cloud/api/cluster.py); what it raises rolls it all back."""
         ids = [vehicle_id for vehicle_id, _, _ in vehicles]
         twice = sorted(v for v, n in Counter(ids).items() if n > 1)
         if twice:
@@ -412,6 +421,8 @@ class Storage:
                 raise ValueError(f"vehicle_id(s) already registered: {', '.join(taken[:10])}")
             conn.execute(self._profile_upsert(),
                          [{"vehicle_id": v, "profile": p, "updated_ms": now_ms} for v, p, _ in vehicles])
+            if before_commit is not None:
+                before_commit()
 
     def vehicle_profile(self, vehicle_id: str) -> dict | None:
         return self._scalar(select(vehicles_table.c.profile).where(vehicles_table.c.vehicle_id == vehicle_id))
@@ -814,6 +825,22 @@ def _widen_role_check(conn: Connection) -> None:
     log.info("credentials: table rebuilt with the role check of %s", ROLES)
 
 
+@contextmanager
+def _schema_lock(engine: Engine) -> Iterator[None]:
+    """On PostgreSQL, one process at a time creates or alters the tables: processes opening a new database at once
+    (the cluster's workers and API replicas starting together) raced in CREATE TABLE and CREATE EXTENSION, and all but
+    one failed on a duplicate key of PostgreSQL's catalog. A session advisory lock held while the schema is made."""
+    if engine.dialect.name != "postgresql":
+        yield
+        return
+    with engine.connect() as conn:
+        conn.execute(text(f"SELECT pg_advisory_lock({SCHEMA_LOCK_KEY})"))
+        try:
+            yield
+        finally:
+            conn.execute(text(f"SELECT pg_advisory_unlock({SCHEMA_LOCK_KEY})"))
+
+
 def open_storage(url: str) -> Storage:
     """Open the database at `url` (sqlite:///PATH, postgresql://... or postgresql+psycopg://...) and create the
     tables that are missing; the parent folder of an SQLite file is created too."""
@@ -832,7 +859,7 @@ def open_storage(url: str) -> Storage:
         engine = sa.create_engine(sa_url, pool_pre_ping=True, paramstyle="numeric_dollar", connect_args={
             "connect_timeout": CONNECT_TIMEOUT_S, "cursor_factory": psycopg.RawCursor})
     try:
-        with _reported(where):
+        with _reported(where), _schema_lock(engine):
             postgis = engine.dialect.name == "postgresql" and _enable_postgis(engine, where)
             with engine.begin() as conn:
                 metadata.create_all(conn)

@@ -54,3 +54,42 @@ def test_the_admin_secret_follows_the_settings(auth):
     with pytest.raises(AuthError):
         auth.authenticate("admin", "first-admin-secret-0123")
     assert auth.authenticate("admin", "second-admin-secret-0123").role == "admin"
+
+
+def test_a_revocation_through_one_replica_counts_at_once_on_another_that_verified_the_secret(postgres_database_url):
+    """Two API replicas (two processes' worth: an Authenticator and a connection pool each) on one PostgreSQL: with
+    `revalidate`, a secret verified (and cached) by one is refused by it on the next call after the other revoked
+    it or changed it. Prints what a call costs, cached against checked in the database every time."""
+    import time
+
+    stores = [open_storage(postgres_database_url) for _ in range(2)]
+    try:
+        one, two = (Authenticator(s, revalidate=True) for s in stores)
+        cached = Authenticator(stores[0])
+        secret = two.create("car-1", "vehicle", "car-1")
+        admin_secret = "a-person-chosen-admin-secret"
+        one.ensure_admin(admin_secret)
+        assert one.authenticate("car-1", secret).role == "vehicle"
+        assert cached.authenticate("car-1", secret).role == "vehicle"
+
+        costs = {}
+        for name, auth_, login in (("cached", cached, ("car-1", secret)), ("revalidate", one, ("car-1", secret)),
+                                   ("revalidate, admin (scrypt skipped)", one, ("admin", admin_secret))):
+            auth_.authenticate(*login)
+            started = time.perf_counter()
+            for _ in range(500):
+                auth_.authenticate(*login)
+            costs[name] = (time.perf_counter() - started) / 500
+        print("authentication per call: " + ", ".join(f"{k} {v * 1e6:.0f} us" for k, v in costs.items()))
+
+        assert two.revoke("car-1")
+        with pytest.raises(AuthError):
+            one.authenticate("car-1", secret)
+        assert cached.authenticate("car-1", secret).role == "vehicle"  # what one process's cache alone would do
+
+        two.ensure_admin("another-admin-secret-of-the-settings")
+        with pytest.raises(AuthError):
+            one.authenticate("admin", admin_secret)
+    finally:
+        for s in stores:
+            s.close()
