@@ -18,8 +18,9 @@ Pace, two of them:
   ready at the start and the end of the window (growing: the workers are the bottleneck), and in `held_back`
   (messages a vehicle skipped because IN_FLIGHT were unacknowledged: the broker was). To find the workers' ceiling,
   raise `vehicles` (or `rate`) until the backlog grows.
-A vehicle's data time runs `rate` times faster than the clock where `rate` > 1, and as fast as PUBACKs allow in the
-broker case (timestamps start a day back, so none is in the future).
+At a rate of at most 1 the vehicles' timestamps follow the clock (live data, as the map and warnings see it from
+terminals); faster, and as fast as PUBACKs allow, data time runs ahead of the clock, so it starts 30 days back and
+no timestamp is in the future.
 
 Cases, in this order, each for `seconds` after a warm-up, the vehicles connecting afresh for each:
 - the broker's own ceiling: consumers in this process that only acknowledge (one connection per partition queue,
@@ -65,7 +66,7 @@ WARM_UP_S = 3.0  # publishing before a window starts
 SPREAD_WAIT_S = 90.0  # the most a worker case waits for its partitions to spread before measuring anyway
 ACK_EVERY = 50  # the ack-only consumers' multiple-ack
 FLUSH_S = 0.05
-DATA_START_MS_AGO = 86_400_000  # the vehicles' data time starts a day back and runs faster than the clock
+DATA_START_MS_AGO = 30 * 86_400_000  # where the vehicles' data time runs faster than the clock, it starts this far back
 ROADGRIP = Path(sys.executable).parent / "roadgrip"
 
 Progress = Callable[[str, float | None], None]  # (what is being done, fraction of the run done or None)
@@ -206,7 +207,7 @@ def _start_load(cluster: RabbitCluster, vehicles: list[str], bodies: list[list[s
     ctx = mp.get_context("spawn")
     n = math.ceil(len(vehicles) / VEHICLES_PER_GENERATOR)
     load = _Load(counters=ctx.Array("q", 3 * n, lock=False), stop=ctx.Event())
-    start_ms = int(time.time() * 1000) - DATA_START_MS_AGO
+    start_ms = int(time.time() * 1000) - (1000 if 0 < rate <= 1 else DATA_START_MS_AGO)
     share = math.ceil(len(vehicles) / n)
     for slot in range(n):
         process = ctx.Process(target=_drive, args=(slot, cluster.mqtt_ports, cluster.secret,
