@@ -273,6 +273,11 @@ class CloudService:
         return revoked
 
     # ------------------------------------------------------------------------------------------------- the API's backend
+    @property
+    def station_mqtt_url(self) -> str | None:
+        """Stations report over MQTT to the same broker as vehicles."""
+        return self.mqtt_url
+
     def submit_telemetry(self, vehicle_id: str, samples: list[dict], received: int) -> Future:
         """HTTP telemetry into this process's ingest (rate limit, pipeline): resolves once stored."""
         return self.ingest.submit(vehicle_id, samples, received)

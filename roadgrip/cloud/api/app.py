@@ -36,7 +36,7 @@ In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing anoth
   any replica is refused by every replica from the next call on. Registering a vehicle (or a reader) also creates its
   RabbitMQ user with its permissions (roadgrip/cloud/edge/rabbit_users.py) before the database commits; revoking
   deletes the user, which closes its open MQTT connections. A vehicle's `mqtt_url` is the `mqtt` setting (the
-  broker's load balancer); stations report over HTTP only.
+  broker's load balancer); stations report over HTTP only (their `mqtt_url` is null).
 - POST /v1/telemetry validates as above, then publishes the valid samples to amq.topic with the vehicle's telemetry
   routing key, as the vehicle's own MQTT publish would arrive, and answers **202** (`Accepted`) once the broker
   confirmed the message: it is in the vehicle's partition queue, replicated on a quorum of nodes, and a worker will
@@ -326,7 +326,7 @@ def create_app(service: ApiBackend) -> FastAPI:
             secret = service.register_station(body.station_id)
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
-        return Issued(name=body.station_id, role="station", secret=secret, mqtt_url=service.mqtt_url)
+        return Issued(name=body.station_id, role="station", secret=secret, mqtt_url=service.station_mqtt_url)
 
     @app.post("/v1/stations/{station_id}/reports", response_model=StationAnswer, responses={
                   **_errors(413), 400: {"model": ErrorAnswer, "description": "a body that is not JSON"},

@@ -48,6 +48,7 @@ class ApiBackend(Protocol):
     storage: Storage
     auth: Authenticator
     mqtt_url: str | None  # what vehicles and readers are told to connect to; None: no MQTT
+    station_mqtt_url: str | None  # what roadside stations are told; None: they report over HTTP
     http_payloads_rejected: int  # telemetry requests refused whole (400, 413, 415): counted by the route
 
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:

@@ -89,6 +89,7 @@ class ClusterBackend:
         self.brokers = brokers
         self.management_urls, self._management_user, self._management_password = management_login(management, brokers)
         self.mqtt_url = settings.mqtt if settings.mqtt.startswith(("mqtt://", "tcp://")) else None
+        self.station_mqtt_url = None  # stations report over HTTP in the cluster (rabbit_users.py)
         self.storage: Storage | None = None
         self.auth: Authenticator | None = None
         self.users: RabbitUsers | None = None

@@ -351,6 +351,7 @@ def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches
             storage.close()
 
         station = one.http.post("/v1/stations", json={"station_id": "rws-01"}, auth=ADMIN).json()
+        assert station["mqtt_url"] is None  # stations report over HTTP in the cluster
         report = {"station_id": "rws-01", "timestamp_ms": int(time.time() * 1000) - 1000, "latitude_deg": 47.2,
                   "longitude_deg": 8.6, "surface_state": "ice"}
         answer = one.http.post("/v1/stations/rws-01/reports", json=report, auth=("rws-01", station["secret"]))
