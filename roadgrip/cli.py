@@ -762,6 +762,8 @@ def demo(
 def cluster_up(
     data_dir: Path | None = typer.Option(None, help="new or empty folder for the cluster's databases, logs and "
                                                     "secrets (default: a new temporary folder)"),
+    nodes: int = typer.Option(3, min=1, help="RabbitMQ nodes joined into one cluster (quorum queues: 3 survive "
+                                             "the loss of one)"),
     workers: int = typer.Option(2, min=0, help="`roadgrip worker` processes"),
     apis: int = typer.Option(2, min=0, help="`roadgrip api` replicas"),
     partitions: int = typer.Option(4, min=1, help="partition queues of the vehicles' telemetry"),
@@ -770,7 +772,7 @@ def cluster_up(
     config: Path | None = typer.Option(None, help="settings file (YAML) for every worker and API replica; "
                                                   "environment variables ROADGRIP_* apply too"),
 ):
-    """A local cluster on 127.0.0.1: 3 RabbitMQ nodes joined into one cluster, PostgreSQL, workers and API replicas,
+    """A local cluster on 127.0.0.1: RabbitMQ nodes joined into one cluster, PostgreSQL, workers and API replicas,
     each waited for until healthy; runs until Ctrl-C or SIGTERM, then stops everything it started."""
     import logging
     import signal
@@ -780,8 +782,8 @@ def cluster_up(
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     data_dir = data_dir or Path(tempfile.mkdtemp(prefix="roadgrip-cluster-"))
-    cluster = LocalCluster(data_dir, workers=workers, apis=apis, partitions=partitions, api_port=api_port,
-                           config=config)
+    cluster = LocalCluster(data_dir, nodes=nodes, workers=workers, apis=apis, partitions=partitions,
+                           api_port=api_port, config=config)
 
     def interrupt(signum, _frame):
         raise KeyboardInterrupt(signal.Signals(signum).name)

@@ -4,7 +4,7 @@ order.
 
 | process | how many | started as | healthy when | its log, under the data directory |
 | --- | --- | --- | --- | --- |
-| RabbitMQ node | 3 | `rabbitmq-server` (roadgrip.cloud.edge.rabbitmq.RabbitCluster), joined into one cluster, the partition topology declared | the cluster runs 3 nodes, MQTT and management listeners open | rabbitmq/rgN/log/, rabbitmq/rgN/stdout.log |
+| RabbitMQ node | `nodes` (3) | `rabbitmq-server` (roadgrip.cloud.edge.rabbitmq.RabbitCluster), joined into one cluster, the partition topology declared | the cluster runs every node, MQTT and management listeners open | rabbitmq/rgN/log/, rabbitmq/rgN/stdout.log |
 | PostgreSQL | 1 | `pg_ctl start` (roadgrip.cloud.storage.local_postgres.LocalPostgres), database `roadgrip` | `pg_ctl start -w` returned, the database created | postgres/server.log |
 | worker | `workers` | `roadgrip worker --metrics-port` (roadgrip/cloud/worker/consumer.py) | every partition queue counts its consumer (management API), its /metrics answers | logs/worker-N.log |
 | API replica | `apis` | `roadgrip api` (roadgrip/cloud/api/cluster.py) | `GET /v1/health` answers 200 | logs/api-N.log |
@@ -16,10 +16,10 @@ does not stop within its grace period is killed with its whole process group.
 
 Secrets, each in a file of the data directory readable by its owner only: `admin-secret` (the API's admin, which
 registers vehicles) and `broker-secret` (the RabbitMQ service user `svc`, the workers' and the APIs' login). The
-workers get the broker's secret in their `--broker` URLs, visible to this machine's users in the process list: a local
-trial, not a deployment (README.md, "Cluster mode", says how to run the same on several machines).
+workers and replicas get the broker's secret in their `--broker` URLs, visible to this machine's users in the process
+list: a local trial, not a deployment (README.md, "Cluster mode", says how to run the same on several machines).
 
-No load balancer runs here: API replica k tells the vehicles it registers the MQTT listener of node k mod 3
+No load balancer runs here: API replica k tells the vehicles it registers the MQTT listener of node k mod `nodes`
 (`roadgrip api --mqtt`), and `roadgrip fleet --mqtt URL` (one per node) spreads a fleet over the nodes itself.
 
 A cluster is started once in its data directory: its state is not meant to be started again (the nodes' ports are
@@ -48,7 +48,6 @@ from roadgrip.cloud.storage.local_postgres import LocalPostgres
 
 log = logging.getLogger(__name__)
 
-NODES = 3  # RabbitCluster's nodes
 DATABASE = "roadgrip"
 DESCRIPTION = "cluster.json"  # what runs where, written once the cluster is ready
 WORKER_STOP_S = 60.0  # a worker's clean stop stores what it took and every vehicle's state
@@ -109,7 +108,7 @@ class Child:
 
 
 class LocalCluster:
-    """3 RabbitMQ nodes, PostgreSQL, `workers` workers and `apis` API replicas in `data_dir` (module docstring).
+    """`nodes` RabbitMQ nodes, PostgreSQL, `workers` workers and `apis` API replicas in `data_dir` (module docstring).
 
         with LocalCluster(Path("cluster-data"), workers=2, apis=2) as cluster:   # start() ... stop()
             cluster.api_urls, cluster.mqtt_urls, cluster.admin_secret
@@ -118,10 +117,10 @@ class LocalCluster:
     the next ones on the following ports (0: free ports). `config`: a settings file given to every worker and API
     replica (`--config`); their environment (ROADGRIP_*) is this process's. `data_dir` must be empty or absent."""
 
-    def __init__(self, data_dir: Path, *, workers: int = 2, apis: int = 2, partitions: int = 4, api_port: int = 0,
-                 config: Path | None = None, ready_timeout_s: float = 180.0):
-        for name, value, low in (("workers", workers, 0), ("apis", apis, 0), ("partitions", partitions, 1),
-                                 ("api_port", api_port, 0)):
+    def __init__(self, data_dir: Path, *, nodes: int = 3, workers: int = 2, apis: int = 2, partitions: int = 4,
+                 api_port: int = 0, config: Path | None = None, ready_timeout_s: float = 180.0):
+        for name, value, low in (("nodes", nodes, 1), ("workers", workers, 0), ("apis", apis, 0),
+                                 ("partitions", partitions, 1), ("api_port", api_port, 0)):
             if not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         if api_port and api_port + apis - 1 > 65535:
@@ -129,6 +128,7 @@ class LocalCluster:
         if config is not None and not Path(config).is_file():
             raise FileNotFoundError(f"config file {config} does not exist")
         self.data_dir = Path(data_dir).resolve()
+        self.nodes = nodes
         self.workers_wanted = workers
         self.apis_wanted = apis
         self.partitions = partitions
@@ -160,7 +160,7 @@ class LocalCluster:
     @property
     def amqp_urls(self) -> list[str]:
         """The service user's AMQP URL of each node, secret included."""
-        return [self.rabbit.amqp_url(i) for i in range(NODES)]
+        return [self.rabbit.amqp_url(i) for i in range(self.nodes)]
 
     @property
     def management_urls(self) -> list[str]:
@@ -180,7 +180,7 @@ class LocalCluster:
         try:
             say("PostgreSQL")
             self._start_postgres()
-            say(f"RabbitMQ: {NODES} nodes joined into one cluster (the slowest step)")
+            say(f"RabbitMQ: {self.nodes} node(s) joined into one cluster (the slowest step)")
             self._start_rabbit()
             if self.workers_wanted:
                 say(f"{self.workers_wanted} worker(s)")
@@ -243,12 +243,12 @@ class LocalCluster:
     def _start_rabbit(self) -> None:
         root = self.data_dir / "rabbitmq"
         root.mkdir()
-        self.rabbit = RabbitCluster(root, [], self.partitions, self.broker_secret)
+        self.rabbit = RabbitCluster(root, [], self.partitions, self.broker_secret, self.nodes)
         self.rabbit.start()
         self.rabbit.setup()
         running = self.rabbit.describe()["running_nodes"]
-        if len(running) != NODES:
-            raise ClusterError(f"RabbitMQ runs {len(running)} of {NODES} nodes ({running}): see {root}/rg*/log")
+        if len(running) != self.nodes:
+            raise ClusterError(f"RabbitMQ runs {len(running)} of {self.nodes} nodes ({running}): see {root}/rg*/log")
 
     def _child_env(self) -> dict[str, str]:
         return {**os.environ, "ROADGRIP_ADMIN_SECRET": self.admin_secret}
@@ -258,7 +258,7 @@ class LocalCluster:
 
     def _start_workers(self) -> None:
         for k in range(self.workers_wanted):
-            brokers = self.amqp_urls[k % NODES:] + self.amqp_urls[:k % NODES]  # spread their connections
+            brokers = self.amqp_urls[k % self.nodes:] + self.amqp_urls[:k % self.nodes]  # spread their connections
             port = free_port()
             args = ["worker", "--database", self.database_url, "--partitions", str(self.partitions),
                     *[arg for url in brokers for arg in ("--broker", url)], "--metrics-port", str(port),
@@ -287,7 +287,7 @@ class LocalCluster:
             args = ["api", "--host", HOST, "--port", str(port), "--database", self.database_url,
                     *[arg for url in self.amqp_urls for arg in ("--broker", url)],
                     *[arg for url in self.management_urls for arg in ("--management", url)],
-                    "--mqtt", self.mqtt_urls[k % NODES], *self._common_args()]
+                    "--mqtt", self.mqtt_urls[k % self.nodes], *self._common_args()]
             child = Child(f"api {k}", args, self.logs_dir / f"api-{k}.log", self._child_env(),
                           url=f"http://{HOST}:{port}")
             self.apis.append(child)
@@ -329,7 +329,7 @@ class LocalCluster:
             "rabbitmq": [{"node": self.rabbit.node_name(i), "pid": self.rabbit.pid(i),
                           "amqp": f"amqp://{SERVICE_USER}@{HOST}:{self.rabbit.amqp_ports[i]}/%2F",
                           "mqtt": self.mqtt_urls[i], "management": self.management_urls[i],
-                          "log": str(rabbit_root / f"rg{i}" / "log")} for i in range(NODES)],
+                          "log": str(rabbit_root / f"rg{i}" / "log")} for i in range(self.nodes)],
             "workers": [{"name": c.name, "pid": c.pid, "metrics": c.url, "log": str(c.log_path)}
                         for c in self.workers],
             "apis": [{"name": c.name, "pid": c.pid, "url": c.url, "log": str(c.log_path)} for c in self.apis],

@@ -90,7 +90,7 @@ def command_lines(pids: set[tuple[int, int]]) -> list[str]:
 
 
 def test_counts_and_a_used_data_directory_are_refused_before_anything_starts(tmp_path):
-    for bad in ({"workers": -1}, {"apis": 1.5}, {"partitions": 0}, {"api_port": -2}):
+    for bad in ({"nodes": 0}, {"workers": -1}, {"apis": 1.5}, {"partitions": 0}, {"api_port": -2}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             LocalCluster(tmp_path / "new", **bad)
     (tmp_path / "used").mkdir()
@@ -151,7 +151,7 @@ def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, 
     out = data_dir.parent / f"{data_dir.name}.out"
     with open(out, "wb") as log:
         proc = subprocess.Popen([sys.executable, "-m", "roadgrip", "cluster", "up", "--data-dir", str(data_dir),
-                                 "--workers", "1", "--apis", "1", "--partitions", "2"], stdout=log,
+                                 "--nodes", "2", "--workers", "1", "--apis", "1", "--partitions", "2"], stdout=log,
                                 stderr=subprocess.STDOUT, env={**os.environ, "COLUMNS": "200"},
                                 start_new_session=True)  # its own process group, as a terminal's job
     try:
@@ -160,11 +160,12 @@ def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, 
             assert proc.poll() is None and time.monotonic() < deadline, out.read_text()
             time.sleep(0.5)
         described = json.loads((data_dir / DESCRIPTION).read_text())
-        started = below(proc.pid, described["postgres"]["pid"])
+        assert len(described["rabbitmq"]) == 2
+        started = below(proc.pid, described["postgres"]["pid"], *[node["pid"] for node in described["rabbitmq"]])
         said = " ".join(out.read_text().split())
         assert described["apis"][0]["url"] in said and str(data_dir / "admin-secret") in said
         assert described["fleet_command"] in said
-        assert len(started) > 8  # the command, 3 nodes (and their helpers), epmd, PostgreSQL's, a worker, an API
+        assert len(started) > 7  # the command, 2 nodes (and their helpers), PostgreSQL's, a worker, an API
         if stop == "sigterm":
             proc.send_signal(signal.SIGTERM)
         else:

@@ -121,7 +121,7 @@ def rabbit_password_hash(password: str) -> str:
 
 
 class RabbitCluster:
-    """Three RabbitMQ nodes (rg0..rg2@localhost) on their own epmd, joined with `rabbitmqctl join_cluster`, plugins
+    """`nodes` RabbitMQ nodes (three by default: rg0..rg2@localhost) on their own epmd, joined with `rabbitmqctl join_cluster`, plugins
     rabbitmq_mqtt, rabbitmq_consistent_hash_exchange and rabbitmq_management (the HTTP API through which `roadgrip
     api` manages vehicles' broker users: roadgrip/cloud/edge/rabbit_users.py; a listener per node on 127.0.0.1,
     `management_url`). MQTT publishes land in amq.topic (routing key: the topic with
@@ -132,13 +132,16 @@ class RabbitCluster:
     name = "rabbitmq"
     bin_dir = Path("/usr/lib/rabbitmq/bin")
 
-    def __init__(self, root: Path, vehicles: list[str], partitions: int, secret: str):
+    def __init__(self, root: Path, vehicles: list[str], partitions: int, secret: str, nodes: int = 3):
+        if not isinstance(nodes, int) or nodes < 1:
+            raise ValueError(f"nodes must be a positive integer, got {nodes!r}")
         self.root, self.vehicles, self.partitions, self.secret = root, vehicles, partitions, secret
-        ports = free_ports(13)
-        self.amqp_ports, self.dist_ports, self.mqtt_ports = ports[0:3], ports[3:6], ports[6:9]
-        self.epmd_port = ports[9]
-        self.management_ports = ports[10:13]
-        self.procs: list[subprocess.Popen | None] = [None, None, None]
+        self.nodes = nodes
+        ports = free_ports(4 * nodes + 1)
+        self.amqp_ports, self.dist_ports = ports[0:nodes], ports[nodes:2 * nodes]
+        self.mqtt_ports, self.management_ports = ports[2 * nodes:3 * nodes], ports[3 * nodes:4 * nodes]
+        self.epmd_port = ports[4 * nodes]
+        self.procs: list[subprocess.Popen | None] = [None] * nodes
         self.epmd: subprocess.Popen | None = None
         self.home = root / "home"
 
@@ -186,18 +189,19 @@ class RabbitCluster:
         (self.root / "rabbitmq-env.conf").write_text("")
         (self.root / "enabled_plugins").write_text(
             "[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange,rabbitmq_management].\n")
+        # a session of its own, as the nodes': a terminal's Ctrl-C reaches the process that runs the cluster only
         self.epmd = subprocess.Popen(["epmd", "-port", str(self.epmd_port)], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+                                     stderr=subprocess.DEVNULL, start_new_session=True)
         wait_port(self.epmd_port, 10)
-        for i in range(3):
+        for i in range(self.nodes):
             self.start_node(i)
-        for i in range(3):
+        for i in range(self.nodes):
             self.ctl(i, "wait", str(self.root / f"rg{i}" / "pid"), "--timeout", "120", timeout_s=150)
-        for i in (1, 2):
+        for i in range(1, self.nodes):
             self.ctl(i, "stop_app")
             self.ctl(i, "join_cluster", self.node_name(0))
             self.ctl(i, "start_app")
-        for i in range(3):
+        for i in range(self.nodes):
             wait_port(self.mqtt_ports[i], 60)
             wait_port(self.management_ports[i], 60)
 
@@ -224,7 +228,7 @@ class RabbitCluster:
     def leader_of_partition(self, partition: int) -> int:
         out = self.ctl(0, "list_queues", "-q", "--formatter", "json", "name", "leader")
         leader = next(q["leader"] for q in json.loads(out) if q["name"] == partition_queue(partition))
-        return [self.node_name(i) for i in range(3)].index(leader)
+        return [self.node_name(i) for i in range(self.nodes)].index(leader)
 
     def describe(self) -> dict:
         out = self.ctl(0, "list_queues", "-q", "--formatter", "json", "name", "type", "leader", "members")
