@@ -45,8 +45,10 @@ from roadgrip.cloud.edge.rabbitmq import (
 from roadgrip.cloud.fanout.map_cells import region_of, stored_friction_map
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
+from roadgrip.cloud.worker.pipeline import MAX_ROUND_SAMPLES
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.sim.sensors import HEBEI_ORIGIN
+from roadgrip.vehicle.params import PAPER_SUV
 
 PARTITIONS = 4
 REGION_QUEUES = 4
@@ -56,13 +58,14 @@ START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
 VEHICLES = [f"{tag}-{name}" for tag in "xyz"
             for name in ("ice1", "ice2", "close1", "ping", "dry", "close2", "ice3", "close3")]
+STREAMING = [f"s{k:02d}" for k in range(8)]  # vehicles of the mid-stream kill
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
         pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
-    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), VEHICLES, PARTITIONS, "region-test-secret")
+    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), VEHICLES + STREAMING, PARTITIONS, "region-test-secret")
     try:
         rabbit.start()
         rabbit.setup()
@@ -177,10 +180,12 @@ class WarningsSubscriber:
         self.client.loop_stop()
 
 
-def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0, timeout_s: float = 60.0) -> None:
-    """Each vehicle publishes its samples, ten a message, QoS 1; returns once every message is PUBACKed. A vehicle
-    whose connection drops (RabbitMQ 3.10's MQTT plugin closes it on a quorum queue's nack during a leader election,
-    docs/CLUSTER.md, Workers) connects again and paho sends what was not PUBACKed again."""
+def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0, timeout_s: float = 60.0,
+          pace_s: float = 0.0) -> None:
+    """Each vehicle publishes its samples, ten a message, QoS 1 (the vehicles' k-th messages every `pace_s`, or at
+    once); returns once every message is PUBACKed. A vehicle whose connection drops (RabbitMQ 3.10's MQTT plugin
+    closes it on a quorum queue's nack during a leader election, docs/CLUSTER.md, Workers) connects again and paho
+    sends what was not PUBACKed again."""
     clients = []
     for vehicle, samples in runs:
         client = paho.Client(CallbackAPIVersion.VERSION2, client_id=vehicle, protocol=paho.MQTTv311)
@@ -192,10 +197,13 @@ def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int 
         client.connect(HOST, cluster.mqtt_ports[node])
         client.loop_start()
         assert connected.wait(10), f"{vehicle} not connected to node {node}"
-        # a message published while the connection is down is queued (rc: not connected) and sent on the next one
-        mids = {client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1).mid
-                for k in range(0, len(samples), 10)}
-        clients.append((client, mids, acked))
+        clients.append((client, set(), acked))
+    started = time.monotonic()
+    for m, k in enumerate(range(0, max(len(samples) for _, samples in runs), 10)):
+        time.sleep(max(0.0, started + m * pace_s - time.monotonic()))
+        for (vehicle, samples), (client, mids, _) in zip(runs, clients):
+            if k < len(samples):  # one published while the connection is down is queued and sent on the next one
+                mids.add(client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1).mid)
     deadline = time.monotonic() + timeout_s
     while not all(mids <= acked for _, mids, acked in clients):
         assert time.monotonic() < deadline, "messages not PUBACKed within the timeout"
@@ -355,6 +363,85 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
               f"{stats['region_publish_window_s_max']:.3f} s")
     finally:
         subscriber.close()
+        storage.close()
+        db.close()
+        first.stop()
+        second.stop()
+
+
+def stream(cluster: RabbitCluster, vehicles: list[str], seconds: float, start_ms: int, node: int) -> None:
+    """Each vehicle sends ten samples of steady driving (1 s of data, moving east) every 0.1 s for `seconds`, QoS 1,
+    and waits for the last PUBACKs (as tests/cloud/worker/test_worker.py's fleet, through one node)."""
+    def samples(vehicle: str, m: int) -> list[dict]:
+        w = 20.0 / PAPER_SUV.wheel_radius_m
+        return [{"vehicle_id": vehicle, "timestamp_ms": start_ms + 1000 * m + 100 * k, "latitude_deg": 38.1,
+                 "longitude_deg": 114.5 + 2e-4 * (m + k / 10), "speed_mps": 20.0, "accel_lon_mps2": 0.0,
+                 "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
+                 "wheel_speed_fl_radps": w, "wheel_speed_fr_radps": w, "wheel_speed_rl_radps": w,
+                 "wheel_speed_rr_radps": w, "abs_active": False, "acc_active": False, "tcs_active": False,
+                 "esc_active": False} for k in range(10)]
+
+    messages = int(seconds / 0.1)
+    drive(cluster, [(v, [s for m in range(messages) for s in samples(v, m)]) for v in vehicles], node=node,
+          pace_s=0.1)
+
+
+def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(cluster, postgres_database_url,
+                                                                              tmp_path):
+    """kill -9 of the worker that owns the region's queue while eight vehicles stream: afterwards every estimate stored
+    is counted in the saved map at most once, and those the map misses (the crash window: rounds stored and not yet
+    confirmed to the region stage when the worker died) are counted and printed."""
+    regions_on_distinct_queues(cluster, 1)  # purges the queues
+    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first.wait_ready()
+    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second.wait_ready()
+    logs = (first.log, second.log)
+    db = Database(postgres_database_url)
+    storage = open_storage(postgres_database_url)
+    start_ms = START_MS + 1_000_000
+    try:
+        streaming = threading.Thread(target=stream, args=(cluster, STREAMING, 16.0, start_ms, 1))
+        streaming.start()
+        wait_for("a region queue taken", lambda: db.region_owners(), 20, logs)
+        time.sleep(6.0)
+        owner = min(db.region_owners().items())[1][1]  # of the (first) region queue the vehicles' region is on
+        victim = first if owner.endswith(f":{first.proc.pid}") else second
+        victim.proc.send_signal(signal.SIGKILL)
+        victim.proc.wait()
+        at_kill = dict(db.conn.execute("SELECT vehicle_id, max(timestamp_ms) FROM estimates GROUP BY vehicle_id"))
+        streaming.join()
+
+        def counts() -> tuple[int, int]:
+            stored = db.conn.execute("SELECT count(*) FROM estimates WHERE h3_cell IS NOT NULL").fetchone()[0]
+            now_ms = start_ms + 20_000
+            mapped = sum(c.n_estimates for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms))
+            return stored, mapped
+
+        last = {"counts": (0, 0), "since": time.monotonic()}
+
+        def settled() -> bool:  # unchanged for 3 s: the last pipeline rounds, region messages and saves (each 1 s) done
+            now = counts()
+            if now != last["counts"]:
+                last.update(counts=now, since=time.monotonic())
+            return time.monotonic() - last["since"] >= 3.0
+
+        wait_for("the estimates and the map settled", settled, 60, logs)
+        stored, mapped = last["counts"]
+        print(f"\nworker kill mid-stream: {stored} estimates stored, {mapped} in the saved map, {stored - mapped} "
+              f"missing (the crash window)")
+        # where they are missing: per cell, against the newest estimate of each vehicle stored when it was killed
+        now_ms = start_ms + 20_000
+        in_map = {c.cell: c.n_estimates for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
+        for cell, n, first_ms, last_ms in db.conn.execute(
+                "SELECT h3_cell, count(*), min(timestamp_ms), max(timestamp_ms) FROM estimates GROUP BY h3_cell"):
+            if n != in_map.get(cell, 0):
+                print(f"  cell {cell}: {n} stored, {in_map.get(cell, 0)} in the map; stored estimates there from "
+                      f"{first_ms - start_ms} to {last_ms - start_ms} ms of data; the vehicles' newest stored at the "
+                      f"kill: {sorted(t - start_ms for t in at_kill.values())} ms")
+        assert stored > 0 and mapped <= stored  # nothing counted twice
+        assert stored - mapped <= MAX_ROUND_SAMPLES  # at most the one round the killed worker had not yet published
+    finally:
         storage.close()
         db.close()
         first.stop()
