@@ -27,7 +27,10 @@ active warnings from the database. Every SAVE_S it lets the server's clock end p
 owner stores nothing once another has taken the queue) and then acknowledges the messages applied: a message is
 acknowledged only once what it changed in the map is stored; warning changes are stored as they happen (fenced too),
 and their DENMs published on the MQTT warnings topic through amq.topic. When its connection fails or a write is fenced
-the consumer forgets the queue's regions and registers again: a region that comes back is restored afresh.
+the consumer forgets the queue's regions and registers again: a region that comes back is restored afresh. The first
+worker to register is active on every queue; region queues are then spread over the live workers as partitions are
+(`RegionOwners._spread`): a worker holding more than its share releases the queue it took last (cancel, save,
+acknowledge, close, register again), and the next waiting consumer takes it and restores its regions.
 
 Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 - Estimates stored and confirmed reach their region at least once. A region drops an estimate of a vehicle not newer
