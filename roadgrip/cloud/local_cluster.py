@@ -196,16 +196,22 @@ class LocalCluster:
         log.info("local cluster ready in %.0f s: %s", self.started_s, self.data_dir / DESCRIPTION)
 
     def stop(self) -> None:
-        """Stop everything started, in order (module docstring). Idempotent; the data directory is kept."""
-        for child in reversed(self.apis):
-            child.stop(API_STOP_S)
-        for child in reversed(self.workers):
-            child.stop(WORKER_STOP_S)
-        if self.rabbit is not None:
-            self.rabbit.stop()
-        pg = self.postgres
-        if pg is not None and pg.root is not None and (pg.root / "data" / "postmaster.pid").exists():
-            pg.stop()
+        """Stop everything started, in order (module docstring), each step even when an earlier one failed.
+        Idempotent; the data directory is kept."""
+        try:
+            try:
+                for child in (*reversed(self.apis), *reversed(self.workers)):
+                    try:
+                        child.stop(API_STOP_S if child in self.apis else WORKER_STOP_S)
+                    except OSError:
+                        log.exception("stopping %s failed", child.name)
+            finally:
+                if self.rabbit is not None:
+                    self.rabbit.stop()
+        finally:
+            pg = self.postgres
+            if pg is not None and pg.root is not None and (pg.root / "data" / "postmaster.pid").exists():
+                pg.stop()
 
     def __enter__(self) -> Self:
         self.start()
