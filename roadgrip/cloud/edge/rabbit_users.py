@@ -13,7 +13,8 @@ is a queue `mqtt-subscription-{client id}qos{0|1}` that the plugin declares (con
 the queue, read on amq.topic and, for a topic exchange, topic permission *read* on the binding key, wildcards as sent)
 and consumes (read on the queue). A login's MQTT client id must therefore be its name, optionally followed by '-' and 8
 hex digits (what `roadgrip.cloud.edge.mqtt.UserClient` and `VehicleClient` use): its subscription queues are the only
-queues it may touch.
+queues it may touch. The suffix matters: a CONNECT with a client id in use closes the connection that had it,
+whatever the login (measured, docs/CLUSTER.md "Stateless API"), so a bare vehicle id can be taken by another vehicle.
 
 | role | publish (topic write) | subscribe (topic read) |
 | --- | --- | --- |
