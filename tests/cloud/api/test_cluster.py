@@ -199,6 +199,26 @@ def test_a_vehicle_reaching_for_another_vehicles_topic_is_cut_off(cluster, repli
         vehicle.close()
 
 
+def test_a_client_id_in_use_is_taken_over_whatever_the_login(cluster, replicas):
+    """What docs/CLUSTER.md says of client ids (the reason for VehicleClient's random suffix): RabbitMQ 3.10 closes
+    the connection that had a client id when another login connects with it, on another node."""
+    one, _ = replicas
+    victim = MqttVehicle(cluster.mqtt_url(0), "bare-01", register(one, "bare-01"))
+    try:
+        assert victim.first("connect")[1] == 0
+        intruder = paho.Client(CallbackAPIVersion.VERSION2, client_id="bare-01", protocol=paho.MQTTv311)
+        intruder.username_pw_set("bare-02", register(one, "bare-02"))
+        intruder.connect(HOST, cluster.mqtt_ports[1])
+        intruder.loop_start()
+        try:
+            victim.first("disconnect")
+        finally:
+            intruder.disconnect()
+            intruder.loop_stop()
+    finally:
+        victim.close()
+
+
 def consume_partitions(cluster: RabbitCluster, want: int, timeout_s: float = 20) -> list[tuple[str, bytes]]:
     """Up to `want` messages from the partition queues (this is their single active consumer: no worker runs)."""
     connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(0)))
