@@ -100,6 +100,25 @@ def test_counts_and_a_used_data_directory_are_refused_before_anything_starts(tmp
     assert not (tmp_path / "used" / "logs").exists()
 
 
+def test_an_interrupt_while_starting_stops_what_was_started(data_dir):
+    """Ctrl-C after PostgreSQL and RabbitMQ are up, as the workers are about to start (the progress callback runs
+    before each step): start() stops both and raises the interrupt; nothing is left."""
+    cluster = LocalCluster(data_dir, nodes=1, workers=1, apis=0, partitions=1)
+    seen: dict[str, set[tuple[int, int]]] = {}
+
+    def progress(step: str) -> None:
+        if "worker" in step:
+            seen["started"] = {p for p in below(os.getpid(), cluster.postgres_pid()) if p[0] != os.getpid()}
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        cluster.start(progress)
+    assert not cluster.workers and not (data_dir / DESCRIPTION).exists()
+    assert len(seen["started"]) >= 3  # PostgreSQL's, the node's server, epmd
+    remaining = left(seen["started"])
+    assert not remaining, "left running:\n" + "\n".join(command_lines(remaining))
+
+
 def test_a_fleet_drives_against_the_local_cluster_and_nothing_is_left_after_it_stops(data_dir):
     cluster = LocalCluster(data_dir, workers=2, apis=2, partitions=4)
     try:
