@@ -28,6 +28,7 @@ from roadgrip.cloud.fanout.stations import covered_cells
 from roadgrip.cloud.fanout.warning_engine import WarningEngine
 from roadgrip.cloud.service import CloudService
 from roadgrip.cloud.storage.database import normalise_url, open_storage
+from tests.cloud.api.test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 
 NOT_AUTHORIZED = 0x87
 LAT, LON = 48.1372, 11.5755
@@ -219,8 +220,6 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
 
 
 def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
-    from test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
-
     require_chromium()
     now = int(time.time() * 1000)
     with serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (service, base_url), \
