@@ -44,8 +44,9 @@ In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing anoth
   limit answered with 429 is this replica's own (a vehicle spread over N replicas gets up to N times it through
   them); the limit of the worker that owns the vehicle counts every replica's and MQTT's samples together and refuses
   the excess on the vehicle's MQTT errors topic.
-- POST /v1/stations/{id}/reports: stored as embedded; the new reports' evidence is published to the owners of their
-  regions (roadgrip/cloud/fanout/regions.py), which add it to the map and the warnings.
+- POST /v1/stations/{id}/reports: stored as embedded; the evidence of every report of the payload (a duplicate's as
+  stored) is published to the owners of their regions (roadgrip/cloud/fanout/regions.py), which add it to the map and
+  the warnings. 503 when no broker node confirmed it within 10 s: the reports are stored, send them again.
 - GET /v1/map and /v1/map/datex2: the map the region owners saved (roadgrip/cloud/fanout/map_cells.py), at the
   replica's clock, read again when a second old; GET /v1/warnings: the stored warnings.
 - GET /v1/health: storage and broker reachability; GET /metrics: the replica's own counters.
@@ -69,7 +70,7 @@ from prometheus_client import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from roadgrip.cloud.api.backend import Accepted, ApiBackend
+from roadgrip.cloud.api.backend import Accepted, ApiBackend, VehicleIdRefused
 from roadgrip.cloud.api.dashboard import mount_dashboard
 from roadgrip.cloud.api.exports import datex2_xml
 from roadgrip.cloud.edge.auth import AuthError
@@ -296,6 +297,8 @@ def create_app(service: ApiBackend) -> FastAPI:
                 raise HTTPException(422, f"{where}: text with a NUL character or a lone surrogate cannot be stored")
         try:
             issued = service.register_vehicles([(item.vehicle_id, p) for item, p in zip(batch, profiles)])
+        except VehicleIdRefused as exc:
+            raise HTTPException(422, str(exc)) from None
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
         answers = [Issued(name=item.vehicle_id, role="vehicle", secret=secret, mqtt_url=service.mqtt_url)

@@ -33,6 +33,10 @@ class Accepted:
     messages: int  # AMQP messages it took (a request whose samples exceed max_payload_bytes is split)
 
 
+class VehicleIdRefused(ValueError):
+    """A vehicle id valid by the telemetry contract that this mode cannot carry (the message says why): 422."""
+
+
 @dataclass(frozen=True)
 class StationIngest:
     """What `station_reports` did with a payload of reports."""

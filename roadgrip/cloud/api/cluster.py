@@ -28,8 +28,13 @@ import orjson
 from prometheus_client.core import Metric
 from prometheus_client.registry import Collector
 
-from roadgrip.cloud.api.backend import Accepted, StationIngest
-from roadgrip.cloud.api.publisher import DEFAULT_CONNECTIONS, PUBLISH_BUCKETS_S, TelemetryPublisher
+from roadgrip.cloud.api.backend import Accepted, StationIngest, VehicleIdRefused
+from roadgrip.cloud.api.publisher import (
+    DEFAULT_CONNECTIONS,
+    PUBLISH_BUCKETS_S,
+    PUBLISH_DEADLINE_S,
+    TelemetryPublisher,
+)
 from roadgrip.cloud.edge.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.edge.ingest import RateLimited
 from roadgrip.cloud.edge.mqtt import telemetry_topic
@@ -38,7 +43,7 @@ from roadgrip.cloud.edge.ratelimit import RateLimiter
 from roadgrip.cloud.fanout.friction_map import FrictionMap
 from roadgrip.cloud.fanout.map_cells import stored_friction_map
 from roadgrip.cloud.fanout.regions import RegionPublisher, check_region_resolution, publish_station_evidence
-from roadgrip.cloud.fanout.stations import StationReport, stored_rows
+from roadgrip.cloud.fanout.stations import StationReport, stored_evidence_rows, stored_rows
 from roadgrip.cloud.metrics import counter, gauge, histogram
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
@@ -131,7 +136,14 @@ class ClusterBackend:
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:
         """As embedded, and each vehicle's RabbitMQ user with its permissions, created before the database commits:
         a broker that does not take them rolls the registration back (BrokerUnavailable: 503). Should the commit
-        itself fail after that, the users are deleted again."""
+        itself fail after that, the users are deleted again. A vehicle id with a '.' is refused (VehicleIdRefused):
+        RabbitMQ 3.10's MQTT plugin turns a topic's '/' into '.' and leaves its dots, so such an id would add words
+        to the routing key: its telemetry would match no partition binding and its friction topic would reach MQTT
+        subscribers under another topic."""
+        dotted = [vehicle_id for vehicle_id, _ in vehicles if "." in vehicle_id]
+        if dotted:
+            raise VehicleIdRefused(f"vehicle_id {dotted[0]!r}: a '.' cannot be carried in cluster mode (RabbitMQ's "
+                                   "MQTT plugin maps topic levels to '.'-separated words); use A-Za-z0-9_-")
         secrets_ = [new_secret() for _ in vehicles]
         logins = [(vehicle_id, secret, "vehicle") for (vehicle_id, _), secret in zip(vehicles, secrets_)]
         rows = [(vehicle_id, profile.to_dict(), hash_token(secret))
@@ -224,14 +236,28 @@ class ClusterBackend:
     # ------------------------------------------------------------------------------------------------- stations
     def station_reports(self, reports: list[StationReport]) -> StationIngest:
         """Store validated reports (idempotent on station_id and timestamp_ms), as embedded, then hand the evidence of
-        the new ones to the owners of their regions (roadgrip/cloud/fanout/regions.py `publish_station_evidence`:
-        one confirmed message per region), which add it to the map and the warnings. A report stored whose evidence
-        was not confirmed (the broker down: this waits for it) is not handed on when sent again (a duplicate)."""
+        every report of the payload to the owners of their regions (roadgrip/cloud/fanout/regions.py
+        `publish_station_evidence`: one confirmed message per region), which add it to the map and the warnings.
+
+        The reports are stored first: when the broker does not confirm the evidence within PUBLISH_DEADLINE_S (the
+        telemetry's deadline), BrokerUnavailable (503) says so, with the reports stored. Sending them again is the
+        way to hand the evidence on: they are then duplicates, and the evidence of a duplicate is published again,
+        as stored (not as sent again). A region applies a station's evidence once: its map keeps a station's newest
+        report per cell, its warning engine skips a station's evidence not newer than the last it applied there,
+        except in a region restored on another worker since (its engine does not know which station reports it
+        applied, as after serve's restart: a report sent again then counts once more towards its cell's warning)."""
         rows, evidence_of = stored_rows(reports, self.settings.h3_resolution)
         new = self.storage.put_station_reports(rows)
         fresh = [row for key in sorted(new, key=lambda k: k[1]) for row in evidence_of[key]]
-        if fresh:
-            publish_station_evidence(self.region_publisher, fresh, self.region_resolution)
+        repeated = [row for stored in self.storage.station_reports_of(evidence_of.keys() - new)
+                    for row in stored_evidence_rows(stored)]
+        if fresh or repeated:
+            try:
+                publish_station_evidence(self.region_publisher, fresh + repeated, self.region_resolution,
+                                         PUBLISH_DEADLINE_S)
+            except TimeoutError as exc:
+                raise BrokerUnavailable(f"{len(new)} new report(s) of {len(reports)} stored, but their evidence was "
+                                        f"not handed to the map ({exc}); send them again") from exc
         return StationIngest(len(reports), len(new), len(reports) - len(new), len(fresh))
 
     # ------------------------------------------------------------------------------------------------- reads

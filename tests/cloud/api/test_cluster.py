@@ -333,6 +333,9 @@ def test_replicas_register_a_fleet_at_once_with_one_broker_request(cluster, repl
     users = RabbitUsers([cluster.management_url(1)], SERVICE_USER, SECRET)
     assert all(users.exists(v["vehicle_id"]) for v in fleet[::7])
     assert two.http.post("/v1/vehicles", json=fleet[:1], auth=ADMIN).status_code == 409
+    dotted = two.http.post("/v1/vehicles", json=[{"vehicle_id": "fl-ok"}, {"vehicle_id": "car.1"}], auth=ADMIN)
+    assert dotted.status_code == 422 and "car.1" in dotted.json()["detail"]
+    assert not users.exists("fl-ok") and not users.exists("car.1")  # all or nothing
     answers = answer.json()
     assert {a["mqtt_url"] for a in answers} == {cluster.mqtt_url(0)}
     for a in answers[::10]:
