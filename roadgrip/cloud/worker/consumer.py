@@ -157,16 +157,6 @@ class _Timed:
         self.sink.tick(final)
 
 
-class _StoredOnly:
-    """The pipeline's sink in a worker: the estimates stay in the database (the fan-out by region is item 3)."""
-
-    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
-        """Nothing to hand on."""
-
-    def tick(self, final: bool) -> None:
-        """Nothing to do between rounds."""
-
-
 class _FencedStorage:
     """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` and `put_estimator_states` are
     fenced with the epochs of the partitions the rows' vehicles came from (module docstring)."""

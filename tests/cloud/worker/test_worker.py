@@ -29,9 +29,11 @@ from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.edge.mqtt import telemetry_topic
 from roadgrip.cloud.edge.rabbitmq import HOST, RabbitCluster, free_ports, partition_queue
+from roadgrip.cloud.fanout.fanout import Fanout, new_warning_engine
+from roadgrip.cloud.fanout.map_cells import new_friction_map
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
-from roadgrip.cloud.worker.consumer import Worker, _Acks, _FencedStorage, _StoredOnly
+from roadgrip.cloud.worker.consumer import Worker, _Acks, _FencedStorage
 from roadgrip.cloud.worker.pipeline import Pipeline
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import CALIBRATION
@@ -582,7 +584,8 @@ def drive(database_url: str, messages: range, skip_estimated: bool) -> float:
     settings = Settings(database_url=database_url)
     storage = open_storage(database_url)
     estimator = load_estimator(settings.estimator)
-    pipeline = Pipeline(storage, settings, estimator, _StoredOnly(), skip_estimated=skip_estimated)
+    fanout = Fanout(storage, settings, new_friction_map(settings), new_warning_engine(settings))  # serve's, unpublished
+    pipeline = Pipeline(storage, settings, estimator, fanout, skip_estimated=skip_estimated)
     pipeline.start()
     futures = [pipeline.submit("h0", [{**row, "tcs_active": False, "esc_active": False}
                                       for row in (telemetry_row("h0", 1000 * m + 100 * k) for k in range(10))],
