@@ -69,7 +69,7 @@ import pika.exceptions
 
 from roadgrip.cloud.edge.ingest import Ingest
 from roadgrip.cloud.edge.mqtt import errors_topic, vehicle_of_topic
-from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, partition_queue
+from roadgrip.cloud.edge.rabbitmq import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
 from roadgrip.cloud.fanout.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.process import warm_up
@@ -92,11 +92,6 @@ WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and c
 WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before partitions move
 MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
 HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
-
-
-def swap_dots_and_slashes(text: str) -> str:
-    """An MQTT topic from its AMQP routing key and back (RabbitMQ's MQTT plugin swaps '/' and '.')."""
-    return text.translate(str.maketrans("./", "/."))
 
 
 class _PartitionLost(Exception):
@@ -423,7 +418,7 @@ class Worker:
             log.info("partition %d taken, epoch %d", partition, acks.epoch)
         acks.handed = method.delivery_tag
         self.deliveries[partition] += 1
-        vehicle_id = vehicle_of_topic(swap_dots_and_slashes(method.routing_key))
+        vehicle_id = vehicle_of_topic(mqtt_routing_key(method.routing_key))
         if vehicle_id is None:
             log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition,
                         method.routing_key)
@@ -533,7 +528,7 @@ class Worker:
         published on the vehicle's errors topic."""
         self.rejected += len(errors)
         log.warning("rejected %d sample(s) from vehicle %s: %s", len(errors), vehicle_id, errors[0]["reason"])
-        self._channel.channel.basic_publish(MQTT_EXCHANGE, swap_dots_and_slashes(errors_topic(vehicle_id)),
+        self._channel.channel.basic_publish(MQTT_EXCHANGE, mqtt_routing_key(errors_topic(vehicle_id)),
                                             json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
 
 
