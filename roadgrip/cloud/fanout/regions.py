@@ -61,7 +61,13 @@ import pika
 import pika.exceptions
 
 from roadgrip.cloud.edge.rabbitmq import ESTIMATES_EXCHANGE, MQTT_EXCHANGE, mqtt_routing_key, region_queue
-from roadgrip.cloud.fanout.fanout import RegionFanout, VehicleFanout, estimate_message, new_warning_engine
+from roadgrip.cloud.fanout.fanout import (
+    WARNING_CHANGES,
+    RegionFanout,
+    VehicleFanout,
+    estimate_message,
+    new_warning_engine,
+)
 from roadgrip.cloud.fanout.map_cells import cell_rows, new_friction_map, region_of, restore_region
 from roadgrip.cloud.fanout.warning_engine import WarningEvent
 from roadgrip.cloud.settings import Settings
@@ -367,10 +373,11 @@ class Regions:
         return len(rows)
 
     def warning_changes(self) -> dict[str, int]:
-        changes: dict[str, int] = {}
-        for fanout in self.held.values():
+        """Warning events of the held regions by change (WARNING_CHANGES); read from any thread."""
+        changes = dict.fromkeys(WARNING_CHANGES, 0)
+        for fanout in list(self.held.values()):
             for change, n in fanout.warning_changes.items():
-                changes[change] = changes.get(change, 0) + n
+                changes[change] += n
         return changes
 
 
@@ -403,6 +410,8 @@ class RegionOwners:
         self.lost = 0  # queue connections lost or given up
         self.moves = 0  # region queues released to spread them over the workers
         self.cells_saved = 0
+        self._warning_changes_before = dict.fromkeys(WARNING_CHANGES, 0)  # of the queues this worker held earlier
+        self._held_lock = threading.Lock()  # `held` and `_warning_changes_before` change together (stats' counters)
         self._closing = threading.Event()
         self._registered = [threading.Event() for _ in range(self.queues)]
         self._release = [threading.Event() for _ in range(self.queues)]  # set by _spread, done by the consumer
@@ -436,15 +445,17 @@ class RegionOwners:
         self._threads = []
 
     def stats(self) -> dict:
-        held = [r for r in self.held if r is not None]
-        changes: dict[str, int] = {}
-        for regions in held:
-            for change, n in regions.warning_changes().items():
-                changes[change] = changes.get(change, 0) + n
-        return {"region_queues_held": [q for q, r in enumerate(self.held) if r is not None],
-                "regions_held": sum(len(r.held) for r in held), "region_messages_applied": list(self.messages),
-                "region_connections_lost": self.lost, "region_queue_moves": self.moves,
-                "map_cells_saved": self.cells_saved, "warning_changes": changes}
+        """Counters since this worker started (warning_changes: of every queue it held, a counter for metrics), and
+        the region queues and regions it holds now."""
+        with self._held_lock:
+            held = {q: r for q, r in enumerate(self.held) if r is not None}
+            changes = dict(self._warning_changes_before)
+            for regions in held.values():
+                for change, n in regions.warning_changes().items():
+                    changes[change] += n
+        return {"region_queues_held": list(held), "regions_held": sum(len(r.held) for r in held.values()),
+                "region_messages_applied": list(self.messages), "region_connections_lost": self.lost,
+                "region_queue_moves": self.moves, "map_cells_saved": self.cells_saved, "warning_changes": changes}
 
     # ----------------------------------------------------------------------------------------- spreading queues
 
@@ -531,7 +542,11 @@ class RegionOwners:
                 index += 1
                 time.sleep(RECONNECT_S)
             finally:
-                self.held[q] = None
+                with self._held_lock:
+                    if self.held[q] is not None:
+                        for change, n in self.held[q].warning_changes().items():
+                            self._warning_changes_before[change] += n
+                    self.held[q] = None
 
     def _on_message(self, q: int, state: _QueueState, channel, method, properties, body: bytes) -> None:
         if state.regions is None:  # the channel's first delivery: this consumer is the queue's active one

@@ -28,7 +28,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.edge.mqtt import telemetry_topic
-from roadgrip.cloud.edge.rabbitmq import HOST, RabbitCluster, free_ports, partition_queue
+from roadgrip.cloud.edge.rabbitmq import HOST, REGION_QUEUES, RabbitCluster, free_ports, partition_queue, region_queue
 from roadgrip.cloud.fanout.fanout import Fanout, new_warning_engine
 from roadgrip.cloud.fanout.map_cells import new_friction_map
 from roadgrip.cloud.settings import Settings
@@ -66,10 +66,13 @@ def cluster(tmp_path_factory):
 
 
 def purge(cluster: RabbitCluster, node: int) -> None:
+    """Empty the partition and region queues (what an earlier test's workers left there belongs to its database)."""
     connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(node)))
     channel = connection.channel()
     for p in range(PARTITIONS):
         channel.queue_purge(partition_queue(p))
+    for q in range(REGION_QUEUES):
+        channel.queue_purge(region_queue(q))
     connection.close()
 
 
@@ -201,6 +204,9 @@ class Database:
         from roadgrip.cloud.worker.checkpoints import unpack_state
         rows = self.conn.execute("SELECT vehicle_id, state FROM estimator_states WHERE estimator = 'pmf'").fetchall()
         return {v: unpack_state(state)["inner"]["memory"][CALIBRATION["accel_bias_weight_s"]] for v, state in rows}
+
+    def warnings_raised(self) -> int:
+        return self.conn.execute("SELECT count(DISTINCT warning_id) FROM warnings").fetchone()[0]
 
     def partition_owners(self) -> dict[int, str]:
         return dict(self.conn.execute("SELECT partition_id, owner FROM partition_owners").fetchall())
@@ -398,9 +404,17 @@ def scrape(port: int) -> dict[str, dict[tuple, float]]:
     return samples
 
 
+def regions_caught_up(m: dict[str, dict[tuple, float]]) -> bool:
+    """Whether a worker alone has applied every region message it published and saved a map cell (its scrape `m`)."""
+    return (sum(m["roadgrip_region_messages_applied_total"].values())
+            >= m["roadgrip_region_messages_published_total"][()] and m["roadgrip_map_cells_saved_total"][()] >= 1)
+
+
 def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
     """A running worker's /metrics (`--metrics-port`): what it received and stored, the estimates' latency, the
-    estimator's time, each partition held (all four: it is alone) and the queues' depth."""
+    estimator's time, each partition held (all four: it is alone) and the queues' depth; its region fan-out: the
+    vehicles drive in one map cell, so one region, whose queue it holds, and every region message it published is
+    applied there."""
     vehicles = vehicles_of("e")
     purge(cluster, 0)
     port = free_ports(1)[0]
@@ -426,6 +440,24 @@ def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
         assert m["roadgrip_workers_live"][()] == 1.0
         assert m["roadgrip_samples_rejected_total"][(("process", "main"), ("reason", "invalid"),
                                                      ("transport", "mqtt"))] == 0
+        deadline = time.monotonic() + 15.0  # region messages are applied as they come, cells saved every second
+        while not regions_caught_up(m) and time.monotonic() < deadline:
+            time.sleep(0.5)
+            m = scrape(port)
+        published = m["roadgrip_region_messages_published_total"][()]
+        applied = m["roadgrip_region_messages_applied_total"]
+        queues = [(("region_queue", str(q)),) for q in range(REGION_QUEUES)]
+        active = [q for q in queues if m["roadgrip_region_queue_active"][q] == 1.0]
+        assert len(active) == 1 and set(m["roadgrip_region_queue_active"]) == set(queues) == set(applied)
+        assert published > 0 and applied[active[0]] == published and sum(applied.values()) == published
+        assert m["roadgrip_regions_held"][()] == 1.0
+        assert m["roadgrip_map_cells_saved_total"][()] >= 1
+        warnings = m["roadgrip_warnings_total"]
+        assert set(warnings) == {(("change", c),) for c in ("raised", "refreshed", "cancelled", "expired")}
+        assert warnings[(("change", "raised"),)] == db.warnings_raised()
+        assert m["roadgrip_region_publish_failures_total"][()] == 0
+        assert 0 < m["roadgrip_region_publish_window_max_seconds"][()] < FAILOVER_LIMIT_S
+        assert m["roadgrip_region_queue_moves_total"][()] == m["roadgrip_region_queue_connections_lost_total"][()] == 0
     finally:
         stop_running(worker)
         db.close()
