@@ -656,7 +656,7 @@ def bench_cluster_command(
     each for a fixed window."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from roadgrip.cloud.worker.bench import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
+    from roadgrip.cloud.worker.capacity import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
 
     try:
         counts = tuple(int(w) for w in workers.split(","))

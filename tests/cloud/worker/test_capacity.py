@@ -1,4 +1,4 @@
-"""`roadgrip bench cluster` at a tiny size (roadgrip/cloud/worker/bench.py): it starts its own 3 RabbitMQ nodes and
+"""`roadgrip bench cluster` at a tiny size (roadgrip/cloud/worker/capacity.py): it starts its own 3 RabbitMQ nodes and
 PostgreSQL, runs every case and reports what the vehicles got PUBACKed and what the workers stored. A behaviour test:
 the figures' values are this machine's and not checked, only that each case measured something real."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from roadgrip.cloud.edge.rabbitmq import RabbitCluster
-from roadgrip.cloud.worker.bench import ClusterBench, format_cluster_bench, run_cluster_bench
+from roadgrip.cloud.worker.capacity import ClusterBench, format_cluster_bench, run_cluster_bench
 
 
 def test_cluster_bench_measures_every_case():
