@@ -54,7 +54,9 @@ TIMEOUT_S = 10.0
 
 
 class BrokerUnavailable(RuntimeError):
-    """No management API of the list answered (every node down or unreachable); nothing was changed."""
+    """The broker did not answer in time (the API answers 503): no management API of the list answered (every node
+    down or unreachable; nothing was changed), or no node confirmed a station's evidence (the message says what was
+    stored, roadgrip/cloud/api/cluster.py `station_reports`)."""
 
 
 def routing_key(topic: str) -> str:

@@ -139,11 +139,18 @@ class RegionPublisher:
 
     def publish(self, region: str, body: bytes, deadline_s: float | None = None) -> None:
         """Publish one message to rg.estimates keyed by `region` and wait for its confirm; on a failure (a nack, a
-        lost connection) publish it again through the next broker, until confirmed (a worker's pipeline waits so:
-        its deliveries stay unacknowledged meanwhile), or until `deadline_s` after the first try (TimeoutError: an
-        HTTP request cannot wait for ever). RuntimeError once `close` was called and it is still not confirmed."""
+        lost connection, no broker reachable) publish it again through the next broker, until confirmed (a worker's
+        pipeline waits so: its deliveries stay unacknowledged meanwhile), or, with `deadline_s`, until that many
+        seconds after the call (TimeoutError: an HTTP request cannot wait for ever). The deadline counts the wait
+        for another thread's publish and is checked between tries, as the API's telemetry publisher does: a try
+        under way is not cut short (a connection attempt ends after socket_timeout, 2 s; a silent broker is given
+        up by the heartbeat, 5 s; a broker that stays connected without confirming holds the try until it
+        confirms). RuntimeError once `close` was called and it is still not confirmed."""
         started = time.monotonic()
-        with self._lock:
+        if not self._lock.acquire(timeout=-1 if deadline_s is None else max(0.0, deadline_s)):
+            raise TimeoutError(f"region message for {region} not published within {deadline_s:.1f} s: the publisher "
+                               "was busy with another message all that time")
+        try:
             while True:
                 try:
                     if self._connection is None:
@@ -160,8 +167,11 @@ class RegionPublisher:
                     if self._closing.is_set():
                         raise RuntimeError(f"region message for {region} not confirmed before the close") from exc
                     if deadline_s is not None and time.monotonic() - started + RECONNECT_S > deadline_s:
-                        raise TimeoutError(f"region message for {region} not confirmed within {deadline_s} s") from exc
+                        raise TimeoutError(f"region message for {region} not confirmed within "
+                                           f"{deadline_s:.1f} s") from exc
                     time.sleep(RECONNECT_S)
+        finally:
+            self._lock.release()
 
     def publish_mqtt(self, topic: str, payload: bytes) -> None:
         """Publish on an MQTT topic through amq.topic, without a confirm: at most once (a vehicle's estimates, as
@@ -196,16 +206,18 @@ class RegionPublisher:
 
 def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], region_resolution: int,
                              deadline_s: float | None = None) -> int:
-    """Hand the evidence of newly stored roadside station reports (roadgrip/cloud/fanout/stations.py `evidence_rows`:
+    """Hand the evidence of stored roadside station reports (roadgrip/cloud/fanout/stations.py `evidence_rows`:
     station_id, cell, timestamp_ms, mu, mu_lower, mu_upper; one row per covered cell) to the owners of their cells'
-    regions: one confirmed message per region (`deadline_s`: for each, as RegionPublisher.publish). Returns the
-    messages published. The stations route of `roadgrip api` calls it after `Storage.put_station_reports`, with the
-    rows of the reports newly stored."""
+    regions: one confirmed message per region, all of them within `deadline_s` of the call (TimeoutError, as
+    RegionPublisher.publish; the regions published before stay published). Returns the messages published. The
+    stations route of `roadgrip api` calls it after `Storage.put_station_reports`."""
+    started = time.monotonic()
     by_region: dict[str, list[dict]] = {}
     for row in rows:
         by_region.setdefault(region_of(row["cell"], region_resolution), []).append(row)
     for region, group in sorted(by_region.items()):
-        publisher.publish(region, orjson.dumps({"stations": group}), deadline_s)
+        left_s = None if deadline_s is None else deadline_s - (time.monotonic() - started)
+        publisher.publish(region, orjson.dumps({"stations": group}), left_s)
     return len(by_region)
 
 

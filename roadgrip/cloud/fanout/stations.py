@@ -230,6 +230,16 @@ def evidence_rows(report: StationReport, resolution: int, radius_m: float = COVE
             for cell in covered_cells(report.latitude_deg, report.longitude_deg, resolution, radius_m)]
 
 
+def stored_evidence_rows(stored: dict) -> list[dict]:
+    """`evidence_rows` of a stored report (a row of the station_reports table: its evidence's mu, mu_lower, mu_upper,
+    null for none, and its covered cells)."""
+    if stored["mu"] is None:
+        return []
+    return [{"station_id": stored["station_id"], "cell": cell, "timestamp_ms": stored["timestamp_ms"],
+             "mu": stored["mu"], "mu_lower": stored["mu_lower"], "mu_upper": stored["mu_upper"]}
+            for cell in stored["cells"]]
+
+
 def stored_rows(reports: list[StationReport], resolution: int) -> tuple[list[dict], dict[tuple[str, int], list[dict]]]:
     """What storing `reports` takes: the rows for `Storage.put_station_reports` (the report, its evidence's mu,
     mu_lower and mu_upper, null for none, and its covered cells), and each report's `evidence_rows` by its key

@@ -38,7 +38,7 @@ import logging
 import operator
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -657,6 +657,15 @@ class Storage:
         newest = select(c.station_id, func.max(c.timestamp_ms)).group_by(c.station_id)
         query = select(station_reports_table).where(sa.tuple_(c.station_id, c.timestamp_ms).in_(newest))
         return self._all(query.order_by(c.station_id))
+
+    def station_reports_of(self, keys: Iterable[tuple[str, int]]) -> list[dict]:
+        """The stored reports with these keys (station_id, timestamp_ms), oldest first; keys not stored are left out."""
+        keys = sorted(set(keys))
+        if not keys:
+            return []
+        c = station_reports_table.c
+        return self._all(select(station_reports_table).where(sa.tuple_(c.station_id, c.timestamp_ms).in_(keys))
+                         .order_by(c.timestamp_ms, c.station_id))
 
     def station_reports_since(self, since_ms: int, limit: int = 100_000) -> list[dict]:
         """The reports of all stations with timestamp_ms >= since_ms, oldest first, at most `limit`."""

@@ -20,13 +20,26 @@ import paho.mqtt.client as paho
 import pika
 import pytest
 from drives import patch_drive
+from fastapi.testclient import TestClient
 from paho.mqtt.enums import CallbackAPIVersion
 
+from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.api.cluster import ClusterBackend
+from roadgrip.cloud.api.publisher import PUBLISH_DEADLINE_S
 from roadgrip.cloud.edge.mqtt import WARNINGS_TOPIC, friction_topic, telemetry_topic
 from roadgrip.cloud.edge.rabbit_users import RabbitUsers
-from roadgrip.cloud.edge.rabbitmq import HOST, SERVICE_USER, RabbitCluster, free_ports, partition_queue
+from roadgrip.cloud.edge.rabbitmq import (
+    HOST,
+    REGION_QUEUES,
+    SERVICE_USER,
+    RabbitCluster,
+    free_ports,
+    partition_queue,
+    region_queue,
+)
 from roadgrip.cloud.edge.wire import parse_payload
-from roadgrip.cloud.fanout.map_cells import cell_rows, new_friction_map
+from roadgrip.cloud.fanout.map_cells import cell_rows, new_friction_map, region_of
+from roadgrip.cloud.fanout.stations import covered_cells
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.storage.local_postgres import create_database, drop_database
@@ -390,6 +403,59 @@ def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches
     finally:
         worker.terminate()
         worker.wait(60)
+
+
+def region_messages(cluster: RabbitCluster) -> int:
+    """Messages waiting in the region queues (no worker consumes them now)."""
+    connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(1)))
+    try:
+        channel = connection.channel()
+        return sum(channel.queue_declare(region_queue(q), passive=True).method.message_count
+                   for q in range(REGION_QUEUES))
+    finally:
+        connection.close()
+
+
+def test_a_station_report_sent_again_is_handed_on_again_and_without_a_broker_answers_503_stored(cluster,
+                                                                                                 database_url):
+    """A replica's backend in this process, through the API's routes: a station's report is stored and its evidence
+    handed to the region stage (a message per region of its cells); sent again, it is a duplicate whose evidence is
+    handed on again (the region owner applies it once). With no broker reachable, a new report is stored and the
+    route answers 503 after the publish deadline, saying so."""
+    settings = Settings(database_url=database_url, admin_secret=ADMIN[1])
+    management = [cluster.management_url(1)]
+    reachable = ClusterBackend(settings, [cluster.amqp_url(1)], management)
+    unreachable = ClusterBackend(settings, [f"amqp://{SERVICE_USER}:{SECRET}@{HOST}:{free_ports(1)[0]}/%2F"],
+                                 management)
+    reachable.start()
+    unreachable.start()
+    try:
+        with TestClient(create_app(reachable)) as client:
+            station = client.post("/v1/stations", json={"station_id": "rws-again"}, auth=ADMIN).json()
+            auth = ("rws-again", station["secret"])
+            report = {"station_id": "rws-again", "timestamp_ms": int(time.time() * 1000) - 5000, "latitude_deg": 46.9,
+                      "longitude_deg": 7.4, "surface_state": "ice"}
+            regions = {region_of(cell, settings.region_resolution)
+                       for cell in covered_cells(46.9, 7.4, settings.h3_resolution)}
+            before = region_messages(cluster)
+            first = client.post("/v1/stations/rws-again/reports", json=report, auth=auth)
+            assert first.status_code == 200 and first.json()["stored"] == 1, first.text
+            assert region_messages(cluster) == before + len(regions)
+            again = client.post("/v1/stations/rws-again/reports", json=report, auth=auth)
+            assert again.status_code == 200 and again.json()["duplicates"] == 1, again.text
+            assert region_messages(cluster) == before + 2 * len(regions)
+        later = {**report, "timestamp_ms": report["timestamp_ms"] + 1000}
+        with TestClient(create_app(unreachable)) as client:
+            started = time.monotonic()
+            answer = client.post("/v1/stations/rws-again/reports", json=later, auth=auth)
+            took_s = time.monotonic() - started
+        assert answer.status_code == 503 and "1 new report(s) of 1 stored" in answer.json()["detail"], answer.text
+        assert PUBLISH_DEADLINE_S - 1 < took_s < PUBLISH_DEADLINE_S + 2
+        assert len(reachable.storage.station_reports_of([("rws-again", later["timestamp_ms"])])) == 1
+        assert region_messages(cluster) == before + 2 * len(regions)
+    finally:
+        unreachable.stop()
+        reachable.stop()
 
 
 def test_telemetry_is_still_accepted_through_the_next_node_when_a_broker_node_dies(cluster, replicas):

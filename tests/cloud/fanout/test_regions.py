@@ -8,7 +8,8 @@ subscribed to the warnings topic.
   topic; the map the region owners saved, read back as an API replica would, shows the patch.
 - kill -9 of the worker that owns a region's queue: the other worker takes the queue over, restores the region's map
   cells and active warnings from PostgreSQL, and a vehicle that then brakes on dry road where the ice was cancels the
-  warnings raised before the kill (stored, and published with the DENM's termination)."""
+  warnings raised before the kill (stored, and published with the DENM's termination).
+- A station's evidence published by an API replica with no broker reachable is given up at its deadline."""
 
 from __future__ import annotations
 
@@ -39,10 +40,12 @@ from roadgrip.cloud.edge.rabbitmq import (
     HOST,
     SERVICE_USER,
     RabbitCluster,
+    free_ports,
     partition_queue,
     region_queue,
 )
 from roadgrip.cloud.fanout.map_cells import region_of, stored_friction_map
+from roadgrip.cloud.fanout.regions import RegionPublisher, publish_station_evidence
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.worker.pipeline import MAX_ROUND_SAMPLES
@@ -488,3 +491,19 @@ def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, 
         db.close()
         first.stop()
         second.stop()
+
+
+def test_station_evidence_with_no_broker_reachable_is_given_up_at_its_deadline():
+    """Nothing listens on the brokers' ports (connections refused): the evidence is tried again, through one broker
+    then the other, and given up at the deadline (TimeoutError, which the API answers with 503)."""
+    publisher = RegionPublisher([f"amqp://{SERVICE_USER}:x@{HOST}:{port}/%2F" for port in free_ports(2)])
+    cell = h3.latlng_to_cell(48.1, 11.5, SETTINGS.h3_resolution)
+    row = {"station_id": "rws-1", "cell": cell, "timestamp_ms": START_MS, "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3}
+    started = time.monotonic()
+    try:
+        with pytest.raises(TimeoutError, match="not confirmed within 1.0 s"):
+            publish_station_evidence(publisher, [row], SETTINGS.region_resolution, deadline_s=1.0)
+    finally:
+        publisher.close()
+    assert time.monotonic() - started < 1.5
+    assert publisher.failures >= 2 and publisher.published == 0  # tried again, through both brokers

@@ -1,5 +1,6 @@
 """Roadside station reports (roadgrip/cloud/fanout/stations.py): the format's validation, the covered cells, and the friction
-evidence a report gives (ice reads low, dry reads high, intervals ordered and inside [0, 1.2])."""
+evidence a report gives (ice reads low, dry reads high, intervals ordered and inside [0, 1.2]), and that evidence
+read back from a stored report (SQLite and PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ from roadgrip.cloud.fanout.stations import (
     evidence,
     evidence_rows,
     parse_reports,
+    stored_evidence_rows,
+    stored_rows,
 )
 from roadgrip.cloud.fanout.warning_engine import THRESHOLD_MU
 
@@ -144,3 +147,18 @@ def test_evidence_rows_give_one_row_per_covered_cell_and_none_for_unknown():
     assert {(r["station_id"], r["timestamp_ms"], r["mu"]) for r in rows} == {("rws-a9-km12", REPORT["timestamp_ms"],
                                                                               0.12)}
     assert evidence_rows(StationReport(**{**REPORT, "surface_state": "unknown"}), 10) == []
+
+
+def test_a_stored_reports_evidence_reads_back_as_the_reports_own(storage):
+    """What a cluster API replica hands on again for a duplicate: the evidence of the report as stored, the same rows
+    as the report's own; none for a report without evidence; keys not stored are left out."""
+    reports = parse([REPORT, {**REPORT, "timestamp_ms": NOW_MS - 20_000, "surface_state": "dry"},
+                     {**REPORT, "timestamp_ms": NOW_MS - 10_000, "surface_state": "unknown"}])
+    rows, evidence_of = stored_rows(reports, 10)
+    assert storage.put_station_reports(rows) == set(evidence_of)
+    stored = storage.station_reports_of([*reversed(evidence_of), ("rws-elsewhere", NOW_MS)])
+    assert [(r["station_id"], r["timestamp_ms"]) for r in stored] == list(evidence_of)  # oldest first
+    assert {(r["station_id"], r["timestamp_ms"]): stored_evidence_rows(r) for r in stored} == evidence_of
+    assert [len(e) for e in evidence_of.values()] == [len(covered_cells(REPORT["latitude_deg"],
+                                                                        REPORT["longitude_deg"], 10))] * 2 + [0]
+    assert storage.station_reports_of([]) == []
