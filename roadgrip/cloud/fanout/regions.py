@@ -49,7 +49,6 @@ Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 
 from __future__ import annotations
 
-import collections
 import functools
 import logging
 import threading
@@ -72,11 +71,11 @@ from roadgrip.cloud.fanout.map_cells import cell_rows, new_friction_map, region_
 from roadgrip.cloud.fanout.warning_engine import WarningEvent
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable
+from roadgrip.cloud.worker.spread import Spread
 
 log = logging.getLogger(__name__)
 
 SPREAD_WATCH_S = 1.0  # how often a region owner checks its share of the region queues
-WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before region queues move
 MOVE_INTERVAL_S = 3.0  # a worker releases at most one region queue in this time
 SAVE_S = 1.0  # how often a region owner saves the changed cells and acknowledges (so: at most once a second a cell)
 CLEANUP_S = 60.0  # how often it deletes its regions' cells older than map_max_age_s from the database
@@ -420,7 +419,7 @@ class RegionOwners:
         self.held: list[Regions | None] = [None] * self.queues  # each queue's regions while this worker is active
         self.messages = [0] * self.queues  # region messages applied, per queue
         self.lost = 0  # queue connections lost or given up
-        self.moves = 0  # region queues released to spread them over the workers
+        self.spread = Spread(self.queues, "region queue", owner, MOVE_INTERVAL_S)  # its share of the queues
         self.cells_saved = 0
         self._warning_changes_before = dict.fromkeys(WARNING_CHANGES, 0)  # of the queues this worker held earlier
         self._held_lock = threading.Lock()  # `held` and `_warning_changes_before` change together (stats' counters)
@@ -428,9 +427,6 @@ class RegionOwners:
         self._registered = [threading.Event() for _ in range(self.queues)]
         self._release = [threading.Event() for _ in range(self.queues)]  # set by _spread, done by the consumer
         self._taken_at = [0.0] * self.queues  # when each queue held was taken (monotonic s)
-        self._workers_seen: int | None = None
-        self._workers_since = 0.0
-        self._next_move_at = 0.0
         self._threads: list[threading.Thread] = []
 
     def start(self, ready_timeout_s: float = 60.0) -> None:
@@ -467,7 +463,7 @@ class RegionOwners:
                     changes[change] += n
         return {"region_queues_held": list(held), "regions_held": sum(len(r.held) for r in held.values()),
                 "region_messages_applied": list(self.messages), "region_connections_lost": self.lost,
-                "region_queue_moves": self.moves, "map_cells_saved": self.cells_saved, "warning_changes": changes}
+                "region_queue_moves": self.spread.moves, "map_cells_saved": self.cells_saved, "warning_changes": changes}
 
     # ----------------------------------------------------------------------------------------- spreading queues
 
@@ -479,37 +475,14 @@ class RegionOwners:
                 log.warning("region owners not read (tried again in %.0f s): %s", SPREAD_WATCH_S, exc)
 
     def _spread(self, now: float) -> None:
-        """Release the region queue taken last when this worker holds more than its share: more than
-        ceil(M / live workers), or more than floor(M / live workers) >= 1 while a live worker holds none and this one
-        holds the most (ties: the smallest owner name). As the worker spreads partitions (roadgrip/cloud/worker/
-        consumer.py): nothing moves until the live workers' count has held WORKERS_SETTLE_S, at most one queue
-        every MOVE_INTERVAL_S."""
-        workers = self.live_workers()
-        if workers != self._workers_seen:
-            self._workers_seen, self._workers_since = workers, now
-        if (not workers or now - self._workers_since < WORKERS_SETTLE_S or now < self._next_move_at
-                or any(e.is_set() for e in self._release)):
+        """Release the region queue taken last when this worker holds more than its share (the rule of
+        roadgrip/cloud/worker/spread.py, the partitions' own)."""
+        if any(e.is_set() for e in self._release):
             return
-        held = [q for q, r in enumerate(self.held) if r is not None]
-        high, low = -(-self.queues // workers), self.queues // workers
-        reason = None
-        if len(held) > high:
-            reason = f"holds {len(held)} of {self.queues} region queues, more than ceil(M / {workers} live " \
-                     f"workers) = {high}"
-        elif low >= 1 and len(held) > low:
-            owners = collections.Counter(self.storage.region_owners().values())
-            idle = workers - len(owners)  # live workers holding none (fewer where a dead owner is still named)
-            most = max(owners.values(), default=0)
-            if idle > 0 and owners.get(self.owner) == most == len(held) \
-                    and min(o for o, n in owners.items() if n == most) == self.owner:
-                reason = f"holds {len(held)}, the most, while {idle} of {workers} live workers hold none"
-        if reason is None:
-            return
-        q = max(held, key=lambda k: self._taken_at[k])
-        log.info("releasing region queue %d: this worker %s", q, reason)
-        self.moves += 1
-        self._next_move_at = now + MOVE_INTERVAL_S
-        self._release[q].set()
+        held = {q: self._taken_at[q] for q, r in enumerate(self.held) if r is not None}
+        q = self.spread.release(now, self.live_workers(), held, self.storage.region_owners)
+        if q is not None:
+            self._release[q].set()
 
     def _consume(self, q: int) -> None:
         index = q

@@ -10,16 +10,13 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   (consumer priorities do not choose the single active consumer of a quorum queue there), so workers hand partitions
   over themselves. Live workers are counted by the broker: each worker holds a consumer on the quorum queue
   WORKERS_QUEUE (nothing is ever published to it), whose consumer count a passive declare returns (a queue with
-  single-active-consumer counts only its active consumer). A worker that holds more than ceil(partitions / workers)
-  partitions, or holds more than floor(partitions / workers) >= 1 while a live worker holds none (the owners in
-  partition_owners) and is the one holding most (ties: the smallest owner name), releases the partition it took
-  last: it stops handing that queue's deliveries to the pipeline, waits until what it handed over is stored and
-  acknowledged, lets the pipeline store those vehicles' states and forget them (`Pipeline.hand_over`), closes that
-  connection (the next waiting consumer becomes active; what was delivered and not taken goes back to the queue) and
-  registers again, at the end of the waiting list. Against flapping: nothing moves until the count of live workers
-  has held for WORKERS_SETTLE_S, a worker releases at most one partition every MOVE_INTERVAL_S, and nothing moves
-  while every worker is within [floor, ceil]. A worker that receives a partition it does not need passes it on the
-  same way, to the next in that queue's waiting list. Each move is logged.
+  single-active-consumer counts only its active consumer). The rule of roadgrip/cloud/worker/spread.py (`Spread`:
+  more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S) picks the partition to release,
+  the one it took last: the worker stops handing that queue's deliveries to the pipeline, waits until what it handed
+  over is stored and acknowledged, lets the pipeline store those vehicles' states and forget them
+  (`Pipeline.hand_over`), closes that connection (the next waiting consumer becomes active; what was delivered and
+  not taken goes back to the queue) and registers again, at the end of the waiting list. A worker that receives a
+  partition it does not need passes it on the same way, to the next in that queue's waiting list.
 - One connection per partition (a thread each), to the node `partition mod len(brokers)` of the worker's list, the
   next one after a failure: a dead node costs only the partitions consumed through it.
 - A message is an MQTT publish as the broker's MQTT plugin forwarded it: the routing key is the topic with '/' and '.'
@@ -54,7 +51,6 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 
 from __future__ import annotations
 
-import collections
 import functools
 import itertools
 import json
@@ -76,6 +72,7 @@ from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
 from roadgrip.cloud.worker.pipeline import Pipeline, StoredSink
+from roadgrip.cloud.worker.spread import Spread
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
@@ -89,7 +86,6 @@ RECONNECT_S = 0.2  # wait before connecting again after a failure (to the next n
 STATS_S = 10.0  # how often the worker logs its counters
 WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
 WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
-WORKERS_SETTLE_S = 5.0  # the live workers' count must hold this long before partitions move
 MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
 HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
 
@@ -228,20 +224,17 @@ class Worker:
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
         self.fenced = 0  # rounds' writes that found a partition taken by another worker
-        self.moves = 0  # partitions released to spread them over the workers
         self.live_workers: int | None = None  # consumers of WORKERS_QUEUE (this one included), read every WATCH_S
         self.messages_ready: list[int | None] = [None] * partitions  # each partition queue's, read every WATCH_S
         self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # sample time to stored estimate (metrics)
         self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
+        self.spread = Spread(partitions, "partition", self.owner, MOVE_INTERVAL_S)  # its share of the partitions
         self.partition_of: dict[str, int] = {}  # vehicle -> the partition it arrives on (fixed by the hash)
         self._acks: list[_Acks | None] = [None] * partitions  # each partition's current channel
         self._taking = threading.Event()  # deliveries go to the pipeline (cleared at a stop)
         self._closing = threading.Event()
         self._registered = [threading.Event() for _ in range(partitions)]
         self._release = [threading.Event() for _ in range(partitions)]  # set by _watch, done by the consumer
-        self._workers_seen: int | None = None  # live_workers as _balance last saw it ...
-        self._workers_since = 0.0  # ... since then (monotonic s)
-        self._next_move_at = 0.0
         self._threads: list[threading.Thread] = []
         self._channel = threading.local()  # the consumer thread's channel, for rejections
 
@@ -319,7 +312,7 @@ class Worker:
 
     def stats(self) -> dict:
         return {"partitions_connected": sum(self.connected), "partitions_held": self.held_partitions(),
-                "live_workers": self.live_workers, "moves": self.moves, "deliveries": list(self.deliveries),
+                "live_workers": self.live_workers, "moves": self.spread.moves, "deliveries": list(self.deliveries),
                 "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
                 **(self.fanout.stats() if self.fanout is not None else {}),
                 **(self.regions.stats() if self.regions is not None else {}),
@@ -401,7 +394,7 @@ class Worker:
                 log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
                             partition, index % len(self.brokers), exc, len(vehicles))
                 for vehicle_id in vehicles:  # another worker may own them meanwhile: restore them if they come back
-                    self.ingest.forget_vehicle(vehicle_id)
+                    self.ingest.forget_vehicle(vehicle_id, drop_queued=True)
                 index += 1
                 time.sleep(RECONNECT_S)
             finally:
@@ -490,38 +483,18 @@ class Worker:
                 time.sleep(RECONNECT_S)
 
     def _balance(self, now: float) -> None:
-        """Release the partition taken last if this worker holds more than its share (module docstring)."""
-        workers = self.live_workers
-        if workers != self._workers_seen:
-            self._workers_seen, self._workers_since = workers, now
-            log.info("live workers: %s", workers)
-        if (not workers or now - self._workers_since < WORKERS_SETTLE_S or now < self._next_move_at
-                or any(e.is_set() for e in self._release)):
+        """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/worker/
+        spread.py)."""
+        if any(e.is_set() for e in self._release):
             return
-        held = self.held_partitions()
-        high, low = -(-self.partitions // workers), self.partitions // workers
-        reason = None
-        if len(held) > high:
-            reason = f"holds {len(held)} of {self.partitions} partitions, more than ceil(partitions / {workers} " \
-                     f"live workers) = {high}"
-        elif low >= 1 and len(held) > low:
-            try:
-                owners = collections.Counter(self.storage.partition_owners().values())
-            except StorageUnavailable as exc:
-                log.warning("partition owners not read (tried again in %.0f s): %s", WATCH_S, exc)
-                return
-            idle = workers - len(owners)  # live workers holding none (fewer where a dead owner is still named)
-            most = max(owners.values(), default=0)
-            if idle > 0 and owners.get(self.owner) == most == len(held) \
-                    and min(o for o, n in owners.items() if n == most) == self.owner:
-                reason = f"holds {len(held)}, the most, while {idle} of {workers} live workers hold none"
-        if reason is None:
+        held = {p: self._acks[p].taken_at for p in self.held_partitions()}
+        try:
+            partition = self.spread.release(now, self.live_workers, held, self.storage.partition_owners)
+        except StorageUnavailable as exc:
+            log.warning("partition owners not read (tried again in %.0f s): %s", WATCH_S, exc)
             return
-        partition = max(held, key=lambda p: self._acks[p].taken_at)
-        log.info("releasing partition %d: this worker %s", partition, reason)
-        self.moves += 1
-        self._next_move_at = now + MOVE_INTERVAL_S
-        self._release[partition].set()
+        if partition is not None:
+            self._release[partition].set()
 
     def _reject(self, vehicle_id: str, errors: list[dict]) -> None:
         """Rejections of a message (called by Ingest.mqtt_message in the consumer's thread): counted, logged,

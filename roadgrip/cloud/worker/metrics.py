@@ -48,7 +48,7 @@ class WorkerCollector(Collector):
             yield gauge("roadgrip_workers_live", "Workers consuming the partitions, as the broker counts them",
                         [([], worker.live_workers)])
         yield counter("roadgrip_partition_moves", "Partitions this worker released to spread them over the workers",
-                      [([], worker.moves)])
+                      [([], worker.spread.moves)])
         yield counter("roadgrip_partition_fenced_writes", "Writes that found a partition taken by another worker",
                       [([], worker.fenced)])
         yield counter("roadgrip_partition_connections_lost", "Partition connections lost (a broker node, the "
