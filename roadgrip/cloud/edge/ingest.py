@@ -109,8 +109,8 @@ class Ingest:
             self.reject(vehicle_id, [e.to_dict() for e in errors])
         future.add_done_callback(lambda f: ack() if f.exception() is None else None)
 
-    def forget_vehicle(self, vehicle_id: str) -> None:
-        self.pipeline.forget_vehicle(vehicle_id)
+    def forget_vehicle(self, vehicle_id: str, drop_queued: bool = False) -> None:
+        self.pipeline.forget_vehicle(vehicle_id, drop_queued)
 
     def stats(self) -> dict:
         """The pipeline's counters, its backlog and whether its writes fail (health: `pipeline`)."""

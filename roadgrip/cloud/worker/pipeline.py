@@ -83,6 +83,10 @@ class SubmitResult:
     duplicates: int  # samples already stored before (or twice in the submission)
 
 
+class VehicleMoved(Exception):
+    """A submission dropped because its vehicle's partition went to another worker (`forget_vehicle`)."""
+
+
 @dataclass
 class _Submission:
     vehicle_id: str
@@ -205,11 +209,22 @@ class Pipeline:
     def running(self) -> bool:
         return self._thread is not None and not self._stop.is_set()
 
-    def forget_vehicle(self, vehicle_id: str) -> None:
+    def forget_vehicle(self, vehicle_id: str, drop_queued: bool = False) -> None:
         """Start the vehicle afresh at the next round: its profile is read again (it changed) and its estimator
-        restarts."""
+        restarts. With `drop_queued` (a cluster worker that lost the vehicle's partition: another worker owns it now
+        and gets what was submitted of it again), its submissions not yet taken by a round are dropped too, their
+        futures failed with VehicleMoved: else the next round would forget the vehicle and then start it again here
+        from those older samples, and should the partition come back, its redelivered samples would be behind
+        them (late, never estimated). A round already under way finishes first; the forget follows it."""
         with self._lock:
             self._forget.add(vehicle_id)
+            dropped = [sub for sub in self._inbox if sub.vehicle_id == vehicle_id] if drop_queued else []
+            if dropped:
+                self._inbox = [sub for sub in self._inbox if sub.vehicle_id != vehicle_id]
+                self._queued -= sum(len(sub.samples) for sub in dropped)
+        for sub in dropped:
+            if not sub.future.done():
+                sub.future.set_exception(VehicleMoved(vehicle_id))
 
     def hand_over(self, vehicle_ids: set[str]) -> Future:
         """Vehicles that leave this pipeline (a cluster worker gives their partition to another worker,

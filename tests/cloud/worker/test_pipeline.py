@@ -122,3 +122,30 @@ def test_stopping_stores_a_queue_longer_than_a_round(make_pipeline, small_rounds
     pipeline.stop()
     assert [f.result(timeout=0).stored for f in futures] == [10] * 10
     assert len(pipeline.storage.telemetry("car-1")) == 100
+
+
+def test_a_vehicle_forgotten_with_its_queue_dropped_is_not_started_again_from_it(tmp_path):
+    """A worker that lost a vehicle's partition forgets it and drops what of it still waits: the next round must not
+    open its stream again from those older samples (a partition that comes back would find its redelivered samples
+    behind them: late, never estimated)."""
+    settings = Settings(data_dir=tmp_path, mqtt="off", reorder_window_s=0.0)
+    storage = open_storage(settings.storage_url)
+    try:
+        pipeline = Pipeline(storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(),
+                                                                            WarningEngine()))
+        samples = wire_samples(patch_drive(0.9, 3), "v1", START_MS)
+        pipeline.submit("v1", samples[:20])
+        pipeline.run_round(final=True)
+        stale = pipeline.submit("v1", samples[20:40])
+        other = pipeline.submit("v2", wire_samples(patch_drive(0.9, 3), "v2", START_MS)[:20])
+        pipeline.forget_vehicle("v1", drop_queued=True)
+        assert pipeline.backlog == 20
+        assert isinstance(stale.exception(timeout=0), pipeline_module.VehicleMoved)
+        pipeline.run_round(final=True)
+        assert other.result(timeout=0).stored == 20
+        pipeline.submit("v1", samples[20:40])  # redelivered to this worker later: estimated, none of it late
+        pipeline.run_round(final=True)
+        assert pipeline.counters.late == 0
+        assert len(storage.estimates("v1")) > len(storage.estimates("v1", end_ms=samples[19]["timestamp_ms"]))
+    finally:
+        storage.close()
