@@ -1,5 +1,5 @@
 """Write docs/dashboard.png: the live dashboard as headless Chromium shows it at 1280x800, on a service loaded with the
-drives of tests/cloud/test_dashboard.py (two vehicles braking on a slippery patch raise a warning, a third on the dry
+drives of tests/cloud/api/test_dashboard.py (two vehicles braking on a slippery patch raise a warning, a third on the dry
 road). No base map (no tile server configured): the page makes no request outside the local service.
 
     python scripts/dashboard_screenshot.py [--out docs/dashboard.png]

@@ -15,7 +15,7 @@ rows actually in the database.
 - `ServeProcess`: `python -m roadgrip serve` with ROADGRIP_* environment variables, started, killed (SIGKILL) and
   started again on the same data directory and port.
 - `serving_http(service)`: the HTTP API of an in-process CloudService under uvicorn in a thread (real sockets, so a
-  503 is a real answer), as tests/cloud/test_dashboard.py does.
+  503 is a real answer), as tests/cloud/api/test_dashboard.py does.
 - `PostgresCluster`: initdb into a temporary directory, start / stop (`pg_ctl stop -m fast`) / start again on the same
   port; run as the `postgres` user when the tests run as root (initdb refuses root), as tests/cloud/conftest.py does.
 - `stored_keys(url, table)`: the (vehicle_id, timestamp_ms) of every row of `table`, read straight from the database.

@@ -9,7 +9,7 @@ tested on SQLite and PostgreSQL elsewhere (test_storage.py, test_api.py), hostil
 
 10,080 cases in all; about 2.5 min on two cores (`pytest tests/cloud/test_fuzz.py --hypothesis-show-statistics`
 prints the cases each test ran). The ingest tests run with the rate limit off: they post thousands of samples for one
-vehicle in seconds (tests/cloud/test_ratelimit.py covers the limit). The schemathesis service runs with the default
+vehicle in seconds (tests/cloud/edge/test_ratelimit.py covers the limit). The schemathesis service runs with the default
 limit, so its vehicle may meet 429s, which must conform too.
 """
 

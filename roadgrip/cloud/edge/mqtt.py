@@ -13,7 +13,7 @@ Topics, all QoS 1; this module is the one place that spells them:
 | roadgrip/v1/stations/{station_id}/reports   | the roadside station    | the service             |
 | roadgrip/v1/stations/{station_id}/errors    | the service (rejected)  | that station            |
 
-What Mosquitto 2.0.11 answers to a request outside a client's ACL (tests/cloud/test_mqtt.py pins each of these):
+What Mosquitto 2.0.11 answers to a request outside a client's ACL (tests/cloud/edge/test_mqtt.py pins each of these):
 
 - PUBLISH at QoS 1 under MQTT 5: PUBACK with reason code 0x87 (Not authorized); the message is dropped and the connection
   stays up. `UserClient` and `VehicleClient` speak MQTT 5 and raise `PublishRefused`. Under MQTT 3.1.1 the PUBACK has no reason code:
