@@ -105,10 +105,11 @@ def test_an_interrupt_while_starting_stops_what_was_started(data_dir):
     before each step): start() stops both and raises the interrupt; nothing is left."""
     cluster = LocalCluster(data_dir, nodes=1, workers=1, apis=0, partitions=1)
     seen: dict[str, set[tuple[int, int]]] = {}
+    before = below(os.getpid())  # this process and what it ran before (multiprocessing's resource tracker)
 
     def progress(step: str) -> None:
         if "worker" in step:
-            seen["started"] = {p for p in below(os.getpid(), cluster.postgres_pid()) if p[0] != os.getpid()}
+            seen["started"] = below(os.getpid(), cluster.postgres_pid()) - before
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
@@ -121,11 +122,12 @@ def test_an_interrupt_while_starting_stops_what_was_started(data_dir):
 
 def test_a_fleet_drives_against_the_local_cluster_and_nothing_is_left_after_it_stops(data_dir):
     cluster = LocalCluster(data_dir, workers=2, apis=2, partitions=4)
+    before = below(os.getpid())  # this process and what it ran before (multiprocessing's resource tracker)
     try:
         cluster.start()
         described = json.loads((data_dir / DESCRIPTION).read_text())
         assert len(described["rabbitmq"]) == 3 and len(described["workers"]) == 2 and len(described["apis"]) == 2
-        started = {p for p in below(os.getpid(), described["postgres"]["pid"]) if p[0] != os.getpid()}
+        started = below(os.getpid(), described["postgres"]["pid"]) - before
         for node in described["rabbitmq"]:
             assert node["pid"] in {pid for pid, _ in started}  # the nodes' servers are the cluster's children
 
