@@ -15,11 +15,8 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import queue
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -30,6 +27,7 @@ import pika
 import psycopg
 import pymap3d
 import pytest
+from cluster_fixtures import WorkerProcess
 from drives import PATCH_M, patch_drive
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy.engine import make_url
@@ -55,7 +53,7 @@ from roadgrip.vehicle.params import PAPER_SUV
 
 PARTITIONS = 4
 REGION_QUEUES = 4
-ROADGRIP = Path(sys.executable).parent / "roadgrip"
+WORKER_ENV = {"ROADGRIP_MAP_CLOCK": "data", "ROADGRIP_REGION_QUEUES": str(REGION_QUEUES)}  # the map on the data's clock
 SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the map's clock is the data's
 START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
@@ -123,36 +121,9 @@ def patch_cells(shift_deg: float) -> set[str]:
     return cells
 
 
-class WorkerProcess:
-    """`roadgrip worker` in a process of its own, the map on the data's clock."""
-
-    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path):
-        self.log_path = log_path
-        brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
-        env = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0", "ROADGRIP_MAP_CLOCK": "data",
-               "ROADGRIP_REGION_QUEUES": str(REGION_QUEUES)}
-        with open(log_path, "wb") as log:
-            self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
-                                          "--partitions", str(PARTITIONS), *brokers],
-                                         stdout=log, stderr=subprocess.STDOUT, env=env)
-
-    def log(self) -> str:
-        return self.log_path.read_text()
-
-    def wait_ready(self, timeout_s: float = 90.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while "worker consuming" not in self.log():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"worker not ready:\n{self.log()[-3000:]}", pytrace=False)
-            time.sleep(0.2)
-
-    def stop(self) -> dict:
-        """SIGTERM; the counters it logged when it stopped ({} when it was killed)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            self.proc.wait(90)
-        lines = [line for line in self.log().splitlines() if "worker stopped: " in line]
-        return json.loads(lines[-1].split("worker stopped: ", 1)[1]) if lines else {}
+def region_worker(cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path) -> WorkerProcess:
+    """A worker with the map on the data's clock and REGION_QUEUES region queues."""
+    return WorkerProcess(cluster, nodes, database_url, log_path, PARTITIONS, env=WORKER_ENV)
 
 
 class WarningsSubscriber:
@@ -264,9 +235,9 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
     shifts = {tag: shift for tag, (shift, _, _) in zip("xyz", found)}
     (_, home, home_queue), (_, far, far_queue), (_, _, third_queue) = found
     patches = {"x": patch_cells(0.0), "y": patch_cells(shifts["y"])}
-    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first = region_worker(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
     first.wait_ready()
-    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second = region_worker(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
     second.wait_ready()
     logs = (first.log, second.log)
     subscriber = WarningsSubscriber(cluster, 1)
@@ -395,9 +366,9 @@ def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(
     is counted in the saved map at most once, and those the map misses (the crash window: rounds stored and not yet
     confirmed to the region stage when the worker died) are counted and printed."""
     regions_on_distinct_queues(cluster, 1)  # purges the queues
-    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first = region_worker(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
     first.wait_ready()
-    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second = region_worker(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
     second.wait_ready()
     logs = (first.log, second.log)
     db = Database(postgres_database_url)
@@ -458,9 +429,9 @@ def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, 
     found = regions_on_distinct_queues(cluster, 2)
     shifts = {tag: shift for tag, (shift, _, _) in zip("xy", found)}
     patches = {t: patch_cells(shifts[t]) for t in "xy"}
-    first = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+    first = region_worker(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
     first.wait_ready()
-    second = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+    second = region_worker(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
     second.wait_ready()
     logs = (first.log, second.log)
     db = Database(postgres_database_url)

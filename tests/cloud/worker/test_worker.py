@@ -10,19 +10,16 @@ how long after the kill every vehicle has new rows stored (at most 10 s). Vehicl
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import paho.mqtt.client as paho
 import pika
 import psycopg
 import pytest
+from cluster_fixtures import WorkerProcess
 from paho.mqtt.enums import CallbackAPIVersion
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
@@ -44,7 +41,6 @@ VEHICLES_PER_TEST = 8
 GROUPS = ("a", "b", "c", "d", "e")  # one set of vehicles per test (their users exist from the cluster's start)
 FAILOVER_LIMIT_S = 10.0
 SPREAD_LIMIT_S = 45.0  # from a change in the live workers to the partitions spread (settle 5 s, moves, hand-overs)
-ROADGRIP = Path(sys.executable).parent / "roadgrip"
 
 
 def vehicles_of(group: str) -> list[str]:
@@ -74,43 +70,6 @@ def purge(cluster: RabbitCluster, node: int) -> None:
     for q in range(REGION_QUEUES):
         channel.queue_purge(region_queue(q))
     connection.close()
-
-
-class WorkerProcess:
-    """`roadgrip worker` in a process of its own, with the brokers in the order given."""
-
-    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path,
-                 options: tuple[str, ...] = ()):
-        self.log_path = log_path
-        brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
-        env = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0"}  # ten times real time is no abuse here
-        with open(log_path, "wb") as log:
-            self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
-                                          "--partitions", str(PARTITIONS), *brokers, *options],
-                                         stdout=log, stderr=subprocess.STDOUT, env=env)
-
-    def log(self) -> str:
-        return self.log_path.read_text()
-
-    def wait_ready(self, timeout_s: float = 90.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while "worker consuming" not in self.log():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"worker not ready:\n{self.log()[-3000:]}", pytrace=False)
-            time.sleep(0.2)
-
-    def kill(self) -> None:
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait()
-
-    def stop(self) -> dict:
-        """SIGTERM; the counters it logged when it stopped."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            self.proc.wait(90)
-        lines = [line for line in self.log().splitlines() if "worker stopped: " in line]
-        assert lines, f"the worker did not stop cleanly:\n{self.log()[-3000:]}"
-        return json.loads(lines[-1].split("worker stopped: ", 1)[1])
 
 
 class Fleet:
@@ -264,9 +223,9 @@ def start_workers(cluster, database_url, tmp_path) -> tuple[WorkerProcess, Worke
     """Worker a first (active on every partition until it hands two over to b), then b; each through the nodes in
     its own order."""
     purge(cluster, 0)
-    first = WorkerProcess(cluster, [0, 1, 2], database_url, tmp_path / "worker-a.log")
+    first = WorkerProcess(cluster, [0, 1, 2], database_url, tmp_path / "worker-a.log", PARTITIONS)
     first.wait_ready()
-    second = WorkerProcess(cluster, [1, 2, 0], database_url, tmp_path / "worker-b.log")
+    second = WorkerProcess(cluster, [1, 2, 0], database_url, tmp_path / "worker-b.log", PARTITIONS)
     second.wait_ready()
     return first, second
 
@@ -360,14 +319,17 @@ def test_partitions_spread_over_workers(cluster, postgres_database_url, tmp_path
     publisher = threading.Thread(target=fleet.run, args=(600.0,))
     workers: dict[str, WorkerProcess] = {}
     try:
-        workers["a"] = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log")
+        workers["a"] = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log",
+                                     PARTITIONS)
         workers["a"].wait_ready()
         publisher.start()
         wait_spread(db, workers, [4], time.monotonic())
-        workers["b"] = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log")
+        workers["b"] = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log",
+                                     PARTITIONS)
         workers["b"].wait_ready()
         took = [wait_spread(db, workers, [2, 2], time.monotonic())]
-        workers["c"] = WorkerProcess(cluster, [2, 0, 1], postgres_database_url, tmp_path / "worker-c.log")
+        workers["c"] = WorkerProcess(cluster, [2, 0, 1], postgres_database_url, tmp_path / "worker-c.log",
+                                     PARTITIONS)
         workers["c"].wait_ready()
         took.append(wait_spread(db, workers, [1, 1, 2], time.monotonic()))
         stopped = time.monotonic()
@@ -418,7 +380,7 @@ def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
     vehicles = vehicles_of("e")
     purge(cluster, 0)
     port = free_ports(1)[0]
-    worker = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker.log",
+    worker = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker.log", PARTITIONS,
                            ("--metrics-port", str(port)))
     db = Database(postgres_database_url)
     fleet = Fleet(cluster, vehicles)

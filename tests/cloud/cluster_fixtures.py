@@ -1,0 +1,58 @@
+"""Helpers of the cluster mode's tests (tests/cloud/worker/test_worker.py, tests/cloud/fanout/test_regions.py):
+`roadgrip worker` as a process of its own."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from roadgrip.cloud.edge.rabbitmq import RabbitCluster
+
+ROADGRIP = Path(sys.executable).parent / "roadgrip"
+
+
+class WorkerProcess:
+    """`roadgrip worker` in a process of its own, with the brokers in the order given, its rate limit off (the tests'
+    vehicles drive faster than real time) and `env` beside it (settings as ROADGRIP_* variables)."""
+
+    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path, partitions: int,
+                 options: tuple[str, ...] = (), env: dict[str, str] | None = None):
+        self.log_path = log_path
+        brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
+        environment = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0", **(env or {})}
+        with open(log_path, "wb") as log:
+            self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
+                                          "--partitions", str(partitions), *brokers, *options],
+                                         stdout=log, stderr=subprocess.STDOUT, env=environment)
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def wait_ready(self, timeout_s: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while "worker consuming" not in self.log():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"worker not ready:\n{self.log()[-3000:]}", pytrace=False)
+            time.sleep(0.2)
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> dict:
+        """SIGTERM; the counters it logged when it stopped, which it must have ({} for a worker killed before)."""
+        if self.proc.poll() == -signal.SIGKILL:
+            return {}
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(90)
+        lines = [line for line in self.log().splitlines() if "worker stopped: " in line]
+        assert lines, f"the worker did not stop cleanly:\n{self.log()[-3000:]}"
+        return json.loads(lines[-1].split("worker stopped: ", 1)[1])
