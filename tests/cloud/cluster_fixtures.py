@@ -1,14 +1,16 @@
-"""Helpers of the cluster mode's tests (tests/cloud/worker/test_worker.py, tests/cloud/fanout/test_regions.py):
-`roadgrip worker` as a process of its own."""
+"""Helpers of the cluster mode's tests (tests/cloud/worker/test_worker.py, tests/cloud/fanout/test_regions.py,
+tests/cloud/api/test_cluster.py): a RabbitMQ cluster for a module, `roadgrip worker` as a process of its own."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,21 @@ import pytest
 from roadgrip.cloud.edge.rabbitmq import RabbitCluster
 
 ROADGRIP = Path(sys.executable).parent / "roadgrip"
+
+
+@contextlib.contextmanager
+def running_rabbit_cluster(root: Path, vehicles: list[str], partitions: int, secret: str) -> Iterator[RabbitCluster]:
+    """A 3-node RabbitMQ cluster in `root` with the partition topology and a login per vehicle, stopped after; fails
+    (never skips) when RabbitMQ is not installed."""
+    if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
+        pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
+    rabbit = RabbitCluster(root, vehicles, partitions, secret)
+    try:
+        rabbit.start()
+        rabbit.setup()
+        yield rabbit
+    finally:
+        rabbit.stop()
 
 
 class WorkerProcess:

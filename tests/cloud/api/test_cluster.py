@@ -19,6 +19,7 @@ import httpx
 import paho.mqtt.client as paho
 import pika
 import pytest
+from cluster_fixtures import running_rabbit_cluster
 from drives import patch_drive
 from fastapi.testclient import TestClient
 from paho.mqtt.enums import CallbackAPIVersion
@@ -54,15 +55,8 @@ REVOCATION_LIMIT_S = 1.0  # from the DELETE's answer to the vehicle's MQTT conne
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
-        pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
-    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), [], PARTITIONS, SECRET)
-    try:
-        rabbit.start()
-        rabbit.setup()
+    with running_rabbit_cluster(tmp_path_factory.mktemp("rabbit"), [], PARTITIONS, SECRET) as rabbit:
         yield rabbit
-    finally:
-        rabbit.stop()
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ import pika
 import psycopg
 import pymap3d
 import pytest
-from cluster_fixtures import WorkerProcess
+from cluster_fixtures import WorkerProcess, running_rabbit_cluster
 from drives import PATCH_M, patch_drive
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy.engine import make_url
@@ -64,15 +64,8 @@ STREAMING = [f"s{k:02d}" for k in range(8)]  # vehicles of the mid-stream kill
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
-        pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
-    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), VEHICLES + STREAMING, PARTITIONS, "region-test-secret")
-    try:
-        rabbit.start()
-        rabbit.setup()
+    with running_rabbit_cluster(tmp_path_factory.mktemp("rabbit"), VEHICLES + STREAMING, PARTITIONS, "region-test-secret") as rabbit:
         yield rabbit
-    finally:
-        rabbit.stop()
 
 
 def queue_of_region(channel, region: str) -> int:

@@ -19,7 +19,7 @@ import paho.mqtt.client as paho
 import pika
 import psycopg
 import pytest
-from cluster_fixtures import WorkerProcess
+from cluster_fixtures import WorkerProcess, running_rabbit_cluster
 from paho.mqtt.enums import CallbackAPIVersion
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
@@ -49,16 +49,10 @@ def vehicles_of(group: str) -> list[str]:
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
-        pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)
     vehicles = [v for group in GROUPS for v in vehicles_of(group)]
-    rabbit = RabbitCluster(tmp_path_factory.mktemp("rabbit"), vehicles, PARTITIONS, "worker-test-secret")
-    try:
-        rabbit.start()
-        rabbit.setup()
+    root = tmp_path_factory.mktemp("rabbit")
+    with running_rabbit_cluster(root, vehicles, PARTITIONS, "worker-test-secret") as rabbit:
         yield rabbit
-    finally:
-        rabbit.stop()
 
 
 def purge(cluster: RabbitCluster, node: int) -> None:
