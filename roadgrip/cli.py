@@ -467,7 +467,7 @@ def serve(
 
     from roadgrip.cloud.api.app import create_app
     from roadgrip.cloud.process import tune_memory_for_serving
-    from roadgrip.cloud.service import CloudService
+    from roadgrip.cloud.serve.service import CloudService
     from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
@@ -514,7 +514,7 @@ def worker(
     import threading
 
     from roadgrip.cloud.settings import load_settings
-    from roadgrip.cloud.worker.consumer import run_worker
+    from roadgrip.cloud.cluster.worker import run_worker
 
     settings = load_settings(config, database_url=database, estimator=estimator)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -551,7 +551,7 @@ def api(
     import uvicorn
 
     from roadgrip.cloud.api.app import create_app
-    from roadgrip.cloud.api.cluster import ClusterBackend
+    from roadgrip.cloud.cluster.api_backend import ClusterBackend
     from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, database_url=database, host=host, port=port, mqtt=mqtt)
@@ -574,8 +574,8 @@ def bench_estimate_command(
     updates: int = typer.Option(20000, help="streamed updates per estimator"),
 ):
     """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
-    from roadgrip.estimators.bench import bench_estimators, format_bench
-    from roadgrip.sim.bench import machine_description
+    from roadgrip.bench.estimate import bench_estimators, format_bench
+    from roadgrip.bench.sim import machine_description
 
     with console.status("benchmarking the estimators..."):
         rows = bench_estimators(tuple(estimators), updates)
@@ -600,7 +600,7 @@ def bench_ingest_command(
     acknowledged and stored; beside it the broker and the database alone, measured in the same run."""
     import json
 
-    from roadgrip.cloud.bench import (
+    from roadgrip.bench.ingest import (
         IngestCase,
         broker_ceiling,
         database_ceiling,
@@ -609,7 +609,7 @@ def bench_ingest_command(
         run_case,
         sample_bodies,
     )
-    from roadgrip.sim.bench import machine_description
+    from roadgrip.bench.sim import machine_description
 
     for t in transport:
         if t not in ("mqtt", "http"):
@@ -656,7 +656,7 @@ def bench_cluster_command(
     each for a fixed window."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from roadgrip.cloud.worker.capacity import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
+    from roadgrip.bench.cluster import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
 
     try:
         counts = tuple(int(w) for w in workers.split(","))
@@ -681,7 +681,7 @@ def bench_sim_command(
     seed: int = typer.Option(0, help="seed of the scenarios"),
 ):
     """Simulated seconds per wall-clock second: one run, the paper preset, a batch."""
-    from roadgrip.sim.bench import bench_sim, machine_description
+    from roadgrip.bench.sim import bench_sim, machine_description
 
     with console.status("benchmarking the simulator..."):
         rows = bench_sim(runs, seed)
@@ -778,7 +778,7 @@ def cluster_up(
     import signal
     import tempfile
 
-    from roadgrip.cloud.local_cluster import ClusterError, LocalCluster
+    from roadgrip.cloud.cluster.local import ClusterError, LocalCluster
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     data_dir = data_dir or Path(tempfile.mkdtemp(prefix="roadgrip-cluster-"))

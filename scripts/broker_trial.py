@@ -7,7 +7,7 @@ has the results and the commands.
     python scripts/broker_trial.py nats --vehicles 100 --seconds 20 --kill none --out runs/cluster/nats.json
     python scripts/broker_trial.py rabbitmq --vehicles 100 --seconds 20 --kill leader --out runs/cluster/rabbit.json
 
-`NatsCluster` and `RabbitCluster` (roadgrip/cloud/edge/rabbitmq.py, also the workers' test fixture) start, kill and stop
+`NatsCluster` and `RabbitCluster` (roadgrip/cloud/transport/amqp.py, also the workers' test fixture) start, kill and stop
 the servers (every process they start, by its pid). Needs the Debian packages nats-server and rabbitmq-server
 (`apt-get install -y nats-server rabbitmq-server`) and the Python packages nats-py (`pip install -e '.[cluster]'`)
 and pika (a dependency of the package: `roadgrip worker` uses it).
@@ -32,7 +32,7 @@ from pathlib import Path
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
-from roadgrip.cloud.edge.rabbitmq import HOST, SERVICE_USER, RabbitCluster, free_ports, partition_queue, wait_port
+from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, free_ports, partition_queue, wait_port
 
 TOPIC = "roadgrip/v1/vehicles/{}/telemetry"
 NATS_PARTITION_PREFIX = "rgp"

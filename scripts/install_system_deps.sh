@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Debian packages the cloud platform and its tests use: Mosquitto (MQTT broker), PostgreSQL 15 with PostGIS, RabbitMQ
-# (the cluster mode's broker, roadgrip/cloud/edge/rabbitmq.py), and
+# (the cluster mode's broker, roadgrip/cloud/transport/amqp.py), and
 # Chromium (headless dashboard tests). Skips what is already installed; needs root (or sudo) otherwise.
 set -euo pipefail
 packages=(mosquitto mosquitto-clients postgresql-15 postgresql-15-postgis-3 rabbitmq-server chromium)

@@ -9,7 +9,7 @@ import time
 
 import orjson
 
-from roadgrip.cloud.bench import _message, sample_bodies
+from roadgrip.bench.ingest import _message, sample_bodies
 from roadgrip.cloud.process import release_free_memory, rss_mb
 
 

@@ -3,7 +3,7 @@ benchmark does (docs/RESULTS.md, "The map").
 
 The benchmark keeps what the service's warning engine took, round by round (DIR/estimates_seed{S}.parquet: the
 estimate rows with their position and mu_proven, and the service clock of each round); the map takes the same rows in
-the service (roadgrip/cloud/fanout/fanout.py), so a map of any settings can be rebuilt from them without running the fleet
+the service (roadgrip/cloud/pipeline/fanout.py), so a map of any settings can be rebuilt from them without running the fleet
 again. Each setting is scored at the benchmark's snapshots (every snapshot_every_s) against the true mu of each cell's
 road, by map status (measured, bounded): MAE and 90 % coverage against the range of true mu in the cell and against its
 lowest (the patch in a cell that holds one). Station reports are not replayed (the vehicles' evidence alone).
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from roadgrip.cloud.fanout.friction_map import BOUNDED, MEASURED, FrictionMap
+from roadgrip.cloud.domain.friction_map import BOUNDED, MEASURED, FrictionMap
 from roadgrip.evaluation.fleet_benchmark import FleetConfig, make_scenario, truth_by_cell
 from roadgrip.evaluation.fleet_metrics import score_cell
 

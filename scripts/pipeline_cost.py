@@ -1,5 +1,5 @@
 """CPU per sample of the cloud's ingest path over a long stream, in one process, without a broker or a network: every
-message goes through the service's MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/edge/ingest.py: parse, rate limit, queue), then the
+message goes through the service's MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/ingest/admission.py: parse, rate limit, queue), then the
 pipeline (estimate, store in SQLite, map, warnings) as fast as it goes. A cost that grows with the stream's length shows
 here within minutes, where the 10-minute soak of `roadgrip bench ingest` would only show the service falling behind.
 
@@ -13,9 +13,9 @@ import logging
 import tempfile
 import time
 
-from roadgrip.cloud.bench import _message, sample_bodies
+from roadgrip.bench.ingest import _message, sample_bodies
 from roadgrip.cloud.process import rss_mb, tune_memory_for_serving
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import load_settings
 from roadgrip.vehicle.params import PAPER_SUV
 

@@ -13,7 +13,7 @@ import threading
 import time
 from pathlib import Path
 
-from roadgrip.cloud.bench import _message, sample_bodies
+from roadgrip.bench.ingest import _message, sample_bodies
 from roadgrip.cloud.storage.database import open_storage, telemetry_table
 
 STATEMENT_ROWS = 500

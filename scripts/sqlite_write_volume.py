@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from roadgrip.cloud.bench import _message, sample_bodies
+from roadgrip.bench.ingest import _message, sample_bodies
 from roadgrip.cloud.storage.database import open_storage
 
 VEHICLES = 1000

@@ -6,7 +6,7 @@ they are read when Prometheus scrapes, by `ServiceCollector`, a custom collector
 the library's global one: one process may hold several services, as the tests do). The two histograms are filled per
 round, not per sample (`BatchHistogram`: one numpy bincount a round).
 
-Ingest processes (`ingest_processes` > 1, roadgrip/cloud/worker/shards.py): their counters live in other processes. Each
+Ingest processes (`ingest_processes` > 1, roadgrip/cloud/serve/shards.py): their counters live in other processes. Each
 already sends its pipeline's counters to the service's process every STATS_INTERVAL_S; it sends its metrics
 (`Ingest.metrics`) in the same message, and the collector exposes every process's figures with the label
 `process` ("main": the service's own process, "ingest-0", "ingest-1", ...). That is simpler than prometheus_client's
@@ -74,13 +74,13 @@ class BatchHistogram:
 
 @dataclass
 class IngestCounters:
-    """What an `Ingest` (roadgrip/cloud/edge/ingest.py) admitted and refused, per transport, before the pipeline: plain
+    """What an `Ingest` (roadgrip/cloud/ingest/admission.py) admitted and refused, per transport, before the pipeline: plain
     integers, each written by one thread only (HTTP: the event loop or an ingest process's channel; MQTT: paho's
     network thread or the same channel)."""
 
     received_http: int = 0       # samples in readable payloads, valid or not, rate limited or not
     received_mqtt: int = 0
-    invalid_http: int = 0        # samples refused by validation (roadgrip/cloud/edge/wire.py)
+    invalid_http: int = 0        # samples refused by validation (roadgrip/cloud/ingest/wire.py)
     invalid_mqtt: int = 0
     rate_limited_http: int = 0   # samples refused by the vehicle's rate limit (every sample of the payload)
     rate_limited_mqtt: int = 0
@@ -198,7 +198,7 @@ def estimate_latency(latency: BatchHistogram) -> HistogramMetricFamily:
 
 class ServiceCollector(Collector):
     """The metrics of `roadgrip serve` (docs/CLOUD.md "Metrics (Prometheus)"), read from a started CloudService
-    (roadgrip/cloud/service.py) at each scrape: each process's pipeline from `service.ingest.views()`, the rest from
+    (roadgrip/cloud/serve/service.py) at each scrape: each process's pipeline from `service.ingest.views()`, the rest from
     the service's own process."""
 
     def __init__(self, service):

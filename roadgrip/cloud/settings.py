@@ -16,7 +16,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
-from roadgrip.cloud.fanout import warning_engine as we
+from roadgrip.cloud.domain import warnings as we
 
 
 class Settings(BaseSettings):
@@ -52,14 +52,14 @@ class Settings(BaseSettings):
     flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
     ingest_processes: int = Field(0, ge=0, le=64, description="processes that parse, estimate and store the "
                                                           "vehicles' telemetry, each for its share of the vehicles "
-                                                          "(0: the service's own process; roadgrip/cloud/worker/shards.py)")
+                                                          "(0: the service's own process; roadgrip/cloud/serve/shards.py)")
     friction_publish_interval_s: float = Field(1.0, ge=0, le=60, description="each vehicle's estimates are published "
                                                                          "together on its friction topic at most "
                                                                          "this often (0: every round)")
     rate_limit_samples_per_s: float = Field(50.0, ge=0, allow_inf_nan=False,
                                             description="samples a vehicle may send per second, HTTP and MQTT "
                                                         "together (5x the 10 Hz of a terminal); 0: no limit "
-                                                        "(roadgrip/cloud/edge/ratelimit.py)")
+                                                        "(roadgrip/cloud/ingest/ratelimit.py)")
     rate_limit_burst_s: float = Field(10.0, gt=0, allow_inf_nan=False,
                                       description="seconds of rate_limit_samples_per_s a vehicle may send at once "
                                                   "after a quiet spell (the bucket's size)")
@@ -70,7 +70,7 @@ class Settings(BaseSettings):
     map_max_age_s: float = Field(3600.0, gt=0, description="older evidence leaves the map")
     map_clock: Literal["wall", "data"] = Field("wall", description="age against the server clock, or against the "
                                                                    "newest sample (replays of old logs)")
-    # the warning defaults live in one place, roadgrip/cloud/fanout/warning_engine.py (THRESHOLD_MU, ...)
+    # the warning defaults live in one place, roadgrip/cloud/domain/warnings.py (THRESHOLD_MU, ...)
     warning_threshold_mu: float = Field(we.THRESHOLD_MU, gt=0, lt=2,
                                         description="a pass is low when its mu_upper lies below")
     warning_min_low_passes: int = Field(we.MIN_LOW_PASSES, ge=1,
@@ -83,7 +83,7 @@ class Settings(BaseSettings):
                                       description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
     # cluster mode: the map and the warnings are kept per region, an H3 parent cell of the map's cells, by the worker
-    # that owns the region's queue (roadgrip/cloud/fanout/regions.py); resolution 5 cells are about 250 km^2
+    # that owns the region's queue (roadgrip/cloud/cluster/regions.py); resolution 5 cells are about 250 km^2
     region_resolution: int = Field(5, ge=0, le=15, description="H3 resolution of the regions (at most "
                                                                "h3_resolution; checked in cluster mode)")
     region_queues: int = Field(4, ge=1, le=1024, description="queues the regions are spread over (fixed once "

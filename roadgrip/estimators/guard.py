@@ -24,7 +24,7 @@ accelerometer's noise and bias allowance (GuardSettings). The guard then makes e
   (PRIOR_UPPER_MU), its mu goes no lower than PRIOR_MU, and it is not `excited`;
 - 0 <= mu_lower <= mu <= mu_upper always;
 - the bound itself goes out as the estimate's `mu_proven`, excited or not: what a calm pass still proves (a car
-  cornering at 0.4 g shows mu >= 0.37 there), which the friction map counts (roadgrip/cloud/fanout/friction_map.py).
+  cornering at 0.4 g shows mu >= 0.37 there), which the friction map counts (roadgrip/cloud/domain/friction_map.py).
 """
 
 from __future__ import annotations

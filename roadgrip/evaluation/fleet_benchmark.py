@@ -20,7 +20,7 @@ Scenario (one per seed, `make_scenario`):
 Roadside stations (issue 16, item 4; `simulate_station_reports`): `stations_at_patches` stations stand at the centre of
 as many slippery patches (drawn among them), `stations_on_dry_road` on roads at least STATION_CLEARANCE_M from every
 patch; each reports every STATION_REPORT_S (60 s, from a random phase) what its sensors read at its spot, in report
-format v1 (roadgrip/cloud/fanout/stations.py):
+format v1 (roadgrip/cloud/domain/stations.py):
 - surface state from the true mu there (`state_of`: <= 0.2 ice, <= 0.4 snow, < 0.65 wet with a 1-3 mm film, < 0.95
   wet with a 0.05-0.2 mm film, else dry), moved one class along ice-snow-wet-moist-dry with probability
   STATION_CONFUSION (0.1) per report: the misclassifications of optical sensors; a surface temperature that goes with
@@ -74,10 +74,10 @@ import orjson
 import pyarrow as pa
 import pymap3d
 
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.fanout.stations import parse_reports
-from roadgrip.cloud.edge.wire import parse_payload
+from roadgrip.cloud.domain.stations import parse_reports
+from roadgrip.cloud.ingest.wire import parse_payload
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.fleet.fleet import _speed_profile, planned_arrival
 from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road, generated_network, points_at

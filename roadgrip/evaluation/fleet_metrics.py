@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import h3
 
-from roadgrip.cloud.fanout.friction_map import BOUNDED, MEASURED
-from roadgrip.cloud.fanout.warning_engine import THRESHOLD_MU
+from roadgrip.cloud.domain.friction_map import BOUNDED, MEASURED
+from roadgrip.cloud.domain.warnings import THRESHOLD_MU
 from roadgrip.fleet.network import Patch
 
 BAND_LIMITS = (("mu<=0.2", 0.2), ("0.2-0.4", 0.4), ("0.4-0.6", 0.6))

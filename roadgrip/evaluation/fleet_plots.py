@@ -14,7 +14,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from roadgrip.cloud.fanout.friction_map import MEASURED
+from roadgrip.cloud.domain.friction_map import MEASURED
 
 MU_NORM = Normalize(0.0, 1.2)
 CMAP = "RdYlGn"

@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from roadgrip.cloud.fanout.friction_map import BOUNDED, MEASURED
+from roadgrip.cloud.domain.friction_map import BOUNDED, MEASURED
 from roadgrip.cloud.settings import Settings
 from roadgrip.evaluation.fleet_benchmark import (
     FleetConfig,

@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.fanout.warning_engine import CANCELLED, WarningEngine
+from roadgrip.cloud.domain.warnings import CANCELLED, WarningEngine
 from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value
@@ -39,7 +39,7 @@ def product_setting(settings: Settings | None = None) -> dict:
 
 
 def engine_kwargs(settings: Settings | None = None) -> dict:
-    """Every WarningEngine argument as the service builds it (roadgrip/cloud/service.py)."""
+    """Every WarningEngine argument as the service builds it (roadgrip/cloud/serve/service.py)."""
     s = settings or Settings()
     return {"resolution": s.h3_resolution, "threshold_mu": s.warning_threshold_mu,
             "min_low_passes": s.warning_min_low_passes, "min_dry_passes": s.warning_min_dry_passes,

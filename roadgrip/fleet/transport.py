@@ -10,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 
-from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class MqttTerminals:
     waits for every PUBACK.
 
     `mqtt_url`: one broker, or a list (the nodes of a cluster without a load balancer in front): vehicle k connects to
-    the (k mod n)-th. `protocol`: "5", "3.1.1" or "auto" (roadgrip.cloud.edge.mqtt.UserClient); with "auto" the first
+    the (k mod n)-th. `protocol`: "5", "3.1.1" or "auto" (roadgrip.cloud.transport.mqtt.UserClient); with "auto" the first
     vehicle finds the version the broker takes and the others use it, so that each connects once."""
 
     def __init__(self, mqtt_url: str | list[str], secrets: dict[str, str], protocol: str = "5"):

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from roadgrip.cloud.edge.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
+from roadgrip.cloud.transport.mosquitto import INSTALL_HINT, ManagedBroker, mosquitto_available
 
 
 @pytest.fixture

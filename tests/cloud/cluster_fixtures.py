@@ -1,5 +1,5 @@
-"""Helpers of the cluster mode's tests (tests/cloud/worker/test_worker.py, tests/cloud/fanout/test_regions.py,
-tests/cloud/api/test_cluster.py): a RabbitMQ cluster for a module, `roadgrip worker` as a process of its own."""
+"""Helpers of the cluster mode's tests (tests/cloud/cluster/test_worker.py, tests/cloud/cluster/test_regions.py,
+tests/cloud/cluster/test_api_backend.py): a RabbitMQ cluster for a module, `roadgrip worker` as a process of its own."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from roadgrip.cloud.edge.rabbitmq import RabbitCluster
+from roadgrip.cloud.transport.amqp import RabbitCluster
 
 ROADGRIP = Path(sys.executable).parent / "roadgrip"
 

@@ -41,9 +41,9 @@ import uvicorn
 from drives import patch_drive
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.edge.broker import free_port
-from roadgrip.cloud.edge.mqtt import UserClient, telemetry_topic
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.transport.mosquitto import free_port
+from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.storage.database import normalise_url
 from roadgrip.cloud.storage.local_postgres import LocalPostgres
 from roadgrip.estimators.learned import load_estimator

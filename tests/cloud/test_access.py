@@ -21,8 +21,8 @@ from drives import patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.edge.broker import mosquitto_available
-from roadgrip.cloud.edge.mqtt import (
+from roadgrip.cloud.transport.mosquitto import mosquitto_available
+from roadgrip.cloud.transport.mqtt import (
     FRICTION_SUBSCRIPTION,
     WARNINGS_TOPIC,
     BrokerRefused,
@@ -33,7 +33,7 @@ from roadgrip.cloud.edge.mqtt import (
     friction_topic,
     telemetry_topic,
 )
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import metadata, normalise_url
 from roadgrip.data.telemetry import VEHICLE_ID_RE

@@ -30,8 +30,8 @@ from fault_fixtures import (
     warm_estimator,
 )
 
-from roadgrip.cloud.edge.broker import INSTALL_HINT, ManagedBroker, mosquitto_available
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.transport.mosquitto import INSTALL_HINT, ManagedBroker, mosquitto_available
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.vehicle.params import vehicle_by_name
 

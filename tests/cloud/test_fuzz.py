@@ -5,11 +5,11 @@ tested on SQLite and PostgreSQL elsewhere (test_storage.py, test_api.py), hostil
 | --- | --- | --- |
 | schemathesis: each operation of /openapi.json, positive and negative data, as the admin, a vehicle, a reader and nobody | SCHEMA_EXAMPLES x 88 = 5,280 | never a 5xx; status codes, content types, bodies and headers as the OpenAPI declares them; no 2xx without valid credentials (also probed by removing or spoiling them); data outside the schema refused |
 | HTTP ingest: any JSON, valid samples with one field set to any JSON, any bytes, NDJSON with junk lines | INGEST_EXAMPLES x 4 = 2,400 | never a 5xx; each rejection has its index, field or null and a reason; the rows stored are exactly the answer's `stored`; every valid sample is stored as sent |
-| MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/edge/ingest.py): any JSON, valid samples with one field mutated, any bytes | MQTT_EXAMPLES x 3 = 2,400 | never raises; each message is acknowledged exactly once, at once when nothing in it is valid, else after its samples are stored; rejections published on the vehicle's error topic with reasons; valid samples stored |
+| MQTT handler (`Ingest.mqtt_message`, roadgrip/cloud/ingest/admission.py): any JSON, valid samples with one field mutated, any bytes | MQTT_EXAMPLES x 3 = 2,400 | never raises; each message is acknowledged exactly once, at once when nothing in it is valid, else after its samples are stored; rejections published on the vehicle's error topic with reasons; valid samples stored |
 
 10,080 cases in all; about 2.5 min on two cores (`pytest tests/cloud/test_fuzz.py --hypothesis-show-statistics`
 prints the cases each test ran). The ingest tests run with the rate limit off: they post thousands of samples for one
-vehicle in seconds (tests/cloud/edge/test_ratelimit.py covers the limit). The schemathesis service runs with the default
+vehicle in seconds (tests/cloud/ingest/test_ratelimit.py covers the limit). The schemathesis service runs with the default
 limit, so its vehicle may meet 429s, which must conform too.
 """
 
@@ -41,8 +41,8 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.edge.mqtt import errors_topic
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.transport.mqtt import errors_topic
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.data.schema import TELEMETRY, TELEMETRY_COLUMNS
 from roadgrip.data.telemetry import RANGES

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from roadgrip.cloud.latency import LatencyRecorder
+from roadgrip.cloud.pipeline.latency import LatencyRecorder
 
 
 def test_percentiles_since_start_lie_within_one_bin_above_the_exact_ones():

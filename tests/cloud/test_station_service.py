@@ -17,16 +17,16 @@ from fastapi.testclient import TestClient
 from test_access import ADMIN, add_reader, collect, register, samples_of, settings_for
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.edge.mqtt import (
+from roadgrip.cloud.transport.mqtt import (
     PublishRefused,
     UserClient,
     station_errors_topic,
     station_reports_topic,
     telemetry_topic,
 )
-from roadgrip.cloud.fanout.stations import covered_cells
-from roadgrip.cloud.fanout.warning_engine import WarningEngine
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.domain.stations import covered_cells
+from roadgrip.cloud.domain.warnings import WarningEngine
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.storage.database import normalise_url, open_storage
 from tests.cloud.api.test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 

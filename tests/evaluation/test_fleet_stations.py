@@ -10,7 +10,7 @@ import numpy as np
 import orjson
 import pyarrow.csv as pacsv
 
-from roadgrip.cloud.fanout.stations import parse_reports
+from roadgrip.cloud.domain.stations import parse_reports
 from roadgrip.evaluation.fleet_benchmark import (
     STATION_CLEARANCE_M,
     STATION_REPORT_S,

@@ -5,11 +5,11 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
 
-from roadgrip.cloud.fanout.warning_engine import WarningEngine
+from roadgrip.cloud.domain.warnings import WarningEngine
 from roadgrip.evaluation.fleet_benchmark import EngineRecorder, FleetConfig
 from roadgrip.evaluation.fleet_report import run_fleet_benchmark
 from roadgrip.evaluation.fleet_sweep import as_warnings, choose, grid_settings, replay, rounds_of
-from tests.cloud.fanout.test_warning_engine import PATCH, T0_MS, drive
+from tests.cloud.domain.test_warnings import PATCH, T0_MS, drive
 
 
 def _record(rounds, **kwargs):

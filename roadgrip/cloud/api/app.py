@@ -1,6 +1,6 @@
 """The HTTP API (FastAPI; OpenAPI at /docs). Routes are thin: they authenticate, check the role, and call the backend
 (roadgrip/cloud/api/backend.py): the embedded service (`roadgrip serve`) or the cluster's (`roadgrip api`, any
-number of replicas on one PostgreSQL and one RabbitMQ cluster: roadgrip/cloud/api/cluster.py). The same routes serve
+number of replicas on one PostgreSQL and one RabbitMQ cluster: roadgrip/cloud/cluster/api_backend.py). The same routes serve
 both; what differs in the cluster is said below the table.
 
 Every call authenticates with HTTP Basic (name and secret; vehicles use their vehicle_id as name):
@@ -11,7 +11,7 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | GET /v1/vehicles/{id} | admin, reader, the vehicle | its profile |
 | POST /v1/readers | admin | create a reader credential; returns its secret once |
 | POST /v1/stations | admin | register a roadside station (its own credential); returns its secret once |
-| POST /v1/stations/{id}/reports | the station | its reports (roadgrip/cloud/fanout/stations.py: one JSON object or an array) |
+| POST /v1/stations/{id}/reports | the station | its reports (roadgrip/cloud/domain/stations.py: one JSON object or an array) |
 | GET /v1/stations | admin, reader | each station's newest report, with the evidence drawn from it and its cells |
 | DELETE /v1/credentials/{name} | admin | revoke a credential, at once |
 | POST /v1/telemetry | vehicle | ingest samples (DESIGN 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys) |
@@ -26,7 +26,7 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 
 Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422
 when none was, 413 for an oversized body, 400 for a body that is not telemetry, 503 when storage is down (nothing
-was stored: retry), 429 with Retry-After when the vehicle is over its rate limit (`roadgrip.cloud.edge.ratelimit`, samples
+was stored: retry), 429 with Retry-After when the vehicle is over its rate limit (`roadgrip.cloud.ingest.ratelimit`, samples
 a second, valid or not; nothing stored), and 413 for more samples in one request than the limit's whole burst.
 Every error status of every route is declared in the OpenAPI document, with its body (`ErrorAnswer`); the schemathesis
 tests of tests/cloud/test_fuzz.py hold the API to it.
@@ -34,7 +34,7 @@ tests of tests/cloud/test_fuzz.py hold the API to it.
 In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing another replica needs:
 - Credentials are read from PostgreSQL on every call (`Authenticator(revalidate=True)`): a credential revoked through
   any replica is refused by every replica from the next call on. Registering a vehicle (or a reader) also creates its
-  RabbitMQ user with its permissions (roadgrip/cloud/edge/rabbit_users.py) before the database commits; revoking
+  RabbitMQ user with its permissions (roadgrip/cloud/transport/rabbit_users.py) before the database commits; revoking
   deletes the user, which closes its open MQTT connections. A vehicle's `mqtt_url` is the `mqtt` setting (the
   broker's load balancer); stations report over HTTP only (their `mqtt_url` is null).
 - POST /v1/telemetry validates as above, then publishes the valid samples to amq.topic with the vehicle's telemetry
@@ -45,9 +45,9 @@ In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing anoth
   them); the limit of the worker that owns the vehicle counts every replica's and MQTT's samples together and refuses
   the excess on the vehicle's MQTT errors topic.
 - POST /v1/stations/{id}/reports: stored as embedded; the evidence of every report of the payload (a duplicate's as
-  stored) is published to the owners of their regions (roadgrip/cloud/fanout/regions.py), which add it to the map and
+  stored) is published to the owners of their regions (roadgrip/cloud/cluster/regions.py), which add it to the map and
   the warnings. 503 when no broker node confirmed it within 10 s: the reports are stored, send them again.
-- GET /v1/map and /v1/map/datex2: the map the region owners saved (roadgrip/cloud/fanout/map_cells.py), at the
+- GET /v1/map and /v1/map/datex2: the map the region owners saved (roadgrip/cloud/cluster/map_cells.py), at the
   replica's clock, read again when a second old; GET /v1/warnings: the stored warnings.
 - GET /v1/health: storage and broker reachability; GET /metrics: the replica's own counters.
 """
@@ -72,16 +72,16 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from roadgrip.cloud.api.backend import Accepted, ApiBackend, VehicleIdRefused
 from roadgrip.cloud.api.dashboard import mount_dashboard
-from roadgrip.cloud.api.exports import datex2_xml
-from roadgrip.cloud.edge.auth import AuthError
-from roadgrip.cloud.edge.ingest import RateLimited
-from roadgrip.cloud.edge.rabbit_users import BrokerUnavailable
-from roadgrip.cloud.edge.wire import PayloadError, parse_payload
-from roadgrip.cloud.fanout.stations import ReportError, parse_reports
+from roadgrip.cloud.formats.exports import datex2_xml
+from roadgrip.cloud.ingest.auth import AuthError
+from roadgrip.cloud.ingest.admission import RateLimited
+from roadgrip.cloud.transport.rabbit_users import BrokerUnavailable
+from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
+from roadgrip.cloud.domain.stations import ReportError, parse_reports
 from roadgrip.cloud.metrics import registry_with
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Credential, StorageUnavailable
-from roadgrip.cloud.worker.shards import IngestUnavailable
+from roadgrip.cloud.serve.shards import IngestUnavailable
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.vehicle.params import VEHICLES, VehicleParams, vehicle_by_name
 
@@ -129,7 +129,7 @@ class Issued(BaseModel):
 
 
 class Rejection(BaseModel):
-    """A refused sample (roadgrip.cloud.edge.wire.SampleError)."""
+    """A refused sample (roadgrip.cloud.ingest.wire.SampleError)."""
     index: int = Field(description="array index, or NDJSON line number - 1")
     field: str | None = Field(description="the field at fault as sent (wire name or VSS key); null when the sample "
                                           "is not an object")
@@ -354,7 +354,7 @@ def create_app(service: ApiBackend) -> FastAPI:
 
     @app.get("/v1/stations")
     def stations(caller: Caller) -> dict:
-        """Each station's newest report (the fields of roadgrip/cloud/fanout/stations.py), the evidence drawn from it (mu,
+        """Each station's newest report (the fields of roadgrip/cloud/domain/stations.py), the evidence drawn from it (mu,
         mu_lower, mu_upper; null for none), its covered cells and received_ms; server_time_ms for the reports' age."""
         require(caller, "admin", "reader")
         return {"server_time_ms": int(time.time() * 1000), "stations": service.storage.latest_station_reports()}
@@ -459,7 +459,7 @@ def create_app(service: ApiBackend) -> FastAPI:
 
 
 async def _read_telemetry(request: Request, s: Settings, vehicle_id: str) -> tuple[list[dict], list]:
-    """A telemetry request's valid samples and rejections (roadgrip/cloud/edge/wire.py); HTTPException (400, 413, 415) for
+    """A telemetry request's valid samples and rejections (roadgrip/cloud/ingest/wire.py); HTTPException (400, 413, 415) for
     a body refused whole."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > s.max_payload_bytes:

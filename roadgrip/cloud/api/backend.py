@@ -3,8 +3,8 @@ implementations, one set of routes.
 
 | implementation | mode | where things are |
 | --- | --- | --- |
-| `roadgrip.cloud.service.CloudService` | embedded (`roadgrip serve`) | everything in this process: the pipeline, the map, Mosquitto's users |
-| `roadgrip.cloud.api.cluster.ClusterBackend` | cluster (`roadgrip api`, any number of replicas) | PostgreSQL, RabbitMQ's users and partition queues; nothing a replica keeps that another one would need |
+| `roadgrip.cloud.serve.service.CloudService` | embedded (`roadgrip serve`) | everything in this process: the pipeline, the map, Mosquitto's users |
+| `roadgrip.cloud.cluster.api_backend.ClusterBackend` | cluster (`roadgrip api`, any number of replicas) | PostgreSQL, RabbitMQ's users and partition queues; nothing a replica keeps that another one would need |
 
 Reads of stored data go to `storage` directly (roadgrip/cloud/storage/database.py: the same tables in both modes).
 """
@@ -17,8 +17,8 @@ from typing import Protocol
 
 from prometheus_client.registry import Collector
 
-from roadgrip.cloud.edge.auth import Authenticator
-from roadgrip.cloud.fanout.friction_map import FrictionMap
+from roadgrip.cloud.ingest.auth import Authenticator
+from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
 from roadgrip.vehicle.params import VehicleParams
@@ -27,7 +27,7 @@ from roadgrip.vehicle.params import VehicleParams
 @dataclass(frozen=True)
 class Accepted:
     """Telemetry the broker confirmed (cluster mode): in a partition queue, replicated on a quorum of its nodes, not
-    stored yet (a worker stores it: roadgrip/cloud/worker/consumer.py)."""
+    stored yet (a worker stores it: roadgrip/cloud/cluster/worker.py)."""
 
     samples: int
     messages: int  # AMQP messages it took (a request whose samples exceed max_payload_bytes is split)

@@ -79,7 +79,7 @@ def content_security_policy(tiles_url: str | None) -> str:
 
 
 def mount_dashboard(app: FastAPI, service) -> None:
-    """Add the dashboard's routes (table above) to `app`, the API of `service` (roadgrip.cloud.service.CloudService)."""
+    """Add the dashboard's routes (table above) to `app`, the API of `service` (roadgrip.cloud.serve.service.CloudService)."""
     # Here, not at the top: roadgrip.cloud.api.app imports this module. (No `from __future__ import annotations` in this
     # module: FastAPI must see the dependency itself in the route's signature, not the name of a local variable.)
     from roadgrip.cloud.api.app import Caller

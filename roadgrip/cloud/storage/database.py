@@ -12,11 +12,11 @@ are missing and returns a `Storage`, whose methods are safe to call from several
 | vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
 | credentials | name | role (vehicle, reader, admin or station), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
-| estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/worker/checkpoints.py), updated_ms |
-| map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/fanout/regions.py) |
+| estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/pipeline/checkpoints.py), updated_ms |
+| map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/cluster/regions.py) |
 | region_owners | region_queue | cluster mode: epoch, owner, taken_ms of each region queue (fencing, as partition_owners) |
 | counters | name | value: cluster mode's shared counters (`action_sequence_number`: the regions' DENM ActionIDs) |
-| station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/fanout/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
+| station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/domain/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). Telemetry and estimates are written together by
 `write_batch`, in one transaction, and a row whose (vehicle_id, timestamp_ms) is stored already is skipped: sending a
@@ -153,7 +153,7 @@ warnings_table = Table(
     Column("message", _JSON, nullable=False))
 
 # Each vehicle's estimator state (its self-calibration), one row per estimator name: a service switched from one
-# estimator to another and back finds the first one's state again (roadgrip/cloud/worker/checkpoints.py).
+# estimator to another and back finds the first one's state again (roadgrip/cloud/pipeline/checkpoints.py).
 estimator_states_table = Table(
     "estimator_states", metadata,
     Column("vehicle_id", sa.String, nullable=False),
@@ -162,7 +162,7 @@ estimator_states_table = Table(
     Column("updated_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
 
-# Cluster workers' ownership of partitions (roadgrip/cloud/worker/consumer.py): a worker that takes a partition raises its
+# Cluster workers' ownership of partitions (roadgrip/cloud/cluster/worker.py): a worker that takes a partition raises its
 # epoch; a write fenced with an older epoch fails (`Storage.write_batch`'s `fences`), so that a worker that lost a
 # partition without noticing stores nothing of it after the next owner has begun.
 partition_owners_table = Table(
@@ -172,7 +172,7 @@ partition_owners_table = Table(
     Column("owner", sa.String, nullable=False),
     Column("taken_ms", sa.BigInteger, nullable=False))
 
-# Cluster mode's friction map (roadgrip/cloud/fanout/regions.py): each cell's state as its region's owner last saved it
+# Cluster mode's friction map (roadgrip/cloud/cluster/regions.py): each cell's state as its region's owner last saved it
 # (`FrictionMap.cell_states`), for the API replicas to render the map from and a new owner to go on from; the owners of
 # region queues, with an epoch each, fence those writes and the region's warnings as partition_owners fence telemetry.
 map_cells_table = Table(
@@ -200,7 +200,7 @@ counters_table = Table(
 # columns added after their table was first released: (table, column), added by open_storage where missing
 ADDED_COLUMNS = ((estimates_table, "mu_proven"),)
 
-# Roadside stations' reports (roadgrip/cloud/fanout/stations.py), as validated, with the evidence the service drew from them.
+# Roadside stations' reports (roadgrip/cloud/domain/stations.py), as validated, with the evidence the service drew from them.
 station_reports_table = Table(
     "station_reports", metadata,
     Column("station_id", sa.String, nullable=False),
@@ -400,7 +400,7 @@ class Storage:
         credential named vehicle_id, all in one transaction, so that a failure part way leaves none of them stored
         (nor a credential whose secret nobody received). ValueError, storing nothing, when a vehicle_id is given twice
         or its credential name is taken. `before_commit` runs once every row is in, before the commit (the cluster
-        creates the vehicles' broker users there: roadgrip/cloud/api/cluster.py); what it raises rolls it all back."""
+        creates the vehicles' broker users there: roadgrip/cloud/cluster/api_backend.py); what it raises rolls it all back."""
         ids = [vehicle_id for vehicle_id, _, _ in vehicles]
         twice = sorted(v for v, n in Counter(ids).items() if n > 1)
         if twice:

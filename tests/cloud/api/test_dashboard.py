@@ -27,7 +27,7 @@ from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.api.dashboard import content_security_policy, tile_source
-from roadgrip.cloud.service import CloudService
+from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings, load_settings
 from roadgrip.fleet.terminal import wire_samples
 

@@ -1,0 +1,530 @@
+"""A cluster worker (`roadgrip worker`, issue 17 item 2): consumes the partition queues of RabbitMQ
+(roadgrip/cloud/transport/amqp.py), runs the vehicles' estimators and stores telemetry and estimates in PostgreSQL, through
+the same admission, pipeline, estimator, checkpoints and storage as `roadgrip serve` (roadgrip/cloud/ingest/admission.py,
+pipeline.py); only how messages arrive and who owns which vehicles differ.
+
+- Ownership: every worker registers a consumer on every partition queue; single-active-consumer makes one of them
+  active per queue, and when its channel or connection dies (the worker killed, its broker node killed) RabbitMQ makes
+  another registered consumer active. The first worker to register is active on every partition; the others wait.
+- Spreading partitions (`_watch`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
+  (consumer priorities do not choose the single active consumer of a quorum queue there), so workers hand partitions
+  over themselves. Live workers are counted by the broker: each worker holds a consumer on the quorum queue
+  WORKERS_QUEUE (nothing is ever published to it), whose consumer count a passive declare returns (a queue with
+  single-active-consumer counts only its active consumer). The rule of roadgrip/cloud/cluster/spread.py (`Spread`:
+  more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S) picks the partition to release,
+  the one it took last: the worker stops handing that queue's deliveries to the pipeline, waits until what it handed
+  over is stored and acknowledged, lets the pipeline store those vehicles' states and forget them
+  (`Pipeline.hand_over`), closes that connection (the next waiting consumer becomes active; what was delivered and
+  not taken goes back to the queue) and registers again, at the end of the waiting list. A worker that receives a
+  partition it does not need passes it on the same way, to the next in that queue's waiting list.
+- One connection per partition (a thread each), to the node `partition mod len(brokers)` of the worker's list, the
+  next one after a failure: a dead node costs only the partitions consumed through it.
+- A message is an MQTT publish as the broker's MQTT plugin forwarded it: the routing key is the topic with '/' and '.'
+  swapped, the body the vehicle's payload. The vehicle is the one of the topic (the broker's topic permissions made
+  sure the publisher is that vehicle); `Ingest.mqtt_message` parses it as serve does and queues its samples.
+- Acknowledgement after storing: a delivery's tag is done when the pipeline's round that stored its samples committed
+  (or at once for a message refused whole); every FLUSH_S the consumer thread acknowledges, with one multiple-ack, up to
+  the highest tag below which every tag is done, so a message is never acknowledged before an earlier one of its queue.
+  Per-vehicle order: a queue delivers in order, the pipeline takes submissions in order and its reorder buffer
+  estimates each vehicle's samples in time order.
+- Fencing (a partial handover: a worker whose connection died through a dead node, or that has not noticed yet,
+  still holds rounds of that partition while the new owner starts on the redelivered messages): the first delivery
+  on a partition's channel takes the partition in the database (`Storage.take_partition`: its epoch + 1); every
+  round's write carries the epochs of its vehicles' partitions and fails in the same transaction if one was taken
+  since (`Fenced`). The worker then drops that partition's rows from the round and writes the rest, acknowledges
+  nothing more on that channel, and gives it up (re-registering as a standby). A partition whose connection is lost
+  is fenced at once, without asking the database. So a vehicle's estimates are stored by one owner at a time, in
+  order.
+- Vehicles taken over: the pipeline meets a vehicle for the first time and goes on from its stored estimator state
+  (roadgrip/cloud/pipeline/checkpoints.py), estimating only its samples after its newest stored estimate (`skip_estimated`:
+  the redelivered ones before it were estimated by the previous owner, and may be in the restored calibration); when
+  a partition's connection is lost the worker forgets that partition's vehicles, so that it restores them afresh from
+  the database should the partition come back to it.
+- Checkpoints every 60 s of a vehicle's data and at a clean stop (SIGTERM, SIGINT): the worker stops taking new
+  deliveries (they stay unacknowledged), lets the pipeline store what it took and every vehicle's state, acknowledges,
+  then closes its connections: what it did not take goes back to the queues, in order, for the next owner.
+- After a round is stored, its estimates go out on the vehicles' friction topics and to the region stage, and the
+  round's deliveries are acknowledged only once its region messages are confirmed (roadgrip/cloud/cluster/regions.py
+  `WorkerFanout`); every worker also consumes the region queues (`RegionOwners`: the map and the warnings by region).
+- Rejected samples are published, as serve does, on the vehicle's MQTT errors topic (through amq.topic).
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import logging
+import os
+import socket
+import threading
+import time
+
+import pika
+import pika.exceptions
+
+from roadgrip.cloud.ingest.admission import Ingest
+from roadgrip.cloud.transport.mqtt import errors_topic, vehicle_of_topic
+from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
+from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
+from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
+from roadgrip.cloud.process import warm_up
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
+from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
+from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.estimators.learned import load_estimator
+
+log = logging.getLogger(__name__)
+
+# Unacknowledged messages a partition's consumer holds: 100 messages of 10 samples (a terminal's second) over 16
+# partitions are 16,000 samples, under the pipeline's MAX_MQTT_BACKLOG (20,000), so admission never waits on it.
+DEFAULT_PREFETCH = 100
+FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowledges what was stored
+HEARTBEAT_S = 5  # AMQP heartbeat: a silent broker (a node frozen, not killed) is given up after about 2x this
+RECONNECT_S = 0.2  # wait before connecting again after a failure (to the next node)
+STATS_S = 10.0  # how often the worker logs its counters
+WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
+WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
+MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
+HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
+
+
+class _PartitionLost(Exception):
+    """A partition's channel was fenced (another worker took the partition), or its hand-over did not finish."""
+
+
+class _Acks:
+    """Delivery tags of one channel (1, 2, 3, ...): marked done from any thread, acknowledged in order; the
+    partition's epoch while this channel holds it; fenced: nothing more is acknowledged or stored."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._done: set[int] = set()
+        self.acknowledged = 0  # every tag up to this one is acknowledged
+        self.epoch: int | None = None  # taken at the channel's first delivery
+        self.taken_at = 0.0  # when (monotonic s)
+        self.delivered = 0  # the last tag delivered
+        self.handed = 0  # the last tag handed to the pipeline
+        self.releasing = False  # the partition is being handed over: no more deliveries are taken
+        self.fenced = False
+
+    def done(self, tag: int) -> None:
+        with self._lock:
+            self._done.add(tag)
+
+    def fence(self) -> None:
+        with self._lock:
+            self.fenced = True
+
+    def flush(self, channel) -> None:
+        """One multiple-ack up to the highest tag below which all are done (none if the next is not, or fenced)."""
+        with self._lock:
+            if self.fenced:
+                return
+            upto = self.acknowledged
+            while upto + 1 in self._done:
+                upto += 1
+                self._done.discard(upto)
+        if upto > self.acknowledged:
+            channel.basic_ack(upto, multiple=True)
+            self.acknowledged = upto
+
+
+class _Timed:
+    """The pipeline's sink in a worker: each stored estimate's latency from its sample's time into the worker's
+    histogram (metrics), then on to `sink`."""
+
+    def __init__(self, latency: BatchHistogram, sink: StoredSink):
+        self.latency = latency
+        self.sink = sink
+
+    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
+        if estimates:
+            self.latency.add([(stored_ms - e["timestamp_ms"]) / 1000.0 for e in estimates])
+        self.sink.stored(estimates, stored_ms, newest_data_ms)
+
+    def tick(self, final: bool) -> None:
+        self.sink.tick(final)
+
+
+class _FencedStorage:
+    """The pipeline's storage in a worker: the worker's Storage, whose `write_batch` and `put_estimator_states` are
+    fenced with the epochs of the partitions the rows' vehicles came from (module docstring)."""
+
+    def __init__(self, storage: Storage, worker: Worker):
+        self._storage = storage
+        self._worker = worker
+
+    def __getattr__(self, name: str):
+        return getattr(self._storage, name)
+
+    def write_batch(self, telemetry: list[dict], estimates: list[dict]) -> Written:
+        """Write what this worker still owns; the rows of partitions taken from it are left out, and their telemetry
+        counted as stored before (their submitters' acknowledgements go to a fenced channel, which sends none)."""
+        partition_of = self._worker.partition_of
+        written, stale = self._owned(lambda fences, t, e: self._storage.write_batch(t, e, fences=fences),
+                                     telemetry, estimates)
+        dropped = frozenset((row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
+                            if partition_of[row["vehicle_id"]] in stale)
+        if written is None:
+            return Written(0, 0, dropped)
+        return Written(written.telemetry, written.estimates, written.already_stored | dropped)
+
+    def put_estimator_states(self, rows: list[dict]) -> None:
+        """Store the states of the vehicles whose partitions this worker still owns; the others are left out (their
+        new owner's states must not be overwritten by this worker's older ones)."""
+        self._owned(lambda fences, r: self._storage.put_estimator_states(r, fences=fences), rows)
+
+    def _owned(self, write, *tables: list[dict]):
+        """`write(fences, *tables)` with the epochs of the rows' partitions. The rows of partitions this worker no
+        longer holds (fenced, lost, handed over) are left out; a partition found taken by another worker is fenced
+        here, its rows left out, and the rest written again. Returns what `write` returned (None when nothing was
+        left to write) and the partitions left out."""
+        partition_of = self._worker.partition_of
+        stale_all: set[int] = set()
+        while True:
+            acks = {p: self._worker.channel_acks(p) for p in {partition_of[row["vehicle_id"]]
+                                                               for row in itertools.chain(*tables)}}
+            stale = {p for p, a in acks.items() if a is None or a.fenced or a.epoch is None}
+            if not stale:
+                try:
+                    return write({p: a.epoch for p, a in acks.items()}, *tables), stale_all
+                except Fenced as exc:
+                    stale = exc.partitions
+                    self._worker.fence(stale)
+            stale_all |= stale
+            tables = tuple([row for row in rows if partition_of[row["vehicle_id"]] not in stale] for rows in tables)
+            if not any(tables):
+                return None, stale_all
+
+
+class Worker:
+    """Consumes `partitions` partition queues through the brokers' AMQP URLs (module docstring)."""
+
+    def __init__(self, brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH):
+        if not brokers:
+            raise ValueError("brokers must name at least one AMQP URL, got none")
+        if not isinstance(partitions, int) or partitions < 1:
+            raise ValueError(f"partitions must be a positive integer, got {partitions!r}")
+        if not isinstance(prefetch, int) or prefetch < 1:
+            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
+        if settings.database_url is None:
+            raise ValueError("settings.database_url must name the shared database (postgresql://...), got None")
+        self.brokers = brokers
+        self.settings = settings
+        self.partitions = partitions
+        self.prefetch = prefetch
+        self.storage = None
+        self.ingest: Ingest | None = None
+        self.fanout: WorkerFanout | None = None
+        self.regions: RegionOwners | None = None
+        self.rejected = 0
+        self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
+        self.connected = [False] * partitions  # a consumer registered, per partition
+        self.lost = 0  # partition connections lost
+        self.fenced = 0  # rounds' writes that found a partition taken by another worker
+        self.live_workers: int | None = None  # consumers of WORKERS_QUEUE (this one included), read every WATCH_S
+        self.messages_ready: list[int | None] = [None] * partitions  # each partition queue's, read every WATCH_S
+        self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # sample time to stored estimate (metrics)
+        self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
+        self.spread = Spread(partitions, "partition", self.owner, MOVE_INTERVAL_S)  # its share of the partitions
+        self.partition_of: dict[str, int] = {}  # vehicle -> the partition it arrives on (fixed by the hash)
+        self._acks: list[_Acks | None] = [None] * partitions  # each partition's current channel
+        self._taking = threading.Event()  # deliveries go to the pipeline (cleared at a stop)
+        self._closing = threading.Event()
+        self._registered = [threading.Event() for _ in range(partitions)]
+        self._release = [threading.Event() for _ in range(partitions)]  # set by _watch, done by the consumer
+        self._threads: list[threading.Thread] = []
+        self._channel = threading.local()  # the consumer thread's channel, for rejections
+
+    def _parameters(self, index: int) -> pika.URLParameters:
+        parameters = pika.URLParameters(self.brokers[index % len(self.brokers)])
+        parameters.heartbeat = HEARTBEAT_S
+        parameters.connection_attempts = 1
+        parameters.socket_timeout = 2
+        parameters.blocked_connection_timeout = 10
+        return parameters
+
+    def start(self, ready_timeout_s: float = 60.0) -> None:
+        """Open the database and the pipeline, declare the topology, register a consumer on every partition; returns
+        once all are registered (TimeoutError after `ready_timeout_s`)."""
+        s = self.settings
+        self.storage = open_storage(s.database_url)
+        estimator = load_estimator(s.estimator)
+        warm_up(estimator)
+        self.fanout = WorkerFanout(self.brokers, s, self.owns)  # friction topics; estimates to their regions
+        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator,
+                            _Timed(self.latency_histogram, self.fanout), skip_estimated=True)
+        self.ingest = Ingest(s, pipeline, reject=self._reject)
+        self._declare()
+        self.ingest.start()
+        self._taking.set()
+        for p in range(self.partitions):
+            thread = threading.Thread(target=self._consume, args=(p,), name=f"partition-{p}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        deadline = time.monotonic() + ready_timeout_s
+        for event in self._registered:
+            if not event.wait(max(0.0, deadline - time.monotonic())):
+                raise TimeoutError(f"not every partition consumer registered within {ready_timeout_s} s: "
+                                   f"{self.connected}")
+        watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
+        watcher.start()
+        self._threads.append(watcher)
+        self.regions = RegionOwners(self.brokers, s, self.storage, self.owner,  # the map and warnings by region
+                                    live_workers=lambda: self.live_workers)
+        self.regions.start(max(1.0, deadline - time.monotonic()))
+        log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
+                 len(self.brokers), s.estimator, self.storage)
+
+    def _declare(self) -> None:
+        for index in range(len(self.brokers)):
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("broker %d unreachable for declaring the topology: %r", index, exc)
+                continue
+            try:
+                declare_topology(connection.channel(), self.partitions, self.settings.region_queues)
+            finally:
+                connection.close()
+            return
+        raise ConnectionError(f"no broker of {len(self.brokers)} reachable to declare the topology")
+
+    def stop(self) -> None:
+        """Stop taking deliveries, store what was taken and every vehicle's estimator state, acknowledge it, close."""
+        self._taking.clear()
+        if self.ingest is not None:
+            self.ingest.stop()
+        if self.fanout is not None:
+            self.fanout.close()
+        self._closing.set()
+        for thread in self._threads:
+            thread.join(30)
+        self._threads = []
+        if self.regions is not None:
+            self.regions.stop()
+        log.info("worker stopped: %s", json.dumps(self.stats()))
+        if self.storage is not None:
+            self.storage.close()
+            self.storage = None
+
+    def stats(self) -> dict:
+        return {"partitions_connected": sum(self.connected), "partitions_held": self.held_partitions(),
+                "live_workers": self.live_workers, "moves": self.spread.moves, "deliveries": list(self.deliveries),
+                "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
+                **(self.fanout.stats() if self.fanout is not None else {}),
+                **(self.regions.stats() if self.regions is not None else {}),
+                **(self.ingest.stats() if self.ingest is not None else {})}
+
+    def channel_acks(self, partition: int) -> _Acks | None:
+        return self._acks[partition]
+
+    def owns(self, vehicle_id: str) -> bool:
+        """Whether this worker still holds the vehicle's partition (its estimates go on to the regions)."""
+        acks = self._acks[self.partition_of[vehicle_id]]
+        return acks is not None and not acks.fenced
+
+    def unacknowledged(self, partition: int) -> int:
+        """Messages of the partition delivered to this worker's current channel and not yet acknowledged."""
+        acks = self._acks[partition]
+        return 0 if acks is None or not self.connected[partition] else acks.delivered - acks.acknowledged
+
+    def held_partitions(self) -> list[int]:
+        """The partitions this worker is the active consumer of (it took them: a delivery came), not being released."""
+        return [p for p, a in enumerate(self._acks) if a is not None and a.epoch is not None and not a.fenced
+                and not a.releasing and self.connected[p]]
+
+    def fence(self, partitions: set[int]) -> None:
+        """Partitions taken by another worker: their channels acknowledge nothing more and are given up."""
+        self.fenced += 1
+        log.warning("partitions %s were taken by another worker: their rows are dropped, their channels given up",
+                    sorted(partitions))
+        for p in partitions:
+            acks = self._acks[p]
+            if acks is not None:
+                acks.fence()
+
+    # ------------------------------------------------------------------------------------------------- consumers
+    def _consume(self, partition: int) -> None:
+        """A partition's consumer: connect, register, hand deliveries over and acknowledge until the stop; after a
+        failure forget the partition's vehicles and register again through the next broker."""
+        index = partition
+        while not self._closing.is_set():
+            vehicles: set[str] = set()
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("partition %d: broker %d unreachable: %r", partition, index % len(self.brokers), exc)
+                index += 1
+                time.sleep(RECONNECT_S)
+                continue
+            acks = _Acks()
+            try:
+                channel = connection.channel()
+                channel.basic_qos(prefetch_count=self.prefetch)
+                self._release[partition].clear()
+                self._acks[partition] = acks
+                self._channel.channel = channel
+                channel.basic_consume(partition_queue(partition), functools.partial(
+                    self._on_message, partition, acks, vehicles))
+                self.connected[partition] = True
+                self._registered[partition].set()
+                while not self._closing.is_set():
+                    connection.process_data_events(time_limit=FLUSH_S)
+                    if acks.fenced:
+                        raise _PartitionLost("taken by another worker")
+                    acks.flush(channel)
+                    if self._release[partition].is_set():
+                        self._hand_over(partition, connection, channel, acks, vehicles)
+                        break
+                acks.flush(channel)
+                connection.close()  # a consumer that released the partition registers again, at the end of the list
+            except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost) as exc:
+                acks.fence()  # nothing it took may be stored or acknowledged any more
+                if connection.is_open:  # given up: what it holds goes back to the queue
+                    try:
+                        connection.close()
+                    except (pika.exceptions.AMQPError, OSError):
+                        log.debug("partition %d: closing the given-up connection failed", partition, exc_info=True)
+                if self._closing.is_set():
+                    return
+                self.lost += 1
+                log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
+                            partition, index % len(self.brokers), exc, len(vehicles))
+                for vehicle_id in vehicles:  # another worker may own them meanwhile: restore them if they come back
+                    self.ingest.forget_vehicle(vehicle_id, drop_queued=True)
+                index += 1
+                time.sleep(RECONNECT_S)
+            finally:
+                self.connected[partition] = False
+
+    def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
+                    body: bytes) -> None:
+        acks.delivered = method.delivery_tag
+        if not self._taking.is_set() or acks.fenced or acks.releasing:
+            return  # stopping, given up or handed over: left unacknowledged, it goes back to the queue at the close
+        if acks.epoch is None:  # the channel's first delivery: this consumer is the partition's active one
+            acks.epoch = self.storage.take_partition(partition, self.owner)
+            acks.taken_at = time.monotonic()
+            log.info("partition %d taken, epoch %d", partition, acks.epoch)
+        acks.handed = method.delivery_tag
+        self.deliveries[partition] += 1
+        vehicle_id = vehicle_of_topic(mqtt_routing_key(method.routing_key))
+        if vehicle_id is None:
+            log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition,
+                        method.routing_key)
+            acks.done(method.delivery_tag)
+            return
+        vehicles.add(vehicle_id)
+        self.partition_of[vehicle_id] = partition
+        self.ingest.mqtt_message(vehicle_id, body, self.fanout.gate(functools.partial(acks.done, method.delivery_tag)))
+
+    def _hand_over(self, partition: int, connection, channel, acks: _Acks, vehicles: set[str]) -> None:
+        """Release a partition this worker holds (module docstring, "Spreading partitions"): take no more deliveries,
+        wait until what was taken is stored and acknowledged and the pipeline has stored its vehicles' states and
+        forgotten them; the caller then closes the connection. _PartitionLost if that is not done within
+        HANDOVER_TIMEOUT_S (the partition is then given up as after a fence)."""
+        started = time.monotonic()
+        acks.releasing = True
+        while acks.acknowledged < acks.handed:
+            if self._closing.is_set():
+                return  # the worker stops: what was stored is acknowledged by the caller, the rest goes back
+            if acks.fenced or time.monotonic() - started > HANDOVER_TIMEOUT_S:
+                raise _PartitionLost(f"hand-over: {acks.handed - acks.acknowledged} deliveries not stored")
+            connection.process_data_events(time_limit=FLUSH_S)
+            acks.flush(channel)
+        states = self.ingest.pipeline.hand_over(vehicles)
+        while not states.done():
+            if self._closing.is_set():
+                return  # the worker stops: its pipeline stored every state
+            if time.monotonic() - started > HANDOVER_TIMEOUT_S:
+                raise _PartitionLost("hand-over: the vehicles' states were not stored")
+            connection.process_data_events(time_limit=FLUSH_S)
+        log.info("partition %d released: %d deliveries stored and acknowledged, the states of %d vehicles stored, "
+                 "in %.2f s", partition, acks.acknowledged, states.result(), time.monotonic() - started)
+
+    # ------------------------------------------------------------------------------------------------- spreading
+    def _watch(self) -> None:
+        """Hold a consumer on WORKERS_QUEUE (this worker counts as live while it has it); every WATCH_S read the live
+        workers and the partition queues' depth, and release a partition when this worker holds more than its share
+        (`_balance`). After a failure, the same through the next broker."""
+        index = 0
+        while not self._closing.is_set():
+            try:
+                connection = pika.BlockingConnection(self._parameters(index))
+            except pika.exceptions.AMQPError as exc:
+                log.warning("watcher: broker %d unreachable: %r", index % len(self.brokers), exc)
+                index += 1
+                time.sleep(RECONNECT_S)
+                continue
+            try:
+                channel = connection.channel()
+                channel.queue_declare(WORKERS_QUEUE, durable=True, arguments={"x-queue-type": "quorum"})
+                channel.basic_consume(WORKERS_QUEUE, lambda *_: None, auto_ack=True)  # nothing is published there
+                while not self._closing.is_set():
+                    self.live_workers = channel.queue_declare(WORKERS_QUEUE, passive=True).method.consumer_count
+                    for p in range(self.partitions):
+                        self.messages_ready[p] = channel.queue_declare(partition_queue(p),
+                                                                       passive=True).method.message_count
+                    self._balance(time.monotonic())
+                    connection.process_data_events(time_limit=WATCH_S)
+                connection.close()
+            except (pika.exceptions.AMQPError, OSError) as exc:
+                self.live_workers = None
+                log.warning("watcher: connection through broker %d lost: %r", index % len(self.brokers), exc)
+                if connection.is_open:
+                    try:
+                        connection.close()
+                    except (pika.exceptions.AMQPError, OSError):
+                        log.debug("watcher: closing the failed connection failed", exc_info=True)
+                index += 1
+                time.sleep(RECONNECT_S)
+
+    def _balance(self, now: float) -> None:
+        """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/worker/
+        spread.py)."""
+        if any(e.is_set() for e in self._release):
+            return
+        held = {p: self._acks[p].taken_at for p in self.held_partitions()}
+        try:
+            partition = self.spread.release(now, self.live_workers, held, self.storage.partition_owners)
+        except StorageUnavailable as exc:
+            log.warning("partition owners not read (tried again in %.0f s): %s", WATCH_S, exc)
+            return
+        if partition is not None:
+            self._release[partition].set()
+
+    def _reject(self, vehicle_id: str, errors: list[dict]) -> None:
+        """Rejections of a message (called by Ingest.mqtt_message in the consumer's thread): counted, logged,
+        published on the vehicle's errors topic."""
+        self.rejected += len(errors)
+        log.warning("rejected %d sample(s) from vehicle %s: %s", len(errors), vehicle_id, errors[0]["reason"])
+        self._channel.channel.basic_publish(MQTT_EXCHANGE, mqtt_routing_key(errors_topic(vehicle_id)),
+                                            json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
+
+
+def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH,
+               stop: threading.Event | None = None, metrics_port: int | None = None,
+               metrics_host: str = "127.0.0.1") -> None:
+    """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
+    STATS_S; with `metrics_port`, its Prometheus metrics at http://metrics_host:metrics_port/metrics
+    (roadgrip/cloud/cluster/worker_metrics.py)."""
+    from roadgrip.cloud.cluster.worker_metrics import serve_metrics
+
+    stop = stop or threading.Event()
+    worker = Worker(brokers, settings, partitions, prefetch)
+    worker.start()
+    server = None
+    try:
+        if metrics_port is not None:
+            server = serve_metrics(worker, metrics_port, metrics_host)
+            log.info("metrics at http://%s:%d/metrics", metrics_host, server.server_port)
+        while not stop.wait(STATS_S):
+            log.info("worker: %s", json.dumps(worker.stats()))
+    finally:
+        if server is not None:
+            server.shutdown()
+            server.server_close()
+        worker.stop()

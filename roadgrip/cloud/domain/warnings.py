@@ -1,0 +1,490 @@
+"""Slippery-road warnings per H3 cell (DESIGN 3.6), in the shape of an ETSI DENM (cause code 6,
+adverseWeatherCondition-Adhesion).
+
+Pure and in memory: `update(estimates, now_ms)` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms,
+latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
+position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roadside stations' reports
+(roadgrip/cloud/domain/stations.py: dicts with station_id, cell, timestamp_ms, mu, mu_lower, mu_upper) the same way (rule 8).
+
+Rules
+1. Passes. A pass is one vehicle's consecutive estimates in one cell. It ends when the vehicle is seen in another cell,
+   when it comes back to the cell after more than pass_gap_s, or when now_ms is more than pass_gap_s past its last
+   estimate. A pass's time is its last estimate's timestamp. Rows are taken in (vehicle, timestamp) order within a call;
+   a row older than its vehicle's current pass from another cell, or older than the vehicle's last judged pass, arrives
+   too late to change a verdict and is dropped (counted in `late_rows_`). A late row of the current pass's cell joins
+   the pass.
+2. Verdict of a pass, from its excited estimates (a non-excited estimate's interval says nothing about mu) and from
+   what its estimates prove: "low" with at least min_excited_per_pass excited ones and their median mu_upper <
+   threshold_mu (even the optimistic bound is slippery); otherwise "dry" when the largest mu_proven of its estimates,
+   excited or not, reaches threshold_mu (the car's own acceleration showed that much grip there: a calm pass cornering
+   at 0.45 g is a dry pass), or with at least min_excited_per_pass excited ones whose median mu_lower >= threshold_mu
+   (even the pessimistic bound has grip); otherwise "unknown", which changes nothing. Medians, so that a few outliers
+   in a pass of tens of samples cannot decide it. "Low" is judged first: a pass whose estimates read low although one
+   of its samples proved grip straddles a patch's edge within the cell, and the low reading is the one that warns.
+3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
+   compares pass times, not arrival order, so that how the estimates are batched matters little.
+4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
+   excited estimates say mu_upper < threshold_mu is evidence enough; with 2, two vehicles or repeated passes of one)
+   later than its last dry pass and at most validity_s old. One vehicle's passes less than pass_gap_s apart
+   count once (`_Evidence`): GNSS noise along a cell border splits one visit into several passes. Only low
+   passes in the cell itself count: a warning never appears in a cell without them.
+5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
+6. Cancel ("recovered"): min_dry_passes dry passes later than the detection cancel it. A dry pass also clears the
+   cell's earlier low passes (rule 4 counts only low passes after the last dry one).
+7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
+   validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
+   applied to its cell against the pass's time.
+
+8. Roadside stations. A station's report is one pass in each cell it covers, its own source: vehicle_id
+   f"station:{station_id}" (a colon, which no vehicle_id holds), time the report's timestamp. Its verdict comes from
+   the report's one interval: low when mu_upper < threshold_mu, dry when mu_lower >= threshold_mu, otherwise unknown
+   (min_excited_per_pass does not apply: a report is a measurement, not a sample of a manoeuvre). It then counts by
+   rules 3-7 like a vehicle's pass: a station's low reports more than pass_gap_s apart are repeated passes of one
+   source (two raise a warning alone with min_low_passes 2), a dry report cancels. A report no newer than the
+   station's last one applied in that cell is dropped (counted in `late_rows_`): its newest report supersedes.
+
+Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
+is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
+DENM ActionID sequenceNumber (0..65535), one per warning, kept through its updates and its cancellation: counted by
+the engine, or taken from `action_sequence` where several engines speak for one originating station (cluster mode's
+regions, roadgrip/cloud/cluster/regions.py).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import operator
+import statistics
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import h3
+
+from roadgrip.cloud.formats.exports import MAX_VALIDITY_S, denm
+from roadgrip.cloud.domain.friction_map import validate_resolution
+
+# The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
+# trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
+# one low pass raises (recall 1.00 against 0.92 with two on seeds 0-2, 0.90 against 0.70 on held-out seeds 3-4, no
+# false warning on either), at the price of warnings in the cell beside a patch where braking begun on it ends.
+THRESHOLD_MU = 0.4
+MIN_LOW_PASSES = 1
+MIN_DRY_PASSES = 1
+PASS_GAP_S = 30.0
+MIN_EXCITED_PER_PASS = 3
+VALIDITY_S = 600.0
+
+LOW, DRY, UNKNOWN = "low", "dry", "unknown"
+ACTIVE, CANCELLED = "active", "cancelled"
+LOW_FRICTION, RECOVERED, EXPIRED = "low friction", "recovered", "expired"
+_NEVER = -(2**62)
+
+
+@dataclass(frozen=True)
+class WarningEvent:
+    """A raise, refresh, cancellation or expiry of a slippery-road warning in one H3 cell. Times in ms since the Unix
+    epoch (UTC)."""
+
+    warning_id: str  # f"{cell}-{detection_ms}", stable for the warning's life
+    cell: str
+    status: str  # "active" | "cancelled"
+    reason: str  # "low friction" | "recovered" | "expired"
+    detection_ms: int  # when the warning was raised (the time of the low pass that completed the evidence)
+    updated_ms: int  # when this event was generated (the update's now_ms; DENM referenceTime)
+    latitude_deg: float  # cell centre
+    longitude_deg: float
+    mu_upper: float  # the evidence: median over the low passes of each pass's median mu_upper
+    n_passes: int  # low passes in the evidence
+    n_vehicles: int  # distinct vehicles among them
+    sequence_number: int  # 0 when raised, +1 for each later event of the same warning
+    validity_s: float  # counted from evidence_ms
+    evidence_ms: int  # the time of what this event reports (DENM detectionTime): the low pass that raised or
+    # refreshed it, the dry pass that cancelled it, or the instant it lapsed
+    action_sequence_number: int  # DENM ActionID sequenceNumber, one per warning
+    station_id: int = 1  # DENM originating station
+
+    def to_denm(self) -> dict:
+        """This event as a DENM (roadgrip.cloud.formats.exports.denm)."""
+        return denm(self)
+
+
+class _LowPass(NamedTuple):
+    time_ms: int
+    vehicle_id: str
+    mu_upper: float  # median mu_upper of the pass's excited estimates
+
+
+class _Evidence:
+    """A cell's low passes (rule 4), oldest first, with what an event reports kept up to date as passes come and go: the
+    median of their mu_upper, how many of them count as independent, how many vehicles made them. A busy cell holds
+    thousands of passes within validity_s (a fleet queueing on an icy bridge), and every low pass there makes an event:
+    adding or dropping a pass costs a binary search and a list insert or delete, so an event costs about the same for 3
+    passes as for 3,000 (recounting them all per event made the service slower the longer it ran).
+
+    Independent passes (`independent`): one vehicle's passes closer than pass_gap_s to the one before are one visit (a
+    vehicle driving along a cell border, GNSS noise moving it in and out, makes several passes in a few seconds; they
+    are one observation, not repeated passes). Of each vehicle's passes in time order, the first counts, and each
+    later one that comes more than pass_gap_s after its predecessor."""
+
+    __slots__ = ("_by_vehicle", "_gap_ms", "_passes", "_uppers", "independent")
+
+    def __init__(self, gap_ms: float):
+        self._gap_ms = gap_ms
+        self._passes: list[_LowPass] = []  # in time order
+        self._uppers: list[float] = []  # their mu_upper, sorted
+        self._by_vehicle: dict[str, list[int]] = {}  # vehicle_id -> the times of its passes, sorted
+        self.independent = 0
+
+    def __len__(self) -> int:
+        return len(self._passes)
+
+    @property
+    def n_vehicles(self) -> int:
+        return len(self._by_vehicle)
+
+    def median_mu_upper(self) -> float:
+        u, n = self._uppers, len(self._uppers)
+        return u[n // 2] if n % 2 else (u[n // 2 - 1] + u[n // 2]) / 2  # as statistics.median
+
+    def _counts(self, earlier: int | None, t: int) -> bool:
+        return earlier is None or t - earlier > self._gap_ms
+
+    def add(self, p: _LowPass) -> None:
+        bisect.insort(self._passes, p)
+        bisect.insort(self._uppers, p.mu_upper)
+        times = self._by_vehicle.setdefault(p.vehicle_id, [])
+        i = bisect.bisect_right(times, p.time_ms)
+        before = times[i - 1] if i else None
+        if i < len(times):  # the vehicle's next pass now follows this one instead of `before`
+            after = times[i]
+            self.independent += self._counts(p.time_ms, after) - self._counts(before, after)
+        self.independent += self._counts(before, p.time_ms)
+        times.insert(i, p.time_ms)
+
+    def drop_older(self, time_ms: float, *, inclusive: bool = False) -> None:
+        """Forget the passes before `time_ms` (and at it, when inclusive): always the oldest ones."""
+        cut = (bisect.bisect_right if inclusive else bisect.bisect_left)(self._passes, time_ms, key=_time_of)
+        for p in self._passes[:cut]:
+            del self._uppers[bisect.bisect_left(self._uppers, p.mu_upper)]
+            times = self._by_vehicle[p.vehicle_id]
+            del times[0]  # the vehicle's oldest: it counted; its next one becomes the first, which counts
+            if times:
+                self.independent += not self._counts(p.time_ms, times[0])
+            else:
+                del self._by_vehicle[p.vehicle_id]
+            self.independent -= 1
+        del self._passes[:cut]
+
+    def clear(self) -> None:
+        self.drop_older(math.inf)
+
+
+def _time_of(p: _LowPass) -> int:
+    return p.time_ms
+
+
+class _Pass:
+    __slots__ = ("cell", "first_ms", "last_ms", "lowers", "proven", "uppers", "vehicle_id")
+
+    def __init__(self, vehicle_id: str, cell: str, t: int):
+        self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
+        self.uppers: list[float] = []
+        self.lowers: list[float] = []
+        self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
+
+
+class _Warning:
+    __slots__ = (
+        "action_sequence_number",
+        "detection_ms",
+        "dry_passes",
+        "evidence_ms",
+        "last_event",
+        "sequence_number",
+        "warning_id",
+    )
+
+    def __init__(self, warning_id: str, detection_ms: int, action_sequence_number: int, sequence_number: int = 0):
+        self.warning_id, self.detection_ms, self.evidence_ms = warning_id, detection_ms, detection_ms
+        self.action_sequence_number, self.sequence_number = action_sequence_number, sequence_number
+        self.dry_passes = 0
+        self.last_event: WarningEvent | None = None
+
+
+class _CellState:
+    __slots__ = ("last_dry_ms", "low_passes", "warning")
+
+    def __init__(self, gap_ms: float):
+        self.low_passes = _Evidence(gap_ms)
+        self.last_dry_ms = _NEVER
+        self.warning: _Warning | None = None
+
+
+def _count(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return value
+
+
+def _positive(name: str, value, upper: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= upper:
+        raise ValueError(f"{name} must be a number in (0, {upper}], got {value!r}")
+    return float(value)
+
+
+class WarningEngine:
+    """Slippery-road warnings from low-friction passes; see the module docstring for the rules."""
+
+    def __init__(self, resolution: int = 10, threshold_mu: float = THRESHOLD_MU,
+                 min_low_passes: int = MIN_LOW_PASSES, min_dry_passes: int = MIN_DRY_PASSES,
+                 pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
+                 validity_s: float = VALIDITY_S, station_id: int = 1, action_sequence=None):
+        self.resolution = validate_resolution(resolution)
+        self.threshold_mu = _positive("threshold_mu", threshold_mu)
+        self.min_low_passes = _count("min_low_passes", min_low_passes)
+        self.min_dry_passes = _count("min_dry_passes", min_dry_passes)
+        self.pass_gap_s = _positive("pass_gap_s", pass_gap_s)
+        self.min_excited_per_pass = _count("min_excited_per_pass", min_excited_per_pass)
+        self.validity_s = _positive("validity_s", validity_s, MAX_VALIDITY_S)  # a DENM cannot say more
+        if isinstance(station_id, bool) or not isinstance(station_id, int) or not 0 <= station_id <= 4294967295:
+            raise ValueError(f"station_id must be an integer StationID in 0..4294967295, got {station_id!r}")
+        self.station_id = station_id
+        # where a new warning's ActionID sequence number comes from: a callable shared by the engines of one
+        # originating station (cluster mode: one per region, numbered by the database), or None: this engine counts
+        self.action_sequence = action_sequence
+        self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
+        self.last_judged_ms_: dict[str, int] = {}  # vehicle_id -> time of its last judged pass
+        self.cell_states_: dict[str, _CellState] = {}
+        self.active_cells_: set[str] = set()
+        self.next_action_sequence_number_ = 0
+        self.late_rows_ = 0
+        self.last_sweep_ms_ = _NEVER
+        self.station_last_ms_: dict[tuple[str, str], int] = {}  # (station source, cell) -> its last report applied
+
+    # ------------------------------------------------------------------------------------------------------ public
+
+    def update(self, estimates: Iterable[dict], now_ms: int) -> list[WarningEvent]:
+        """Feed estimate rows; the events (raised, refreshed, cancelled, expired) this update caused, in the order
+        applied: passes by time, then the expiries at now_ms."""
+        now_ms = int(now_ms)
+        gap_ms = self.pass_gap_s * 1000.0
+        rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
+        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
+        closed: list[_Pass] = []
+        resolution = self.resolution
+        to_cell = h3.latlng_to_cell
+        open_passes = self.open_passes_
+        for row in rows:
+            vehicle = row["vehicle_id"]
+            t = int(row["timestamp_ms"])
+            cell = to_cell(row["latitude_deg"], row["longitude_deg"], resolution)
+            current = open_passes.get(vehicle)
+            if current is not None and current.cell == cell and t - current.last_ms <= gap_ms:
+                if t < current.first_ms and t <= self.last_judged_ms_.get(vehicle, _NEVER):
+                    self.late_rows_ += 1
+                    continue
+                current.first_ms = min(current.first_ms, t)
+                current.last_ms = max(current.last_ms, t)
+            elif current is not None and t < current.last_ms:
+                self.late_rows_ += 1  # late row of another cell: its pass there was judged already
+                continue
+            else:
+                if t <= self.last_judged_ms_.get(vehicle, _NEVER):
+                    self.late_rows_ += 1
+                    continue
+                if current is not None:
+                    closed.append(self._close(current))
+                current = open_passes[vehicle] = _Pass(vehicle, cell, t)
+            proven = row.get("mu_proven")
+            if proven is not None and proven > current.proven:
+                current.proven = proven
+            if row["excited"]:
+                lo, hi = row["mu_lower"], row["mu_upper"]
+                if not (math.isfinite(lo) and math.isfinite(hi)):
+                    raise ValueError(f"estimate of vehicle {vehicle!r} at {t}: mu_lower {lo!r} and mu_upper {hi!r} "
+                                     f"must be finite")
+                current.lowers.append(lo)
+                current.uppers.append(hi)
+        for vehicle, current in list(open_passes.items()):
+            if now_ms - current.last_ms > gap_ms:  # no estimate from it for pass_gap_s: the pass is over
+                closed.append(self._close(current))
+        closed.sort(key=lambda p: (p.last_ms, p.cell, p.vehicle_id))
+        events: list[WarningEvent] = []
+        for finished in closed:
+            self._apply(finished, now_ms, events)
+        self._expire(now_ms, events)
+        if now_ms - self.last_sweep_ms_ >= gap_ms:
+            self._sweep(now_ms)
+        return events
+
+    def station_evidence(self, rows: Iterable[dict], now_ms: int) -> list[WarningEvent]:
+        """Apply roadside stations' evidence rows (rule 8), in order of their time; the events caused, then the
+        expiries at now_ms."""
+        now_ms = int(now_ms)
+        events: list[WarningEvent] = []
+        for row in sorted(rows, key=operator.itemgetter("timestamp_ms", "cell", "station_id")):
+            source, cell, t = f"station:{row['station_id']}", row["cell"], int(row["timestamp_ms"])
+            lo, hi = row["mu_lower"], row["mu_upper"]
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+                raise ValueError(f"evidence of station {row['station_id']!r} at {t}: mu_lower {lo!r} and mu_upper "
+                                 f"{hi!r} must be finite with mu_lower <= mu_upper")
+            if t <= self.station_last_ms_.get((source, cell), _NEVER):
+                self.late_rows_ += 1
+                continue
+            self.station_last_ms_[(source, cell)] = t
+            report = _Pass(source, cell, t)
+            report.uppers.append(hi)
+            report.lowers.append(lo)
+            verdict = LOW if hi < self.threshold_mu else DRY if lo >= self.threshold_mu else UNKNOWN
+            self._apply(report, now_ms, events, verdict)
+        self._expire(now_ms, events)
+        return events
+
+    def active(self) -> list[WarningEvent]:
+        """The latest event of every active warning, ordered by cell."""
+        return [self.cell_states_[c].warning.last_event for c in sorted(self.active_cells_)]
+
+    def restore(self, events: Iterable[WarningEvent]) -> None:
+        """Re-load active warnings after a restart (cancelled events are skipped; of two for one cell the later
+        wins). Counts and the median are kept, not the passes behind them: the evidence is re-seeded as n_passes passes
+        at evidence_ms with the event's mu_upper, from n_vehicles placeholder vehicles, so a vehicle seen before the
+        restart and again after counts twice."""
+        for event in events:
+            if event.status != ACTIVE:
+                continue
+            state = self._cell(event.cell)
+            if state.warning is not None and state.warning.last_event.updated_ms >= event.updated_ms:
+                continue
+            warning = _Warning(event.warning_id, event.detection_ms, event.action_sequence_number,
+                               event.sequence_number)
+            warning.evidence_ms = event.evidence_ms
+            warning.last_event = event
+            state.warning = warning
+            n_vehicles = max(1, event.n_vehicles)
+            state.low_passes.clear()
+            for k in range(max(1, event.n_passes)):
+                state.low_passes.add(_LowPass(event.evidence_ms, f"restored-{k % n_vehicles}", event.mu_upper))
+            self.active_cells_.add(event.cell)
+            self.next_action_sequence_number_ = max(self.next_action_sequence_number_,
+                                                    (event.action_sequence_number + 1) % 65536)
+
+    # ----------------------------------------------------------------------------------------------------- passes
+
+    def _close(self, finished: _Pass) -> _Pass:
+        del self.open_passes_[finished.vehicle_id]
+        judged = self.last_judged_ms_.get(finished.vehicle_id, _NEVER)
+        self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
+        return finished
+
+    def verdict(self, uppers: list[float], lowers: list[float], proven: float = 0.0) -> str:
+        """The verdict of a pass from the mu_upper and mu_lower of its excited estimates and the largest mu_proven of
+        all its estimates (rule 2)."""
+        judged = len(uppers) >= self.min_excited_per_pass
+        if judged and statistics.median(uppers) < self.threshold_mu:
+            return LOW
+        if proven >= self.threshold_mu or (judged and statistics.median(lowers) >= self.threshold_mu):
+            return DRY
+        return UNKNOWN
+
+    def _apply(self, finished: _Pass, now_ms: int, events: list[WarningEvent], verdict: str | None = None) -> None:
+        """Apply a judged pass to its cell (rules 4-7); its verdict by rule 2 unless given (a station's, rule 8)."""
+        verdict = self.verdict(finished.uppers, finished.lowers, finished.proven) if verdict is None else verdict
+        if verdict == UNKNOWN:
+            return
+        t = finished.last_ms
+        validity_ms = self.validity_s * 1000.0
+        state = self._cell(finished.cell)
+        warning = state.warning
+        if warning is not None and t >= warning.evidence_ms + validity_ms:  # it lapsed before this pass (rule 7)
+            self._end(finished.cell, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
+            warning = None
+        if verdict == DRY:
+            state.last_dry_ms = max(state.last_dry_ms, t)
+            state.low_passes.drop_older(t, inclusive=True)
+            if warning is not None and t > warning.detection_ms:
+                warning.dry_passes += 1
+                if warning.dry_passes >= self.min_dry_passes:
+                    self._end(finished.cell, state, RECOVERED, t, now_ms, events)
+            return
+        if t <= state.last_dry_ms:
+            return  # superseded by a later dry pass (rule 4)
+        horizon = max(now_ms, t) - validity_ms
+        state.low_passes.drop_older(horizon)
+        state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
+        if warning is None:
+            if state.low_passes.independent >= self.min_low_passes:
+                if self.action_sequence is None:
+                    number = self.next_action_sequence_number_
+                    self.next_action_sequence_number_ = (number + 1) % 65536
+                else:
+                    number = self.action_sequence()
+                warning = state.warning = _Warning(f"{finished.cell}-{t}", t, number)
+                self.active_cells_.add(finished.cell)
+                events.append(self._event(finished.cell, state, ACTIVE, LOW_FRICTION, now_ms))
+        else:
+            warning.evidence_ms = max(warning.evidence_ms, t)
+            warning.sequence_number += 1
+            events.append(self._event(finished.cell, state, ACTIVE, LOW_FRICTION, now_ms))
+
+    # --------------------------------------------------------------------------------------------------- warnings
+
+    def _event(self, cell: str, state: _CellState, status: str, reason: str, now_ms: int) -> WarningEvent:
+        warning = state.warning
+        if status == ACTIVE:
+            evidence = state.low_passes
+            mu_upper, n_passes, n_vehicles = evidence.median_mu_upper(), evidence.independent, evidence.n_vehicles
+        else:  # a cancellation reports the low-friction evidence the warning had
+            previous = warning.last_event
+            mu_upper, n_passes, n_vehicles = previous.mu_upper, previous.n_passes, previous.n_vehicles
+        latitude_deg, longitude_deg = h3.cell_to_latlng(cell)
+        event = WarningEvent(
+            warning_id=warning.warning_id, cell=cell, status=status, reason=reason,
+            detection_ms=warning.detection_ms, updated_ms=max(now_ms, warning.evidence_ms),
+            latitude_deg=latitude_deg, longitude_deg=longitude_deg, mu_upper=mu_upper, n_passes=n_passes,
+            n_vehicles=n_vehicles, sequence_number=warning.sequence_number, validity_s=self.validity_s,
+            evidence_ms=warning.evidence_ms, action_sequence_number=warning.action_sequence_number,
+            station_id=self.station_id)
+        warning.last_event = event
+        return event
+
+    def _end(self, cell: str, state: _CellState, reason: str, evidence_ms: int, now_ms: int,
+             events: list[WarningEvent]) -> None:
+        warning = state.warning
+        warning.sequence_number += 1
+        warning.evidence_ms = max(warning.evidence_ms, evidence_ms)
+        events.append(self._event(cell, state, CANCELLED, reason, now_ms))
+        state.warning = None
+        self.active_cells_.discard(cell)
+        if reason == EXPIRED:
+            state.low_passes.clear()  # its evidence is older than validity_s
+
+    def _expire(self, now_ms: int, events: list[WarningEvent]) -> None:
+        validity_ms = self.validity_s * 1000.0
+        for cell in sorted(self.active_cells_):
+            state = self.cell_states_[cell]
+            lapse_ms = state.warning.evidence_ms + validity_ms
+            if now_ms >= lapse_ms:
+                self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
+
+    def _cell(self, cell: str) -> _CellState:
+        state = self.cell_states_.get(cell)
+        if state is None:
+            state = self.cell_states_[cell] = _CellState(self.pass_gap_s * 1000.0)
+        return state
+
+    def _sweep(self, now_ms: int) -> None:
+        """Forget cells with no warning whose evidence (low passes, last dry pass) is older than validity_s, and the
+        last judged pass of vehicles gone for as long."""
+        horizon = now_ms - self.validity_s * 1000.0
+        for cell in [c for c, s in self.cell_states_.items() if s.warning is None]:
+            state = self.cell_states_[cell]
+            state.low_passes.drop_older(horizon)
+            if not state.low_passes and state.last_dry_ms < horizon:
+                del self.cell_states_[cell]
+        for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:
+            del self.last_judged_ms_[vehicle]
+        for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:
+            del self.station_last_ms_[key]
+        self.last_sweep_ms_ = now_ms

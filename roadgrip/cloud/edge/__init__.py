@@ -1,1 +1,0 @@
-"""Vehicles in: the MQTT brokers (Mosquitto, RabbitMQ), the payload format, credentials, rate limit, admission."""

@@ -1,0 +1,330 @@
+"""Slippery-road warnings: which cells are raised (exactly the low-friction cells driven, by enough passes), refreshed,
+cancelled by dry passes and expired, and their DENM."""
+
+import calendar
+import random
+import statistics
+
+import h3
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from roadgrip.cloud.formats.exports import ITS_EPOCH_UNIX_MS, timestamp_its_ms
+from roadgrip.cloud.domain.warnings import MIN_LOW_PASSES, WarningEngine, WarningEvent, _Evidence, _LowPass
+
+T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
+LAT_DEG, LON0_DEG = 38.0, 114.5  # Hebei
+STEP_DEG = 2.0 / (111_320.0 * 0.788010754)  # 20 m/s at 10 Hz along the parallel 38 N: 2 m of longitude per sample
+N_SAMPLES = 700  # 1.4 km, 70 s
+
+
+def route_cells():
+    """The resolution-10 cells along the route in driving order, and the samples in each."""
+    order, counts = [], {}
+    for i in range(N_SAMPLES):
+        cell = h3.latlng_to_cell(LAT_DEG, LON0_DEG + i * STEP_DEG, 10)
+        if not order or order[-1] != cell:
+            assert cell not in counts, "the route must not come back into a cell"
+            order.append(cell)
+        counts[cell] = counts.get(cell, 0) + 1
+    return order, counts
+
+
+ROUTE, SAMPLES_IN = route_cells()
+WELL_DRIVEN = [c for c in ROUTE if SAMPLES_IN[c] >= 30]
+PATCH = set(WELL_DRIVEN[4:7])  # icy
+STRADDLING = WELL_DRIVEN[3]  # excited, but the interval straddles the threshold: unknown
+STEADY = WELL_DRIVEN[7]  # driven steadily: not excited, unknown
+
+
+def surface(cell, slippery=PATCH):
+    """(mu, mu_lower, mu_upper, excited) that an estimator would report in this cell."""
+    if cell in slippery:
+        return 0.2, 0.1, 0.3, True
+    if cell == STRADDLING:
+        return 0.4, 0.3, 0.55, True
+    if cell == STEADY:
+        return 0.5, 0.0, 1.2, False
+    return 0.8, 0.6, 0.95, True
+
+
+def drive(vehicle, start_ms, slippery=PATCH, reverse=False):
+    rows = []
+    for i in range(N_SAMPLES):
+        lon = LON0_DEG + (N_SAMPLES - 1 - i if reverse else i) * STEP_DEG
+        mu, lo, hi, excited = surface(h3.latlng_to_cell(LAT_DEG, lon, 10), slippery)
+        rows.append({"vehicle_id": vehicle, "timestamp_ms": start_ms + 100 * i, "latitude_deg": LAT_DEG,
+                     "longitude_deg": lon, "mu": mu, "mu_lower": lo, "mu_upper": hi, "excited": excited})
+    return rows
+
+
+def stream(engine, rows, batch_ms=1000, settle_s=31.0):
+    """Feed rows in time order in batches of batch_ms (now = the batch's end), then let the passes close."""
+    rows = sorted(rows, key=lambda r: r["timestamp_ms"])
+    events, start = [], rows[0]["timestamp_ms"]
+    while rows:
+        end = start + batch_ms
+        batch = [r for r in rows if r["timestamp_ms"] < end]
+        rows = rows[len(batch):]
+        events += engine.update(batch, end)
+        start = end
+    events += engine.update([], start + int(settle_s * 1000))
+    return events
+
+
+def two_pass_engine(**settings) -> WarningEngine:
+    """The rules' mechanics with two low passes to raise; the product raises on one (MIN_LOW_PASSES, chosen by the fleet
+    benchmark), which `test_the_product_raises_on_one_low_pass` checks."""
+    return WarningEngine(**{"min_low_passes": 2, **settings})
+
+
+def raised(events):
+    return {e.cell for e in events if e.status == "active" and e.sequence_number == 0}
+
+
+def test_a_patch_driven_by_two_vehicles_raises_exactly_its_cells():
+    engine = two_pass_engine()
+    events = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    assert raised(events) == PATCH == {e.cell for e in engine.active()}
+    assert all(e.status == "active" for e in events)  # nothing cancelled
+    for event in engine.active():
+        assert event.reason == "low friction" and event.n_passes == 2 and event.n_vehicles == 2
+        assert event.mu_upper == pytest.approx(0.3)
+        assert event.warning_id == f"{event.cell}-{event.detection_ms}"
+        assert h3.latlng_to_cell(event.latitude_deg, event.longitude_deg, 10) == event.cell
+        assert T0_MS + 60_000 < event.detection_ms < T0_MS + 130_000  # raised by b's pass
+
+
+def test_the_product_raises_on_one_low_pass():
+    assert WarningEngine().min_low_passes == MIN_LOW_PASSES == 1
+    events = stream(WarningEngine(), drive("a", T0_MS))
+    assert raised(events) == PATCH  # one vehicle braking on the patch, one low pass in each of its cells
+
+
+def test_one_pass_of_one_vehicle_raises_nothing():
+    engine = two_pass_engine()
+    assert stream(engine, drive("a", T0_MS)) == []
+    assert engine.active() == []
+
+
+def test_two_passes_of_one_vehicle_raise_when_apart_by_more_than_the_gap():
+    engine = two_pass_engine(pass_gap_s=30.0)
+    events = stream(engine, drive("a", T0_MS) + drive("a", T0_MS + 110_000, reverse=True))  # back after 40 s or more
+    assert raised(events) == PATCH
+    assert all(e.n_vehicles == 1 and e.n_passes == 2 for e in engine.active())
+
+
+def test_a_pause_shorter_than_the_gap_is_one_pass():
+    engine = two_pass_engine(pass_gap_s=30.0)
+    rows = drive("a", T0_MS)
+    patch_rows = [r for r in rows if h3.latlng_to_cell(r["latitude_deg"], r["longitude_deg"], 10) in PATCH]
+    again = [{**r, "timestamp_ms": r["timestamp_ms"] + 20_000} for r in patch_rows[-5:]]  # stood 20 s, went on
+    assert stream(engine, rows[: rows.index(patch_rows[-1]) + 1] + again) == []
+
+
+def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
+    engine = two_pass_engine(min_dry_passes=1)
+    first = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    events = stream(engine, drive("c", T0_MS + 300_000, slippery=set()))
+    assert {e.cell for e in events} == PATCH and engine.active() == []
+    by_id = {e.warning_id: e for e in first}
+    for event in events:
+        assert (event.status, event.reason) == ("cancelled", "recovered")
+        assert event.action_sequence_number == by_id[event.warning_id].action_sequence_number
+        assert event.sequence_number == 1
+        assert T0_MS + 300_000 < event.evidence_ms < T0_MS + 370_000  # the dry pass
+        denm = event.to_denm()
+        assert denm["denm"]["management"]["termination"] == "isCancellation"
+        assert denm["denm"]["management"]["actionID"]["sequenceNumber"] == event.action_sequence_number
+
+
+def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
+    engine = two_pass_engine(min_dry_passes=1)
+    stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    calm = [{**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.45}
+            for r in drive("c", T0_MS + 300_000, slippery=set())]
+    events = stream(engine, calm)
+    assert {e.cell for e in events} == PATCH and engine.active() == []
+    assert {(e.status, e.reason) for e in events} == {("cancelled", "recovered")}
+
+
+def test_the_verdict_reads_low_before_what_a_sample_proved_and_proof_below_threshold_is_no_verdict():
+    engine = two_pass_engine(threshold_mu=0.4, min_excited_per_pass=3)
+    assert engine.verdict([0.3, 0.3, 0.3], [0.1, 0.1, 0.1], proven=0.5) == "low"  # a pass across a patch's edge
+    assert engine.verdict([], [], proven=0.41) == "dry"
+    assert engine.verdict([], [], proven=0.39) == "unknown"
+    assert engine.verdict([0.9, 0.9], [0.5, 0.5], proven=0.0) == "unknown"  # too few excited estimates
+
+
+def test_one_dry_pass_does_not_cancel_when_two_are_needed():
+    engine = two_pass_engine(min_dry_passes=2)
+    stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    assert stream(engine, drive("c", T0_MS + 300_000, slippery=set())) == []
+    events = stream(engine, drive("d", T0_MS + 400_000, slippery=set()))
+    assert {e.cell for e in events if e.reason == "recovered"} == PATCH
+
+
+def test_without_a_refresh_the_warning_expires_after_validity():
+    engine = two_pass_engine(validity_s=600.0)
+    stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    last_low_ms = {e.cell: e.evidence_ms for e in engine.active()}
+    lapse_ms = max(last_low_ms.values()) + 600_000
+    assert engine.update([], min(last_low_ms.values()) + 600_000 - 1) == []
+    events = engine.update([], lapse_ms)
+    assert {e.cell for e in events} == PATCH and engine.active() == []
+    for event in events:
+        assert (event.status, event.reason) == ("cancelled", "expired")
+        assert event.evidence_ms == last_low_ms[event.cell] + 600_000
+
+
+def test_a_low_pass_refreshes_and_extends_the_warning():
+    engine = two_pass_engine(validity_s=600.0)
+    first = {e.cell: e for e in stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))}
+    refreshed = stream(engine, drive("c", T0_MS + 500_000))
+    assert {e.cell for e in refreshed} == PATCH
+    for event in refreshed:
+        assert event.status == "active" and event.sequence_number == 1
+        assert event.warning_id == first[event.cell].warning_id
+        assert (event.n_passes, event.n_vehicles) == (3, 3)
+        assert event.to_denm()["denm"]["management"]["detectionTime"] == timestamp_its_ms(event.evidence_ms)
+    assert engine.update([], T0_MS + 800_000) == []  # the first evidence alone would have lapsed by now
+    assert len(engine.update([], T0_MS + 1_200_000)) == len(PATCH)
+
+
+def test_low_passes_before_a_dry_one_do_not_count():
+    engine = two_pass_engine()
+    events = stream(engine, drive("a", T0_MS) + drive("c", T0_MS + 100_000, slippery=set())
+                    + drive("b", T0_MS + 200_000))
+    assert raised(events) == set()
+
+
+def test_batching_and_order_do_not_change_the_warnings():
+    rows = drive("a", T0_MS) + drive("b", T0_MS + 60_000)
+    streamed = stream(two_pass_engine(), rows)
+    shuffled = rows[:]
+    random.Random(3).shuffle(shuffled)
+    at_once = two_pass_engine().update(shuffled, T0_MS + 200_000)
+    key = sorted((e.warning_id, e.n_passes, e.mu_upper) for e in streamed)
+    assert sorted((e.warning_id, e.n_passes, e.mu_upper) for e in at_once) == key
+    # one vehicle's rows slightly late, across batch boundaries (swapped in pairs)
+    late = rows[:]
+    for i in range(0, len(late) - 1, 2):
+        late[i], late[i + 1] = late[i + 1], late[i]
+    engine = two_pass_engine()
+    events = []
+    for start in range(0, len(late), 7):
+        batch = late[start:start + 7]
+        events += engine.update(batch, max(r["timestamp_ms"] for r in batch))
+    events += engine.update([], T0_MS + 200_000)
+    assert sorted((e.warning_id, e.n_passes, e.mu_upper) for e in events) == key
+
+
+def test_rows_without_position_are_ignored():
+    rows = [{**r, "latitude_deg": None} for r in drive("a", T0_MS) + drive("b", T0_MS + 60_000)]
+    assert stream(two_pass_engine(), rows) == []
+
+
+def test_restore_brings_back_active_warnings():
+    engine = two_pass_engine()
+    stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    saved = engine.active()
+    restarted = two_pass_engine()
+    restarted.restore(saved)
+    assert restarted.active() == saved
+    events = stream(restarted, drive("c", T0_MS + 300_000, slippery=set()))
+    assert {e.warning_id for e in events} == {e.warning_id for e in saved}
+    assert all(e.reason == "recovered" for e in events)
+    raised_again = stream(restarted, drive("d", T0_MS + 400_000) + drive("e", T0_MS + 470_000))
+    assert {e.action_sequence_number for e in raised_again}.isdisjoint({e.action_sequence_number for e in saved})
+
+
+def test_denm_of_a_raised_warning():
+    engine = two_pass_engine(station_id=4242)
+    events = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
+    event = events[0]
+    message = event.to_denm()
+    management = message["denm"]["management"]
+    assert message["header"] == {"protocolVersion": 2, "messageID": 1, "stationID": 4242}
+    assert message["denm"]["situation"]["eventType"] == {"causeCode": 6, "subCauseCode": 0}
+    assert message["denm"]["situation"]["informationQuality"] == 4  # 2 passes, 2 vehicles
+    assert "termination" not in management
+    assert management["actionID"] == {"originatingStationID": 4242, "sequenceNumber": event.action_sequence_number}
+    # 2026 is after the five leap seconds since 2004 (2005-12, 2008-12, 2012-06, 2015-06, 2016-12)
+    assert management["detectionTime"] == event.detection_ms - ITS_EPOCH_UNIX_MS + 5000
+    assert management["referenceTime"] == event.updated_ms - ITS_EPOCH_UNIX_MS + 5000
+    position = management["eventPosition"]
+    assert h3.latlng_to_cell(position["latitude"] / 1e7, position["longitude"] / 1e7, 10) == event.cell
+    assert management["validityDuration"] == 600 and management["stationType"] == 15
+    assert management["relevanceDistance"] == "lessThan100m"
+    assert message["roadgrip"]["cell"] == event.cell
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("resolution", 16), ("threshold_mu", 0), ("min_low_passes", 0), ("min_dry_passes", 1.5),
+    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1)])
+def test_arguments_are_validated(name, value):
+    with pytest.raises(ValueError, match=rf"{name}.*{value!r}"):
+        WarningEngine(**{name: value})
+
+
+def test_event_is_frozen():
+    event = WarningEvent(warning_id="c-1", cell=h3.latlng_to_cell(LAT_DEG, LON0_DEG, 10), status="active",
+                         reason="low friction", detection_ms=T0_MS, updated_ms=T0_MS, latitude_deg=LAT_DEG,
+                         longitude_deg=LON0_DEG, mu_upper=0.3, n_passes=2, n_vehicles=1, sequence_number=0,
+                         validity_s=600.0, evidence_ms=T0_MS, action_sequence_number=0)
+    with pytest.raises(AttributeError):
+        event.status = "cancelled"
+
+
+def test_one_vehicle_in_and_out_of_a_cell_along_its_border_is_one_pass():
+    """GNSS noise on a road along a cell border: the vehicle alternates between two icy cells every few samples.
+    That is one visit of each cell, however many passes it splits into: no warning from one vehicle."""
+    engine = two_pass_engine()
+    a, b = sorted(PATCH)[:2]
+    (lat_a, lon_a), (lat_b, lon_b) = h3.cell_to_latlng(a), h3.cell_to_latlng(b)
+    rows = []
+    for i in range(120):
+        lat, lon = (lat_a, lon_a) if (i // 5) % 2 == 0 else (lat_b, lon_b)
+        rows.append({"vehicle_id": "v", "timestamp_ms": T0_MS + 100 * i, "latitude_deg": lat, "longitude_deg": lon,
+                     "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3, "excited": True})
+    assert raised(stream(engine, rows)) == set()
+    assert raised(stream(engine, [{**r, "vehicle_id": "w", "timestamp_ms": r["timestamp_ms"] + 5_000}
+                                  for r in rows])) == {a, b}
+
+
+def independent_passes(passes, gap_ms):
+    """Rule 4 recounted from scratch: of each vehicle's passes in time order, the first and every one more than
+    gap_ms after its predecessor."""
+    count, last_by_vehicle = 0, {}
+    for p in sorted(passes, key=lambda p: p.time_ms):
+        last = last_by_vehicle.get(p.vehicle_id)
+        count += last is None or p.time_ms - last > gap_ms
+        last_by_vehicle[p.vehicle_id] = p.time_ms
+    return count
+
+
+_operations = st.lists(st.one_of(
+    st.tuples(st.just("add"), st.integers(0, 600), st.sampled_from("abcd"), st.floats(0.0, 0.4)),
+    st.tuples(st.just("drop"), st.integers(0, 600), st.booleans())), max_size=60)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_operations)
+def test_evidence_kept_up_to_date_equals_a_recount_after_every_change(operations):
+    """The cell's evidence updated pass by pass (binary searches) reports what a recount of its passes reports."""
+    evidence, passes = _Evidence(gap_ms=30.0), []
+    for op in operations:
+        if op[0] == "add":
+            _, t, vehicle, mu_upper = op
+            evidence.add(_LowPass(t, vehicle, mu_upper))
+            passes.append(_LowPass(t, vehicle, mu_upper))
+        else:
+            _, t, inclusive = op
+            evidence.drop_older(t, inclusive=inclusive)
+            passes = [p for p in passes if (p.time_ms > t if inclusive else p.time_ms >= t)]
+        assert len(evidence) == len(passes)
+        assert evidence.independent == independent_passes(passes, 30.0)
+        assert evidence.n_vehicles == len({p.vehicle_id for p in passes})
+        if passes:
+            assert evidence.median_mu_upper() == statistics.median(p.mu_upper for p in passes)
