@@ -513,8 +513,8 @@ def worker(
     import signal
     import threading
 
-    from roadgrip.cloud.settings import load_settings
     from roadgrip.cloud.cluster.worker import run_worker
+    from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, database_url=database, estimator=estimator)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -32,7 +32,8 @@ from pathlib import Path
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
-from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, free_ports, partition_queue, wait_port
+from roadgrip.cloud.localhost import free_ports, wait_port
+from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, partition_queue
 
 TOPIC = "roadgrip/v1/vehicles/{}/telemetry"
 NATS_PARTITION_PREFIX = "rgp"

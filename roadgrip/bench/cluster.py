@@ -55,8 +55,8 @@ import pika
 import psycopg
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.transport.mqtt import telemetry_topic
 from roadgrip.cloud.transport.amqp import HOST, RabbitCluster, partition_queue
+from roadgrip.cloud.transport.mqtt import telemetry_topic
 
 SAMPLES_PER_MESSAGE = 10  # 1 s of a terminal's data at 10 Hz
 SAMPLE_PERIOD_MS = 100
@@ -373,8 +373,8 @@ def _window(seconds: float, read: Callable[[], tuple[int, ...]], tick: Callable[
 
 def run_cluster_bench(bench: ClusterBench, progress: Progress = lambda message, fraction: None) -> dict:
     """Run every case of `bench` (module docstring) and return the results (JSON-able)."""
-    from roadgrip.cloud.storage.local_postgres import LocalPostgres
     from roadgrip.bench.sim import machine_description
+    from roadgrip.cloud.storage.local_postgres import LocalPostgres
 
     started = time.monotonic()
     cases = 1 + len(bench.workers)

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import httpx
 
-from roadgrip.cloud.transport.mosquitto import free_port
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.storage.database import open_storage
 from roadgrip.fleet.terminal import wire_samples
 

@@ -27,12 +27,37 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_U, M_X, REJECT, STEP, KalmanEstimator, accept_posterior, begin, cholesky, cholesky_solve, finish_step,
-    matmul, matmul_bt, output,
+    M_P,
+    M_U,
+    M_X,
+    REJECT,
+    STEP,
+    KalmanEstimator,
+    accept_posterior,
+    begin,
+    cholesky,
+    cholesky_solve,
+    finish_step,
+    matmul,
+    matmul_bt,
+    output,
 )
 from roadgrip.estimators.vehicle_model import (
-    MU, N_U, N_X, N_Z, T_MIN_SPEED, T_SNR, U_AX, U_AY, VX, loads_from_accel, measure, measurement_noise, mu_snr,
-    predict_state, process_noise,
+    MU,
+    N_U,
+    N_X,
+    N_Z,
+    T_MIN_SPEED,
+    T_SNR,
+    U_AX,
+    U_AY,
+    VX,
+    loads_from_accel,
+    measure,
+    measurement_noise,
+    mu_snr,
+    predict_state,
+    process_noise,
 )
 
 

@@ -29,8 +29,27 @@ from numba import njit
 
 from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.vehicle_model import (
-    INTERVAL_RANGE, INTERVAL_Z, MU, MU_MAX, MU_MIN, N_U, N_X, STATE_NAMES, T_MAX_STEP, T_SNR, U_AX, U_AY, U_DELTA,
-    U_W0, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, initial_state, pack_model,
+    INTERVAL_RANGE,
+    INTERVAL_Z,
+    MU,
+    MU_MAX,
+    MU_MIN,
+    N_U,
+    N_X,
+    STATE_NAMES,
+    T_MAX_STEP,
+    T_SNR,
+    U_AX,
+    U_AY,
+    U_DELTA,
+    U_W0,
+    Z_AX,
+    Z_AY,
+    Z_R,
+    Z_V,
+    FilterTuning,
+    initial_state,
+    pack_model,
 )
 from roadgrip.vehicle.dynamics import P_STEER_RATIO
 from roadgrip.vehicle.params import VehicleParams

@@ -13,7 +13,12 @@ from roadgrip.estimators.base import Estimate, Estimator, estimate_table
 from roadgrip.estimators.calibration import interval, utilization_bin
 from roadgrip.estimators.excitation import excited
 from roadgrip.features.windows import (
-    Scaler, feature_matrix, features_from_columns, input_columns, make_windows, vehicle_profile,
+    Scaler,
+    feature_matrix,
+    features_from_columns,
+    input_columns,
+    make_windows,
+    vehicle_profile,
 )
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 

@@ -29,12 +29,39 @@ import numpy as np
 from numba import njit
 
 from roadgrip.estimators.kalman import (
-    M_P, M_U, M_X, REJECT, STEP, KalmanEstimator, accept_posterior, begin, cholesky, cholesky_solve, finish_step,
-    matmul, matmul_bt, output, symmetrize,
+    M_P,
+    M_U,
+    M_X,
+    REJECT,
+    STEP,
+    KalmanEstimator,
+    accept_posterior,
+    begin,
+    cholesky,
+    cholesky_solve,
+    finish_step,
+    matmul,
+    matmul_bt,
+    output,
+    symmetrize,
 )
 from roadgrip.estimators.vehicle_model import (
-    MU, N_U, N_X, N_Z, T_MIN_SPEED, T_SNR, T_UKF_ALPHA, U_AX, U_AY, VX, loads_from_accel, measure, measurement_noise,
-    mu_snr, predict_state, process_noise,
+    MU,
+    N_U,
+    N_X,
+    N_Z,
+    T_MIN_SPEED,
+    T_SNR,
+    T_UKF_ALPHA,
+    U_AX,
+    U_AY,
+    VX,
+    loads_from_accel,
+    measure,
+    measurement_noise,
+    mu_snr,
+    predict_state,
+    process_noise,
 )
 
 UKF_BETA, UKF_KAPPA = 2.0, 0.0  # beta = 2 is optimal for Gaussian priors; kappa = 0 (alpha sets the spread)

@@ -42,7 +42,15 @@ from numba import njit
 from roadgrip.units import G_MPS2
 from roadgrip.validation import bounded, check_bounds, from_mapping
 from roadgrip.vehicle.dynamics import (
-    N_VP, P_AERO, P_M, P_RW, SLIP_SPEED_FLOOR_MPS, pack_vehicle, slip_ratio, slip_ratio_per_spin, wheel_loads,
+    N_VP,
+    P_AERO,
+    P_M,
+    P_RW,
+    SLIP_SPEED_FLOOR_MPS,
+    pack_vehicle,
+    slip_ratio,
+    slip_ratio_per_spin,
+    wheel_loads,
     wheel_position,
 )
 from roadgrip.vehicle.params import VehicleParams

@@ -74,10 +74,10 @@ import orjson
 import pyarrow as pa
 import pymap3d
 
-from roadgrip.cloud.serve.service import CloudService
-from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.domain.stations import parse_reports
 from roadgrip.cloud.ingest.wire import parse_payload
+from roadgrip.cloud.serve.service import CloudService
+from roadgrip.cloud.settings import Settings
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.fleet.fleet import _speed_profile, planned_arrival
 from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road, generated_network, points_at

@@ -18,8 +18,8 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.domain.warnings import CANCELLED, WarningEngine
+from roadgrip.cloud.settings import Settings
 from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value

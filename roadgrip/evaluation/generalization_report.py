@@ -12,7 +12,6 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 from matplotlib.figure import Figure
 
-
 COLUMNS = [
     ("model", "model", "{}"), ("feature_set", "features", "{}"),
     ("rmse_excited", "RMSE excited", "{:.3f}"), ("mae_excited", "MAE excited", "{:.3f}"),

@@ -12,12 +12,15 @@ import pyarrow as pa
 
 from roadgrip.data.schema import WHEELS
 from roadgrip.features.production import (
-    OPTIONAL_FLAGS, PRODUCTION_FEATURES, PRODUCTION_INPUTS, production_features,
+    OPTIONAL_FLAGS,
+    PRODUCTION_FEATURES,
+    PRODUCTION_INPUTS,
+    production_features,
+    vehicle_profile,  # noqa: F401  (re-exported: the profile a feature set takes)
 )
-from roadgrip.features.production import vehicle_profile  # noqa: F401  (re-exported: the profile a feature set takes)
 from roadgrip.units import G_MPS2
-from roadgrip.vehicle.dynamics import SLIP_SPEED_FLOOR_MPS
 from roadgrip.validation import check_choice
+from roadgrip.vehicle.dynamics import SLIP_SPEED_FLOOR_MPS
 
 WHEEL_SPEEDS = tuple(f"wheel_speed_{w}_radps" for w in WHEELS)
 TERMINAL_INPUTS = ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad",

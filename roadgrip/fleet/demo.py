@@ -14,7 +14,7 @@ from pathlib import Path
 import uvicorn
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.transport.mosquitto import free_port
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline

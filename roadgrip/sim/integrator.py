@@ -23,14 +23,47 @@ import numpy as np
 from numba import njit, prange
 
 from roadgrip.sim.driver import (
-    BRAKE_RISE_S, ESC_CUT_SIDESLIP_RAD, TCS_CUT_SLIP, YAW_BUILD_UP_S, YAW_MAX_SHARE, LOOKAHEAD_MIN_M, LOOKAHEAD_TIME_S,
-    STEER_LAG_S, abs_step, pure_pursuit, speed_control, speed_reference, steer_input, traction_control,
+    BRAKE_RISE_S,
+    ESC_CUT_SIDESLIP_RAD,
+    LOOKAHEAD_MIN_M,
+    LOOKAHEAD_TIME_S,
+    STEER_LAG_S,
+    TCS_CUT_SLIP,
+    YAW_BUILD_UP_S,
+    YAW_MAX_SHARE,
+    abs_step,
+    pure_pursuit,
+    speed_control,
+    speed_reference,
+    steer_input,
+    traction_control,
 )
 from roadgrip.sim.roads import grade_at, mu_at, point_at_station, project_on_path
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.dynamics import (
-    N_STATE, P_AERO, P_BRAKE_F, P_DRIVE_F, P_FRR, P_JW, P_LF, P_LR, P_M, P_PMAX, P_RW, P_STEER_MAX, P_TMAX, PHI, PSI,
-    VX, VY, W0, X, Y, R, derivatives, wheel_position,
+    N_STATE,
+    P_AERO,
+    P_BRAKE_F,
+    P_DRIVE_F,
+    P_FRR,
+    P_JW,
+    P_LF,
+    P_LR,
+    P_M,
+    P_PMAX,
+    P_RW,
+    P_STEER_MAX,
+    P_TMAX,
+    PHI,
+    PSI,
+    VX,
+    VY,
+    W0,
+    R,
+    X,
+    Y,
+    derivatives,
+    wheel_position,
 )
 
 STEP_S = 0.001

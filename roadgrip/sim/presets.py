@@ -10,11 +10,10 @@ mounting, bias and pitch, per-wheel rolling radii, CAN resolution, time offsets,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
-
-import dataclasses
 
 from roadgrip.sim.driver import SpeedProfile, SteerInput
 from roadgrip.sim.production import ProductionEffects

@@ -9,14 +9,19 @@ import numpy as np
 import pyarrow as pa
 import torch
 
-from roadgrip.features.folds import grouped_folds, time_blocks
 from roadgrip.estimators.calibration import calibrate, utilization_bin
 from roadgrip.estimators.excitation import excited
+from roadgrip.features.folds import grouped_folds, time_blocks
 from roadgrip.features.windows import (
-    Scaler, feature_matrix, make_windows, needs_vehicle, segment_ids, vehicle_profile,
+    Scaler,
+    feature_matrix,
+    make_windows,
+    needs_vehicle,
+    segment_ids,
+    vehicle_profile,
 )
 from roadgrip.models.registry import build_model, model_config
-from roadgrip.training.trainer import Trainer, TrainConfig, TrainResult, predict
+from roadgrip.training.trainer import TrainConfig, Trainer, TrainResult, predict
 
 WINDOW = 10  # samples: 1 s of telemetry at 10 Hz
 BLOCK_S = 4.0  # runs are cut in blocks of 4 s; windows never straddle blocks

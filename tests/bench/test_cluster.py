@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from roadgrip.cloud.transport.amqp import RabbitCluster
 from roadgrip.bench.cluster import ClusterBench, format_cluster_bench, run_cluster_bench
+from roadgrip.cloud.transport.amqp import RabbitCluster
 
 
 def test_cluster_bench_measures_every_case():

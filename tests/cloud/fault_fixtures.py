@@ -41,11 +41,11 @@ import uvicorn
 from drives import patch_drive
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.transport.mosquitto import free_port
-from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.storage.database import normalise_url
 from roadgrip.cloud.storage.local_postgres import LocalPostgres
+from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import PAPER_SUV

@@ -21,6 +21,9 @@ from drives import patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.serve.service import CloudService
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import metadata, normalise_url
 from roadgrip.cloud.transport.mosquitto import mosquitto_available
 from roadgrip.cloud.transport.mqtt import (
     FRICTION_SUBSCRIPTION,
@@ -33,9 +36,6 @@ from roadgrip.cloud.transport.mqtt import (
     friction_topic,
     telemetry_topic,
 )
-from roadgrip.cloud.serve.service import CloudService
-from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage.database import metadata, normalise_url
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle

@@ -15,9 +15,9 @@ from drives import PATCH_M, patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.pipeline.pipeline import DEDUP_HORIZON_MS
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.pipeline.pipeline import DEDUP_HORIZON_MS
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples

@@ -30,9 +30,9 @@ from fault_fixtures import (
     warm_estimator,
 )
 
-from roadgrip.cloud.transport.mosquitto import INSTALL_HINT, ManagedBroker, mosquitto_available
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.transport.mosquitto import INSTALL_HINT, ManagedBroker, mosquitto_available
 from roadgrip.vehicle.params import vehicle_by_name
 
 ADMIN = ("admin", "admin-secret-for-fault-tests-0123456789")

@@ -41,9 +41,9 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.transport.mqtt import errors_topic
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.transport.mqtt import errors_topic
 from roadgrip.data.schema import TELEMETRY, TELEMETRY_COLUMNS
 from roadgrip.data.telemetry import RANGES
 from roadgrip.fleet.terminal import wire_samples

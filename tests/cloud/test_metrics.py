@@ -15,9 +15,9 @@ from prometheus_client.parser import text_string_to_metric_families
 from test_api import running_cloud
 from test_service_mqtt import ADMIN, register
 
+from roadgrip.cloud.metrics import BatchHistogram
 from roadgrip.cloud.transport.mosquitto import mosquitto_available
 from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
-from roadgrip.cloud.metrics import BatchHistogram
 from roadgrip.fleet.terminal import wire_samples
 
 START_MS = int(time.time() * 1000) - 600_000

@@ -13,12 +13,12 @@ import pytest
 from drives import patch_drive
 from fastapi.testclient import TestClient
 
-from roadgrip.cloud.serve import service as service_module
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.transport.mosquitto import mosquitto_available
-from roadgrip.cloud.transport.mqtt import PublishRefused, UserClient, errors_topic, friction_topic, telemetry_topic
+from roadgrip.cloud.serve import service as service_module
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.transport.mosquitto import mosquitto_available
+from roadgrip.cloud.transport.mqtt import PublishRefused, UserClient, errors_topic, friction_topic, telemetry_topic
 from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 

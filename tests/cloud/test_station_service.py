@@ -17,6 +17,10 @@ from fastapi.testclient import TestClient
 from test_access import ADMIN, add_reader, collect, register, samples_of, settings_for
 
 from roadgrip.cloud.api.app import create_app
+from roadgrip.cloud.domain.stations import covered_cells
+from roadgrip.cloud.domain.warnings import WarningEngine
+from roadgrip.cloud.serve.service import CloudService
+from roadgrip.cloud.storage.database import normalise_url, open_storage
 from roadgrip.cloud.transport.mqtt import (
     PublishRefused,
     UserClient,
@@ -24,10 +28,6 @@ from roadgrip.cloud.transport.mqtt import (
     station_reports_topic,
     telemetry_topic,
 )
-from roadgrip.cloud.domain.stations import covered_cells
-from roadgrip.cloud.domain.warnings import WarningEngine
-from roadgrip.cloud.serve.service import CloudService
-from roadgrip.cloud.storage.database import normalise_url, open_storage
 from tests.cloud.api.test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 
 NOT_AUTHORIZED = 0x87

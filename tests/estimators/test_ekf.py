@@ -5,11 +5,31 @@ import pytest
 
 from roadgrip.estimators.ekf import ekf_step, ekf_update
 from roadgrip.estimators.kalman import (
-    M_P, M_SNR, M_T, M_U, M_X, N_OUT, SAMPLE_COLUMNS, cholesky, cholesky_solve, matmul, matmul_bt, read_sample,
+    M_P,
+    M_SNR,
+    M_T,
+    M_U,
+    M_X,
+    N_OUT,
+    SAMPLE_COLUMNS,
+    cholesky,
+    cholesky_solve,
+    matmul,
+    matmul_bt,
+    read_sample,
 )
 from roadgrip.estimators.physics import physics_estimator
 from roadgrip.estimators.vehicle_model import (
-    MU, N_U, N_X, N_Z, FilterTuning, loads_from_accel, measure, measurement_noise, pack_model, predict_state,
+    MU,
+    N_U,
+    N_X,
+    N_Z,
+    FilterTuning,
+    loads_from_accel,
+    measure,
+    measurement_noise,
+    pack_model,
+    predict_state,
     process_noise,
 )
 from roadgrip.sim.driver import SpeedProfile

@@ -10,7 +10,13 @@ from hypothesis import strategies as st
 
 from roadgrip.data.schema import TELEMETRY_COLUMNS
 from roadgrip.estimators.guard import (
-    PRIOR_MU, PRIOR_UPPER_MU, GuardSettings, apply_bound, apply_bound_scalar, drag_per_mass, tire_force_bound,
+    PRIOR_MU,
+    PRIOR_UPPER_MU,
+    GuardSettings,
+    apply_bound,
+    apply_bound_scalar,
+    drag_per_mass,
+    tire_force_bound,
 )
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.importers import get_importer

@@ -8,7 +8,14 @@ from roadgrip.estimators.kalman import M_P, M_X, SAMPLE_COLUMNS, read_sample
 from roadgrip.estimators.physics import physics_estimator
 from roadgrip.estimators.ukf import N_SIGMA, sigma_points, ukf_predict, ukf_update, weights
 from roadgrip.estimators.vehicle_model import (
-    MU, N_U, N_X, N_Z, FilterTuning, pack_model, predict_state, process_noise,
+    MU,
+    N_U,
+    N_X,
+    N_Z,
+    FilterTuning,
+    pack_model,
+    predict_state,
+    process_noise,
 )
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.roads import MuProfile, Path

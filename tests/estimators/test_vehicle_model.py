@@ -4,8 +4,25 @@ import numpy as np
 import pytest
 
 from roadgrip.estimators.vehicle_model import (
-    MU, N_U, N_X, N_Z, R, SCALE, VX, VY, Z_AX, Z_AY, Z_R, Z_V, FilterTuning, dugoff_partials, loads_from_accel,
-    measure, pack_model, predict_state, roll_per_lateral_accel,
+    MU,
+    N_U,
+    N_X,
+    N_Z,
+    SCALE,
+    VX,
+    VY,
+    Z_AX,
+    Z_AY,
+    Z_R,
+    Z_V,
+    FilterTuning,
+    R,
+    dugoff_partials,
+    loads_from_accel,
+    measure,
+    pack_model,
+    predict_state,
+    roll_per_lateral_accel,
 )
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.roads import MuProfile, Path

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from roadgrip.cli import app
-from roadgrip.cloud.transport.mosquitto import free_port
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.settings import Settings
 from roadgrip.fleet.demo import LocalCloud, settle
 

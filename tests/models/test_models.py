@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from roadgrip.models.registry import MODELS, SEARCH_BUDGET, SEARCH_SPACES, build_model, model_config
-from roadgrip.training.trainer import Trainer, TrainConfig, predict
+from roadgrip.training.trainer import TrainConfig, Trainer, predict
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))

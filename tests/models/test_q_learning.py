@@ -5,8 +5,18 @@ import pytest
 import torch
 from torch import nn
 
-from roadgrip.models.q_learning import (ACTIONS, QConfig, QRefiner, _AffineHead, clip, output_layer, penultimate,
-                                        q_update, range_metrics, refine_model)
+from roadgrip.models.q_learning import (
+    ACTIONS,
+    QConfig,
+    QRefiner,
+    _AffineHead,
+    clip,
+    output_layer,
+    penultimate,
+    q_update,
+    range_metrics,
+    refine_model,
+)
 from roadgrip.models.registry import PAPER_MODELS, build_model, model_config
 from roadgrip.training.trainer import predict
 

@@ -3,9 +3,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from roadgrip.sim.integrator import CHANNELS
 from roadgrip.sim.scenario_file import load_scenarios, scenario_from_dict
 from roadgrip.sim.simulate import simulate_truth
-from roadgrip.sim.integrator import CHANNELS
 from roadgrip.vehicle.params import MIDSIZE_SEDAN
 from roadgrip.vehicle.tires import MagicFormulaTire
 

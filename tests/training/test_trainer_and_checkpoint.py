@@ -6,7 +6,7 @@ import torch
 
 from roadgrip.models.registry import build_model, model_config
 from roadgrip.training.checkpoint import load_checkpoint, save_checkpoint
-from roadgrip.training.trainer import Trainer, TrainConfig, predict
+from roadgrip.training.trainer import TrainConfig, Trainer, predict
 
 
 def _data(seed=0):

@@ -8,8 +8,21 @@ import pytest
 
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.dynamics import (
-    N_STATE, PSI, R, SLIP_SPEED_FLOOR_MPS, VX, VY, W0, X, Y, derivatives, pack_vehicle, slip_ratio,
-    slip_ratio_per_spin, wheel_loads, wheel_position,
+    N_STATE,
+    PSI,
+    SLIP_SPEED_FLOOR_MPS,
+    VX,
+    VY,
+    W0,
+    R,
+    X,
+    Y,
+    derivatives,
+    pack_vehicle,
+    slip_ratio,
+    slip_ratio_per_spin,
+    wheel_loads,
+    wheel_position,
 )
 from roadgrip.vehicle.params import MIDSIZE_SEDAN, PAPER_SUV
 from roadgrip.vehicle.tires import DugoffTire

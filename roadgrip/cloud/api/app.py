@@ -72,16 +72,15 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from roadgrip.cloud.api.backend import Accepted, ApiBackend, VehicleIdRefused
 from roadgrip.cloud.api.dashboard import mount_dashboard
-from roadgrip.cloud.formats.exports import datex2_xml
-from roadgrip.cloud.ingest.auth import AuthError
-from roadgrip.cloud.ingest.admission import RateLimited
-from roadgrip.cloud.transport.rabbit_users import BrokerUnavailable
-from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
 from roadgrip.cloud.domain.stations import ReportError, parse_reports
+from roadgrip.cloud.formats.exports import datex2_xml
+from roadgrip.cloud.ingest.admission import IngestUnavailable, RateLimited
+from roadgrip.cloud.ingest.auth import AuthError
+from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
 from roadgrip.cloud.metrics import registry_with
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Credential, StorageUnavailable
-from roadgrip.cloud.serve.shards import IngestUnavailable
+from roadgrip.cloud.transport.rabbit_users import BrokerUnavailable
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.vehicle.params import VEHICLES, VehicleParams, vehicle_by_name
 

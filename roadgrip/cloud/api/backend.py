@@ -17,8 +17,8 @@ from typing import Protocol
 
 from prometheus_client.registry import Collector
 
-from roadgrip.cloud.ingest.auth import Authenticator
 from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.ingest.auth import Authenticator
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
 from roadgrip.vehicle.params import VehicleParams

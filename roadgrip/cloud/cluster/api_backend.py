@@ -29,24 +29,24 @@ from prometheus_client.core import Metric
 from prometheus_client.registry import Collector
 
 from roadgrip.cloud.api.backend import Accepted, StationIngest, VehicleIdRefused
+from roadgrip.cloud.cluster.map_cells import stored_friction_map
 from roadgrip.cloud.cluster.publisher import (
     DEFAULT_CONNECTIONS,
     PUBLISH_BUCKETS_S,
     PUBLISH_DEADLINE_S,
     TelemetryPublisher,
 )
-from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
-from roadgrip.cloud.ingest.admission import RateLimited
-from roadgrip.cloud.transport.mqtt import telemetry_topic
-from roadgrip.cloud.transport.rabbit_users import BROKER_ROLES, BrokerUnavailable, RabbitUsers, routing_key
-from roadgrip.cloud.ingest.ratelimit import RateLimiter
-from roadgrip.cloud.domain.friction_map import FrictionMap
-from roadgrip.cloud.cluster.map_cells import stored_friction_map
 from roadgrip.cloud.cluster.regions import RegionPublisher, check_region_resolution, publish_station_evidence
+from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.stations import StationReport, stored_evidence_rows, stored_rows
+from roadgrip.cloud.ingest.admission import RateLimited
+from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
+from roadgrip.cloud.ingest.ratelimit import RateLimiter
 from roadgrip.cloud.metrics import counter, gauge, histogram
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
+from roadgrip.cloud.transport.mqtt import telemetry_topic
+from roadgrip.cloud.transport.rabbit_users import BROKER_ROLES, BrokerUnavailable, RabbitUsers, routing_key
 from roadgrip.vehicle.params import VehicleParams
 
 log = logging.getLogger(__name__)

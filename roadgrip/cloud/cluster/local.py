@@ -42,9 +42,9 @@ from typing import Self
 
 import httpx
 
-from roadgrip.cloud.transport.mosquitto import free_port
-from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, partition_queue
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.storage.local_postgres import LocalPostgres
+from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, partition_queue
 
 log = logging.getLogger(__name__)
 

@@ -31,9 +31,9 @@ from concurrent.futures import Future
 import pika
 import pika.exceptions
 
-from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE
+from roadgrip.cloud.ingest.admission import IngestUnavailable
 from roadgrip.cloud.metrics import BatchHistogram
-from roadgrip.cloud.serve.shards import IngestUnavailable
+from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE
 
 log = logging.getLogger(__name__)
 

@@ -59,7 +59,9 @@ import orjson
 import pika
 import pika.exceptions
 
-from roadgrip.cloud.transport.amqp import ESTIMATES_EXCHANGE, MQTT_EXCHANGE, mqtt_routing_key, region_queue
+from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of, restore_region
+from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.pipeline.fanout import (
     WARNING_CHANGES,
     RegionFanout,
@@ -67,11 +69,9 @@ from roadgrip.cloud.pipeline.fanout import (
     estimate_message,
     new_warning_engine,
 )
-from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of, restore_region
-from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable
-from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.transport.amqp import ESTIMATES_EXCHANGE, MQTT_EXCHANGE, mqtt_routing_key, region_queue
 
 log = logging.getLogger(__name__)
 

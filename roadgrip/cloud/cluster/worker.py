@@ -63,16 +63,16 @@ import time
 import pika
 import pika.exceptions
 
-from roadgrip.cloud.ingest.admission import Ingest
-from roadgrip.cloud.transport.mqtt import errors_topic, vehicle_of_topic
-from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
+from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
+from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
 from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
-from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
-from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
+from roadgrip.cloud.transport.mqtt import errors_topic, vehicle_of_topic
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)

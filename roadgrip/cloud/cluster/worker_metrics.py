@@ -20,8 +20,8 @@ from prometheus_client import start_http_server
 from prometheus_client.core import Metric
 from prometheus_client.registry import Collector
 
-from roadgrip.cloud.metrics import counter, estimate_latency, gauge, pipeline_metrics, registry_with
 from roadgrip.cloud.cluster.worker import Worker
+from roadgrip.cloud.metrics import counter, estimate_latency, gauge, pipeline_metrics, registry_with
 
 
 class WorkerCollector(Collector):

@@ -15,8 +15,8 @@ from concurrent.futures import Future
 from roadgrip.cloud.ingest.ratelimit import RateLimiter
 from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
 from roadgrip.cloud.metrics import MAIN_PROCESS, TRANSPORTS, IngestCounters, ProcessView
-from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.pipeline.pipeline import Pipeline, SubmitResult
+from roadgrip.cloud.settings import Settings
 
 # Samples the MQTT side may queue for a pipeline (2 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
 # so paho's network thread stops reading: TCP pushes back and the broker keeps the rest in the service's persistent
@@ -27,6 +27,11 @@ from roadgrip.cloud.pipeline.pipeline import Pipeline, SubmitResult
 MAX_MQTT_BACKLOG = 20_000
 
 Rejecter = Callable[[str, list[dict]], None]  # (vehicle_id, rejections as dicts with index, field, reason)
+
+
+class IngestUnavailable(RuntimeError):
+    """The process that owns the vehicle (an ingest process, or the broker in cluster mode) could not take the
+    request: nothing is acknowledged (503)."""
 
 
 class RateLimited(Exception):

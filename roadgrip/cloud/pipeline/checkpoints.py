@@ -256,8 +256,8 @@ def measure_cost(vehicles: int = 1000, estimator_name: str = "pmf", database_url
     """The cost of checkpointing `vehicles` vehicles: encoding, storing (rounds of MAX_CHECKPOINTS_PER_ROUND, and
     all in one transaction, as at a stop), reading back and restoring; the bytes of a state. Each vehicle holds the
     state of one simulated `seconds` drive (the states differ only in their vehicle_id's row)."""
-    from roadgrip.cloud.storage.database import open_storage
     from roadgrip.cloud.pipeline.pipeline import PipelineCounters
+    from roadgrip.cloud.storage.database import open_storage
     from roadgrip.estimators.learned import load_estimator
     from roadgrip.vehicle.params import PAPER_SUV
 

@@ -27,13 +27,13 @@ from typing import Protocol
 import numpy as np
 import orjson
 
-from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import ACTIVE, EXPIRED, WarningEngine
-from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
+from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
+from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic
 
 log = logging.getLogger(__name__)
 

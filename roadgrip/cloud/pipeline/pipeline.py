@@ -46,9 +46,9 @@ from typing import Protocol
 import h3
 
 from roadgrip.cloud.metrics import ESTIMATOR_BUCKETS_S, BatchHistogram
+from roadgrip.cloud.pipeline.checkpoints import Checkpoints
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable
-from roadgrip.cloud.pipeline.checkpoints import Checkpoints
 from roadgrip.estimators.base import Estimator
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 

@@ -25,20 +25,20 @@ from pathlib import Path
 from typing import Self
 
 from roadgrip.cloud.api.backend import StationIngest
-from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
-from roadgrip.cloud.transport.mosquitto import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
-from roadgrip.cloud.ingest.admission import Ingest
-from roadgrip.cloud.transport.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
-from roadgrip.cloud.pipeline.fanout import Fanout
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_reports, stored_rows
 from roadgrip.cloud.domain.warnings import WarningEngine, WarningEvent
+from roadgrip.cloud.ingest.admission import Ingest
+from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.metrics import ServiceCollector
+from roadgrip.cloud.pipeline.fanout import Fanout
+from roadgrip.cloud.pipeline.pipeline import Pipeline
 from roadgrip.cloud.process import rss_mb, warm_up
+from roadgrip.cloud.serve.shards import IngestShards
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
-from roadgrip.cloud.pipeline.pipeline import Pipeline
-from roadgrip.cloud.serve.shards import IngestShards
+from roadgrip.cloud.transport.mosquitto import MAX_INFLIGHT_MESSAGES, ManagedBroker, mosquitto_available
+from roadgrip.cloud.transport.mqtt import DEFAULT_MAX_INFLIGHT, MqttClient, errors_topic, station_errors_topic
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.vehicle.params import VehicleParams
 

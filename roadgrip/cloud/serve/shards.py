@@ -45,13 +45,13 @@ import traceback
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from roadgrip.cloud.ingest.admission import Ingest, Rejecter
-from roadgrip.cloud.pipeline.fanout import Fanout
+from roadgrip.cloud.ingest.admission import Ingest, IngestUnavailable, Rejecter
 from roadgrip.cloud.metrics import ProcessView
+from roadgrip.cloud.pipeline.fanout import Fanout
+from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
 from roadgrip.cloud.process import rss_mb, tune_memory_for_serving, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
-from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
@@ -65,10 +65,6 @@ _MAX_OF = ("last_round_s", "slowest_round_s")  # counters summed over processes,
 def shard_of(vehicle_id: str, count: int) -> int:
     """The ingest process (0 to count - 1) that owns a vehicle: stable across restarts and machines (CRC-32)."""
     return zlib.crc32(vehicle_id.encode()) % count
-
-
-class IngestUnavailable(RuntimeError):
-    """The ingest process that owns the vehicle stopped while the request was in it: nothing is acknowledged (503)."""
 
 
 class _Shard:

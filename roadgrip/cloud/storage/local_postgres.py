@@ -22,7 +22,7 @@ from typing import Self
 import psycopg
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.transport.mosquitto import free_port
+from roadgrip.cloud.localhost import free_port
 
 PG_BIN = Path("/usr/lib/postgresql/15/bin")
 

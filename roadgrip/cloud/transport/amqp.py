@@ -31,6 +31,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from roadgrip.cloud.localhost import free_ports, wait_port
+
 HOST = "127.0.0.1"
 SERVICE_USER = "svc"  # RabbitCluster's administrator: the workers' login
 MQTT_EXCHANGE = "amq.topic"
@@ -92,27 +94,6 @@ def declare_topology(channel, partitions: int, region_queues: int = REGION_QUEUE
             channel.exchange_bind(b["destination"], b["source"], routing_key=b["routing_key"], arguments=b["arguments"])
         else:
             channel.queue_bind(b["destination"], b["source"], routing_key=b["routing_key"], arguments=b["arguments"])
-
-
-def free_ports(n: int) -> list[int]:
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind((HOST, 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
-
-
-def wait_port(port: int, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            socket.create_connection((HOST, port), 0.5).close()
-            return
-        except OSError:
-            time.sleep(0.1)
-    raise TimeoutError(f"nothing listens on {HOST}:{port} after {timeout_s} s")
 
 
 def rabbit_password_hash(password: str) -> str:

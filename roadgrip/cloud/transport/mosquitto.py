@@ -63,6 +63,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
 
+from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.transport.mqtt import (
     ERRORS_SUBSCRIPTION,
     FRICTION_SUBSCRIPTION,
@@ -131,13 +132,6 @@ def _check_name(field: str, name: str) -> None:
     """Login names follow the vehicle_id rule (DESIGN 3.1), so that none can break the password or ACL file."""
     if not isinstance(name, str) or VEHICLE_ID_RE.fullmatch(name) is None:
         raise ValueError(f"{field} must match {VEHICLE_ID_RE.pattern}, got {name!r}")
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port free on `host` now (the OS picks it; another process may still take it before it is bound)."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
 
 
 @dataclass(frozen=True)

@@ -44,8 +44,14 @@ from urllib.parse import quote
 
 import httpx
 
-from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, check_vehicle_id, errors_topic, friction_topic, telemetry_topic
 from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, rabbit_password_hash
+from roadgrip.cloud.transport.mqtt import (
+    WARNINGS_TOPIC,
+    check_vehicle_id,
+    errors_topic,
+    friction_topic,
+    telemetry_topic,
+)
 
 log = logging.getLogger(__name__)
 

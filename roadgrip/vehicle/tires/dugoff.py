@@ -6,9 +6,8 @@ The paper's print of the model has two slips that we correct, because as printed
 With both, |F| = mu F_z (2 - lambda) / 2 <= mu F_z in the saturated region, and |F| -> mu F_z as the slip grows.
 """
 
-from math import sqrt, tan
-
 from dataclasses import dataclass, field
+from math import sqrt, tan
 
 from numba import njit
 

@@ -11,9 +11,8 @@ zero slip whatever the road: friction scales the peak (D = mu F_z, the lambda_mu
 real tires. Then |F| <= mu F_z always, and a sliding tire keeps sin(C pi / 2) of the peak (0.81 for C = 1.4).
 """
 
-from math import atan, sin, sqrt, tan
-
 from dataclasses import dataclass, field
+from math import atan, sin, sqrt, tan
 
 from numba import njit
 

@@ -26,24 +26,24 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.cluster.api_backend import ClusterBackend
+from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of
 from roadgrip.cloud.cluster.publisher import PUBLISH_DEADLINE_S
-from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic, telemetry_topic
-from roadgrip.cloud.transport.rabbit_users import RabbitUsers
+from roadgrip.cloud.domain.stations import covered_cells
+from roadgrip.cloud.ingest.wire import parse_payload
+from roadgrip.cloud.localhost import free_ports
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import open_storage
+from roadgrip.cloud.storage.local_postgres import create_database, drop_database
 from roadgrip.cloud.transport.amqp import (
     HOST,
     REGION_QUEUES,
     SERVICE_USER,
     RabbitCluster,
-    free_ports,
     partition_queue,
     region_queue,
 )
-from roadgrip.cloud.ingest.wire import parse_payload
-from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of
-from roadgrip.cloud.domain.stations import covered_cells
-from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage.database import open_storage
-from roadgrip.cloud.storage.local_postgres import create_database, drop_database
+from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic, telemetry_topic
+from roadgrip.cloud.transport.rabbit_users import RabbitUsers
 from roadgrip.fleet.terminal import wire_samples
 
 PARTITIONS = 2

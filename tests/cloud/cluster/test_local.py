@@ -23,8 +23,8 @@ from sqlalchemy.engine import make_url
 from typer.testing import CliRunner
 
 from roadgrip.cli import app
-from roadgrip.cloud.transport.amqp import RabbitCluster
 from roadgrip.cloud.cluster.local import DESCRIPTION, LocalCluster
+from roadgrip.cloud.transport.amqp import RabbitCluster
 
 VEHICLES = 3
 SAMPLES_PER_VEHICLE = 200  # 20 s of driving at 10 Hz

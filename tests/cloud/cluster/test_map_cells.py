@@ -10,8 +10,8 @@ import h3
 import numpy as np
 import pytest
 
-from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of, restore_region, stored_friction_map
+from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, counters_table
 

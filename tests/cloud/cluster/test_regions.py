@@ -32,21 +32,21 @@ from drives import PATCH_M, patch_drive
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, telemetry_topic
+from roadgrip.cloud.cluster.map_cells import region_of, stored_friction_map
+from roadgrip.cloud.cluster.regions import RegionPublisher, publish_station_evidence
+from roadgrip.cloud.localhost import free_ports
+from roadgrip.cloud.pipeline.pipeline import MAX_ROUND_SAMPLES
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.transport.amqp import (
     ESTIMATES_EXCHANGE,
     HOST,
     SERVICE_USER,
     RabbitCluster,
-    free_ports,
     partition_queue,
     region_queue,
 )
-from roadgrip.cloud.cluster.map_cells import region_of, stored_friction_map
-from roadgrip.cloud.cluster.regions import RegionPublisher, publish_station_evidence
-from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage.database import open_storage
-from roadgrip.cloud.pipeline.pipeline import MAX_ROUND_SAMPLES
+from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, telemetry_topic
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.sim.sensors import HEBEI_ORIGIN
 from roadgrip.vehicle.params import PAPER_SUV

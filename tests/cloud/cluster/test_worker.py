@@ -24,14 +24,15 @@ from paho.mqtt.enums import CallbackAPIVersion
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
 
-from roadgrip.cloud.transport.mqtt import telemetry_topic
-from roadgrip.cloud.transport.amqp import HOST, REGION_QUEUES, RabbitCluster, free_ports, partition_queue, region_queue
-from roadgrip.cloud.pipeline.fanout import Fanout, new_warning_engine
 from roadgrip.cloud.cluster.map_cells import new_friction_map
+from roadgrip.cloud.cluster.worker import Worker, _Acks, _FencedStorage
+from roadgrip.cloud.localhost import free_ports
+from roadgrip.cloud.pipeline.fanout import Fanout, new_warning_engine
+from roadgrip.cloud.pipeline.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
-from roadgrip.cloud.cluster.worker import Worker, _Acks, _FencedStorage
-from roadgrip.cloud.pipeline.pipeline import Pipeline
+from roadgrip.cloud.transport.amqp import HOST, REGION_QUEUES, RabbitCluster, partition_queue, region_queue
+from roadgrip.cloud.transport.mqtt import telemetry_topic
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import CALIBRATION
 from roadgrip.vehicle.params import PAPER_SUV

@@ -8,6 +8,8 @@ import xml.etree.ElementTree as ET
 import h3
 import pytest
 
+from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.formats import exports
 from roadgrip.cloud.formats.exports import (
     datex2_xml,
@@ -17,8 +19,6 @@ from roadgrip.cloud.formats.exports import (
     relevance_distance,
     timestamp_its_ms,
 )
-from roadgrip.cloud.domain.friction_map import FrictionMap
-from roadgrip.cloud.domain.warnings import WarningEvent
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 NS = {"d2": "http://datex2.eu/schema/3/d2Payload", "com": "http://datex2.eu/schema/3/common",

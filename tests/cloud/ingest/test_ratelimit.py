@@ -14,10 +14,10 @@ from drives import patch_drive
 from fastapi.testclient import TestClient
 
 from roadgrip.cloud.api.app import create_app
-from roadgrip.cloud.transport.mqtt import errors_topic
 from roadgrip.cloud.ingest.ratelimit import RateLimiter
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.transport.mqtt import errors_topic
 from roadgrip.fleet.terminal import wire_samples
 
 ADMIN = ("admin", "admin-secret-for-tests-0123456789")

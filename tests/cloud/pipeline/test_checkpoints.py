@@ -17,10 +17,10 @@ from broker_fixtures import wait_until
 from drives import patch_drive
 from test_api import ADMIN, START_MS, post, register, running_cloud
 
-from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.storage.database import StorageUnavailable, open_storage
 from roadgrip.cloud.pipeline.checkpoints import FLOATS, Checkpoints, pack_state, restore_state, unpack_state
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
+from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.storage.database import StorageUnavailable, open_storage
 from roadgrip.estimators import pmf
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle

@@ -13,9 +13,9 @@ import time
 import h3
 import pytest
 
-from roadgrip.cloud.pipeline.fanout import Fanout, VehicleFanout, new_warning_engine
 from roadgrip.cloud.cluster.map_cells import new_friction_map, region_of, stored_friction_map
 from roadgrip.cloud.cluster.regions import Regions, region_messages
+from roadgrip.cloud.pipeline.fanout import Fanout, VehicleFanout, new_warning_engine
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
 

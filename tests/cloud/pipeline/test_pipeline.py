@@ -9,14 +9,14 @@ import time
 import pytest
 from drives import patch_drive
 
-from roadgrip.cloud.transport.mqtt import friction_topic
-from roadgrip.cloud.pipeline.fanout import Fanout
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import WarningEngine
+from roadgrip.cloud.pipeline import pipeline as pipeline_module
+from roadgrip.cloud.pipeline.fanout import Fanout
+from roadgrip.cloud.pipeline.pipeline import Pipeline
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, open_storage
-from roadgrip.cloud.pipeline import pipeline as pipeline_module
-from roadgrip.cloud.pipeline.pipeline import Pipeline
+from roadgrip.cloud.transport.mqtt import friction_topic
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 

@@ -16,11 +16,11 @@ from drives import patch_drive
 from test_api import running_cloud
 from test_service_mqtt import ADMIN, collect, register
 
+from roadgrip.cloud.serve.service import CloudService
+from roadgrip.cloud.serve.shards import shard_of
+from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.transport.mosquitto import mosquitto_available
 from roadgrip.cloud.transport.mqtt import UserClient, errors_topic, friction_topic, telemetry_topic
-from roadgrip.cloud.serve.service import CloudService
-from roadgrip.cloud.settings import Settings
-from roadgrip.cloud.serve.shards import shard_of
 from roadgrip.fleet.terminal import wire_samples
 
 START_MS = int(time.time() * 1000) - 600_000
