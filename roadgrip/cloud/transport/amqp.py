@@ -26,9 +26,7 @@ import json
 import os
 import secrets
 import signal
-import socket
 import subprocess
-import time
 from pathlib import Path
 
 from roadgrip.cloud.localhost import free_ports, wait_port
