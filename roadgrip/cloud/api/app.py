@@ -73,7 +73,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from roadgrip.cloud.api.backend import Accepted, ApiBackend, VehicleIdRefused
 from roadgrip.cloud.api.dashboard import mount_dashboard
 from roadgrip.cloud.domain.stations import ReportError, parse_reports
-from roadgrip.cloud.formats.exports import datex2_xml
+from roadgrip.cloud.formats.datex2 import datex2_xml
 from roadgrip.cloud.ingest.admission import IngestUnavailable, RateLimited
 from roadgrip.cloud.ingest.auth import AuthError
 from roadgrip.cloud.ingest.wire import PayloadError, parse_payload

@@ -95,7 +95,7 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
-from roadgrip.cloud.formats.exports import geojson
+from roadgrip.cloud.formats.geojson import geojson
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
 from roadgrip.sim.roads import MU_MAX as SIM_MU_MAX
 

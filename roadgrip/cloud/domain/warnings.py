@@ -63,7 +63,7 @@ from typing import NamedTuple
 import h3
 
 from roadgrip.cloud.domain.friction_map import validate_resolution
-from roadgrip.cloud.formats.exports import MAX_VALIDITY_S, denm
+from roadgrip.cloud.formats.denm import MAX_VALIDITY_S, denm
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):

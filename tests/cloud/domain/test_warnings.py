@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from roadgrip.cloud.domain.warnings import MIN_LOW_PASSES, WarningEngine, WarningEvent, _Evidence, _LowPass
-from roadgrip.cloud.formats.exports import ITS_EPOCH_UNIX_MS, timestamp_its_ms
+from roadgrip.cloud.formats.denm import ITS_EPOCH_UNIX_MS, timestamp_its_ms
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 LAT_DEG, LON0_DEG = 38.0, 114.5  # Hebei

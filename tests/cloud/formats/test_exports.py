@@ -10,15 +10,9 @@ import pytest
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import WarningEvent
-from roadgrip.cloud.formats import exports
-from roadgrip.cloud.formats.exports import (
-    datex2_xml,
-    denm,
-    geojson,
-    information_quality,
-    relevance_distance,
-    timestamp_its_ms,
-)
+from roadgrip.cloud.formats.datex2 import datex2_xml
+from roadgrip.cloud.formats.denm import cell_radius_m, denm, information_quality, relevance_distance, timestamp_its_ms
+from roadgrip.cloud.formats.geojson import geojson
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 NS = {"d2": "http://datex2.eu/schema/3/d2Payload", "com": "http://datex2.eu/schema/3/common",
@@ -145,7 +139,7 @@ def test_denm_fields_and_termination():
 def test_denm_position_confidence_fits_a_small_cell():
     cell = h3.latlng_to_cell(38.0, 114.5, 12)  # edge about 11 m
     ellipse = denm(event(cell=cell))["denm"]["management"]["eventPosition"]["positionConfidenceEllipse"]
-    radius_cm = exports.cell_radius_m(cell) * 100
+    radius_cm = cell_radius_m(cell) * 100
     assert radius_cm <= ellipse["semiMajorConfidence"] < radius_cm + 1
     assert denm(event(cell=cell))["denm"]["management"]["relevanceDistance"] == "lessThan50m"
 
