@@ -1,5 +1,5 @@
-"""The one source of truth for column names, types and units: telemetry wire format v1 (DESIGN 3.1) and the simulation
-dataset (DESIGN 3.3)."""
+"""The one source of truth for column names, types and units: telemetry wire format v1 (DESIGN 3.1), the simulation
+dataset (DESIGN 3.3) and the estimate (DESIGN 3.4) as the cloud stores and publishes it."""
 
 from __future__ import annotations
 
@@ -71,3 +71,21 @@ GROUND_TRUTH = (
 
 TELEMETRY_COLUMNS = tuple(c.name for c in TELEMETRY)
 DATASET_SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=not c.required) for c in TELEMETRY + GROUND_TRUTH])
+
+# An estimate as the cloud stores it, publishes it on a vehicle's friction topic and hands it to the map (DESIGN 3.4):
+# the estimator's output plus where the vehicle was. Offline files (`roadgrip estimate`) carry the first eight.
+ESTIMATE = (
+    Column("vehicle_id", pa.string(), "-", "the vehicle, as in its telemetry"),
+    Column("timestamp_ms", pa.int64(), "ms", "the sample's timestamp, as the input had it"),
+    Column("mu", pa.float64(), "-", "most probable road adhesion coefficient"),
+    Column("mu_lower", pa.float64(), "-", "5 % quantile: lower end of the 90 % interval"),
+    Column("mu_upper", pa.float64(), "-", "95 % quantile: upper end of the 90 % interval"),
+    Column("excited", pa.bool_(), "-", "the manoeuvre made mu observable"),
+    Column("estimator", pa.string(), "-", "name of the estimator"),
+    Column("mu_proven", pa.float64(), "-", "what the car's own acceleration proves (null without the physics guard)",
+           required=False),
+    Column("latitude_deg", pa.float64(), "deg", "WGS84 latitude of the sample", required=False),
+    Column("longitude_deg", pa.float64(), "deg", "WGS84 longitude of the sample", required=False),
+    Column("h3_cell", pa.string(), "-", "H3 cell of the position at the map's resolution", required=False),
+)
+ESTIMATE_FIELDS = tuple(c.name for c in ESTIMATE)

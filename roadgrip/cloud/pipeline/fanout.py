@@ -34,12 +34,11 @@ from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
 from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic
+from roadgrip.data.schema import ESTIMATE_FIELDS
 
 log = logging.getLogger(__name__)
 
 WARNING_CHANGES = ("raised", "refreshed", "cancelled", "expired")
-ESTIMATE_FIELDS = ("vehicle_id", "timestamp_ms", "mu", "mu_lower", "mu_upper", "excited", "estimator", "mu_proven",
-                   "latitude_deg", "longitude_deg", "h3_cell")
 
 
 def estimate_message(row: dict) -> dict:
