@@ -10,6 +10,7 @@ Each model is a numba kernel `forces(tp, slip_ratio, slip_angle_rad, fz_n, mu) -
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -51,16 +52,32 @@ class TireModel(ABC):
         tp[TP_SHAPE : TP_SHAPE + len(shape)] = shape
         return tp
 
+    @property
+    @abstractmethod
+    def kernel(self):
+        """The model's compiled scalar kernel `(tp, slip_ratio, slip_angle_rad, fz_n, mu) -> (fx_n, fy_n)`."""
+
     def forces(self, tire: TireParams, slip_ratio, slip_angle_rad, fz_n, mu):
         """(fx_n, fy_n) arrays for broadcastable inputs: slip ratio, slip angle [rad], vertical load [N], road mu."""
-        from roadgrip.vehicle.tires.kernel import forces_array
-
+        forces_array = _array_loop(self.kernel)
         s, a, fz, m = (np.ascontiguousarray(x, dtype=np.float64) for x in np.broadcast_arrays(
             slip_ratio, slip_angle_rad, fz_n, mu))
         fx = np.empty(s.size)
         fy = np.empty(s.size)
         forces_array(self.row(tire), s.ravel(), a.ravel(), fz.ravel(), m.ravel(), fx, fy)
         return fx.reshape(s.shape), fy.reshape(s.shape)
+
+
+@functools.cache
+def _array_loop(kernel):
+    """A compiled loop of one model's scalar kernel over flat arrays (one per model, compiled on first use)."""
+
+    @njit
+    def forces_array(tp, slip_ratio, slip_angle_rad, fz_n, mu, fx_out, fy_out):
+        for i in range(slip_ratio.size):
+            fx_out[i], fy_out[i] = kernel(tp, slip_ratio[i], slip_angle_rad[i], fz_n[i], mu[i])
+
+    return forces_array
 
 
 @njit(cache=True)

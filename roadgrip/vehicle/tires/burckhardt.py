@@ -87,6 +87,10 @@ class BurckhardtTire(TireModel):
     name = "burckhardt"
     kernel_id = BURCKHARDT_ID
 
+    @property
+    def kernel(self):
+        return burckhardt_forces
+
     def __post_init__(self):
         check_bounds(self)
         if self.surface is not None:

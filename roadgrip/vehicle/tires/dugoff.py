@@ -44,6 +44,10 @@ class DugoffTire(TireModel):
     name = "dugoff"
     kernel_id = DUGOFF_ID
 
+    @property
+    def kernel(self):
+        return dugoff_forces
+
     def __post_init__(self):
         check_bounds(self)
 

@@ -1,4 +1,5 @@
-"""Dispatch from a packed tire row to its model's kernel, for the compiled simulator and for arrays."""
+"""Dispatch from a packed tire row to its model's kernel, for the compiled simulator (TireModel.forces evaluates one
+model over arrays without it)."""
 
 from numba import njit
 
@@ -17,8 +18,3 @@ def tire_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
         return magic_formula_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu)
     return burckhardt_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu)
 
-
-@njit(cache=True)
-def forces_array(tp, slip_ratio, slip_angle_rad, fz_n, mu, fx_out, fy_out):
-    for i in range(slip_ratio.size):
-        fx_out[i], fy_out[i] = tire_forces(tp, slip_ratio[i], slip_angle_rad[i], fz_n[i], mu[i])

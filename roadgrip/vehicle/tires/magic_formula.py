@@ -51,6 +51,10 @@ class MagicFormulaTire(TireModel):
     name = "magic-formula"
     kernel_id = MAGIC_FORMULA_ID
 
+    @property
+    def kernel(self):
+        return magic_formula_forces
+
     def __post_init__(self):
         check_bounds(self)
 
