@@ -65,8 +65,8 @@ def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
                                           test["mu"].to_pylist())}
     by_key = {(v, t): m for v, t, m in zip(estimates["vehicle_id"].to_pylist(), estimates["timestamp_ms"].to_pylist(),
                                            estimates["mu"].to_pylist())}
-    t0 = test["timestamp_ms"].to_numpy()[0] - int(round(test["t_s"].to_numpy()[0] * 1000))
-    keys = [(f"sim-{run}", t0 + int(round(t * 1000))) for run, t in zip(test_data.runs, test_data.t_s)]
+    t0 = test["timestamp_ms"].to_numpy()[0] - round(test["t_s"].to_numpy()[0] * 1000)
+    keys = [(f"sim-{run}", t0 + round(t * 1000)) for run, t in zip(test_data.runs, test_data.t_s)]
     served = np.array([by_key[k] for k in keys])
     # the command's estimates are the model's with the physics guard on them (estimators/guard.py)
     from roadgrip.estimators.guard import apply_bound, tire_force_bound

@@ -1,0 +1,134 @@
+"""`roadgrip bench sim|estimate|ingest|cluster`: run the benchmarks of roadgrip/bench and print their tables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from roadgrip.cli.common import console, friendly_errors
+
+
+@friendly_errors
+def estimate(
+    estimators: list[str] = typer.Option(["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"),
+    updates: int = typer.Option(20000, help="streamed updates per estimator"),
+):
+    """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
+    from roadgrip.bench.estimate import bench_estimators, format_bench
+    from roadgrip.bench.sim import machine_description
+
+    with console.status("benchmarking the estimators..."):
+        rows = bench_estimators(tuple(estimators), updates)
+    console.print(format_bench(rows))
+    console.print(f"machine: {machine_description()}")
+
+
+@friendly_errors
+def ingest(
+    vehicles: int = typer.Option(1000, min=1, help="simulated vehicles, each sending at 10 Hz"),
+    seconds: float = typer.Option(30.0, min=1.0, help="duration of each case"),
+    transport: list[str] = typer.Option(["mqtt", "http"], help="mqtt and/or http (repeatable)"),
+    http_batch: int = typer.Option(10, min=1, help="samples per HTTP request (10: a terminal posting once a second)"),
+    mqtt_batch: int = typer.Option(1, min=1, help="samples per MQTT message (1: every 100 ms)"),
+    database_url: str | None = typer.Option(None, help="PostgreSQL URL (default: SQLite in a scratch folder)"),
+    ingest_processes: int = typer.Option(0, min=0, help="the service's ingest processes (0: ingest in the service's "
+                                                        "own process; docs/CLOUD.md)"),
+    out: Path | None = typer.Option(None, help="write the results as JSON here"),
+):
+    """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
+    acknowledged and stored; beside it the broker and the database alone, measured in the same run."""
+    import json
+
+    from roadgrip.bench.ingest import (
+        IngestCase,
+        broker_ceiling,
+        database_ceiling,
+        format_ingest,
+        plot_timelines,
+        run_case,
+        sample_bodies,
+    )
+    from roadgrip.bench.sim import machine_description
+
+    for t in transport:
+        if t not in ("mqtt", "http"):
+            raise ValueError(f"--transport must be mqtt or http, got {t!r}")
+    with console.status("simulating the telemetry..."):
+        bodies = sample_bodies()
+    rows = []
+    for t in transport:
+        case = IngestCase(t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch,
+                          ingest_processes=ingest_processes)
+        with console.status(f"{t}: {vehicles} vehicles for {seconds:.0f} s..."):
+            rows.append(run_case(case, bodies, database_url, progress=lambda m: None))
+    ceilings = []
+    with console.status("the database alone..."):
+        ceilings.append(database_ceiling(bodies, database_url))
+    if "mqtt" in transport:
+        with console.status("the broker alone..."):
+            ceilings.append(broker_ceiling(bodies, vehicles, min(seconds, 20.0), mqtt_batch))
+    console.print(format_ingest(rows))
+    for c in ceilings:
+        rate = c.get("rows_per_s", c.get("samples_per_s"))
+        console.print(f"ceiling, {c['case']}: {rate:,.0f} samples per s")
+    console.print(f"machine: {machine_description()}")
+    if out is not None:
+        out.write_text(json.dumps({"cases": rows, "ceilings": ceilings, "machine": machine_description()}, indent=1))
+        console.print(f"results: {out}; memory, backlog and latency over time: "
+                      f"{plot_timelines(rows, out.with_suffix('.png'))}")
+
+
+@friendly_errors
+def cluster(
+    vehicles: int = typer.Option(500, min=1, help="simulated vehicles, each its own MQTT 3.1.1 connection"),
+    seconds: float = typer.Option(20.0, min=1.0, help="measuring window of each case"),
+    workers: str = typer.Option("1,2,4", help="worker counts to measure, comma-separated"),
+    partitions: int = typer.Option(8, min=1, help="partition queues"),
+    rate: float = typer.Option(1.0, min=0.0, help="messages of 10 samples a second per vehicle in the worker cases "
+                                                  "(1: a terminal; 0: as fast as PUBACKs allow)"),
+    out: Path | None = typer.Option(None, help="write the results as JSON here"),
+):
+    """Cluster mode's capacity on this machine (docs/CLUSTER.md, "Capacity"): 3 RabbitMQ nodes and PostgreSQL on
+    127.0.0.1, vehicles publishing MQTT 3.1.1 QoS 1: the broker's own ceiling (as fast as PUBACKs allow, ack-only
+    consumers), then stored samples per second with each count of `roadgrip worker` processes (vehicles at --rate),
+    each for a fixed window."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from roadgrip.bench.cluster import ClusterBench, format_cluster_bench, run_cluster_bench, write_json
+
+    try:
+        counts = tuple(int(w) for w in workers.split(","))
+    except ValueError:
+        raise ValueError(f"--workers must be comma-separated counts like 1,2,4, got {workers!r}") from None
+    bench = ClusterBench(vehicles, seconds, counts, partitions, rate)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task("starting", total=1.0)
+        result = run_cluster_bench(bench, lambda message, fraction: bar.update(
+            task, description=message, **({} if fraction is None else {"completed": fraction})))
+    console.print(format_cluster_bench(result))
+    console.print(f"machine: {result['machine']}; {result['elapsed_s']:.0f} s in all")
+    if out is not None:
+        write_json(result, out)
+        console.print(f"results: {out}")
+
+
+@friendly_errors
+def sim(
+    runs: int = typer.Option(256, help="runs in the batch case"),
+    seed: int = typer.Option(0, help="seed of the scenarios"),
+):
+    """Simulated seconds per wall-clock second: one run, the paper preset, a batch."""
+    from roadgrip.bench.sim import bench_sim, machine_description
+
+    with console.status("benchmarking the simulator..."):
+        rows = bench_sim(runs, seed)
+    table = Table(title="roadgrip bench sim")
+    for name in ("case", "runs", "simulated s", "wall s", "x real time"):
+        table.add_column(name, justify="left" if name == "case" else "right")
+    for row in rows:
+        table.add_row(row["case"], str(row["runs"]), f"{row['simulated_s']:.0f}", f"{row['wall_s']:.3f}",
+                      f"{row['realtime_factor']:,.0f}")
+    console.print(table)
+    console.print(f"machine: {machine_description()}")
