@@ -1,12 +1,12 @@
 """Accuracy of the physics estimators (EKF, UKF) on the paper preset's second experiments, per condition, beside the
 shipped learned model and their inverse-variance fusion; optionally on runs of the random preset, per manoeuvre.
 
-Run: python scripts/physics_paper_accuracy.py [--seed 0] [--random 40 --random-seed 1]
+Run: python results/trials/estimators/physics_paper_accuracy.py [--seed 0] [--random 40 --random-seed 1]
 (prints the tables of docs/ESTIMATORS.md)
 
-Per group: RMSE and MAE (eq. 14) over all samples and over the excited samples of DESIGN 4 (true utilization
+Per group: RMSE and MAE (eq. 14) over all samples and over the excited samples of CONTRACTS 4 (docs/CONTRACTS.md) (true utilization
 sqrt(ax^2 + ay^2) / (mu g) >= 0.5, or ABS active); the coverage of the 90 % interval; the share of samples each
-estimator judged excited, and how often that agrees with DESIGN 4's truth. The paper groups are the five conditions
+estimator judged excited, and how often that agrees with CONTRACTS 4's truth. The paper groups are the five conditions
 (two runs each: straight and circular road, experiment 2, which the default model never trained on). The learned
 model's first estimate of a run comes at its 10th sample, so every estimator is scored on the samples from the 10th on
 (391 of 400 per run).

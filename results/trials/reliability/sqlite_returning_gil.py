@@ -3,7 +3,7 @@ service: rows per second through 500-row INSERT ... ON CONFLICT DO NOTHING state
 telemetry of 1,000 vehicles), counting the rows with RETURNING or with the cursor's rowcount, with the other thread
 idle and busy.
 
-Run: python scripts/sqlite_returning_gil.py [--rows 50000]   (quoted in Storage.write_batch and docs/RELIABILITY.md)
+Run: python results/trials/reliability/sqlite_returning_gil.py [--rows 50000]   (quoted in Storage.write_batch and docs/RELIABILITY.md)
 """
 
 import argparse

@@ -4,7 +4,7 @@ the product's settings. `--without-proven` replays the same rows with mu_proven 
 came from what calm passes proved (docs/RESULTS.md, "Warnings cancelled too early").
 
     roadgrip evaluate --benchmark fleet --out runs/fleet
-    python scripts/early_cancellations.py runs/fleet [--without-proven]
+    python results/trials/results/early_cancellations.py runs/fleet [--without-proven]
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ A transaction touches about one leaf page of the (vehicle_id, timestamp_ms) key 
 whatever the number of rows, and the WAL holds every touched page whole; so the bytes per row fall with the rows per
 transaction. Reads /proc/self/io (write_bytes: what reached the block layer, WAL and database together).
 
-Run: python scripts/sqlite_write_volume.py [--rounds 1500]   (docs/RELIABILITY.md)
+Run: python results/trials/reliability/sqlite_write_volume.py [--rounds 1500]   (docs/RELIABILITY.md)
 """
 
 import argparse

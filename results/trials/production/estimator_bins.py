@@ -1,7 +1,7 @@
 """Every estimator by true utilization bin on simulated runs with the production-terminal effects on.
 
-    python scripts/estimator_bins.py                       # the generalization benchmark's held-out test runs, seed 0
-    python scripts/estimator_bins.py --random 40 --seed 11  # 40 runs of the random preset (vehicles around the sedan
+    python results/trials/production/estimator_bins.py                       # the generalization benchmark's held-out test runs, seed 0
+    python results/trials/production/estimator_bins.py --random 40 --seed 11  # 40 runs of the random preset (vehicles around the sedan
                                                             # and the SUV, stiffer tires), seed 11
 """
 

@@ -1,7 +1,7 @@
 """How much of the paper benchmark's ranking is training noise? The benchmark repeated with several training seeds on
 the same data (simulated with seed 0): mean and spread of each RMSE, and the acceptance count per seed.
 
-Run: python scripts/paper_seeds.py [n_seeds]   (default 3; about 4 min per seed on 2 cores; quoted in docs/RESULTS.md)
+Run: python results/trials/results/paper_seeds.py [n_seeds]   (default 3; about 4 min per seed on 2 cores; quoted in docs/RESULTS.md)
 """
 
 import sys

@@ -3,7 +3,7 @@ message goes through the service's MQTT handler (`Ingest.mqtt_message`, roadgrip
 pipeline (estimate, store in SQLite, map, warnings) as fast as it goes. A cost that grows with the stream's length shows
 here within minutes, where the 10-minute soak of `roadgrip bench ingest` would only show the service falling behind.
 
-Run: python scripts/pipeline_cost.py [--vehicles 1000] [--seconds 400]   (docs/RELIABILITY.md)
+Run: python results/trials/reliability/pipeline_cost.py [--vehicles 1000] [--seconds 400]   (docs/RELIABILITY.md)
 Prints, every 20 s of telemetry (20 x vehicles x 10 samples): samples per wall second, CPU microseconds per sample (all
 threads), the process's RSS and the estimates stored so far.
 """

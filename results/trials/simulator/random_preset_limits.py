@@ -1,6 +1,6 @@
 """How many runs of the random preset reach the limit: body sideslip beyond 10 degrees, by manoeuvre; and any NaN.
 
-Run: python scripts/random_preset_limits.py [runs] [seed]   (default 500 runs, seed 0; quoted in docs/SIMULATOR.md)
+Run: python results/trials/simulator/random_preset_limits.py [runs] [seed]   (default 500 runs, seed 0; quoted in docs/SIMULATOR.md)
 """
 
 import collections

@@ -1,15 +1,16 @@
 """How fast pmf's self-calibration converges on ordinary driving: a FWD car driven gently (0 to 0.09 g) for ten
 minutes on a worn tire (half the profile's slip stiffness), its front tires 1 % fuller than the rear and the front left
 2 % fuller than the front right, its accelerometer 0.6 m/s^2 off. Prints the error of each calibration minute by minute
-(a Markdown table; docs/PRODUCTION.md). Run from the repository root: python scripts/calibration_convergence.py"""
+(a Markdown table; docs/PRODUCTION.md). Run from the repository root:
+python results/trials/production/calibration_convergence.py"""
 
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "tests" / "estimators"))
-from test_pmf import FWD, worn_tire_drive  # noqa: E402  (the test's drive: one description of it)
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "tests" / "estimators"))  # the repository root
+from test_pmf import FWD, worn_tire_drive  # the test's drive: one description of it
 
-from roadgrip.estimators.pmf import PMFEstimator  # noqa: E402
+from roadgrip.estimators.pmf import PMFEstimator
 
 samples, c = worn_tire_drive(6000)
 estimator = PMFEstimator()

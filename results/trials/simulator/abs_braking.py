@@ -1,6 +1,6 @@
 """Hardest braking with ABS from 25 m/s on uniform roads: mean deceleration between 20 and 5 m/s as a share of mu g.
 
-Run: python scripts/abs_braking.py   (prints the table of docs/SIMULATOR.md)
+Run: python results/trials/simulator/abs_braking.py   (prints the table of docs/SIMULATOR.md)
 """
 
 from roadgrip.sim.driver import SpeedProfile

@@ -2,7 +2,7 @@
 (roadgrip/cloud/process.py, TRIM_INTERVAL_S): the RSS with 20,000 samples held (a steady queue), with a burst of
 100,000 more (a queue after a stall), after the burst is freed, and after `release_free_memory()`; three times.
 
-Run: python scripts/malloc_trim.py   (docs/RELIABILITY.md)
+Run: python results/trials/reliability/malloc_trim.py   (docs/RELIABILITY.md)
 """
 
 import time

@@ -9,8 +9,8 @@ road, by map status (measured, bounded): MAE and 90 % coverage against the range
 lowest (the patch in a cell that holds one). Station reports are not replayed (the vehicles' evidence alone).
 
     roadgrip evaluate --benchmark fleet --out runs/fleet
-    python scripts/map_replay.py runs/fleet                                    # the product's map
-    python scripts/map_replay.py runs/fleet --set grip_locality=0.005 --set max_independent=1000
+    python results/trials/results/map_replay.py runs/fleet                                    # the product's map
+    python results/trials/results/map_replay.py runs/fleet --set grip_locality=0.005 --set max_independent=1000
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ def table(scores: list[dict]) -> str:
     groups = collections.defaultdict(list)
     for s in scores:
         groups[(s["band"], s["status"])].append(s)
-    lines = ["| band | status | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
-             "90 % coverage (lowest mu) |", "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [("| band | status | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
+              "90 % coverage (lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
     for band in BANDS:
         for status in (MEASURED, BOUNDED):
             g = groups.get((band, status))
