@@ -1,7 +1,25 @@
 """The friction map (CellSummary, roadgrip/cloud/domain/friction_map.py) as a DATEX II v3 document. A pure function;
 no I/O.
 
-
+DATEX II v3: a d2:payload of xsi:type roa:MeasuredDataPublication with one roa:siteMeasurements per measured cell (status
+"measured"; a cell without recent excited evidence has no friction to publish). Path to the value:
+siteMeasurements / physicalQuantity[@index] / physicalQuantity[xsi:type SinglePhysicalQuantity] / basicData[xsi:type
+RoadSurfaceConditionInformation] / roadSurfaceConditionMeasurements / com:friction / com:friction (a Float).
+Checked against the v3 schema types as generated into Java (JAXB) in public repositories: PayloadPublication
+(publicationTime, publicationCreator, attributes lang and modelBaseVersion="3"), InternationalIdentifier (country,
+nationalIdentifier), MeasuredDataPublication (measurementSiteTableReference, headerInformation, siteMeasurements),
+HeaderInformation (confidentiality, informationStatus), SiteMeasurements (measurementSiteReference, physicalQuantity,
+measurementTimeDefault), PhysicalQuantity (pertinentLocation: a loc:LocationReference), SinglePhysicalQuantity
+(basicData), BasicData (measurementOrCalculationTime), MeasurementOrCalculationTime (timeValue),
+RoadSurfaceConditionInformation (roadSurfaceConditionMeasurements, typed in the common namespace),
+RoadSurfaceConditionMeasurements (friction: com:FrictionValue), FrictionValue (friction: Float), DataValue (attribute
+numberOfInputValuesUsed), PointByCoordinates / PointCoordinates (latitude, longitude); the physicalQuantity index
+wrapper as in a real NDW v3 feed. Not verified, following the NOTES and v3 practice: loc:PointLocation directly holding
+loc:pointByCoordinates, the enumeration values "noRestriction" and "real", the attributes of the versioned references,
+and the country code: v3 types it as CountryCode, we write "other" (the v2 enumeration value) unless told a code.
+The measurement site table referenced (one site per H3 cell) is virtual: we do not publish it, the location is in each
+measurement's pertinentLocation. friction is written clipped to 0..1 (the coefficient road weather stations report; an
+estimate above 1 on dry asphalt is written as 1).
 """
 
 from __future__ import annotations
