@@ -78,7 +78,9 @@ def tire_force_bound(vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, spe
     """The lower bound on mu that the measured acceleration proves: (|a_road| - k sigma_a) / g, at least 0."""
     ax, ay = road_acceleration(vehicle, accel_lon_mps2, accel_lat_mps2, speed_mps)
     margin = settings.k_sigma * settings.accel_sigma_mps2
-    return np.maximum((np.hypot(ax, ay) - margin) / G_MPS2, 0.0)
+    # sqrt(x^2 + y^2), not hypot: the streaming path's math.hypot and np.hypot differ in the last bit on 0.5 % of
+    # samples; IEEE sqrt, products and sums are the same in numpy and in Python floats (batch = streaming, exactly)
+    return np.maximum((np.sqrt(ax * ax + ay * ay) - margin) / G_MPS2, 0.0)
 
 
 def apply_bound_scalar(mu: float, lower: float, upper: float, excited: bool, bound: float):
@@ -148,8 +150,9 @@ class GuardedEstimator(Estimator):
         speed = sample.get("speed_mps")
         if speed is None or not math.isfinite(float(speed)):
             speed = sum(float(sample[w]) for w in WHEELS) / 4.0 * state["vehicle"].wheel_radius_m
-        road = math.hypot(float(sample["accel_lon_mps2"]) + state["drag"] * float(speed) ** 2,
-                          float(sample["accel_lat_mps2"]) / state["roll"])
+        ax = float(sample["accel_lon_mps2"]) + state["drag"] * float(speed) ** 2
+        ay = float(sample["accel_lat_mps2"]) / state["roll"]
+        road = math.sqrt(ax * ax + ay * ay)  # as tire_force_bound computes it, to the last bit
         bound = max((road - state["margin"]) / G_MPS2, 0.0)
         if bound <= est.mu_lower <= est.mu <= est.mu_upper:  # already physical: only the bound is added
             return Estimate(est.vehicle_id, est.timestamp_ms, est.mu, est.mu_lower, est.mu_upper, est.excited,

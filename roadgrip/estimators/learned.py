@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections import deque
 from importlib import resources
 from pathlib import Path
@@ -118,18 +119,26 @@ def load_estimator(spec: str | Path = DEFAULT_MODEL) -> Estimator:
     return GuardedEstimator(_unguarded_estimator(spec))
 
 
-def _unguarded_estimator(spec: str | Path) -> Estimator:
+def _named_estimators() -> dict:
+    """The one list of the estimators the project ships by name: name -> a factory of the unguarded estimator. An
+    estimator added here is one `load_estimator` takes, and one tests/estimators/test_contract.py checks."""
     from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
     from roadgrip.estimators.pmf import PMFEstimator
 
-    if str(spec) == DEFAULT_MODEL:
-        return LearnedEstimator.load(default_model_path())
-    if str(spec) == PMFEstimator.name:
-        return PMFEstimator()
-    if str(spec) in PHYSICS_ESTIMATORS:
-        return physics_estimator(str(spec))
+    return {DEFAULT_MODEL: lambda: LearnedEstimator.load(default_model_path()), PMFEstimator.name: PMFEstimator,
+            **{name: functools.partial(physics_estimator, name) for name in PHYSICS_ESTIMATORS}}
+
+
+def estimator_names() -> tuple[str, ...]:
+    """The names `load_estimator` takes besides model files: every estimator the project ships."""
+    return tuple(_named_estimators())
+
+
+def _unguarded_estimator(spec: str | Path) -> Estimator:
+    named = _named_estimators()
+    if str(spec) in named:
+        return named[str(spec)]()
     path = Path(spec)
     if path.suffix == ".pt" or path.exists():
         return LearnedEstimator.load(path)
-    names = [DEFAULT_MODEL, PMFEstimator.name, *PHYSICS_ESTIMATORS]
-    raise ValueError(f"--model must be a model file (.pt) or one of {names}, got {str(spec)!r}")
+    raise ValueError(f"--model must be a model file (.pt) or one of {list(named)}, got {str(spec)!r}")
