@@ -18,12 +18,12 @@ from roadgrip.estimators.guard import (
     drag_per_mass,
     tire_force_bound,
 )
-from roadgrip.estimators.learned import load_estimator
+from roadgrip.estimators.learned import estimator_names, load_estimator
 from roadgrip.fleet.importers import get_importer
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import PAPER_SUV
 
-ESTIMATORS = ("pmf", "ekf", "ukf", "default")
+ESTIMATORS = estimator_names()
 
 
 def test_bound_takes_drag_out_and_nothing_else():
