@@ -21,6 +21,7 @@ from roadgrip.cloud.pipeline.checkpoints import FLOATS, Checkpoints, pack_state,
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import StorageUnavailable, open_storage
+from roadgrip.cloud.storage.migrate import VERSION_TABLE
 from roadgrip.estimators import pmf
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle
@@ -119,8 +120,9 @@ def test_estimator_states_are_kept_per_vehicle_and_estimator(storage):
 def test_a_database_of_an_older_version_without_the_table_opens(storage_url, tmp_path):
     storage = open_storage(storage_url)
     storage.put_vehicle("car-1", vehicle_by_name("paper-suv").to_dict())
-    with storage._transaction() as conn:  # the database as the version before checkpoints made it
+    with storage._transaction() as conn:  # the database as the version before checkpoints (and migrations) made it
         conn.execute(sa.text("DROP TABLE estimator_states"))
+        conn.execute(sa.text(f"DROP TABLE {VERSION_TABLE}"))
     storage.close()
     storage = open_storage(storage_url)
     try:

@@ -62,19 +62,6 @@ def test_opening_twice_keeps_the_schema_and_the_rows(storage_url):
     second.close()
 
 
-def test_a_database_of_an_older_version_gains_the_added_columns(storage_url):
-    first = open_storage(storage_url)
-    first.write_batch(*drive("car-1", 3))
-    with first._transaction() as conn:  # the estimates table as released before mu_proven
-        conn.execute(text("ALTER TABLE estimates DROP COLUMN mu_proven"))
-    first.close()
-    second = open_storage(storage_url)
-    assert [r["mu_proven"] for r in second.estimates("car-1")] == [None, None, None]
-    second.write_batch([telemetry_row("car-1", T0_MS + 1000)], [estimate_row("car-1", T0_MS + 1000, mu_proven=0.42)])
-    assert second.estimates("car-1")[-1]["mu_proven"] == 0.42
-    second.close()
-
-
 def test_sqlite_connections_use_wal_normal_sync_foreign_keys_and_a_busy_timeout(tmp_path):
     storage = open_storage(f"sqlite:///{tmp_path / 'nested' / 'roadgrip.db'}")
     with storage._engine.connect() as conn:

@@ -1,0 +1,51 @@
+"""Partition fencing (cluster mode, roadgrip/cloud/cluster/worker.py): the partition_owners table, whose epoch a
+worker raises when it takes a partition (`take_partition`), and `check_fences`, which a fenced write runs first in its
+transaction (telemetry and estimates, estimator states), so that a worker that lost a partition without noticing
+stores nothing of it after the next owner has begun."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from sqlalchemy import select
+from sqlalchemy.engine import Connection
+
+from roadgrip.cloud.storage.base import Database, Fenced, now_ms
+from roadgrip.cloud.storage.schema import partition_owners_table
+
+
+def check_fences(conn: Connection, fences: Mapping[int, int] | None) -> None:
+    """Read the epochs of the partitions in `fences` (partition -> the epoch `take_partition` gave the writer) under
+    a share lock, held until `conn`'s transaction ends; Fenced if another worker has taken one since."""
+    if not fences:
+        return
+    c = partition_owners_table.c
+    query = select(c.partition_id, c.epoch).where(c.partition_id.in_(sorted(fences))).with_for_update(read=True)
+    epochs = dict(conn.execute(query).all())
+    stale = {p for p, epoch in fences.items() if epochs.get(p) != epoch}
+    if stale:
+        raise Fenced(stale)
+
+
+class Partitions:
+    """The owners of partitions on one `Database` (the methods of `Storage` of the same names)."""
+
+    def __init__(self, db: Database):
+        self._db = db
+
+    def take_partition(self, partition_id: int, owner: str) -> int:
+        """Raise the partition's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
+        which the owner's fenced writes carry (`write_batch`). Waits for fenced writes of the partition in progress."""
+        insert = self._db.insert(partition_owners_table).values(partition_id=partition_id, epoch=1, owner=owner,
+                                                                taken_ms=now_ms())
+        upsert = insert.on_conflict_do_update(
+            index_elements=["partition_id"],
+            set_={"epoch": partition_owners_table.c.epoch + 1, "owner": insert.excluded.owner,
+                  "taken_ms": insert.excluded.taken_ms}).returning(partition_owners_table.c.epoch)
+        with self._db.transaction() as conn:
+            return conn.execute(upsert).scalar_one()
+
+    def partition_owners(self) -> dict[int, str]:
+        """partition -> the owner that took it last (`take_partition`), for the partitions taken at least once."""
+        c = partition_owners_table.c
+        return {row["partition_id"]: row["owner"] for row in self._db.all(select(c.partition_id, c.owner))}
