@@ -3,9 +3,9 @@ the wire parser (roadgrip/cloud/ingest/wire.py) and handed to the backend.
 
 Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422
 when none was, 413 for an oversized body, 400 for a body that is not telemetry, 503 when storage is down (nothing
-was stored: retry), 429 with Retry-After when the vehicle is over its rate limit (`roadgrip.cloud.ingest.ratelimit`, samples
-a second, valid or not; nothing stored), and 413 for more samples in one request than the limit's whole burst. In the
-cluster: 202 once the broker confirmed the samples (roadgrip/cloud/api/app.py)."""
+was stored: retry), 429 with Retry-After when the vehicle is over its rate limit (`roadgrip.cloud.ingest.ratelimit`,
+samples a second, valid or not; nothing stored), and 413 for more samples in one request than the limit's whole burst.
+In the cluster: 202 once the broker confirmed the samples (roadgrip/cloud/api/app.py)."""
 
 import asyncio
 import time
@@ -99,6 +99,7 @@ async def _read_telemetry(request: Request, s: Settings, vehicle_id: str) -> tup
 
 def _escaped(rejection: dict) -> dict:
     """A rejection whose texts (the field as sent, the reason quoting the value) hold lone surrogates, which JSON
-    escapes carry but UTF-8 cannot encode, with those written as \\udXXXX instead (they were a 500, found by fuzzing)."""
+    escapes carry but UTF-8 cannot encode, with those written as \\udXXXX instead (they were a 500, found by
+    fuzzing)."""
     return {k: v.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(v, str) else v
             for k, v in rejection.items()}
