@@ -240,7 +240,7 @@ def test_unusable_bodies_are_refused_with_clear_errors(cloud):
 def test_a_repeated_query_parameter_is_refused_on_every_route(cloud):
     """Every declared query parameter is a scalar: given twice it is a 422 naming it, not its last value (a fuzzing
     case, issue 17); an undeclared one is ignored, as FastAPI does."""
-    service, client = cloud
+    _service, client = cloud
     auth = register(client, "car-q")
     for path, params in (("/v1/vehicles/car-q/estimates", [("limit", "5"), ("limit", "7")]),
                          ("/v1/vehicles/car-q/estimates", [("start_ms", "1"), ("end_ms", "2"), ("end_ms", "3")]),

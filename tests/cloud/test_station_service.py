@@ -222,7 +222,7 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
 def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
     require_chromium()
     now = int(time.time() * 1000)
-    with serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (service, base_url), \
+    with serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (_service, base_url), \
             httpx.Client(base_url=base_url, timeout=30) as client:
         stations = [add_station(client, name) for name in ("rws-icy", "rws-dry")]
         for (name, secret), state in zip(stations, ("ice", "dry")):

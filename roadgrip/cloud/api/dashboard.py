@@ -1,6 +1,7 @@
 """The live dashboard of `roadgrip serve`: one page that shows the friction map, the active warnings, every vehicle's
 latest position, the roadside stations (their latest report: surface state, temperature, water film, friction, the mu
-it gave and its age) and one chosen vehicle's mu with its 90 % interval over time.
+it gave and its age) and one chosen vehicle's mu with its 90 % interval over time. This module holds what the page is
+served with (headers, config); its routes are in roadgrip/cloud/api/routes/dashboard.py.
 
 | route | who | does |
 | --- | --- | --- |
@@ -31,13 +32,13 @@ Test hook: when the page has drawn, its root element (#dashboard) carries data-s
 data-chart-points and data-updated (ms since the epoch, browser clock), which `chromium --headless --dump-dom` shows.
 """
 
+from __future__ import annotations
+
 import html
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from fastapi import FastAPI, HTTPException
-from fastapi.responses import FileResponse
-from fastapi.staticfiles import StaticFiles
+from roadgrip.cloud.settings import Settings
 
 STATIC_DIR = Path(__file__).parent / "static"
 REFRESH_INTERVAL_S = 1.0  # the page's polling period
@@ -78,37 +79,14 @@ def content_security_policy(tiles_url: str | None) -> str:
             f"img-src {images}; connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 
 
-def mount_dashboard(app: FastAPI, service) -> None:
-    """Add the dashboard's routes (table above) to `app`, the API of `service` (roadgrip.cloud.serve.service.CloudService)."""
-    # Here, not at the top: roadgrip.cloud.api.app imports this module. (No `from __future__ import annotations` in this
-    # module: FastAPI must see the dependency itself in the route's signature, not the name of a local variable.)
-    from roadgrip.cloud.api.app import Caller
+def page_headers(settings: Settings) -> dict[str, str]:
+    """The headers of the page: its Content-Security-Policy, no MIME sniffing, revalidated on every load."""
+    return {"Content-Security-Policy": content_security_policy(settings.map_tiles_url),
+            "X-Content-Type-Options": "nosniff", "Cache-Control": "no-cache"}
 
-    settings = service.settings
-    page_headers = {"Content-Security-Policy": content_security_policy(settings.map_tiles_url),
-                    "X-Content-Type-Options": "nosniff", "Cache-Control": "no-cache"}
-    config = {"map_tiles_url": settings.map_tiles_url, "map_tiles_attribution": tile_attribution(settings.map_tiles_url),
-              "h3_resolution": settings.h3_resolution, "refresh_interval_s": REFRESH_INTERVAL_S,
-              "chart_window_s": CHART_WINDOW_S, "warning_threshold_mu": settings.warning_threshold_mu}
 
-    @app.get("/v1/vehicles/latest", tags=["dashboard"])
-    def latest_estimates(caller: Caller) -> dict:
-        """Each vehicle's newest estimate (DESIGN 3.4) with its position (latitude_deg, longitude_deg, h3_cell; null
-        where the sample had none), by vehicle_id."""
-        if caller.role not in ("admin", "reader"):
-            raise HTTPException(403, f"a {caller.role} credential may not do this (needs admin or reader)")
-        return {"vehicles": service.storage.latest_estimates()}
-
-    # First among the routes: GET /v1/vehicles/{vehicle_id} (a vehicle's profile) would otherwise take "latest" for
-    # a vehicle id.
-    app.router.routes.insert(0, app.router.routes.pop())
-
-    @app.get("/dashboard", include_in_schema=False)
-    def dashboard_page() -> FileResponse:
-        return FileResponse(STATIC_DIR / "index.html", headers=page_headers)
-
-    @app.get("/dashboard/config.json", include_in_schema=False)
-    def dashboard_config() -> dict:
-        return config
-
-    app.mount("/dashboard/static", StaticFiles(directory=STATIC_DIR), name="dashboard-static")
+def page_config(settings: Settings) -> dict:
+    """GET /dashboard/config.json: what the page needs to draw, no secrets."""
+    return {"map_tiles_url": settings.map_tiles_url, "map_tiles_attribution": tile_attribution(settings.map_tiles_url),
+            "h3_resolution": settings.h3_resolution, "refresh_interval_s": REFRESH_INTERVAL_S,
+            "chart_window_s": CHART_WINDOW_S, "warning_threshold_mu": settings.warning_threshold_mu}

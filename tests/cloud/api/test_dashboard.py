@@ -157,9 +157,9 @@ def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicl
         measured = [f for f in features if f["properties"]["status"] == "measured"]
         assert measured and warnings and chosen, "the drives gave no map, warning or estimates to show"
 
-        map_requests = []
-        to_geojson = service.friction_map.to_geojson
-        service.friction_map.to_geojson = lambda now_ms: map_requests.append(now_ms) or to_geojson(now_ms)
+        map_requests = []  # GET /v1/map is the page's only route that reads the map (the backend's current_map)
+        current_map = service.current_map
+        service.current_map = lambda: map_requests.append(1) or current_map()
         dom = run_chromium(f"{base_url}/dashboard?vehicle={CHOSEN}#{READER}:{secret}", "--dump-dom")
         page = attributes_by_id(dom)
         shown = page["dashboard"]
