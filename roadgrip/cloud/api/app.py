@@ -74,6 +74,7 @@ from roadgrip.cloud.api.backend import Accepted, ApiBackend, VehicleIdRefused
 from roadgrip.cloud.api.dashboard import mount_dashboard
 from roadgrip.cloud.domain.stations import ReportError, parse_reports
 from roadgrip.cloud.formats.datex2 import datex2_xml
+from roadgrip.cloud.formats.geojson import geojson
 from roadgrip.cloud.ingest.admission import IngestUnavailable, RateLimited
 from roadgrip.cloud.ingest.auth import AuthError
 from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
@@ -424,7 +425,7 @@ def create_app(service: ApiBackend) -> FastAPI:
     def friction_map(caller: Caller) -> dict:
         require(caller, "admin", "reader")
         friction_map, now = service.current_map()
-        return friction_map.to_geojson(now)
+        return geojson(friction_map.cells(now))
 
     @app.get("/v1/map/datex2", response_class=Response,
              responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}})

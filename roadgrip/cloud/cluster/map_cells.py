@@ -9,7 +9,7 @@ buckets, the passes in progress in it, its stations' reports and its vehicles' n
 
     from roadgrip.cloud.cluster.map_cells import stored_friction_map
     fmap = stored_friction_map(storage, settings, now_ms)
-    fmap.to_geojson(now_ms); fmap.cells(now_ms)
+    geojson(fmap.cells(now_ms))  # roadgrip/cloud/formats/geojson.py
 """
 
 from __future__ import annotations

@@ -12,8 +12,8 @@ longitude_deg, mu, mu_lower, mu_upper, excited and, from a guarded estimator, mu
 stations' friction evidence (roadgrip/cloud/domain/stations.py); `cells(now_ms)` summarises every cell with evidence younger
 than `max_age_s`. Rows without a position are ignored.
 
-Evidence, on a grid of mu (MU_GRID: 0 to 1.5 in steps of 0.02, the range a road may be given, roadgrip/sim/roads.py;
-the prior is flat over it)
+Evidence, on a grid of mu (MU_GRID: 0 to MU_MAX = 1.5 in steps of 0.02, the range a road may have; the prior is flat
+over it)
 - An estimate's 90 % interval [l, u] says "mu is above l" and "mu is below u". Each side is a soft step:
 
       L_low(mu) = eps + (1 - eps) Phi((mu - l) / s),   L_high(mu) = eps + (1 - eps) Phi((u - mu) / s)
@@ -95,12 +95,13 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
-from roadgrip.cloud.formats.geojson import geojson
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
-from roadgrip.sim.roads import MU_MAX as SIM_MU_MAX
 
-MU_GRID = np.linspace(0.0, SIM_MU_MAX, int(round(SIM_MU_MAX / 0.02)) + 1)  # the map's mu values, 0.02 apart
-MU_MAX = float(MU_GRID[-1])
+# The grid's end: the highest mu a road may have (dry asphalt with racing tires reaches about 1.3; the simulator's roads,
+# roadgrip/sim/roads.py, stay within it, tests/cloud/domain/test_domain.py). The prior is flat up to it, so a cell
+# that only proved grip keeps every value a road can hold inside its interval.
+MU_MAX = 1.5
+MU_GRID = np.linspace(0.0, MU_MAX, round(MU_MAX / 0.02) + 1)  # the map's mu values, 0.02 apart
 EDGE_PER_WIDTH = 0.125  # an interval's soft edge per its width: 0.4 s / W = 5 % of a plateau beyond each end
 BUCKETS_PER_MAX_AGE = 6  # time buckets per max_age_s: memory per cell against how long old evidence lingers
 QUANTILES = (0.05, 0.5, 0.95)  # mu_lower, mu, mu_upper
@@ -540,10 +541,6 @@ class FrictionMap:
                 self.open_passes_[vehicle] = p
             if self.newest_ms_ is None or cell.last_ms > self.newest_ms_:
                 self.newest_ms_ = cell.last_ms
-
-    def to_geojson(self, now_ms: int) -> dict:
-        """The cells at now_ms as a GeoJSON FeatureCollection (roadgrip.cloud.formats.exports.geojson)."""
-        return geojson(self.cells(now_ms))
 
     def clear(self) -> None:
         self.cells_by_id_.clear()

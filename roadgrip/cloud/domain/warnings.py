@@ -63,7 +63,6 @@ from typing import NamedTuple
 import h3
 
 from roadgrip.cloud.domain.friction_map import validate_resolution
-from roadgrip.cloud.formats.denm import MAX_VALIDITY_S, denm
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
@@ -75,6 +74,9 @@ MIN_DRY_PASSES = 1
 PASS_GAP_S = 30.0
 MIN_EXCITED_PER_PASS = 3
 VALIDITY_S = 600.0
+# The longest validity_s: a warning is published as a DENM (roadgrip/cloud/formats/denm.py), whose ValidityDuration
+# (EN 302 637-3) holds 0..86400 s; a warning valid for longer could not be said to a receiver as the engine holds it.
+MAX_VALIDITY_S = 86_400
 
 LOW, DRY, UNKNOWN = "low", "dry", "unknown"
 ACTIVE, CANCELLED = "active", "cancelled"
@@ -104,10 +106,6 @@ class WarningEvent:
     # refreshed it, the dry pass that cancelled it, or the instant it lapsed
     action_sequence_number: int  # DENM ActionID sequenceNumber, one per warning
     station_id: int = 1  # DENM originating station
-
-    def to_denm(self) -> dict:
-        """This event as a DENM (roadgrip.cloud.formats.exports.denm)."""
-        return denm(self)
 
 
 class _LowPass(NamedTuple):

@@ -29,6 +29,7 @@ import orjson
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import ACTIVE, EXPIRED, WarningEngine
+from roadgrip.cloud.formats.denm import denm
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.settings import Settings
@@ -170,7 +171,7 @@ class RegionFanout:
         """Warning changes stored (the DENM for readers, the event itself to restore the engine after a restart; one
         transaction), counted, logged (raised and ended at WARNING; a refresh, every low pass in a warned cell, at
         DEBUG) and their DENMs published."""
-        denms = [event.to_denm() for event in events]
+        denms = [denm(event) for event in events]
         self.store.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
                                   "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
                                   "message": {"denm": d, "event": dataclasses.asdict(e)}}
@@ -180,8 +181,8 @@ class RegionFanout:
             log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
                     "warning %s %s in cell %s (%s%s)", event.warning_id, event.status, event.cell, event.reason, source)
         if self.publish is not None:
-            for denm in denms:
-                self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
+            for message in denms:
+                self.publish(WARNINGS_TOPIC, orjson.dumps(message))
 
 
 class Fanout:

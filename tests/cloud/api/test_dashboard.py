@@ -158,8 +158,8 @@ def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicl
         assert measured and warnings and chosen, "the drives gave no map, warning or estimates to show"
 
         map_requests = []
-        to_geojson = service.friction_map.to_geojson
-        service.friction_map.to_geojson = lambda now_ms: map_requests.append(now_ms) or to_geojson(now_ms)
+        cells = service.friction_map.cells  # what /v1/map renders
+        service.friction_map.cells = lambda now_ms: map_requests.append(now_ms) or cells(now_ms)
         dom = run_chromium(f"{base_url}/dashboard?vehicle={CHOSEN}#{READER}:{secret}", "--dump-dom")
         page = attributes_by_id(dom)
         shown = page["dashboard"]
