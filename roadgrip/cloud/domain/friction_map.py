@@ -47,7 +47,10 @@ over it)
   min_proven_mu (0.1) are not counted: a calm pass proves nothing a map reader needs.
 
 Passes: a pass is one vehicle's consecutive estimates in one cell (it ends when the vehicle is seen in another cell or
-after pass_gap_s without an estimate there, as in the warning engine). One vehicle's estimates of one pass share its
+after pass_gap_s without an estimate there). The rule, late rows included, is roadgrip/cloud/domain/passes.py's, the
+warning engine's too: a row too late for its pass (older than the vehicle's newest in another cell, or no newer than
+its last closed pass) is dropped and counted in `late_rows_`; the passes idle for pass_gap_s at the clock (add's
+now_ms, or the newest timestamp seen) close at every `add`. One vehicle's estimates of one pass share its
 estimator's state, tires and bias: they are one piece of evidence, not tens. A pass's log-likelihood is the mean of its
 excited estimates' log-likelihoods (a geometric mean of their plateaus) plus its proven bound's. Passes of different
 vehicles, and one vehicle's passes on different visits, add up, to a point: they share the estimator's systematic error
@@ -76,8 +79,9 @@ timestamp // bucket_ms), anchored at the bucket's newest pass time: a later pass
 them by 2^((ref - t) / half_life)), so that no exponent is ever positive, and `cells(now)` multiplies each bucket by
 2^((ref - now) / half_life): the fade is exact and lazy. Passes in progress are counted in `cells` as they stand. A
 bucket leaves when its newest pass is older than max_age_s, so evidence counts for at least max_age_s and at most
-max_age_s + bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` frees buckets, cells and
-passes whose vehicle has been gone for pass_gap_s; `add` calls it once per bucket_s of clock.
+max_age_s + bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` closes the passes whose
+vehicle has been gone for pass_gap_s, frees old buckets and cells, and forgets the last pass of vehicles gone for
+max_age_s; `add` calls it once per bucket_s of clock.
 
 Time: ages use the caller's now_ms. If now_ms precedes a cell's newest evidence (a terminal's clock ahead of the
 server's), ages in that cell are taken from its newest evidence instead, so that no age is negative.
@@ -95,6 +99,7 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
+from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
 
 # The grid's end: the highest mu a road may have (dry asphalt with racing tires reaches about 1.3; the simulator's roads,
@@ -137,11 +142,14 @@ class CellSummary:
     mu_proven: float | None = None  # the largest lower bound a pass in the window proved (counted ones only)
 
 
-class _Pass:
-    __slots__ = ("cell", "first_ms", "last_exc_ms", "last_ms", "ll", "n", "n_exc", "proven", "vehicle_id")
+class _Pass(Pass):
+    """A pass (passes.py) as the map keeps it: the sum of its excited estimates' log-likelihoods, its counts, its largest
+    proven bound."""
+
+    __slots__ = ("last_exc_ms", "ll", "n", "n_exc", "proven")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
-        self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
+        super().__init__(vehicle_id, cell, t)
         self.ll: np.ndarray | None = None  # sum of its excited estimates' log-likelihoods
         self.n = self.n_exc = 0
         self.last_exc_ms: int | None = None
@@ -221,9 +229,15 @@ class FrictionMap:
         self.max_independent = _positive_finite("max_independent", max_independent)
         self.grip_locality = _probability("grip_locality", grip_locality)
         self.cells_by_id_: dict[str, _Cell] = {}
-        self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
+        self.passes_ = Passes(self.pass_gap_s, _Pass, self._fold)  # the pass rule (passes.py)
+        self.open_passes_: dict[str, _Pass] = self.passes_.open  # vehicle_id -> its pass in progress
         self.newest_ms_: int | None = None  # newest timestamp_ms seen: the pruning clock when add() gets no now_ms
         self.last_prune_ms_: int = _NEVER
+
+    @property
+    def late_rows_(self) -> int:
+        """Rows dropped as too late for their pass (passes.py, rule 3)."""
+        return self.passes_.late_rows
 
     @property
     def bucket_ms(self) -> int:
@@ -262,11 +276,9 @@ class FrictionMap:
     def add(self, estimates: Iterable[dict], now_ms: int | None = None) -> set[str]:
         """Fold estimate rows into the map; the cells touched. `now_ms` (the service's clock) drives pruning; without
         it the newest timestamp seen does, which a terminal with its clock far ahead could push forward."""
-        gap_ms = self.pass_gap_s * 1000.0
         resolution = self.resolution
         to_cell = h3.latlng_to_cell
-        rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
-        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
+        rows = in_pass_order(estimates)
         excited = [r for r in rows if r["excited"]]
         for r in excited:
             _check_interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu"],
@@ -276,25 +288,16 @@ class FrictionMap:
         k = 0
         touched: set[str] = set()
         cells = self.cells_by_id_
-        open_passes = self.open_passes_
+        place = self.passes_.row
         newest = self.newest_ms_ if self.newest_ms_ is not None else _NEVER
         for row in rows:
             vehicle = row["vehicle_id"]
             t = int(row["timestamp_ms"])
-            cell_id = to_cell(row["latitude_deg"], row["longitude_deg"], resolution)
-            current = open_passes.get(vehicle)
-            if current is None or current.cell != cell_id or t - current.last_ms > gap_ms or t < current.first_ms:
-                if current is not None and t >= current.last_ms:
-                    self._fold(current)
-                    del open_passes[vehicle]
-                    current = None
-                p = _Pass(vehicle, cell_id, t)
-                if current is None:
-                    open_passes[vehicle] = p
-                late = current is not None  # an older row of another visit: a pass of its own, folded at once
-            else:
-                p, late = current, False
-                p.last_ms = max(p.last_ms, t)
+            p = place(vehicle, to_cell(row["latitude_deg"], row["longitude_deg"], resolution), t)
+            if p is None:  # too late for its pass: dropped (passes.py)
+                k += row["excited"]  # its log-likelihood was computed with the others'
+                continue
+            cell_id = p.cell
             p.n += 1
             proven = row.get("mu_proven")
             if proven is not None and proven > p.proven:
@@ -312,13 +315,13 @@ class FrictionMap:
             cell.last_ms = max(cell.last_ms, t)
             newest = max(newest, t)
             touched.add(cell_id)
-            if late:
-                self._fold(p)
         if newest > _NEVER:
             self.newest_ms_ = newest
         clock = now_ms if now_ms is not None else self.newest_ms_
-        if clock is not None and clock - self.last_prune_ms_ >= self.bucket_ms:
-            self.prune(clock)
+        if clock is not None:
+            self.passes_.close_idle(clock)
+            if clock - self.last_prune_ms_ >= self.bucket_ms:
+                self.prune(clock)
         return touched
 
     def add_station(self, reports: Iterable[dict], now_ms: int | None = None) -> set[str]:
@@ -387,11 +390,11 @@ class FrictionMap:
 
     def prune(self, now_ms: int) -> int:
         """Fold the passes whose vehicle has been gone pass_gap_s, free the buckets, vehicles, station reports and
-        cells whose newest evidence is older than max_age_s; the cells removed."""
-        gap_ms = self.pass_gap_s * 1000.0
-        for vehicle in [v for v, p in self.open_passes_.items() if now_ms - p.last_ms > gap_ms]:
-            self._fold(self.open_passes_.pop(vehicle))
+        cells whose newest evidence is older than max_age_s, forget the last pass of vehicles gone for as long; the
+        cells removed."""
+        self.passes_.close_idle(now_ms)
         max_age_ms = self.max_age_s * 1000.0
+        self.passes_.forget(now_ms - max_age_ms)
         open_cells = {p.cell for p in self.open_passes_.values()}
         removed = []
         for cell_id, cell in self.cells_by_id_.items():
@@ -532,18 +535,12 @@ class FrictionMap:
                 p = _Pass(vehicle, cell_id, int(first_ms))
                 p.last_ms, p.ll, p.n, p.n_exc = int(last_ms), _unpack(ll), n, n_exc
                 p.last_exc_ms, p.proven = last_exc_ms, float(proven)
-                current = self.open_passes_.get(vehicle)
-                if current is not None and current.last_ms >= p.last_ms:
-                    self._fold(p)
-                    continue
-                if current is not None:
-                    self._fold(current)
-                self.open_passes_[vehicle] = p
+                self.passes_.resume(p)
             if self.newest_ms_ is None or cell.last_ms > self.newest_ms_:
                 self.newest_ms_ = cell.last_ms
 
     def clear(self) -> None:
         self.cells_by_id_.clear()
-        self.open_passes_.clear()
+        self.passes_.clear()
         self.newest_ms_ = None
         self.last_prune_ms_ = _NEVER

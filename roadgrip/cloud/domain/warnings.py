@@ -9,10 +9,11 @@ position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roa
 Rules
 1. Passes. A pass is one vehicle's consecutive estimates in one cell. It ends when the vehicle is seen in another cell,
    when it comes back to the cell after more than pass_gap_s, or when now_ms is more than pass_gap_s past its last
-   estimate. A pass's time is its last estimate's timestamp. Rows are taken in (vehicle, timestamp) order within a call;
-   a row older than its vehicle's current pass from another cell, or older than the vehicle's last judged pass, arrives
-   too late to change a verdict and is dropped (counted in `late_rows_`). A late row of the current pass's cell joins
-   the pass.
+   estimate. A pass's time is its last estimate's timestamp. The rule, late rows included, is
+   roadgrip/cloud/domain/passes.py's, the friction map's too: rows are taken in (vehicle, timestamp) order within a
+   call; a row older than its vehicle's current pass from another cell, or no newer than the vehicle's last judged
+   pass, arrives too late to change a verdict and is dropped (counted in `late_rows_`); a late row of the current
+   pass's cell joins the pass. A vehicle's last judged pass is forgotten after validity_s.
 2. Verdict of a pass, from its excited estimates (a non-excited estimate's interval says nothing about mu) and from
    what its estimates prove: "low" with at least min_excited_per_pass excited ones and their median mu_upper <
    threshold_mu (even the optimistic bound is slippery); otherwise "dry" when the largest mu_proven of its estimates,
@@ -63,6 +64,7 @@ from typing import NamedTuple
 import h3
 
 from roadgrip.cloud.domain.friction_map import validate_resolution
+from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
@@ -183,11 +185,13 @@ def _time_of(p: _LowPass) -> int:
     return p.time_ms
 
 
-class _Pass:
-    __slots__ = ("cell", "first_ms", "last_ms", "lowers", "proven", "uppers", "vehicle_id")
+class _Pass(Pass):
+    """A pass (passes.py) as the engine judges it: its excited estimates' bounds and its largest proven bound."""
+
+    __slots__ = ("lowers", "proven", "uppers")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
-        self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
+        super().__init__(vehicle_id, cell, t)
         self.uppers: list[float] = []
         self.lowers: list[float] = []
         self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
@@ -252,14 +256,20 @@ class WarningEngine:
         # where a new warning's ActionID sequence number comes from: a callable shared by the engines of one
         # originating station (cluster mode: one per region, numbered by the database), or None: this engine counts
         self.action_sequence = action_sequence
-        self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
-        self.last_judged_ms_: dict[str, int] = {}  # vehicle_id -> time of its last judged pass
+        self._judged: list[_Pass] = []  # the passes closed and not yet applied
+        self.passes_ = Passes(self.pass_gap_s, _Pass, self._judged.append)  # the pass rule (passes.py)
+        self.open_passes_: dict[str, _Pass] = self.passes_.open  # vehicle_id -> its pass in progress
         self.cell_states_: dict[str, _CellState] = {}
         self.active_cells_: set[str] = set()
         self.next_action_sequence_number_ = 0
-        self.late_rows_ = 0
+        self.late_reports_ = 0  # station reports no newer than the station's last in the cell (rule 8)
         self.last_sweep_ms_ = _NEVER
         self.station_last_ms_: dict[tuple[str, str], int] = {}  # (station source, cell) -> its last report applied
+
+    @property
+    def late_rows_(self) -> int:
+        """Rows dropped as too late: estimates (rule 1) and station reports (rule 8)."""
+        return self.passes_.late_rows + self.late_reports_
 
     # ------------------------------------------------------------------------------------------------------ public
 
@@ -268,33 +278,15 @@ class WarningEngine:
         applied: passes by time, then the expiries at now_ms."""
         now_ms = int(now_ms)
         gap_ms = self.pass_gap_s * 1000.0
-        rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
-        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
-        closed: list[_Pass] = []
         resolution = self.resolution
         to_cell = h3.latlng_to_cell
-        open_passes = self.open_passes_
-        for row in rows:
+        place = self.passes_.row
+        for row in in_pass_order(estimates):
             vehicle = row["vehicle_id"]
             t = int(row["timestamp_ms"])
-            cell = to_cell(row["latitude_deg"], row["longitude_deg"], resolution)
-            current = open_passes.get(vehicle)
-            if current is not None and current.cell == cell and t - current.last_ms <= gap_ms:
-                if t < current.first_ms and t <= self.last_judged_ms_.get(vehicle, _NEVER):
-                    self.late_rows_ += 1
-                    continue
-                current.first_ms = min(current.first_ms, t)
-                current.last_ms = max(current.last_ms, t)
-            elif current is not None and t < current.last_ms:
-                self.late_rows_ += 1  # late row of another cell: its pass there was judged already
+            current = place(vehicle, to_cell(row["latitude_deg"], row["longitude_deg"], resolution), t)
+            if current is None:  # too late to change a verdict (rule 1)
                 continue
-            else:
-                if t <= self.last_judged_ms_.get(vehicle, _NEVER):
-                    self.late_rows_ += 1
-                    continue
-                if current is not None:
-                    closed.append(self._close(current))
-                current = open_passes[vehicle] = _Pass(vehicle, cell, t)
             proven = row.get("mu_proven")
             if proven is not None and proven > current.proven:
                 current.proven = proven
@@ -305,9 +297,9 @@ class WarningEngine:
                                      f"must be finite")
                 current.lowers.append(lo)
                 current.uppers.append(hi)
-        for vehicle, current in list(open_passes.items()):
-            if now_ms - current.last_ms > gap_ms:  # no estimate from it for pass_gap_s: the pass is over
-                closed.append(self._close(current))
+        self.passes_.close_idle(now_ms)  # no estimate from a vehicle for pass_gap_s: its pass is over
+        closed = self._judged[:]
+        self._judged.clear()
         closed.sort(key=lambda p: (p.last_ms, p.cell, p.vehicle_id))
         events: list[WarningEvent] = []
         for finished in closed:
@@ -329,7 +321,7 @@ class WarningEngine:
                 raise ValueError(f"evidence of station {row['station_id']!r} at {t}: mu_lower {lo!r} and mu_upper "
                                  f"{hi!r} must be finite with mu_lower <= mu_upper")
             if t <= self.station_last_ms_.get((source, cell), _NEVER):
-                self.late_rows_ += 1
+                self.late_reports_ += 1
                 continue
             self.station_last_ms_[(source, cell)] = t
             report = _Pass(source, cell, t)
@@ -369,12 +361,6 @@ class WarningEngine:
                                                     (event.action_sequence_number + 1) % 65536)
 
     # ----------------------------------------------------------------------------------------------------- passes
-
-    def _close(self, finished: _Pass) -> _Pass:
-        del self.open_passes_[finished.vehicle_id]
-        judged = self.last_judged_ms_.get(finished.vehicle_id, _NEVER)
-        self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
-        return finished
 
     def verdict(self, uppers: list[float], lowers: list[float], proven: float = 0.0) -> str:
         """The verdict of a pass from the mu_upper and mu_lower of its excited estimates and the largest mu_proven of
@@ -481,8 +467,7 @@ class WarningEngine:
             state.low_passes.drop_older(horizon)
             if not state.low_passes and state.last_dry_ms < horizon:
                 del self.cell_states_[cell]
-        for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:
-            del self.last_judged_ms_[vehicle]
+        self.passes_.forget(horizon)
         for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:
             del self.station_last_ms_[key]
         self.last_sweep_ms_ = now_ms

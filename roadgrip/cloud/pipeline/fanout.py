@@ -165,7 +165,9 @@ class RegionFanout:
         if self.settings.map_clock == "data" or not (self.warning_engine.open_passes_
                                                       or self.warning_engine.active_cells_):
             return
-        self._warnings_out(self.warning_engine.update([], self.now_ms()), "")
+        now_ms = self.now_ms()
+        self.friction_map.add([], now_ms)  # idle passes end in the map as in the engine (domain/passes.py)
+        self._warnings_out(self.warning_engine.update([], now_ms), "")
 
     def _warnings_out(self, events: list, source: str) -> None:
         """Warning changes stored (the DENM for readers, the event itself to restore the engine after a restart; one
