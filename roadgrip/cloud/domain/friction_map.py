@@ -99,6 +99,7 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
+from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
 
@@ -179,12 +180,6 @@ def _probability(name: str, value) -> float:
     return float(value)
 
 
-def validate_resolution(resolution) -> int:
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 0 <= resolution <= 15:
-        raise ValueError(f"resolution must be an integer H3 resolution in 0..15, got {resolution!r}")
-    return resolution
-
-
 def _check_interval(what: str, mu, lo, hi) -> None:
     if not (math.isfinite(mu) and math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
         raise ValueError(f"{what}: mu {mu!r}, mu_lower {lo!r}, mu_upper {hi!r} must be finite with "
@@ -244,7 +239,8 @@ class FrictionMap:
         return max(1, int(self.max_age_s * 1000.0 / BUCKETS_PER_MAX_AGE))
 
     def cell_of(self, latitude_deg: float, longitude_deg: float) -> str:
-        return h3.latlng_to_cell(latitude_deg, longitude_deg, self.resolution)
+        """The cell of a position at the map's resolution (cells.py)."""
+        return cell_of(latitude_deg, longitude_deg, self.resolution)
 
     # ------------------------------------------------------------------------------------------------- evidence
 
@@ -277,7 +273,7 @@ class FrictionMap:
         """Fold estimate rows into the map; the cells touched. `now_ms` (the service's clock) drives pruning; without
         it the newest timestamp seen does, which a terminal with its clock far ahead could push forward."""
         resolution = self.resolution
-        to_cell = h3.latlng_to_cell
+        to_cell = cell_of
         rows = in_pass_order(estimates)
         excited = [r for r in rows if r["excited"]]
         for r in excited:

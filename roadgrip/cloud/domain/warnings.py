@@ -63,7 +63,7 @@ from typing import NamedTuple
 
 import h3
 
-from roadgrip.cloud.domain.friction_map import validate_resolution
+from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
@@ -279,7 +279,7 @@ class WarningEngine:
         now_ms = int(now_ms)
         gap_ms = self.pass_gap_s * 1000.0
         resolution = self.resolution
-        to_cell = h3.latlng_to_cell
+        to_cell = cell_of
         place = self.passes_.row
         for row in in_pass_order(estimates):
             vehicle = row["vehicle_id"]
