@@ -154,11 +154,10 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
     dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
     rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
                                                              evidence_total, measured_total)]
-    from roadgrip.evaluation.fleet_sweep import as_warnings, engine_kwargs, replay, rounds_of
+    from roadgrip.evaluation.fleet_sweep import as_warnings, replay, rounds_of
 
-    product = engine_kwargs()
-    without = as_warnings(replay(rounds_of(run.estimates), **product), start_ms)
-    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations), **product), start_ms)
+    without = as_warnings(replay(rounds_of(run.estimates)), start_ms)  # at the product's settings
+    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations)), start_ms)
     matches = sorted(replayed, key=lambda w: (w.detection_s, w.cell)) == sorted(warnings,
                                                                                key=lambda w: (w.detection_s, w.cell))
     without_kinds, without_patch_rows = score_warnings(seed, truth, without, validity_s, config.duration_s)

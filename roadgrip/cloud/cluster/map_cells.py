@@ -18,14 +18,9 @@ from collections.abc import Iterable
 
 from roadgrip.cloud.domain.cells import region_of
 from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.pipeline.fanout import new_friction_map
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
-
-
-def new_friction_map(settings: Settings) -> FrictionMap:
-    """The map of the settings (resolution, half-life, age limit, the warnings' pass gap), as serve builds it."""
-    return FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s,
-                       pass_gap_s=settings.warning_pass_gap_s)
 
 
 def cell_rows(fmap: FrictionMap, cells: Iterable[str], region_resolution: int) -> list[dict]:

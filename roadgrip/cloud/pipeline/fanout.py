@@ -53,13 +53,25 @@ def _change(event) -> str:
     return "expired" if event.reason == EXPIRED else "cancelled"
 
 
-def new_warning_engine(settings: Settings, action_sequence=None) -> WarningEngine:
-    """The warning engine of the settings, as serve builds it; `action_sequence` as WarningEngine takes it."""
-    return WarningEngine(
-        resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
-        min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
-        pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
-        validity_s=settings.warning_validity_s, station_id=settings.station_id, action_sequence=action_sequence)
+def new_friction_map(settings: Settings, **overrides) -> FrictionMap:
+    """The friction map of the settings (resolution, half-life, age limit, the warnings' pass gap: one pass rule for
+    both, roadgrip/cloud/domain/passes.py), as serve and the region owners build it; `overrides`: FrictionMap
+    arguments that replace the settings' (a study's). The one Settings-to-map mapping."""
+    return FrictionMap(**{"resolution": settings.h3_resolution, "half_life_s": settings.map_half_life_s,
+                          "max_age_s": settings.map_max_age_s, "pass_gap_s": settings.warning_pass_gap_s,
+                          **overrides})
+
+
+def new_warning_engine(settings: Settings, action_sequence=None, **overrides) -> WarningEngine:
+    """The warning engine of the settings, as serve and the region owners build it; `action_sequence` as WarningEngine
+    takes it; `overrides`: WarningEngine arguments that replace the settings' (the fleet benchmark's sweep). The one
+    Settings-to-engine mapping."""
+    return WarningEngine(**{
+        "resolution": settings.h3_resolution, "threshold_mu": settings.warning_threshold_mu,
+        "min_low_passes": settings.warning_min_low_passes, "min_dry_passes": settings.warning_min_dry_passes,
+        "pass_gap_s": settings.warning_pass_gap_s, "min_excited_per_pass": settings.warning_min_excited_per_pass,
+        "validity_s": settings.warning_validity_s, "station_id": settings.station_id,
+        "action_sequence": action_sequence, **overrides})
 
 
 class RegionSink(Protocol):
