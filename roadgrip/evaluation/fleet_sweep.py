@@ -2,7 +2,7 @@
 fleet benchmark run (fleet_benchmark.EngineRecorder: per round, its clock and its rows) are replayed offline into
 engines with other settings, each built as the service builds its own (roadgrip/cloud/pipeline/fanout.py
 new_warning_engine, the swept values as overrides), and each setting is scored by the benchmark's own scoring
-(fleet_report.score_warnings, fleet_metrics.summarize_run). Replaying at the service's settings gives the service's
+(fleet_metrics.score_warnings and summarize_run). Replaying at the service's settings gives the service's
 warnings exactly (checked on every run: `replay_matches_service`), since the engine is a pure function of its calls; the roadside stations'
 evidence (EngineRecorder.station_table) is replayed in its rounds too (`WarningEngine.station_evidence`).
 
@@ -22,7 +22,7 @@ import pyarrow as pa
 from roadgrip.cloud.domain.warnings import CANCELLED
 from roadgrip.cloud.pipeline.fanout import new_warning_engine
 from roadgrip.cloud.settings import Settings
-from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, summarize_run
+from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, score_warnings, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value
 PARAMETERS = {"threshold_mu": "warning_threshold_mu", "min_low_passes": "warning_min_low_passes",
@@ -105,8 +105,6 @@ def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings
     """One row per setting of the grid (and the product's setting, flagged `product`): the pooled scores of the
     target's patches (mu <= 0.3) and of the run over the seeds of `results` (fleet_report.SeedResult), and the false
     warnings per seed. The product's setting is replayed too and compared with the service's own warnings."""
-    from roadgrip.evaluation.fleet_report import score_warnings
-
     settings = settings or Settings()
     product = product_setting(settings)
     candidates = [{**product, **setting} for setting in grid_settings(grid)]  # unswept: the product's value
