@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import h3
 
+from roadgrip.cloud.domain import checks
+
 
 def validate_resolution(resolution) -> int:
     """An H3 resolution, an integer in 0..15 (ValueError otherwise)."""
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 0 <= resolution <= 15:
-        raise ValueError(f"resolution must be an integer H3 resolution in 0..15, got {resolution!r}")
-    return resolution
+    return checks.integer_in("resolution", resolution, 0, 15, "an integer H3 resolution")
 
 
 def cell_of(latitude_deg: float | None, longitude_deg: float | None, resolution: int) -> str | None:

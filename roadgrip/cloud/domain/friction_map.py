@@ -1,6 +1,11 @@
 """The road-friction map (DESIGN 3.6): per H3 cell, a posterior over mu that fuses what vehicles and roadside stations
 prove, aged.
 
+This module owns the map's evidence model, its mu grid (MU_GRID up to MU_MAX), the ageing, the cell summaries and
+their states (cluster mode). It borrows the rest of the domain: what a pass is (late rows included) from passes.py, the
+warning engine's rule too; the cell of a position from cells.py; its argument checks from checks.py. Rendering the
+cells is the formats' (roadgrip/cloud/formats/geojson.py, datex2.py).
+
 What a cell's value means: the friction a vehicle can count on in the cell, that is its lowest. A cell (76 m across at
 resolution 10) holds 100 m or more of road; a patch of ice may cover part of it. A low reading proves that a
 slippery spot is in the cell, wherever it was taken; a reading of grip proves grip only where that vehicle loaded its
@@ -90,7 +95,6 @@ server's), ages in that cell are taken from its newest evidence instead, so that
 from __future__ import annotations
 
 import base64
-import math
 import operator
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -99,6 +103,7 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
+from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
@@ -168,24 +173,6 @@ class _Cell:
         self.last_ms = _NEVER
 
 
-def _positive_finite(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return float(value)
-
-
-def _probability(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
-        raise ValueError(f"{name} must be a number in (0, 1), got {value!r}")
-    return float(value)
-
-
-def _check_interval(what: str, mu, lo, hi) -> None:
-    if not (math.isfinite(mu) and math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-        raise ValueError(f"{what}: mu {mu!r}, mu_lower {lo!r}, mu_upper {hi!r} must be finite with "
-                         f"mu_lower <= mu_upper")
-
-
 def _pack(ll: np.ndarray | None) -> str | None:
     return None if ll is None else base64.b64encode(np.asarray(ll, dtype="<f8").tobytes()).decode("ascii")
 
@@ -214,15 +201,15 @@ class FrictionMap:
                  min_proven_mu: float = 0.1, pass_gap_s: float = 30.0, max_independent: float = 3.0,
                  grip_locality: float = 0.5):
         self.resolution = validate_resolution(resolution)
-        self.half_life_s = _positive_finite("half_life_s", half_life_s)
-        self.max_age_s = _positive_finite("max_age_s", max_age_s)
-        self.min_interval_width = _positive_finite("min_interval_width", min_interval_width)
-        self.outlier_rate = _probability("outlier_rate", outlier_rate)
-        self.proven_sigma = _positive_finite("proven_sigma", proven_sigma)
-        self.min_proven_mu = _positive_finite("min_proven_mu", min_proven_mu)
-        self.pass_gap_s = _positive_finite("pass_gap_s", pass_gap_s)
-        self.max_independent = _positive_finite("max_independent", max_independent)
-        self.grip_locality = _probability("grip_locality", grip_locality)
+        self.half_life_s = checks.positive_finite("half_life_s", half_life_s)
+        self.max_age_s = checks.positive_finite("max_age_s", max_age_s)
+        self.min_interval_width = checks.positive_finite("min_interval_width", min_interval_width)
+        self.outlier_rate = checks.probability("outlier_rate", outlier_rate)
+        self.proven_sigma = checks.positive_finite("proven_sigma", proven_sigma)
+        self.min_proven_mu = checks.positive_finite("min_proven_mu", min_proven_mu)
+        self.pass_gap_s = checks.positive_finite("pass_gap_s", pass_gap_s)
+        self.max_independent = checks.positive_finite("max_independent", max_independent)
+        self.grip_locality = checks.probability("grip_locality", grip_locality)
         self.cells_by_id_: dict[str, _Cell] = {}
         self.passes_ = Passes(self.pass_gap_s, _Pass, self._fold)  # the pass rule (passes.py)
         self.open_passes_: dict[str, _Pass] = self.passes_.open  # vehicle_id -> its pass in progress
@@ -277,8 +264,8 @@ class FrictionMap:
         rows = in_pass_order(estimates)
         excited = [r for r in rows if r["excited"]]
         for r in excited:
-            _check_interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu"],
-                            r["mu_lower"], r["mu_upper"])
+            checks.interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu_lower"],
+                            r["mu_upper"], r["mu"])
         lls = (self.interval_log_likelihood([r["mu_lower"] for r in excited], [r["mu_upper"] for r in excited])
                if excited else None)
         k = 0
@@ -330,8 +317,8 @@ class FrictionMap:
             if h3.get_resolution(cell_id) != self.resolution:
                 raise ValueError(f"station {station!r}: cell {cell_id!r} is not at the map's resolution "
                                  f"{self.resolution}")
-            _check_interval(f"report of station {station!r} at {t}", report["mu"], report["mu_lower"],
-                            report["mu_upper"])
+            checks.interval(f"report of station {station!r} at {t}", report["mu_lower"], report["mu_upper"],
+                            report["mu"])
             cell = self.cells_by_id_.get(cell_id)
             if cell is None:
                 cell = self.cells_by_id_[cell_id] = _Cell(cell_id)

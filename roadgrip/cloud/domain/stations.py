@@ -4,6 +4,9 @@ measure; the cloud turns each report into friction evidence for the H3 cells the
 estimates (the map, roadgrip/cloud/domain/friction_map.py) and as passes of its own in the warning engine
 (roadgrip/cloud/domain/warnings.py).
 
+This module owns the report format v1, a station's covered cells and a report's friction evidence (below); the cell
+of a position is roadgrip/cloud/domain/cells.py's.
+
 Report format v1 (one JSON object; HTTP may send a JSON array of up to MAX_REPORTS_PER_PAYLOAD of them). SI units,
 except the two a road weather station speaks in (degrees Celsius, millimetres), named in the field:
 

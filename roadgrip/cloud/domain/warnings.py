@@ -1,6 +1,11 @@
 """Slippery-road warnings per H3 cell (DESIGN 3.6), in the shape of an ETSI DENM (cause code 6,
 adverseWeatherCondition-Adhesion).
 
+This module owns the warning rules 2-8 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
+as defaults) and the longest validity a DENM can carry (MAX_VALIDITY_S). Rule 1, what a pass is, is passes.py's,
+the friction map's too; the cell of a position is cells.py's; the argument checks are checks.py's. Writing an event
+as a DENM is roadgrip/cloud/formats/denm.py's.
+
 Pure and in memory: `update(estimates, now_ms)` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
 position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roadside stations' reports
@@ -63,6 +68,7 @@ from typing import NamedTuple
 
 import h3
 
+from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 
@@ -224,18 +230,6 @@ class _CellState:
         self.warning: _Warning | None = None
 
 
-def _count(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return value
-
-
-def _positive(name: str, value, upper: float = math.inf) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= upper:
-        raise ValueError(f"{name} must be a number in (0, {upper}], got {value!r}")
-    return float(value)
-
-
 class WarningEngine:
     """Slippery-road warnings from low-friction passes; see the module docstring for the rules."""
 
@@ -244,15 +238,13 @@ class WarningEngine:
                  pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
                  validity_s: float = VALIDITY_S, station_id: int = 1, action_sequence=None):
         self.resolution = validate_resolution(resolution)
-        self.threshold_mu = _positive("threshold_mu", threshold_mu)
-        self.min_low_passes = _count("min_low_passes", min_low_passes)
-        self.min_dry_passes = _count("min_dry_passes", min_dry_passes)
-        self.pass_gap_s = _positive("pass_gap_s", pass_gap_s)
-        self.min_excited_per_pass = _count("min_excited_per_pass", min_excited_per_pass)
-        self.validity_s = _positive("validity_s", validity_s, MAX_VALIDITY_S)  # a DENM cannot say more
-        if isinstance(station_id, bool) or not isinstance(station_id, int) or not 0 <= station_id <= 4294967295:
-            raise ValueError(f"station_id must be an integer StationID in 0..4294967295, got {station_id!r}")
-        self.station_id = station_id
+        self.threshold_mu = checks.positive_at_most("threshold_mu", threshold_mu)
+        self.min_low_passes = checks.count("min_low_passes", min_low_passes)
+        self.min_dry_passes = checks.count("min_dry_passes", min_dry_passes)
+        self.pass_gap_s = checks.positive_at_most("pass_gap_s", pass_gap_s)
+        self.min_excited_per_pass = checks.count("min_excited_per_pass", min_excited_per_pass)
+        self.validity_s = checks.positive_at_most("validity_s", validity_s, MAX_VALIDITY_S)  # a DENM cannot say more
+        self.station_id = checks.integer_in("station_id", station_id, 0, 4294967295, "an integer StationID")
         # where a new warning's ActionID sequence number comes from: a callable shared by the engines of one
         # originating station (cluster mode: one per region, numbered by the database), or None: this engine counts
         self.action_sequence = action_sequence
@@ -292,9 +284,7 @@ class WarningEngine:
                 current.proven = proven
             if row["excited"]:
                 lo, hi = row["mu_lower"], row["mu_upper"]
-                if not (math.isfinite(lo) and math.isfinite(hi)):
-                    raise ValueError(f"estimate of vehicle {vehicle!r} at {t}: mu_lower {lo!r} and mu_upper {hi!r} "
-                                     f"must be finite")
+                checks.finite_bounds(f"estimate of vehicle {vehicle!r} at {t}", lo, hi)
                 current.lowers.append(lo)
                 current.uppers.append(hi)
         self.passes_.close_idle(now_ms)  # no estimate from a vehicle for pass_gap_s: its pass is over
@@ -317,9 +307,7 @@ class WarningEngine:
         for row in sorted(rows, key=operator.itemgetter("timestamp_ms", "cell", "station_id")):
             source, cell, t = f"station:{row['station_id']}", row["cell"], int(row["timestamp_ms"])
             lo, hi = row["mu_lower"], row["mu_upper"]
-            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-                raise ValueError(f"evidence of station {row['station_id']!r} at {t}: mu_lower {lo!r} and mu_upper "
-                                 f"{hi!r} must be finite with mu_lower <= mu_upper")
+            checks.interval(f"evidence of station {row['station_id']!r} at {t}", lo, hi)
             if t <= self.station_last_ms_.get((source, cell), _NEVER):
                 self.late_reports_ += 1
                 continue
