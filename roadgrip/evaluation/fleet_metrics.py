@@ -90,6 +90,37 @@ def patch_outcome(patch: Patch, passes: list[tuple[str, float, float]], on: list
     return row
 
 
+@dataclass(frozen=True)
+class PatchTruth:
+    """What scoring a seed's warnings needs of the truth, whatever the warnings: the patches, their cells, and per
+    slippery patch its passes while there, the passes over its place within TARGET_LINGER_S after it dried, and its
+    observable passes."""
+
+    patches: tuple
+    cells: dict  # patch name -> its cells
+    passes: dict  # slippery patch name -> [(vehicle, entered s, left s)]
+    passes_after_dry: dict  # slippery patch name -> count
+    observable: dict  # slippery patch name -> count
+
+
+def score_warnings(seed: int, truth: PatchTruth, warnings: list[Warning], validity_s: float,
+                   run_end_s: float) -> tuple[list[str], list[dict]]:
+    """The class of every warning ("on", "beside", "false"; `classify`) and one row per slippery patch
+    (`patch_outcome`): the scoring shared by the run (fleet_report.py) and the sweep (fleet_sweep.py)."""
+    patches = list(truth.patches)
+    classes = [classify(w, patches, truth.cells, validity_s) for w in warnings]
+    patch_rows = []
+    for patch in patches:
+        if patch.mu >= DRY_MU:
+            continue
+        on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
+        beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
+        patch_rows.append({"seed": seed, **patch_outcome(patch, truth.passes[patch.name], on, beside, run_end_s,
+                                                         truth.passes_after_dry[patch.name],
+                                                         truth.observable[patch.name])})
+    return [kind for kind, _ in classes], patch_rows
+
+
 def score_cell(mu: float, mu_lower: float, mu_upper: float, truth: tuple[float, float]) -> dict:
     """The map's error in one cell against the range of true mu on the cell's road (0 inside it), whether its 90 %
     interval meets that range, and the cell's band (of its lowest true mu). Stricter, against the lowest true mu (the

@@ -40,13 +40,15 @@ from roadgrip.evaluation.fleet_benchmark import (
 from roadgrip.evaluation.fleet_metrics import (
     DRY_MU,
     TARGET_LINGER_S,
+    PatchTruth,
     Warning,
-    classify,
-    patch_outcome,
     score_cell,
+    score_warnings,
     summarize_run,
     warning_from_row,
 )
+from roadgrip.evaluation.fleet_sweep import as_warnings, choose, replay, rounds_of, tradeoff_markdown
+from roadgrip.evaluation.fleet_sweep import sweep as run_sweep
 
 DATA_CLOCK_LAG_S = 3600.0  # the run's data clock ends this long before the wall clock (no sample from the future)
 
@@ -74,19 +76,6 @@ class SeedResult:
     replay_matches_service: bool
 
 
-@dataclass(frozen=True)
-class PatchTruth:
-    """What scoring a seed's warnings needs of the truth, whatever the warnings: the patches, their cells, and per
-    slippery patch its passes while there, the passes over its place within TARGET_LINGER_S after it dried, and its
-    observable passes."""
-
-    patches: tuple
-    cells: dict  # patch name -> its cells
-    passes: dict  # slippery patch name -> [(vehicle, entered s, left s)]
-    passes_after_dry: dict  # slippery patch name -> count
-    observable: dict  # slippery patch name -> count
-
-
 def patch_truth(scenario: FleetScenario, drives) -> PatchTruth:
     network = scenario.network
     cells = {p.name: patch_cells(network, p) for p in network.patches}
@@ -99,24 +88,6 @@ def patch_truth(scenario: FleetScenario, drives) -> PatchTruth:
             drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, patch, while_there=False))
         seen[patch.name] = observable(drives, patch, passes[patch.name])
     return PatchTruth(tuple(network.patches), cells, passes, after, seen)
-
-
-def score_warnings(seed: int, truth: PatchTruth, warnings: list[Warning], validity_s: float,
-                   run_end_s: float) -> tuple[list[str], list[dict]]:
-    """The class of every warning ("on", "beside", "false"; fleet_metrics.classify) and one row per slippery patch
-    (fleet_metrics.patch_outcome): the scoring shared by the run and the sweep (fleet_sweep.py)."""
-    patches = list(truth.patches)
-    classes = [classify(w, patches, truth.cells, validity_s) for w in warnings]
-    patch_rows = []
-    for patch in patches:
-        if patch.mu >= DRY_MU:
-            continue
-        on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
-        beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
-        patch_rows.append({"seed": seed, **patch_outcome(patch, truth.passes[patch.name], on, beside, run_end_s,
-                                                         truth.passes_after_dry[patch.name],
-                                                         truth.observable[patch.name])})
-    return [kind for kind, _ in classes], patch_rows
 
 
 def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], None] | None = None) -> SeedResult:
@@ -154,11 +125,8 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
     dry_km = float(drives.distance_m[drives.mu >= DRY_MU].sum() / 1000.0)
     rows = [{"seed": str(seed), **r} for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total,
                                                              evidence_total, measured_total)]
-    from roadgrip.evaluation.fleet_sweep import as_warnings, engine_kwargs, replay, rounds_of
-
-    product = engine_kwargs()
-    without = as_warnings(replay(rounds_of(run.estimates), **product), start_ms)
-    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations), **product), start_ms)
+    without = as_warnings(replay(rounds_of(run.estimates)), start_ms)  # at the product's settings
+    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations)), start_ms)
     matches = sorted(replayed, key=lambda w: (w.detection_s, w.cell)) == sorted(warnings,
                                                                                key=lambda w: (w.detection_s, w.cell))
     without_kinds, without_patch_rows = score_warnings(seed, truth, without, validity_s, config.duration_s)
@@ -199,8 +167,6 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
         pq.write_table(res.run.estimates, out / f"estimates_seed{res.seed}.parquet")
     sweep_rows = None
     if sweep is not None:
-        from roadgrip.evaluation.fleet_sweep import sweep as run_sweep
-
         sweep_started = time.perf_counter()
         sweep_rows = run_sweep(results, config.duration_s, sweep, progress=progress)
         sweep_s = time.perf_counter() - sweep_started
@@ -234,7 +200,6 @@ def run_fleet_benchmark(out: Path, seed: int = 0, seeds: int = 3, config: FleetC
     report = fleet_markdown(rows, patch_rows, results, config, wall_s) + "\n" + stations_markdown(station_rows, results)
     if sweep_rows is not None:
         from roadgrip.evaluation.fleet_plots import plot_tradeoff
-        from roadgrip.evaluation.fleet_sweep import choose, tradeoff_markdown
 
         pacsv.write_csv(pa.Table.from_pylist(sweep_rows), out / "tradeoff.csv")
         chosen = choose(sweep_rows)
@@ -278,7 +243,7 @@ def stations_markdown(rows: list[dict], results: list[SeedResult]) -> str:
                    "beside or after | false |"),
               "| --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        def pair(name, convert=_fmt):
+        def pair(name, convert=_fmt, r=r):
             return f"{convert(r.get(f'{name}_with'))} / {convert(r.get(f'{name}_without'))}"
         lines.append(f"| {r['seed']} | {r['group']} | {r['eligible']} | {pair('recall')} | {pair('recall_all')} | "
                      f"{pair('within_3rd_pass')} | {pair('time_to_first_median_s', _minutes)} | "

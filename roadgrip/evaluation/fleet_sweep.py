@@ -1,8 +1,9 @@
 """The warning engine's trade-off curve (issue 16, item 5): the estimate rows the service's warning engine took in a
 fleet benchmark run (fleet_benchmark.EngineRecorder: per round, its clock and its rows) are replayed offline into
-engines with other settings, and each setting is scored by the benchmark's own scoring (fleet_report.score_warnings,
-fleet_metrics.summarize_run). Replaying at the service's settings gives the service's warnings exactly (checked on
-every run: `replay_matches_service`), since the engine is a pure function of its calls; the roadside stations'
+engines with other settings, each built as the service builds its own (roadgrip/cloud/pipeline/fanout.py
+new_warning_engine, the swept values as overrides), and each setting is scored by the benchmark's own scoring
+(fleet_metrics.score_warnings and summarize_run). Replaying at the service's settings gives the service's
+warnings exactly (checked on every run: `replay_matches_service`), since the engine is a pure function of its calls; the roadside stations'
 evidence (EngineRecorder.station_table) is replayed in its rounds too (`WarningEngine.station_evidence`).
 
 The product's setting is chosen from the curve by RULE (`choose`).
@@ -18,9 +19,10 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.cloud.domain.warnings import CANCELLED, WarningEngine
+from roadgrip.cloud.domain.warnings import CANCELLED
+from roadgrip.cloud.pipeline.fanout import new_warning_engine
 from roadgrip.cloud.settings import Settings
-from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, summarize_run
+from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, score_warnings, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value
 PARAMETERS = {"threshold_mu": "warning_threshold_mu", "min_low_passes": "warning_min_low_passes",
@@ -36,15 +38,6 @@ def product_setting(settings: Settings | None = None) -> dict:
     """The swept parameters at the product's values (Settings defaults, or `settings`)."""
     settings = settings or Settings()
     return {name: getattr(settings, field) for name, field in PARAMETERS.items()}
-
-
-def engine_kwargs(settings: Settings | None = None) -> dict:
-    """Every WarningEngine argument as the service builds it (roadgrip/cloud/serve/service.py)."""
-    s = settings or Settings()
-    return {"resolution": s.h3_resolution, "threshold_mu": s.warning_threshold_mu,
-            "min_low_passes": s.warning_min_low_passes, "min_dry_passes": s.warning_min_dry_passes,
-            "pass_gap_s": s.warning_pass_gap_s, "min_excited_per_pass": s.warning_min_excited_per_pass,
-            "validity_s": s.warning_validity_s, "station_id": s.station_id}
 
 
 def grid_settings(grid: dict = GRID) -> list[dict]:
@@ -71,10 +64,11 @@ def rounds_of(estimates: pa.Table, stations: pa.Table | None = None) -> list[tup
     return [(now_ms, rows) for _, now_ms, rows in sorted(numbered, key=lambda r: r[0])]
 
 
-def replay(rounds: list[tuple[int, list[dict]]], **engine_kwargs) -> dict[str, tuple]:
-    """Feed the rounds to a fresh WarningEngine; every warning's latest event, by warning_id (what the service stores):
-    warning_id -> (cell, detection_ms, status, reason, evidence_ms)."""
-    engine = WarningEngine(**engine_kwargs)
+def replay(rounds: list[tuple[int, list[dict]]], settings: Settings | None = None, **overrides) -> dict[str, tuple]:
+    """Feed the rounds to a fresh warning engine of `settings` (the product's by default) with `overrides` (WarningEngine
+    arguments); every warning's latest event, by warning_id (what the service stores): warning_id -> (cell,
+    detection_ms, status, reason, evidence_ms)."""
+    engine = new_warning_engine(settings or Settings(), **overrides)
     latest: dict[str, tuple] = {}
     for now_ms, rows in rounds:
         events = engine.station_evidence(rows, now_ms) if "cell" in rows[0] else engine.update(rows, now_ms)
@@ -98,11 +92,12 @@ def _same(a: list[Warning], b: list[Warning]) -> bool:
     return sorted(a, key=lambda w: (w.detection_s, w.cell)) == sorted(b, key=lambda w: (w.detection_s, w.cell))
 
 
-_ROUNDS = None  # [(rounds, start_ms)] per seed while a sweep runs
+_REPLAYS = None  # (settings, [(rounds, start_ms)] per seed) while a sweep runs
 
 
-def _replay_seeds(kwargs: dict) -> list[list[Warning]]:
-    return [as_warnings(replay(rounds, **kwargs), start_ms) for rounds, start_ms in _ROUNDS]
+def _replay_seeds(overrides: dict) -> list[list[Warning]]:
+    settings, seeds = _REPLAYS
+    return [as_warnings(replay(rounds, settings, **overrides), start_ms) for rounds, start_ms in seeds]
 
 
 def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings | None = None,
@@ -110,28 +105,26 @@ def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings
     """One row per setting of the grid (and the product's setting, flagged `product`): the pooled scores of the
     target's patches (mu <= 0.3) and of the run over the seeds of `results` (fleet_report.SeedResult), and the false
     warnings per seed. The product's setting is replayed too and compared with the service's own warnings."""
-    from roadgrip.evaluation.fleet_report import score_warnings
-
-    base = engine_kwargs(settings)
+    settings = settings or Settings()
     product = product_setting(settings)
     candidates = [{**product, **setting} for setting in grid_settings(grid)]  # unswept: the product's value
     if product not in candidates:
         candidates.append(product)
     say = progress or (lambda message, fraction: None)
-    global _ROUNDS
-    _ROUNDS = [(rounds_of(res.run.estimates, res.run.stations), res.start_ms) for res in results]  # the workers inherit them (fork)
-    jobs = [{**base, **setting} for setting in candidates]
+    global _REPLAYS
+    _REPLAYS = (settings, [(rounds_of(res.run.estimates, res.run.stations), res.start_ms)
+                           for res in results])  # the workers inherit them (fork)
     try:
         if workers > 1:
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
                 replayed = []
-                for j, out in enumerate(pool.map(_replay_seeds, jobs)):
+                for j, out in enumerate(pool.map(_replay_seeds, candidates)):
                     replayed.append(out)
                     say(f"sweep: setting {j + 1} of {len(candidates)}", (j + 1) / len(candidates))
         else:
-            replayed = [_replay_seeds(job) for job in jobs]
+            replayed = [_replay_seeds(setting) for setting in candidates]
     finally:
-        _ROUNDS = None
+        _REPLAYS = None
     per_setting: list[list[tuple]] = [[] for _ in candidates]  # (seed result, kinds, patch rows)
     matches = True
     for j, setting in enumerate(candidates):

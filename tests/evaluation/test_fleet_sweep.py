@@ -1,6 +1,9 @@
 """The warning engine's trade-off sweep: a recorded engine replays to the same warnings at the same settings, other
 settings change them, the rule picks the safe setting with the best recall, and the benchmark writes the curve."""
 
+import ast
+from pathlib import Path
+
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
@@ -92,3 +95,22 @@ def test_the_benchmark_keeps_the_engine_s_estimates_and_writes_the_curve(tmp_pat
     assert len(rows) == 4 and sum(r["product"] for r in rows) == 1
     assert next(r for r in result["sweep"] if r["product"])["replay_matches_service"]
     assert (tmp_path / "tradeoff.png").stat().st_size > 0
+
+
+def test_the_fleet_modules_import_each_other_without_a_circle():
+    """fleet_report scores, sweeps and reports; fleet_sweep replays and scores through fleet_metrics, never back."""
+    folder = Path(__file__).parents[2] / "roadgrip" / "evaluation"
+    imports = {}
+    for path in folder.glob("fleet_*.py"):
+        imports[path.stem] = {node.module.rsplit(".", 1)[1] for node in ast.walk(ast.parse(path.read_text()))
+                              if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+                                  "roadgrip.evaluation.fleet_")}
+    assert "fleet_sweep" in imports["fleet_report"] and "fleet_report" not in imports["fleet_sweep"]
+
+    def circle(path: list[str]) -> list[str] | None:
+        for module in imports.get(path[-1], ()):
+            found = [*path, module] if module in path else circle([*path, module])
+            if found:
+                return found
+        return None
+    assert [circle([m]) for m in sorted(imports)] == [None] * len(imports)

@@ -9,29 +9,18 @@ buckets, the passes in progress in it, its stations' reports and its vehicles' n
 
     from roadgrip.cloud.cluster.map_cells import stored_friction_map
     fmap = stored_friction_map(storage, settings, now_ms)
-    fmap.to_geojson(now_ms); fmap.cells(now_ms)
+    geojson(fmap.cells(now_ms))  # roadgrip/cloud/formats/geojson.py
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 
-import h3
-
+from roadgrip.cloud.domain.cells import region_of
 from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.pipeline.fanout import new_friction_map
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
-
-
-def new_friction_map(settings: Settings) -> FrictionMap:
-    """The map of the settings (resolution, half-life, age limit, the warnings' pass gap), as serve builds it."""
-    return FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s,
-                       pass_gap_s=settings.warning_pass_gap_s)
-
-
-def region_of(cell: str, region_resolution: int) -> str:
-    """The region of an H3 cell: its parent at `region_resolution` (the cell itself at that resolution)."""
-    return h3.cell_to_parent(cell, region_resolution)
 
 
 def cell_rows(fmap: FrictionMap, cells: Iterable[str], region_resolution: int) -> list[dict]:

@@ -59,14 +59,16 @@ import orjson
 import pika
 import pika.exceptions
 
-from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of, restore_region
+from roadgrip.cloud.cluster.map_cells import cell_rows, restore_region
 from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.domain.cells import region_of
 from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.pipeline.fanout import (
     WARNING_CHANGES,
     RegionFanout,
     VehicleFanout,
     estimate_message,
+    new_friction_map,
     new_warning_engine,
 )
 from roadgrip.cloud.settings import Settings

@@ -1,6 +1,11 @@
 """The road-friction map (DESIGN 3.6): per H3 cell, a posterior over mu that fuses what vehicles and roadside stations
 prove, aged.
 
+This module owns the map's evidence model, its mu grid (MU_GRID up to MU_MAX), the ageing, the cell summaries and
+their states (cluster mode). It borrows the rest of the domain: what a pass is (late rows included) from passes.py, the
+warning engine's rule too; the cell of a position from cells.py; its argument checks from checks.py. Rendering the
+cells is the formats' (roadgrip/cloud/formats/geojson.py, datex2.py).
+
 What a cell's value means: the friction a vehicle can count on in the cell, that is its lowest. A cell (76 m across at
 resolution 10) holds 100 m or more of road; a patch of ice may cover part of it. A low reading proves that a
 slippery spot is in the cell, wherever it was taken; a reading of grip proves grip only where that vehicle loaded its
@@ -12,8 +17,8 @@ longitude_deg, mu, mu_lower, mu_upper, excited and, from a guarded estimator, mu
 stations' friction evidence (roadgrip/cloud/domain/stations.py); `cells(now_ms)` summarises every cell with evidence younger
 than `max_age_s`. Rows without a position are ignored.
 
-Evidence, on a grid of mu (MU_GRID: 0 to 1.5 in steps of 0.02, the range a road may be given, roadgrip/sim/roads.py;
-the prior is flat over it)
+Evidence, on a grid of mu (MU_GRID: 0 to MU_MAX = 1.5 in steps of 0.02, the range a road may have; the prior is flat
+over it)
 - An estimate's 90 % interval [l, u] says "mu is above l" and "mu is below u". Each side is a soft step:
 
       L_low(mu) = eps + (1 - eps) Phi((mu - l) / s),   L_high(mu) = eps + (1 - eps) Phi((u - mu) / s)
@@ -47,7 +52,10 @@ the prior is flat over it)
   min_proven_mu (0.1) are not counted: a calm pass proves nothing a map reader needs.
 
 Passes: a pass is one vehicle's consecutive estimates in one cell (it ends when the vehicle is seen in another cell or
-after pass_gap_s without an estimate there, as in the warning engine). One vehicle's estimates of one pass share its
+after pass_gap_s without an estimate there). The rule, late rows included, is roadgrip/cloud/domain/passes.py's, the
+warning engine's too: a row too late for its pass (older than the vehicle's newest in another cell, or no newer than
+its last closed pass) is dropped and counted in `late_rows_`; the passes idle for pass_gap_s at the clock (add's
+now_ms, or the newest timestamp seen) close at every `add`. One vehicle's estimates of one pass share its
 estimator's state, tires and bias: they are one piece of evidence, not tens. A pass's log-likelihood is the mean of its
 excited estimates' log-likelihoods (a geometric mean of their plateaus) plus its proven bound's. Passes of different
 vehicles, and one vehicle's passes on different visits, add up, to a point: they share the estimator's systematic error
@@ -76,8 +84,9 @@ timestamp // bucket_ms), anchored at the bucket's newest pass time: a later pass
 them by 2^((ref - t) / half_life)), so that no exponent is ever positive, and `cells(now)` multiplies each bucket by
 2^((ref - now) / half_life): the fade is exact and lazy. Passes in progress are counted in `cells` as they stand. A
 bucket leaves when its newest pass is older than max_age_s, so evidence counts for at least max_age_s and at most
-max_age_s + bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` frees buckets, cells and
-passes whose vehicle has been gone for pass_gap_s; `add` calls it once per bucket_s of clock.
+max_age_s + bucket_s (by then it weighs at most 2^(-max_age_s / half_life) = 1/64). `prune` closes the passes whose
+vehicle has been gone for pass_gap_s, frees old buckets and cells, and forgets the last pass of vehicles gone for
+max_age_s; `add` calls it once per bucket_s of clock.
 
 Time: ages use the caller's now_ms. If now_ms precedes a cell's newest evidence (a terminal's clock ahead of the
 server's), ages in that cell are taken from its newest evidence instead, so that no age is negative.
@@ -86,7 +95,6 @@ server's), ages in that cell are taken from its newest evidence instead, so that
 from __future__ import annotations
 
 import base64
-import math
 import operator
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -95,12 +103,16 @@ import h3
 import numpy as np
 from scipy.special import ndtr
 
-from roadgrip.cloud.formats.geojson import geojson
+from roadgrip.cloud.domain import checks
+from roadgrip.cloud.domain.cells import cell_of, validate_resolution
+from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
-from roadgrip.sim.roads import MU_MAX as SIM_MU_MAX
 
-MU_GRID = np.linspace(0.0, SIM_MU_MAX, int(round(SIM_MU_MAX / 0.02)) + 1)  # the map's mu values, 0.02 apart
-MU_MAX = float(MU_GRID[-1])
+# The grid's end: the highest mu a road may have (dry asphalt with racing tires reaches about 1.3; the simulator's roads,
+# roadgrip/sim/roads.py, stay within it, tests/cloud/domain/test_domain.py). The prior is flat up to it, so a cell
+# that only proved grip keeps every value a road can hold inside its interval.
+MU_MAX = 1.5
+MU_GRID = np.linspace(0.0, MU_MAX, round(MU_MAX / 0.02) + 1)  # the map's mu values, 0.02 apart
 EDGE_PER_WIDTH = 0.125  # an interval's soft edge per its width: 0.4 s / W = 5 % of a plateau beyond each end
 BUCKETS_PER_MAX_AGE = 6  # time buckets per max_age_s: memory per cell against how long old evidence lingers
 QUANTILES = (0.05, 0.5, 0.95)  # mu_lower, mu, mu_upper
@@ -136,11 +148,14 @@ class CellSummary:
     mu_proven: float | None = None  # the largest lower bound a pass in the window proved (counted ones only)
 
 
-class _Pass:
-    __slots__ = ("cell", "first_ms", "last_exc_ms", "last_ms", "ll", "n", "n_exc", "proven", "vehicle_id")
+class _Pass(Pass):
+    """A pass (passes.py) as the map keeps it: the sum of its excited estimates' log-likelihoods, its counts, its largest
+    proven bound."""
+
+    __slots__ = ("last_exc_ms", "ll", "n", "n_exc", "proven")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
-        self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
+        super().__init__(vehicle_id, cell, t)
         self.ll: np.ndarray | None = None  # sum of its excited estimates' log-likelihoods
         self.n = self.n_exc = 0
         self.last_exc_ms: int | None = None
@@ -156,30 +171,6 @@ class _Cell:
         self.vehicles: dict[str, int] = {}  # vehicle_id -> its newest timestamp_ms in this cell
         self.stations: dict[str, tuple[int, np.ndarray]] = {}  # station_id -> (report time, log-likelihood)
         self.last_ms = _NEVER
-
-
-def _positive_finite(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return float(value)
-
-
-def _probability(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
-        raise ValueError(f"{name} must be a number in (0, 1), got {value!r}")
-    return float(value)
-
-
-def validate_resolution(resolution) -> int:
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 0 <= resolution <= 15:
-        raise ValueError(f"resolution must be an integer H3 resolution in 0..15, got {resolution!r}")
-    return resolution
-
-
-def _check_interval(what: str, mu, lo, hi) -> None:
-    if not (math.isfinite(mu) and math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-        raise ValueError(f"{what}: mu {mu!r}, mu_lower {lo!r}, mu_upper {hi!r} must be finite with "
-                         f"mu_lower <= mu_upper")
 
 
 def _pack(ll: np.ndarray | None) -> str | None:
@@ -210,26 +201,33 @@ class FrictionMap:
                  min_proven_mu: float = 0.1, pass_gap_s: float = 30.0, max_independent: float = 3.0,
                  grip_locality: float = 0.5):
         self.resolution = validate_resolution(resolution)
-        self.half_life_s = _positive_finite("half_life_s", half_life_s)
-        self.max_age_s = _positive_finite("max_age_s", max_age_s)
-        self.min_interval_width = _positive_finite("min_interval_width", min_interval_width)
-        self.outlier_rate = _probability("outlier_rate", outlier_rate)
-        self.proven_sigma = _positive_finite("proven_sigma", proven_sigma)
-        self.min_proven_mu = _positive_finite("min_proven_mu", min_proven_mu)
-        self.pass_gap_s = _positive_finite("pass_gap_s", pass_gap_s)
-        self.max_independent = _positive_finite("max_independent", max_independent)
-        self.grip_locality = _probability("grip_locality", grip_locality)
+        self.half_life_s = checks.positive_finite("half_life_s", half_life_s)
+        self.max_age_s = checks.positive_finite("max_age_s", max_age_s)
+        self.min_interval_width = checks.positive_finite("min_interval_width", min_interval_width)
+        self.outlier_rate = checks.probability("outlier_rate", outlier_rate)
+        self.proven_sigma = checks.positive_finite("proven_sigma", proven_sigma)
+        self.min_proven_mu = checks.positive_finite("min_proven_mu", min_proven_mu)
+        self.pass_gap_s = checks.positive_finite("pass_gap_s", pass_gap_s)
+        self.max_independent = checks.positive_finite("max_independent", max_independent)
+        self.grip_locality = checks.probability("grip_locality", grip_locality)
         self.cells_by_id_: dict[str, _Cell] = {}
-        self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
+        self.passes_ = Passes(self.pass_gap_s, _Pass, self._fold)  # the pass rule (passes.py)
+        self.open_passes_: dict[str, _Pass] = self.passes_.open  # vehicle_id -> its pass in progress
         self.newest_ms_: int | None = None  # newest timestamp_ms seen: the pruning clock when add() gets no now_ms
         self.last_prune_ms_: int = _NEVER
+
+    @property
+    def late_rows_(self) -> int:
+        """Rows dropped as too late for their pass (passes.py, rule 3)."""
+        return self.passes_.late_rows
 
     @property
     def bucket_ms(self) -> int:
         return max(1, int(self.max_age_s * 1000.0 / BUCKETS_PER_MAX_AGE))
 
     def cell_of(self, latitude_deg: float, longitude_deg: float) -> str:
-        return h3.latlng_to_cell(latitude_deg, longitude_deg, self.resolution)
+        """The cell of a position at the map's resolution (cells.py)."""
+        return cell_of(latitude_deg, longitude_deg, self.resolution)
 
     # ------------------------------------------------------------------------------------------------- evidence
 
@@ -261,39 +259,28 @@ class FrictionMap:
     def add(self, estimates: Iterable[dict], now_ms: int | None = None) -> set[str]:
         """Fold estimate rows into the map; the cells touched. `now_ms` (the service's clock) drives pruning; without
         it the newest timestamp seen does, which a terminal with its clock far ahead could push forward."""
-        gap_ms = self.pass_gap_s * 1000.0
         resolution = self.resolution
-        to_cell = h3.latlng_to_cell
-        rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
-        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
+        to_cell = cell_of
+        rows = in_pass_order(estimates)
         excited = [r for r in rows if r["excited"]]
         for r in excited:
-            _check_interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu"],
-                            r["mu_lower"], r["mu_upper"])
+            checks.interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu_lower"],
+                            r["mu_upper"], r["mu"])
         lls = (self.interval_log_likelihood([r["mu_lower"] for r in excited], [r["mu_upper"] for r in excited])
                if excited else None)
         k = 0
         touched: set[str] = set()
         cells = self.cells_by_id_
-        open_passes = self.open_passes_
+        place = self.passes_.row
         newest = self.newest_ms_ if self.newest_ms_ is not None else _NEVER
         for row in rows:
             vehicle = row["vehicle_id"]
             t = int(row["timestamp_ms"])
-            cell_id = to_cell(row["latitude_deg"], row["longitude_deg"], resolution)
-            current = open_passes.get(vehicle)
-            if current is None or current.cell != cell_id or t - current.last_ms > gap_ms or t < current.first_ms:
-                if current is not None and t >= current.last_ms:
-                    self._fold(current)
-                    del open_passes[vehicle]
-                    current = None
-                p = _Pass(vehicle, cell_id, t)
-                if current is None:
-                    open_passes[vehicle] = p
-                late = current is not None  # an older row of another visit: a pass of its own, folded at once
-            else:
-                p, late = current, False
-                p.last_ms = max(p.last_ms, t)
+            p = place(vehicle, to_cell(row["latitude_deg"], row["longitude_deg"], resolution), t)
+            if p is None:  # too late for its pass: dropped (passes.py)
+                k += row["excited"]  # its log-likelihood was computed with the others'
+                continue
+            cell_id = p.cell
             p.n += 1
             proven = row.get("mu_proven")
             if proven is not None and proven > p.proven:
@@ -311,13 +298,13 @@ class FrictionMap:
             cell.last_ms = max(cell.last_ms, t)
             newest = max(newest, t)
             touched.add(cell_id)
-            if late:
-                self._fold(p)
         if newest > _NEVER:
             self.newest_ms_ = newest
         clock = now_ms if now_ms is not None else self.newest_ms_
-        if clock is not None and clock - self.last_prune_ms_ >= self.bucket_ms:
-            self.prune(clock)
+        if clock is not None:
+            self.passes_.close_idle(clock)
+            if clock - self.last_prune_ms_ >= self.bucket_ms:
+                self.prune(clock)
         return touched
 
     def add_station(self, reports: Iterable[dict], now_ms: int | None = None) -> set[str]:
@@ -330,8 +317,8 @@ class FrictionMap:
             if h3.get_resolution(cell_id) != self.resolution:
                 raise ValueError(f"station {station!r}: cell {cell_id!r} is not at the map's resolution "
                                  f"{self.resolution}")
-            _check_interval(f"report of station {station!r} at {t}", report["mu"], report["mu_lower"],
-                            report["mu_upper"])
+            checks.interval(f"report of station {station!r} at {t}", report["mu_lower"], report["mu_upper"],
+                            report["mu"])
             cell = self.cells_by_id_.get(cell_id)
             if cell is None:
                 cell = self.cells_by_id_[cell_id] = _Cell(cell_id)
@@ -386,11 +373,11 @@ class FrictionMap:
 
     def prune(self, now_ms: int) -> int:
         """Fold the passes whose vehicle has been gone pass_gap_s, free the buckets, vehicles, station reports and
-        cells whose newest evidence is older than max_age_s; the cells removed."""
-        gap_ms = self.pass_gap_s * 1000.0
-        for vehicle in [v for v, p in self.open_passes_.items() if now_ms - p.last_ms > gap_ms]:
-            self._fold(self.open_passes_.pop(vehicle))
+        cells whose newest evidence is older than max_age_s, forget the last pass of vehicles gone for as long; the
+        cells removed."""
+        self.passes_.close_idle(now_ms)
         max_age_ms = self.max_age_s * 1000.0
+        self.passes_.forget(now_ms - max_age_ms)
         open_cells = {p.cell for p in self.open_passes_.values()}
         removed = []
         for cell_id, cell in self.cells_by_id_.items():
@@ -531,22 +518,12 @@ class FrictionMap:
                 p = _Pass(vehicle, cell_id, int(first_ms))
                 p.last_ms, p.ll, p.n, p.n_exc = int(last_ms), _unpack(ll), n, n_exc
                 p.last_exc_ms, p.proven = last_exc_ms, float(proven)
-                current = self.open_passes_.get(vehicle)
-                if current is not None and current.last_ms >= p.last_ms:
-                    self._fold(p)
-                    continue
-                if current is not None:
-                    self._fold(current)
-                self.open_passes_[vehicle] = p
+                self.passes_.resume(p)
             if self.newest_ms_ is None or cell.last_ms > self.newest_ms_:
                 self.newest_ms_ = cell.last_ms
 
-    def to_geojson(self, now_ms: int) -> dict:
-        """The cells at now_ms as a GeoJSON FeatureCollection (roadgrip.cloud.formats.exports.geojson)."""
-        return geojson(self.cells(now_ms))
-
     def clear(self) -> None:
         self.cells_by_id_.clear()
-        self.open_passes_.clear()
+        self.passes_.clear()
         self.newest_ms_ = None
         self.last_prune_ms_ = _NEVER

@@ -4,6 +4,9 @@ measure; the cloud turns each report into friction evidence for the H3 cells the
 estimates (the map, roadgrip/cloud/domain/friction_map.py) and as passes of its own in the warning engine
 (roadgrip/cloud/domain/warnings.py).
 
+This module owns the report format v1, a station's covered cells and a report's friction evidence (below); the cell
+of a position is roadgrip/cloud/domain/cells.py's.
+
 Report format v1 (one JSON object; HTTP may send a JSON array of up to MAX_REPORTS_PER_PAYLOAD of them). SI units,
 except the two a road weather station speaks in (degrees Celsius, millimetres), named in the field:
 
@@ -69,6 +72,7 @@ from typing import Literal
 import h3
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
+from roadgrip.cloud.domain.cells import cell_of
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 
 SURFACE_STATES = ("dry", "moist", "wet", "ice", "snow", "unknown")
@@ -187,7 +191,7 @@ def parse_reports(body: bytes, *, station_id: str, now_ms: int, max_future_ms: i
 def covered_cells(latitude_deg: float, longitude_deg: float, resolution: int,
                   radius_m: float = COVERAGE_RADIUS_M) -> list[str]:
     """The station's cell and every cell whose centre lies within radius_m of it, sorted."""
-    own = h3.latlng_to_cell(latitude_deg, longitude_deg, resolution)
+    own = cell_of(latitude_deg, longitude_deg, resolution)
     spacing_m = math.sqrt(3.0) * h3.average_hexagon_edge_length(resolution, "m")  # centre to centre
     k = max(1, math.ceil(radius_m / spacing_m) + 1)
     near = {c for c in h3.grid_disk(own, k)

@@ -1,6 +1,11 @@
 """Slippery-road warnings per H3 cell (DESIGN 3.6), in the shape of an ETSI DENM (cause code 6,
 adverseWeatherCondition-Adhesion).
 
+This module owns the warning rules 2-8 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
+as defaults) and the longest validity a DENM can carry (MAX_VALIDITY_S). Rule 1, what a pass is, is passes.py's,
+the friction map's too; the cell of a position is cells.py's; the argument checks are checks.py's. Writing an event
+as a DENM is roadgrip/cloud/formats/denm.py's.
+
 Pure and in memory: `update(estimates, now_ms)` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
 position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roadside stations' reports
@@ -9,10 +14,11 @@ position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roa
 Rules
 1. Passes. A pass is one vehicle's consecutive estimates in one cell. It ends when the vehicle is seen in another cell,
    when it comes back to the cell after more than pass_gap_s, or when now_ms is more than pass_gap_s past its last
-   estimate. A pass's time is its last estimate's timestamp. Rows are taken in (vehicle, timestamp) order within a call;
-   a row older than its vehicle's current pass from another cell, or older than the vehicle's last judged pass, arrives
-   too late to change a verdict and is dropped (counted in `late_rows_`). A late row of the current pass's cell joins
-   the pass.
+   estimate. A pass's time is its last estimate's timestamp. The rule, late rows included, is
+   roadgrip/cloud/domain/passes.py's, the friction map's too: rows are taken in (vehicle, timestamp) order within a
+   call; a row older than its vehicle's current pass from another cell, or no newer than the vehicle's last judged
+   pass, arrives too late to change a verdict and is dropped (counted in `late_rows_`); a late row of the current
+   pass's cell joins the pass. A vehicle's last judged pass is forgotten after validity_s.
 2. Verdict of a pass, from its excited estimates (a non-excited estimate's interval says nothing about mu) and from
    what its estimates prove: "low" with at least min_excited_per_pass excited ones and their median mu_upper <
    threshold_mu (even the optimistic bound is slippery); otherwise "dry" when the largest mu_proven of its estimates,
@@ -62,8 +68,9 @@ from typing import NamedTuple
 
 import h3
 
-from roadgrip.cloud.domain.friction_map import validate_resolution
-from roadgrip.cloud.formats.denm import MAX_VALIDITY_S, denm
+from roadgrip.cloud.domain import checks
+from roadgrip.cloud.domain.cells import cell_of, validate_resolution
+from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
@@ -75,6 +82,9 @@ MIN_DRY_PASSES = 1
 PASS_GAP_S = 30.0
 MIN_EXCITED_PER_PASS = 3
 VALIDITY_S = 600.0
+# The longest validity_s: a warning is published as a DENM (roadgrip/cloud/formats/denm.py), whose ValidityDuration
+# (EN 302 637-3) holds 0..86400 s; a warning valid for longer could not be said to a receiver as the engine holds it.
+MAX_VALIDITY_S = 86_400
 
 LOW, DRY, UNKNOWN = "low", "dry", "unknown"
 ACTIVE, CANCELLED = "active", "cancelled"
@@ -104,10 +114,6 @@ class WarningEvent:
     # refreshed it, the dry pass that cancelled it, or the instant it lapsed
     action_sequence_number: int  # DENM ActionID sequenceNumber, one per warning
     station_id: int = 1  # DENM originating station
-
-    def to_denm(self) -> dict:
-        """This event as a DENM (roadgrip.cloud.formats.exports.denm)."""
-        return denm(self)
 
 
 class _LowPass(NamedTuple):
@@ -185,11 +191,13 @@ def _time_of(p: _LowPass) -> int:
     return p.time_ms
 
 
-class _Pass:
-    __slots__ = ("cell", "first_ms", "last_ms", "lowers", "proven", "uppers", "vehicle_id")
+class _Pass(Pass):
+    """A pass (passes.py) as the engine judges it: its excited estimates' bounds and its largest proven bound."""
+
+    __slots__ = ("lowers", "proven", "uppers")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
-        self.vehicle_id, self.cell, self.first_ms, self.last_ms = vehicle_id, cell, t, t
+        super().__init__(vehicle_id, cell, t)
         self.uppers: list[float] = []
         self.lowers: list[float] = []
         self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
@@ -222,18 +230,6 @@ class _CellState:
         self.warning: _Warning | None = None
 
 
-def _count(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return value
-
-
-def _positive(name: str, value, upper: float = math.inf) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= upper:
-        raise ValueError(f"{name} must be a number in (0, {upper}], got {value!r}")
-    return float(value)
-
-
 class WarningEngine:
     """Slippery-road warnings from low-friction passes; see the module docstring for the rules."""
 
@@ -242,26 +238,30 @@ class WarningEngine:
                  pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
                  validity_s: float = VALIDITY_S, station_id: int = 1, action_sequence=None):
         self.resolution = validate_resolution(resolution)
-        self.threshold_mu = _positive("threshold_mu", threshold_mu)
-        self.min_low_passes = _count("min_low_passes", min_low_passes)
-        self.min_dry_passes = _count("min_dry_passes", min_dry_passes)
-        self.pass_gap_s = _positive("pass_gap_s", pass_gap_s)
-        self.min_excited_per_pass = _count("min_excited_per_pass", min_excited_per_pass)
-        self.validity_s = _positive("validity_s", validity_s, MAX_VALIDITY_S)  # a DENM cannot say more
-        if isinstance(station_id, bool) or not isinstance(station_id, int) or not 0 <= station_id <= 4294967295:
-            raise ValueError(f"station_id must be an integer StationID in 0..4294967295, got {station_id!r}")
-        self.station_id = station_id
+        self.threshold_mu = checks.positive_at_most("threshold_mu", threshold_mu)
+        self.min_low_passes = checks.count("min_low_passes", min_low_passes)
+        self.min_dry_passes = checks.count("min_dry_passes", min_dry_passes)
+        self.pass_gap_s = checks.positive_at_most("pass_gap_s", pass_gap_s)
+        self.min_excited_per_pass = checks.count("min_excited_per_pass", min_excited_per_pass)
+        self.validity_s = checks.positive_at_most("validity_s", validity_s, MAX_VALIDITY_S)  # a DENM cannot say more
+        self.station_id = checks.integer_in("station_id", station_id, 0, 4294967295, "an integer StationID")
         # where a new warning's ActionID sequence number comes from: a callable shared by the engines of one
         # originating station (cluster mode: one per region, numbered by the database), or None: this engine counts
         self.action_sequence = action_sequence
-        self.open_passes_: dict[str, _Pass] = {}  # vehicle_id -> its pass in progress
-        self.last_judged_ms_: dict[str, int] = {}  # vehicle_id -> time of its last judged pass
+        self._judged: list[_Pass] = []  # the passes closed and not yet applied
+        self.passes_ = Passes(self.pass_gap_s, _Pass, self._judged.append)  # the pass rule (passes.py)
+        self.open_passes_: dict[str, _Pass] = self.passes_.open  # vehicle_id -> its pass in progress
         self.cell_states_: dict[str, _CellState] = {}
         self.active_cells_: set[str] = set()
         self.next_action_sequence_number_ = 0
-        self.late_rows_ = 0
+        self.late_reports_ = 0  # station reports no newer than the station's last in the cell (rule 8)
         self.last_sweep_ms_ = _NEVER
         self.station_last_ms_: dict[tuple[str, str], int] = {}  # (station source, cell) -> its last report applied
+
+    @property
+    def late_rows_(self) -> int:
+        """Rows dropped as too late: estimates (rule 1) and station reports (rule 8)."""
+        return self.passes_.late_rows + self.late_reports_
 
     # ------------------------------------------------------------------------------------------------------ public
 
@@ -270,46 +270,26 @@ class WarningEngine:
         applied: passes by time, then the expiries at now_ms."""
         now_ms = int(now_ms)
         gap_ms = self.pass_gap_s * 1000.0
-        rows = [r for r in estimates if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
-        rows.sort(key=operator.itemgetter("vehicle_id", "timestamp_ms"))
-        closed: list[_Pass] = []
         resolution = self.resolution
-        to_cell = h3.latlng_to_cell
-        open_passes = self.open_passes_
-        for row in rows:
+        to_cell = cell_of
+        place = self.passes_.row
+        for row in in_pass_order(estimates):
             vehicle = row["vehicle_id"]
             t = int(row["timestamp_ms"])
-            cell = to_cell(row["latitude_deg"], row["longitude_deg"], resolution)
-            current = open_passes.get(vehicle)
-            if current is not None and current.cell == cell and t - current.last_ms <= gap_ms:
-                if t < current.first_ms and t <= self.last_judged_ms_.get(vehicle, _NEVER):
-                    self.late_rows_ += 1
-                    continue
-                current.first_ms = min(current.first_ms, t)
-                current.last_ms = max(current.last_ms, t)
-            elif current is not None and t < current.last_ms:
-                self.late_rows_ += 1  # late row of another cell: its pass there was judged already
+            current = place(vehicle, to_cell(row["latitude_deg"], row["longitude_deg"], resolution), t)
+            if current is None:  # too late to change a verdict (rule 1)
                 continue
-            else:
-                if t <= self.last_judged_ms_.get(vehicle, _NEVER):
-                    self.late_rows_ += 1
-                    continue
-                if current is not None:
-                    closed.append(self._close(current))
-                current = open_passes[vehicle] = _Pass(vehicle, cell, t)
             proven = row.get("mu_proven")
             if proven is not None and proven > current.proven:
                 current.proven = proven
             if row["excited"]:
                 lo, hi = row["mu_lower"], row["mu_upper"]
-                if not (math.isfinite(lo) and math.isfinite(hi)):
-                    raise ValueError(f"estimate of vehicle {vehicle!r} at {t}: mu_lower {lo!r} and mu_upper {hi!r} "
-                                     f"must be finite")
+                checks.finite_bounds(f"estimate of vehicle {vehicle!r} at {t}", lo, hi)
                 current.lowers.append(lo)
                 current.uppers.append(hi)
-        for vehicle, current in list(open_passes.items()):
-            if now_ms - current.last_ms > gap_ms:  # no estimate from it for pass_gap_s: the pass is over
-                closed.append(self._close(current))
+        self.passes_.close_idle(now_ms)  # no estimate from a vehicle for pass_gap_s: its pass is over
+        closed = self._judged[:]
+        self._judged.clear()
         closed.sort(key=lambda p: (p.last_ms, p.cell, p.vehicle_id))
         events: list[WarningEvent] = []
         for finished in closed:
@@ -327,11 +307,9 @@ class WarningEngine:
         for row in sorted(rows, key=operator.itemgetter("timestamp_ms", "cell", "station_id")):
             source, cell, t = f"station:{row['station_id']}", row["cell"], int(row["timestamp_ms"])
             lo, hi = row["mu_lower"], row["mu_upper"]
-            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-                raise ValueError(f"evidence of station {row['station_id']!r} at {t}: mu_lower {lo!r} and mu_upper "
-                                 f"{hi!r} must be finite with mu_lower <= mu_upper")
+            checks.interval(f"evidence of station {row['station_id']!r} at {t}", lo, hi)
             if t <= self.station_last_ms_.get((source, cell), _NEVER):
-                self.late_rows_ += 1
+                self.late_reports_ += 1
                 continue
             self.station_last_ms_[(source, cell)] = t
             report = _Pass(source, cell, t)
@@ -371,12 +349,6 @@ class WarningEngine:
                                                     (event.action_sequence_number + 1) % 65536)
 
     # ----------------------------------------------------------------------------------------------------- passes
-
-    def _close(self, finished: _Pass) -> _Pass:
-        del self.open_passes_[finished.vehicle_id]
-        judged = self.last_judged_ms_.get(finished.vehicle_id, _NEVER)
-        self.last_judged_ms_[finished.vehicle_id] = max(judged, finished.last_ms)
-        return finished
 
     def verdict(self, uppers: list[float], lowers: list[float], proven: float = 0.0) -> str:
         """The verdict of a pass from the mu_upper and mu_lower of its excited estimates and the largest mu_proven of
@@ -483,8 +455,7 @@ class WarningEngine:
             state.low_passes.drop_older(horizon)
             if not state.low_passes and state.last_dry_ms < horizon:
                 del self.cell_states_[cell]
-        for vehicle in [v for v, t in self.last_judged_ms_.items() if t < horizon and v not in self.open_passes_]:
-            del self.last_judged_ms_[vehicle]
+        self.passes_.forget(horizon)
         for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:
             del self.station_last_ms_[key]
         self.last_sweep_ms_ = now_ms

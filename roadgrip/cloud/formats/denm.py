@@ -34,12 +34,10 @@ from __future__ import annotations
 
 import bisect
 import math
-from typing import TYPE_CHECKING
 
 import h3
 
-if TYPE_CHECKING:
-    from roadgrip.cloud.domain.warnings import WarningEvent
+from roadgrip.cloud.domain.warnings import MAX_VALIDITY_S, WarningEvent
 
 ITS_EPOCH_UNIX_MS = 1_072_915_200_000  # 2004-01-01T00:00:00Z in Unix ms (UTC)
 # Unix time (s) from which each leap second since 2004 counts: 2006-01-01, 2009-01-01, 2012-07-01, 2015-07-01, 2017-01-01
@@ -53,7 +51,6 @@ STATION_TYPE_ROAD_SIDE_UNIT = 15
 LATITUDE_UNAVAILABLE = 900_000_001
 ALTITUDE_UNAVAILABLE = 800_001
 SEMI_AXIS_OUT_OF_RANGE = 4094  # SemiAxisLength: cm, 4094 outOfRange
-MAX_VALIDITY_S = 86_400  # ValidityDuration (0..86400)
 # RelevanceDistance: (upper bound in m, identifier); beyond the last: over10km
 RELEVANCE_DISTANCES = ((50.0, "lessThan50m"), (100.0, "lessThan100m"), (200.0, "lessThan200m"), (500.0, "lessThan500m"),
                        (1000.0, "lessThan1000m"), (5000.0, "lessThan5km"), (10000.0, "lessThan10km"))

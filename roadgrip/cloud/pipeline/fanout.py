@@ -29,6 +29,7 @@ import orjson
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import ACTIVE, EXPIRED, WarningEngine
+from roadgrip.cloud.formats.denm import denm
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.settings import Settings
@@ -52,13 +53,25 @@ def _change(event) -> str:
     return "expired" if event.reason == EXPIRED else "cancelled"
 
 
-def new_warning_engine(settings: Settings, action_sequence=None) -> WarningEngine:
-    """The warning engine of the settings, as serve builds it; `action_sequence` as WarningEngine takes it."""
-    return WarningEngine(
-        resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
-        min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
-        pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
-        validity_s=settings.warning_validity_s, station_id=settings.station_id, action_sequence=action_sequence)
+def new_friction_map(settings: Settings, **overrides) -> FrictionMap:
+    """The friction map of the settings (resolution, half-life, age limit, the warnings' pass gap: one pass rule for
+    both, roadgrip/cloud/domain/passes.py), as serve and the region owners build it; `overrides`: FrictionMap
+    arguments that replace the settings' (a study's). The one Settings-to-map mapping."""
+    return FrictionMap(**{"resolution": settings.h3_resolution, "half_life_s": settings.map_half_life_s,
+                          "max_age_s": settings.map_max_age_s, "pass_gap_s": settings.warning_pass_gap_s,
+                          **overrides})
+
+
+def new_warning_engine(settings: Settings, action_sequence=None, **overrides) -> WarningEngine:
+    """The warning engine of the settings, as serve and the region owners build it; `action_sequence` as WarningEngine
+    takes it; `overrides`: WarningEngine arguments that replace the settings' (the fleet benchmark's sweep). The one
+    Settings-to-engine mapping."""
+    return WarningEngine(**{
+        "resolution": settings.h3_resolution, "threshold_mu": settings.warning_threshold_mu,
+        "min_low_passes": settings.warning_min_low_passes, "min_dry_passes": settings.warning_min_dry_passes,
+        "pass_gap_s": settings.warning_pass_gap_s, "min_excited_per_pass": settings.warning_min_excited_per_pass,
+        "validity_s": settings.warning_validity_s, "station_id": settings.station_id,
+        "action_sequence": action_sequence, **overrides})
 
 
 class RegionSink(Protocol):
@@ -164,13 +177,15 @@ class RegionFanout:
         if self.settings.map_clock == "data" or not (self.warning_engine.open_passes_
                                                       or self.warning_engine.active_cells_):
             return
-        self._warnings_out(self.warning_engine.update([], self.now_ms()), "")
+        now_ms = self.now_ms()
+        self.friction_map.add([], now_ms)  # idle passes end in the map as in the engine (domain/passes.py)
+        self._warnings_out(self.warning_engine.update([], now_ms), "")
 
     def _warnings_out(self, events: list, source: str) -> None:
         """Warning changes stored (the DENM for readers, the event itself to restore the engine after a restart; one
         transaction), counted, logged (raised and ended at WARNING; a refresh, every low pass in a warned cell, at
         DEBUG) and their DENMs published."""
-        denms = [event.to_denm() for event in events]
+        denms = [denm(event) for event in events]
         self.store.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
                                   "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
                                   "message": {"denm": d, "event": dataclasses.asdict(e)}}
@@ -180,8 +195,8 @@ class RegionFanout:
             log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
                     "warning %s %s in cell %s (%s%s)", event.warning_id, event.status, event.cell, event.reason, source)
         if self.publish is not None:
-            for denm in denms:
-                self.publish(WARNINGS_TOPIC, orjson.dumps(denm))
+            for message in denms:
+                self.publish(WARNINGS_TOPIC, orjson.dumps(message))
 
 
 class Fanout:

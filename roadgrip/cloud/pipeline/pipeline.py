@@ -43,8 +43,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Protocol
 
-import h3
-
+from roadgrip.cloud.domain.cells import cell_of
 from roadgrip.cloud.metrics import ESTIMATOR_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.checkpoints import Checkpoints
 from roadgrip.cloud.settings import Settings
@@ -484,7 +483,7 @@ class Pipeline:
                 row = estimate.to_dict()
                 lat, lon = sample.get("latitude_deg"), sample.get("longitude_deg")
                 row["latitude_deg"], row["longitude_deg"] = lat, lon
-                row["h3_cell"] = None if lat is None or lon is None else h3.latlng_to_cell(lat, lon, resolution)
+                row["h3_cell"] = cell_of(lat, lon, resolution)
                 estimates.append(row)
             if stream.last_estimated_ms is not None and stream.last_estimated_ms >= stream.checkpoint_at_ms:
                 self.checkpoints.due(vehicle_id, stream)

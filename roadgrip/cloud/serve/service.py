@@ -27,11 +27,11 @@ from typing import Self
 from roadgrip.cloud.api.backend import StationIngest
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_reports, stored_rows
-from roadgrip.cloud.domain.warnings import WarningEngine, WarningEvent
+from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
 from roadgrip.cloud.metrics import ServiceCollector
-from roadgrip.cloud.pipeline.fanout import Fanout
+from roadgrip.cloud.pipeline.fanout import Fanout, new_friction_map, new_warning_engine
 from roadgrip.cloud.pipeline.pipeline import Pipeline
 from roadgrip.cloud.process import rss_mb, warm_up
 from roadgrip.cloud.serve.shards import IngestShards
@@ -62,13 +62,8 @@ class CloudService:
         self.mqtt: MqttClient | None = None
         self.mqtt_url: str | None = None
         self.admin_secret: str | None = None
-        self.friction_map = FrictionMap(settings.h3_resolution, settings.map_half_life_s, settings.map_max_age_s,
-                                        pass_gap_s=settings.warning_pass_gap_s)
-        self.warning_engine = WarningEngine(
-            resolution=settings.h3_resolution, threshold_mu=settings.warning_threshold_mu,
-            min_low_passes=settings.warning_min_low_passes, min_dry_passes=settings.warning_min_dry_passes,
-            pass_gap_s=settings.warning_pass_gap_s, min_excited_per_pass=settings.warning_min_excited_per_pass,
-            validity_s=settings.warning_validity_s, station_id=settings.station_id)
+        self.friction_map = new_friction_map(settings)
+        self.warning_engine = new_warning_engine(settings)
         self.mqtt_rejected = 0
         self.estimate_messages_dropped = 0
         self.http_payloads_rejected = 0  # telemetry requests refused whole: 400, 413, 415 (metrics)

@@ -29,6 +29,7 @@ from roadgrip.cloud.cluster.api_backend import ClusterBackend
 from roadgrip.cloud.cluster.map_cells import cell_rows, new_friction_map, region_of
 from roadgrip.cloud.cluster.publisher import PUBLISH_DEADLINE_S
 from roadgrip.cloud.domain.stations import covered_cells
+from roadgrip.cloud.formats.geojson import geojson
 from roadgrip.cloud.ingest.wire import parse_payload
 from roadgrip.cloud.localhost import free_ports
 from roadgrip.cloud.settings import Settings
@@ -280,7 +281,7 @@ def test_map_and_warnings_are_read_from_storage_by_every_replica(replicas, datab
         storage.put_region_output([warning], cell_rows(fmap, fmap.cells_by_id_, 5))
     finally:
         storage.close()
-    expected = {f["properties"]["cell"]: f["properties"]["mu"] for f in fmap.to_geojson(now)["features"]}
+    expected = {f["properties"]["cell"]: f["properties"]["mu"] for f in geojson(fmap.cells(now))["features"]}
     assert expected
     for replica in replicas:
         time.sleep(1.1)  # past the replica's map cache of a second

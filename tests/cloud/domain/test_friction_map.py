@@ -10,6 +10,7 @@ import pytest
 from scipy.stats import norm
 
 from roadgrip.cloud.domain.friction_map import MU_GRID, CellSummary, FrictionMap, posterior_quantiles
+from roadgrip.cloud.formats.geojson import geojson
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 HEBEI = (38.0, 114.5)  # latitude, longitude in degrees
@@ -292,7 +293,7 @@ def test_bad_excited_estimates_are_refused_with_their_values():
 def test_geojson_polygons_are_closed_rings_in_lon_lat_order():
     fmap = FrictionMap()
     fmap.add([est(), est(lat=38.01, lon=114.51, excited=False, vehicle="v2")])
-    collection = fmap.to_geojson(T0_MS)
+    collection = geojson(fmap.cells(T0_MS))
     assert collection["type"] == "FeatureCollection" and len(collection["features"]) == 2
     for feature in collection["features"]:
         ring = feature["geometry"]["coordinates"][0]

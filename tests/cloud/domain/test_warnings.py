@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from roadgrip.cloud.domain.warnings import MIN_LOW_PASSES, WarningEngine, WarningEvent, _Evidence, _LowPass
-from roadgrip.cloud.formats.denm import ITS_EPOCH_UNIX_MS, timestamp_its_ms
+from roadgrip.cloud.formats.denm import ITS_EPOCH_UNIX_MS, denm, timestamp_its_ms
 
 T0_MS = calendar.timegm((2026, 1, 15, 8, 0, 0)) * 1000
 LAT_DEG, LON0_DEG = 38.0, 114.5  # Hebei
@@ -134,9 +134,9 @@ def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
         assert event.action_sequence_number == by_id[event.warning_id].action_sequence_number
         assert event.sequence_number == 1
         assert T0_MS + 300_000 < event.evidence_ms < T0_MS + 370_000  # the dry pass
-        denm = event.to_denm()
-        assert denm["denm"]["management"]["termination"] == "isCancellation"
-        assert denm["denm"]["management"]["actionID"]["sequenceNumber"] == event.action_sequence_number
+        message = denm(event)
+        assert message["denm"]["management"]["termination"] == "isCancellation"
+        assert message["denm"]["management"]["actionID"]["sequenceNumber"] == event.action_sequence_number
 
 
 def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
@@ -187,7 +187,7 @@ def test_a_low_pass_refreshes_and_extends_the_warning():
         assert event.status == "active" and event.sequence_number == 1
         assert event.warning_id == first[event.cell].warning_id
         assert (event.n_passes, event.n_vehicles) == (3, 3)
-        assert event.to_denm()["denm"]["management"]["detectionTime"] == timestamp_its_ms(event.evidence_ms)
+        assert denm(event)["denm"]["management"]["detectionTime"] == timestamp_its_ms(event.evidence_ms)
     assert engine.update([], T0_MS + 800_000) == []  # the first evidence alone would have lapsed by now
     assert len(engine.update([], T0_MS + 1_200_000)) == len(PATCH)
 
@@ -243,7 +243,7 @@ def test_denm_of_a_raised_warning():
     engine = two_pass_engine(station_id=4242)
     events = stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
     event = events[0]
-    message = event.to_denm()
+    message = denm(event)
     management = message["denm"]["management"]
     assert message["header"] == {"protocolVersion": 2, "messageID": 1, "stationID": 4242}
     assert message["denm"]["situation"]["eventType"] == {"causeCode": 6, "subCauseCode": 0}

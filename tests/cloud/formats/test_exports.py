@@ -28,8 +28,10 @@ def est(lat, lon, mu, excited=True, t_ms=T0_MS, vehicle="v1"):
 def sample_map() -> FrictionMap:
     fmap = FrictionMap()
     fmap.add([est(38.0, 114.5, 0.25), est(38.0, 114.5, 0.35, vehicle="v2"),  # measured, mu 0.3
-              est(38.01, 114.51, 0.7),  # measured, mu 0.7
-              est(38.02, 114.52, 0.5, excited=False)])  # no recent excited evidence: not published
+              est(38.01, 114.51, 0.7, vehicle="v3"),  # measured, mu 0.7
+              est(38.02, 114.52, 0.5, excited=False, vehicle="v4")])  # no recent excited evidence: not published
+    # (one vehicle per place: of one vehicle seen in three cells at one instant, the third row would be too late,
+    # roadgrip/cloud/domain/passes.py)
     return fmap
 
 
@@ -86,8 +88,8 @@ def test_datex2_clips_friction_to_the_unit_interval():
 
 def test_geojson_has_one_home():
     fmap = sample_map()
-    assert fmap.to_geojson(T0_MS) == geojson(fmap.cells(T0_MS))
-    json.dumps(fmap.to_geojson(T0_MS))  # plain JSON
+    assert not hasattr(fmap, "to_geojson")  # the domain renders no format: formats/geojson.py does
+    json.dumps(geojson(fmap.cells(T0_MS)))  # plain JSON
 
 
 # ------------------------------------------------------------------------------------------------------ TimestampIts

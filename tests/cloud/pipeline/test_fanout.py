@@ -13,9 +13,10 @@ import time
 import h3
 import pytest
 
-from roadgrip.cloud.cluster.map_cells import new_friction_map, region_of, stored_friction_map
+from roadgrip.cloud.cluster.map_cells import stored_friction_map
 from roadgrip.cloud.cluster.regions import Regions, region_messages
-from roadgrip.cloud.pipeline.fanout import Fanout, VehicleFanout, new_warning_engine
+from roadgrip.cloud.domain.cells import region_of
+from roadgrip.cloud.pipeline.fanout import Fanout, VehicleFanout, new_friction_map, new_warning_engine
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
 
@@ -192,3 +193,18 @@ def test_a_region_without_traffic_ends_passes_on_the_servers_clock(tmp_path):
     regions.tick()
     assert last_cell in {w["cell"] for w in storage.warnings(active_only=True)}
     storage.close()
+
+
+def test_the_settings_make_the_map_and_the_engine_in_one_place_each():
+    settings = Settings(h3_resolution=9, map_half_life_s=300.0, map_max_age_s=1800.0, warning_threshold_mu=0.35,
+                        warning_min_low_passes=2, warning_min_dry_passes=3, warning_pass_gap_s=20.0,
+                        warning_min_excited_per_pass=4, warning_validity_s=900.0, station_id=7)
+    fmap = new_friction_map(settings)
+    assert (fmap.resolution, fmap.half_life_s, fmap.max_age_s, fmap.pass_gap_s) == (9, 300.0, 1800.0, 20.0)
+    engine = new_warning_engine(settings, action_sequence=len)
+    assert (engine.resolution, engine.threshold_mu, engine.min_low_passes, engine.min_dry_passes, engine.pass_gap_s,
+            engine.min_excited_per_pass, engine.validity_s, engine.station_id, engine.action_sequence) == \
+        (9, 0.35, 2, 3, 20.0, 4, 900.0, 7, len)
+    swept = new_warning_engine(settings, threshold_mu=0.5, min_low_passes=1)  # a study's overrides
+    assert (swept.threshold_mu, swept.min_low_passes, swept.validity_s, swept.action_sequence) == (0.5, 1, 900.0, None)
+    assert new_friction_map(settings, half_life_s=60.0).half_life_s == 60.0
