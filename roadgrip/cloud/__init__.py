@@ -1,15 +1,19 @@
-"""The cloud: telemetry in, estimates stored, a friction map and warnings out. One folder per role; the embedded
-default (`roadgrip serve`) and the cluster mode (`roadgrip worker`, `roadgrip api`, docs/CLUSTER.md) run the same
-code of each role and differ only in how messages arrive and who owns which vehicles.
+"""The cloud: telemetry in, estimates stored, a friction map and warnings out, laid out by layer (docs/ARCHITECTURE.md;
+tests/test_layers.py fails when an import breaks the layers).
 
-| folder | role | embedded default | cluster mode |
-| --- | --- | --- | --- |
-| edge/ | vehicles in: MQTT broker, payload parsing, credentials, rate limit, admission | Mosquitto started here (broker.py) | RabbitMQ nodes, keyed partition queues (rabbitmq.py) |
-| worker/ | per-vehicle pipeline: reorder, estimator, checkpoints, storage writes | in this process or shards over processes (shards.py) | `roadgrip worker`, one active consumer per partition (consumer.py) |
-| fanout/ | friction map, warnings, roadside stations, publishing | in this process | by region |
-| api/ | HTTP API, dashboard, exports | in serve | `roadgrip api` replicas |
-| storage/ | SQLite or PostgreSQL: telemetry, estimates, warnings, credentials, estimator states | SQLite | PostgreSQL |
+| folder | layer | holds |
+| --- | --- | --- |
+| domain/ | pure core | what a pass is, cells, the friction map, the warning engine, roadside stations |
+| formats/ | pure | GeoJSON, DATEX II v3, ETSI DENM from the domain's objects |
+| settings.py, metrics.py, process.py, localhost.py | infrastructure | typed settings, Prometheus, process set-up, ports |
+| storage/ | storage | one schema, Alembic migrations, a repository per table group, the Storage facade |
+| transport/ | transport | MQTT topics and client, the managed Mosquitto, RabbitMQ topology and connections |
+| pipeline/ | processing | per-vehicle estimation, estimator checkpoints, the fan-out to map, warnings and topics |
+| ingest/ | admission | the wire format parser, credentials, the rate limit, hand-off to the pipeline |
+| api/ | HTTP | a FastAPI router per resource over a backend interface, the dashboard |
+| serve/ | assembly | `roadgrip serve`: everything in one process, or vehicles sharded over ingest processes |
+| cluster/ | assembly | `roadgrip worker`, the region fan-out, the API replica's backend, `roadgrip cluster up` |
 
-Beside them: settings.py (one typed settings class for every role), service.py (the embedded default assembled),
-metrics.py (Prometheus), process.py, bench.py and latency.py (the service's benchmarks).
+The embedded default and the cluster run the same domain, pipeline, estimator and storage code; they differ only in how
+messages arrive and who owns which vehicles and regions.
 """
