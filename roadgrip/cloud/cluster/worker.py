@@ -65,6 +65,7 @@ import pika.exceptions
 
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.cluster.worker_metrics import serve_metrics
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
@@ -511,8 +512,6 @@ def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch
     """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
     STATS_S; with `metrics_port`, its Prometheus metrics at http://metrics_host:metrics_port/metrics
     (roadgrip/cloud/cluster/worker_metrics.py)."""
-    from roadgrip.cloud.cluster.worker_metrics import serve_metrics
-
     stop = stop or threading.Event()
     worker = Worker(brokers, settings, partitions, prefetch)
     worker.start()
