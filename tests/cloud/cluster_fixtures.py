@@ -1,5 +1,6 @@
 """Helpers of the cluster mode's tests (tests/cloud/cluster/test_worker.py, tests/cloud/cluster/test_regions.py,
-tests/cloud/cluster/test_api_backend.py): a RabbitMQ cluster for a module, `roadgrip worker` as a process of its own."""
+tests/cloud/cluster/test_api_backend.py): a RabbitMQ cluster for a module, a node of it killed for a test and started
+again after it (so that the module's tests may run in any order), `roadgrip worker` as a process of its own."""
 
 from __future__ import annotations
 
@@ -33,6 +34,19 @@ def running_rabbit_cluster(root: Path, vehicles: list[str], partitions: int, sec
         yield rabbit
     finally:
         rabbit.stop()
+
+
+@contextlib.contextmanager
+def node_killed(cluster: RabbitCluster, i: int) -> Iterator[None]:
+    """Node i killed (kill -9) for the block, started again after it, even when the block fails: the module's other
+    tests find the three nodes running."""
+    cluster.kill(i)
+    try:
+        yield
+    finally:
+        cluster.restart(i)
+        running = cluster.describe()["running_nodes"]
+        assert cluster.node_name(i) in running, f"node {i} not back in the cluster: running {running}"
 
 
 class WorkerProcess:

@@ -57,7 +57,6 @@ from collections.abc import Callable
 
 import orjson
 import pika
-import pika.exceptions
 
 from roadgrip.cloud.cluster.map_cells import cell_rows, restore_region
 from roadgrip.cloud.cluster.spread import Spread
@@ -74,6 +73,7 @@ from roadgrip.cloud.pipeline.fanout import (
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable
 from roadgrip.cloud.transport.amqp import ESTIMATES_EXCHANGE, MQTT_EXCHANGE, mqtt_routing_key, region_queue
+from roadgrip.cloud.transport.amqp_client import ConfirmedPublisher, check_brokers, consume
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +83,6 @@ SAVE_S = 1.0  # how often a region owner saves the changed cells and acknowledge
 CLEANUP_S = 60.0  # how often it deletes its regions' cells older than map_max_age_s from the database
 REGION_PREFETCH = 1000  # unacknowledged region messages per queue: more than SAVE_S of them must fit
 FLUSH_S = 0.05  # a region consumer's wait for deliveries between its checks of the save timer
-HEARTBEAT_S = 5
-RECONNECT_S = 0.2
 JSON = pika.BasicProperties(content_type="application/json", delivery_mode=2)
 
 
@@ -96,113 +94,25 @@ def check_region_resolution(settings: Settings) -> int:
     return settings.region_resolution
 
 
-def _parameters(url: str) -> pika.URLParameters:
-    parameters = pika.URLParameters(url)
-    parameters.heartbeat = HEARTBEAT_S
-    parameters.connection_attempts = 1
-    parameters.socket_timeout = 2
-    parameters.blocked_connection_timeout = 10
-    return parameters
-
-
-class RegionPublisher:
-    """Publishes to rg.estimates with publisher confirms through the brokers' AMQP URLs, moving to the next broker
-    after a failure; also publishes MQTT topics through amq.topic (unconfirmed). Calls from several threads are
-    serialised by one lock (pika's connection is not thread-safe); a worker uses it from its pipeline's thread only."""
+class RegionPublisher(ConfirmedPublisher):
+    """Region messages to rg.estimates with publisher confirms, and MQTT topics through amq.topic without, through the
+    brokers' AMQP URLs (roadgrip/cloud/transport/amqp_client.py `ConfirmedPublisher`: one connection at a time, the
+    next broker after a failure, one lock for all threads); a worker uses it from its pipeline's thread only."""
 
     def __init__(self, brokers: list[str]):
-        if not brokers:
-            raise ValueError("brokers must name at least one AMQP URL, got none")
-        self.brokers = brokers
-        self.published = 0  # region messages confirmed
-        self.failures = 0  # publishes that failed and were tried again
-        self._index = 0
-        self._connection: pika.BlockingConnection | None = None
-        self._confirmed = None  # channel in confirm mode, for rg.estimates
-        self._plain = None  # channel for MQTT topics
-        self._lock = threading.Lock()
-        self._closing = threading.Event()
+        super().__init__(brokers, what="region publisher")
 
-    def _connect(self) -> None:
-        url = self.brokers[self._index % len(self.brokers)]
-        self._connection = pika.BlockingConnection(_parameters(url))
-        self._confirmed = self._connection.channel()
-        self._confirmed.confirm_delivery()
-        self._plain = self._connection.channel()
-
-    def _drop(self) -> None:
-        connection, self._connection, self._confirmed, self._plain = self._connection, None, None, None
-        if connection is not None and connection.is_open:
-            try:
-                connection.close()
-            except (pika.exceptions.AMQPError, OSError):
-                log.debug("closing a failed publisher connection failed", exc_info=True)
-
-    def publish(self, region: str, body: bytes, deadline_s: float | None = None) -> None:
-        """Publish one message to rg.estimates keyed by `region` and wait for its confirm; on a failure (a nack, a
-        lost connection, no broker reachable) publish it again through the next broker, until confirmed (a worker's
-        pipeline waits so: its deliveries stay unacknowledged meanwhile), or, with `deadline_s`, until that many
-        seconds after the call (TimeoutError: an HTTP request cannot wait for ever). The deadline counts the wait
-        for another thread's publish and is checked between tries, as the API's telemetry publisher does: a try
-        under way is not cut short (a connection attempt ends after socket_timeout, 2 s; a silent broker is given
-        up by the heartbeat, 5 s; a broker that stays connected without confirming holds the try until it
-        confirms). RuntimeError once `close` was called and it is still not confirmed."""
-        started = time.monotonic()
-        if not self._lock.acquire(timeout=-1 if deadline_s is None else max(0.0, deadline_s)):
-            raise TimeoutError(f"region message for {region} not published within {deadline_s:.1f} s: the publisher "
-                               "was busy with another message all that time")
-        try:
-            while True:
-                try:
-                    if self._connection is None:
-                        self._connect()
-                    self._confirmed.basic_publish(ESTIMATES_EXCHANGE, region, body, JSON)
-                    self.published += 1
-                    return
-                except (pika.exceptions.AMQPError, OSError) as exc:
-                    self.failures += 1
-                    log.warning("region message for %s not confirmed through broker %d (%r); again through the next",
-                                region, self._index % len(self.brokers), exc)
-                    self._drop()
-                    self._index += 1
-                    if self._closing.is_set():
-                        raise RuntimeError(f"region message for {region} not confirmed before the close") from exc
-                    if deadline_s is not None and time.monotonic() - started + RECONNECT_S > deadline_s:
-                        raise TimeoutError(f"region message for {region} not confirmed within "
-                                           f"{deadline_s:.1f} s") from exc
-                    time.sleep(RECONNECT_S)
-        finally:
-            self._lock.release()
+    def publish_region(self, region: str, body: bytes, deadline_s: float | None = None) -> None:
+        """Publish one message to rg.estimates keyed by `region` and wait for its confirm, through the next broker
+        after a failure, until confirmed, or with `deadline_s` until then (TimeoutError; `ConfirmedPublisher.publish`
+        says how the deadline is counted). RuntimeError once `close` was called and it is still not confirmed."""
+        self.publish(ESTIMATES_EXCHANGE, region, [body], JSON, deadline_s=deadline_s,
+                     what=f"region message for {region}")
 
     def publish_mqtt(self, topic: str, payload: bytes) -> None:
         """Publish on an MQTT topic through amq.topic, without a confirm: at most once (a vehicle's estimates, as
         serve drops them when its broker is behind; they are stored)."""
-        with self._lock:
-            try:
-                if self._connection is None:
-                    self._connect()
-                self._plain.basic_publish(MQTT_EXCHANGE, mqtt_routing_key(topic), payload)
-            except (pika.exceptions.AMQPError, OSError) as exc:
-                log.warning("publishing on %s failed (%r): dropped", topic, exc)
-                self._drop()
-                self._index += 1
-
-    def idle(self) -> None:
-        """Let the connection answer the broker's heartbeats (called between rounds)."""
-        with self._lock:
-            if self._connection is None:
-                return
-            try:
-                self._connection.process_data_events(time_limit=0)
-            except (pika.exceptions.AMQPError, OSError) as exc:
-                log.warning("publisher connection lost while idle (%r)", exc)
-                self._drop()
-                self._index += 1
-
-    def close(self) -> None:
-        self._closing.set()
-        with self._lock:
-            self._drop()
+        self.publish_unconfirmed(MQTT_EXCHANGE, mqtt_routing_key(topic), payload)
 
 
 def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], region_resolution: int,
@@ -210,7 +120,7 @@ def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], regio
     """Hand the evidence of stored roadside station reports (roadgrip/cloud/domain/stations.py `evidence_rows`:
     station_id, cell, timestamp_ms, mu, mu_lower, mu_upper; one row per covered cell) to the owners of their cells'
     regions: one confirmed message per region, all of them within `deadline_s` of the call (TimeoutError, as
-    RegionPublisher.publish; the regions published before stay published). Returns the messages published. The
+    RegionPublisher.publish_region; the regions published before stay published). Returns the messages published. The
     stations route of `roadgrip api` calls it after `Storage.put_station_reports`."""
     started = time.monotonic()
     by_region: dict[str, list[dict]] = {}
@@ -218,7 +128,7 @@ def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], regio
         by_region.setdefault(region_of(row["cell"], region_resolution), []).append(row)
     for region, group in sorted(by_region.items()):
         left_s = None if deadline_s is None else deadline_s - (time.monotonic() - started)
-        publisher.publish(region, orjson.dumps({"stations": group}), left_s)
+        publisher.publish_region(region, orjson.dumps({"stations": group}), left_s)
     return len(by_region)
 
 
@@ -278,7 +188,7 @@ class WorkerFanout:
         messages = region_messages([row for row in rows if self.owns(row["vehicle_id"])], newest_data_ms,
                                    self.region_resolution)
         for region, message in messages.items():
-            self.publisher.publish(region, orjson.dumps(message))
+            self.publisher.publish_region(region, orjson.dumps(message))
         self.region_messages += len(messages)
 
     def tick(self, final: bool = False) -> None:
@@ -395,13 +305,21 @@ class Regions:
 
 
 class _QueueState:
-    """A region queue as one consumer channel holds it: its regions once taken (first delivery), the last delivery
-    applied and the last acknowledged."""
+    """A region queue as one consumer connection holds it (an attempt of roadgrip/cloud/transport/amqp_client.py
+    `consume`): its regions once taken (first delivery), the last delivery applied and the last acknowledged."""
 
-    def __init__(self):
+    def __init__(self, owners: RegionOwners, q: int):
+        self.owners = owners
+        self.q = q
         self.regions: Regions | None = None
         self.applied = 0
         self.acknowledged = 0
+
+    def run(self, connection: pika.BlockingConnection) -> None:
+        self.owners._serve(self.q, self, connection)
+
+    def ended(self, exc: BaseException | None, broker: int) -> None:
+        self.owners._ended(self.q, self, exc, broker)
 
 
 class RegionOwners:
@@ -409,10 +327,8 @@ class RegionOwners:
 
     def __init__(self, brokers: list[str], settings: Settings, storage: Storage, owner: str,
                  live_workers: Callable[[], int | None] | None = None):
-        if not brokers:
-            raise ValueError("brokers must name at least one AMQP URL, got none")
+        self.brokers = check_brokers(brokers)
         check_region_resolution(settings)
-        self.brokers = brokers
         self.settings = settings
         self.storage = storage
         self.owner = owner
@@ -487,53 +403,47 @@ class RegionOwners:
             self._release[q].set()
 
     def _consume(self, q: int) -> None:
-        index = q
-        while not self._closing.is_set():
-            try:
-                connection = pika.BlockingConnection(_parameters(self.brokers[index % len(self.brokers)]))
-            except pika.exceptions.AMQPError as exc:
-                log.warning("region queue %d: broker %d unreachable: %r", q, index % len(self.brokers), exc)
-                index += 1
-                time.sleep(RECONNECT_S)
-                continue
-            state = _QueueState()
-            try:
-                channel = connection.channel()
-                channel.basic_qos(prefetch_count=REGION_PREFETCH)
-                tag = channel.basic_consume(region_queue(q), functools.partial(self._on_message, q, state))
-                self._registered[q].set()
-                next_save = time.monotonic() + SAVE_S
-                while not self._closing.is_set() and not self._release[q].is_set():
-                    connection.process_data_events(time_limit=FLUSH_S)
-                    if time.monotonic() >= next_save:
-                        self._save(q, state, channel)
-                        next_save = time.monotonic() + SAVE_S
-                channel.basic_cancel(tag)  # no more deliveries, then what was applied is saved and acknowledged
+        """A region queue's consumer, through broker q mod the brokers first (roadgrip/cloud/transport/amqp_client.py
+        `consume`), until the stop."""
+        consume(self.brokers, q, self._closing, functools.partial(_QueueState, self, q), f"region queue {q}",
+                (StorageUnavailable, Fenced))
+
+    def _serve(self, q: int, state: _QueueState, connection: pika.BlockingConnection) -> None:
+        """Register on the queue; apply what is delivered, save and acknowledge every SAVE_S, until the stop or a
+        release; then cancel, save and acknowledge (the caller closes the connection: the next waiting consumer
+        becomes active; a released queue registers again)."""
+        channel = connection.channel()
+        channel.basic_qos(prefetch_count=REGION_PREFETCH)
+        tag = channel.basic_consume(region_queue(q), functools.partial(self._on_message, q, state))
+        self._registered[q].set()
+        next_save = time.monotonic() + SAVE_S
+        while not self._closing.is_set() and not self._release[q].is_set():
+            connection.process_data_events(time_limit=FLUSH_S)
+            if time.monotonic() >= next_save:
                 self._save(q, state, channel)
-                connection.close()  # the next waiting consumer becomes active; a released queue registers again
+                next_save = time.monotonic() + SAVE_S
+        channel.basic_cancel(tag)  # no more deliveries, then what was applied is saved and acknowledged
+        self._save(q, state, channel)
+
+    def _ended(self, q: int, state: _QueueState, exc: BaseException | None, broker: int) -> None:
+        """The queue's connection closed: released, or given up (what it held goes back to the queue); either way
+        this worker forgets the queue's regions."""
+        regions = 0 if state.regions is None else len(state.regions.held)
+        try:
+            if exc is None:
                 if self._release[q].is_set():
-                    log.info("region queue %d released: its %d regions saved and acknowledged", q,
-                             0 if state.regions is None else len(state.regions.held))
+                    log.info("region queue %d released: its %d regions saved and acknowledged", q, regions)
                     self._release[q].clear()
-            except (pika.exceptions.AMQPError, OSError, StorageUnavailable, Fenced) as exc:
-                if connection.is_open:  # given up: what it holds goes back to the queue
-                    try:
-                        connection.close()
-                    except (pika.exceptions.AMQPError, OSError):
-                        log.debug("region queue %d: closing the given-up connection failed", q, exc_info=True)
-                if self._closing.is_set():
-                    return
+            elif not self._closing.is_set():
                 self.lost += 1
                 log.warning("region queue %d: given up through broker %d (%r); forgetting its %d regions", q,
-                            index % len(self.brokers), exc, 0 if state.regions is None else len(state.regions.held))
-                index += 1
-                time.sleep(RECONNECT_S)
-            finally:
-                with self._held_lock:
-                    if self.held[q] is not None:
-                        for change, n in self.held[q].warning_changes().items():
-                            self._warning_changes_before[change] += n
-                    self.held[q] = None
+                            broker, exc, regions)
+        finally:
+            with self._held_lock:
+                if self.held[q] is not None:
+                    for change, n in self.held[q].warning_changes().items():
+                        self._warning_changes_before[change] += n
+                self.held[q] = None
 
     def _on_message(self, q: int, state: _QueueState, channel, method, properties, body: bytes) -> None:
         if state.regions is None:  # the channel's first delivery: this consumer is the queue's active one

@@ -65,6 +65,7 @@ import pika.exceptions
 
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.cluster.worker_metrics import serve_metrics
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
@@ -72,6 +73,7 @@ from roadgrip.cloud.process import warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
 from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
+from roadgrip.cloud.transport.amqp_client import BrokersUnreachable, check_brokers, connect, consume
 from roadgrip.cloud.transport.mqtt import errors_topic, vehicle_of_topic
 from roadgrip.estimators.learned import load_estimator
 
@@ -81,8 +83,6 @@ log = logging.getLogger(__name__)
 # partitions are 16,000 samples, under the pipeline's MAX_MQTT_BACKLOG (20,000), so admission never waits on it.
 DEFAULT_PREFETCH = 100
 FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowledges what was stored
-HEARTBEAT_S = 5  # AMQP heartbeat: a silent broker (a node frozen, not killed) is given up after about 2x this
-RECONNECT_S = 0.2  # wait before connecting again after a failure (to the next node)
 STATS_S = 10.0  # how often the worker logs its counters
 WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
 WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
@@ -129,6 +129,40 @@ class _Acks:
         if upto > self.acknowledged:
             channel.basic_ack(upto, multiple=True)
             self.acknowledged = upto
+
+
+class _PartitionHold:
+    """A partition queue as one consumer connection holds it (an attempt of roadgrip/cloud/transport/amqp_client.py
+    `consume`): its acknowledgements and the vehicles delivered through it; `Worker._serve` and `Worker._ended` do
+    the work."""
+
+    def __init__(self, worker: Worker, partition: int):
+        self.worker = worker
+        self.partition = partition
+        self.acks = _Acks()
+        self.vehicles: set[str] = set()
+
+    def run(self, connection: pika.BlockingConnection) -> None:
+        self.worker._serve(self, connection)
+
+    def ended(self, exc: BaseException | None, broker: int) -> None:
+        self.worker._ended(self, exc, broker)
+
+
+class _Watcher:
+    """The worker's connection that counts the live workers and reads the queues' depth (an attempt of `consume`);
+    `Worker._watch_through` does the work."""
+
+    def __init__(self, worker: Worker):
+        self.worker = worker
+
+    def run(self, connection: pika.BlockingConnection) -> None:
+        self.worker._watch_through(connection)
+
+    def ended(self, exc: BaseException | None, broker: int) -> None:
+        if exc is not None:
+            self.worker.live_workers = None
+            log.warning("watcher: connection through broker %d lost: %r", broker, exc)
 
 
 class _Timed:
@@ -203,8 +237,7 @@ class Worker:
     """Consumes `partitions` partition queues through the brokers' AMQP URLs (module docstring)."""
 
     def __init__(self, brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH):
-        if not brokers:
-            raise ValueError("brokers must name at least one AMQP URL, got none")
+        check_brokers(brokers)
         if not isinstance(partitions, int) or partitions < 1:
             raise ValueError(f"partitions must be a positive integer, got {partitions!r}")
         if not isinstance(prefetch, int) or prefetch < 1:
@@ -237,14 +270,6 @@ class Worker:
         self._release = [threading.Event() for _ in range(partitions)]  # set by _watch, done by the consumer
         self._threads: list[threading.Thread] = []
         self._channel = threading.local()  # the consumer thread's channel, for rejections
-
-    def _parameters(self, index: int) -> pika.URLParameters:
-        parameters = pika.URLParameters(self.brokers[index % len(self.brokers)])
-        parameters.heartbeat = HEARTBEAT_S
-        parameters.connection_attempts = 1
-        parameters.socket_timeout = 2
-        parameters.blocked_connection_timeout = 10
-        return parameters
 
     def start(self, ready_timeout_s: float = 60.0) -> None:
         """Open the database and the pipeline, declare the topology, register a consumer on every partition; returns
@@ -279,18 +304,15 @@ class Worker:
                  len(self.brokers), s.estimator, self.storage)
 
     def _declare(self) -> None:
-        for index in range(len(self.brokers)):
-            try:
-                connection = pika.BlockingConnection(self._parameters(index))
-            except pika.exceptions.AMQPError as exc:
-                log.warning("broker %d unreachable for declaring the topology: %r", index, exc)
-                continue
-            try:
-                declare_topology(connection.channel(), self.partitions, self.settings.region_queues)
-            finally:
-                connection.close()
-            return
-        raise ConnectionError(f"no broker of {len(self.brokers)} reachable to declare the topology")
+        """Declare the topology through the first broker of the list that answers."""
+        try:
+            connection, _ = connect(self.brokers)
+        except BrokersUnreachable as exc:
+            raise ConnectionError(f"declaring the topology: {exc}") from exc
+        try:
+            declare_topology(connection.channel(), self.partitions, self.settings.region_queues)
+        finally:
+            connection.close()
 
     def stop(self) -> None:
         """Stop taking deliveries, store what was taken and every vehicle's estimator state, acknowledge it, close."""
@@ -348,57 +370,55 @@ class Worker:
 
     # ------------------------------------------------------------------------------------------------- consumers
     def _consume(self, partition: int) -> None:
-        """A partition's consumer: connect, register, hand deliveries over and acknowledge until the stop; after a
+        """A partition's consumer, through broker `partition` mod the brokers first (roadgrip/cloud/transport/
+        amqp_client.py `consume`): connect, register, hand deliveries over and acknowledge until the stop; after a
         failure forget the partition's vehicles and register again through the next broker."""
-        index = partition
-        while not self._closing.is_set():
-            vehicles: set[str] = set()
-            try:
-                connection = pika.BlockingConnection(self._parameters(index))
-            except pika.exceptions.AMQPError as exc:
-                log.warning("partition %d: broker %d unreachable: %r", partition, index % len(self.brokers), exc)
-                index += 1
-                time.sleep(RECONNECT_S)
-                continue
-            acks = _Acks()
-            try:
-                channel = connection.channel()
-                channel.basic_qos(prefetch_count=self.prefetch)
-                self._release[partition].clear()
-                self._acks[partition] = acks
-                self._channel.channel = channel
-                channel.basic_consume(partition_queue(partition), functools.partial(
-                    self._on_message, partition, acks, vehicles))
-                self.connected[partition] = True
-                self._registered[partition].set()
-                while not self._closing.is_set():
-                    connection.process_data_events(time_limit=FLUSH_S)
-                    if acks.fenced:
-                        raise _PartitionLost("taken by another worker")
-                    acks.flush(channel)
-                    if self._release[partition].is_set():
-                        self._hand_over(partition, connection, channel, acks, vehicles)
-                        break
+        consume(self.brokers, partition, self._closing, functools.partial(_PartitionHold, self, partition),
+                f"partition {partition}", (StorageUnavailable, _PartitionLost))
+
+    def _serve(self, hold: _PartitionHold, connection: pika.BlockingConnection) -> None:
+        """Register on the partition queue and serve it until the stop or a release (then the caller closes the
+        connection: a consumer that released the partition registers again, at the end of the list)."""
+        partition, acks = hold.partition, hold.acks
+        try:
+            channel = connection.channel()
+            channel.basic_qos(prefetch_count=self.prefetch)
+            self._release[partition].clear()
+            self._acks[partition] = acks
+            self._channel.channel = channel
+            channel.basic_consume(partition_queue(partition), functools.partial(
+                self._on_message, partition, acks, hold.vehicles))
+            self.connected[partition] = True
+            self._registered[partition].set()
+            while not self._closing.is_set():
+                connection.process_data_events(time_limit=FLUSH_S)
+                if acks.fenced:
+                    raise _PartitionLost("taken by another worker")
                 acks.flush(channel)
-                connection.close()  # a consumer that released the partition registers again, at the end of the list
-            except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost) as exc:
-                acks.fence()  # nothing it took may be stored or acknowledged any more
-                if connection.is_open:  # given up: what it holds goes back to the queue
-                    try:
-                        connection.close()
-                    except (pika.exceptions.AMQPError, OSError):
-                        log.debug("partition %d: closing the given-up connection failed", partition, exc_info=True)
-                if self._closing.is_set():
-                    return
-                self.lost += 1
-                log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
-                            partition, index % len(self.brokers), exc, len(vehicles))
-                for vehicle_id in vehicles:  # another worker may own them meanwhile: restore them if they come back
-                    self.ingest.forget_vehicle(vehicle_id, drop_queued=True)
-                index += 1
-                time.sleep(RECONNECT_S)
-            finally:
-                self.connected[partition] = False
+                if self._release[partition].is_set():
+                    self._hand_over(partition, connection, channel, acks, hold.vehicles)
+                    break
+            acks.flush(channel)
+        except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost):
+            acks.fence()  # given up: nothing it took may be stored or acknowledged any more (before the close)
+            raise
+
+    def _ended(self, hold: _PartitionHold, exc: BaseException | None, broker: int) -> None:
+        """The partition's connection closed: released or stopped (exc None), or given up: what it holds goes back
+        to the queue, and its vehicles are forgotten."""
+        try:
+            if exc is None:
+                return
+            hold.acks.fence()  # (done already, unless the close itself failed)
+            if self._closing.is_set():
+                return
+            self.lost += 1
+            log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
+                        hold.partition, broker, exc, len(hold.vehicles))
+            for vehicle_id in hold.vehicles:  # another worker may own them meanwhile: restore them if they come back
+                self.ingest.forget_vehicle(vehicle_id, drop_queued=True)
+        finally:
+            self.connected[hold.partition] = False
 
     def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
                     body: bytes) -> None:
@@ -450,37 +470,18 @@ class Worker:
         """Hold a consumer on WORKERS_QUEUE (this worker counts as live while it has it); every WATCH_S read the live
         workers and the partition queues' depth, and release a partition when this worker holds more than its share
         (`_balance`). After a failure, the same through the next broker."""
-        index = 0
+        consume(self.brokers, 0, self._closing, functools.partial(_Watcher, self), "watcher")
+
+    def _watch_through(self, connection: pika.BlockingConnection) -> None:
+        channel = connection.channel()
+        channel.queue_declare(WORKERS_QUEUE, durable=True, arguments={"x-queue-type": "quorum"})
+        channel.basic_consume(WORKERS_QUEUE, lambda *_: None, auto_ack=True)  # nothing is published there
         while not self._closing.is_set():
-            try:
-                connection = pika.BlockingConnection(self._parameters(index))
-            except pika.exceptions.AMQPError as exc:
-                log.warning("watcher: broker %d unreachable: %r", index % len(self.brokers), exc)
-                index += 1
-                time.sleep(RECONNECT_S)
-                continue
-            try:
-                channel = connection.channel()
-                channel.queue_declare(WORKERS_QUEUE, durable=True, arguments={"x-queue-type": "quorum"})
-                channel.basic_consume(WORKERS_QUEUE, lambda *_: None, auto_ack=True)  # nothing is published there
-                while not self._closing.is_set():
-                    self.live_workers = channel.queue_declare(WORKERS_QUEUE, passive=True).method.consumer_count
-                    for p in range(self.partitions):
-                        self.messages_ready[p] = channel.queue_declare(partition_queue(p),
-                                                                       passive=True).method.message_count
-                    self._balance(time.monotonic())
-                    connection.process_data_events(time_limit=WATCH_S)
-                connection.close()
-            except (pika.exceptions.AMQPError, OSError) as exc:
-                self.live_workers = None
-                log.warning("watcher: connection through broker %d lost: %r", index % len(self.brokers), exc)
-                if connection.is_open:
-                    try:
-                        connection.close()
-                    except (pika.exceptions.AMQPError, OSError):
-                        log.debug("watcher: closing the failed connection failed", exc_info=True)
-                index += 1
-                time.sleep(RECONNECT_S)
+            self.live_workers = channel.queue_declare(WORKERS_QUEUE, passive=True).method.consumer_count
+            for p in range(self.partitions):
+                self.messages_ready[p] = channel.queue_declare(partition_queue(p), passive=True).method.message_count
+            self._balance(time.monotonic())
+            connection.process_data_events(time_limit=WATCH_S)
 
     def _balance(self, now: float) -> None:
         """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/worker/
@@ -511,8 +512,6 @@ def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch
     """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
     STATS_S; with `metrics_port`, its Prometheus metrics at http://metrics_host:metrics_port/metrics
     (roadgrip/cloud/cluster/worker_metrics.py)."""
-    from roadgrip.cloud.cluster.worker_metrics import serve_metrics
-
     stop = stop or threading.Event()
     worker = Worker(brokers, settings, partitions, prefetch)
     worker.start()

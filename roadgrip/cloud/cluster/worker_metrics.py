@@ -8,24 +8,50 @@ publishes tried again and the longest crash window.
 
 Read at each scrape from the running Worker (plain counters it keeps anyway; the queues' depth and the live workers
 as its watcher last read them, at most WATCH_S old), on a registry of its own, served by prometheus_client's own
-HTTP server in a thread.
+HTTP server in a thread. The worker is read through `WorkerView` (what this module needs of
+roadgrip/cloud/cluster/worker.py `Worker`), so that the worker's module, which serves these metrics, is not imported
+back here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Protocol
 from wsgiref.simple_server import WSGIServer
 
 from prometheus_client import start_http_server
 from prometheus_client.core import Metric
 from prometheus_client.registry import Collector
 
-from roadgrip.cloud.cluster.worker import Worker
-from roadgrip.cloud.metrics import counter, estimate_latency, gauge, pipeline_metrics, registry_with
+from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
+from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.ingest.admission import Ingest
+from roadgrip.cloud.metrics import BatchHistogram, counter, estimate_latency, gauge, pipeline_metrics, registry_with
+
+
+class WorkerView(Protocol):
+    """What the metrics read of a running worker (roadgrip/cloud/cluster/worker.py `Worker`)."""
+
+    ingest: Ingest | None  # each None until the worker started
+    fanout: WorkerFanout | None
+    regions: RegionOwners | None
+    latency_histogram: BatchHistogram
+    partitions: int
+    messages_ready: list[int | None]
+    live_workers: int | None
+    spread: Spread
+    fenced: int
+    lost: int
+
+    def held_partitions(self) -> list[int]:
+        """The partitions it is the active consumer of."""
+
+    def unacknowledged(self, partition: int) -> int:
+        """Messages of the partition delivered to it and not yet acknowledged."""
 
 
 class WorkerCollector(Collector):
-    def __init__(self, worker: Worker):
+    def __init__(self, worker: WorkerView):
         self.worker = worker
 
     def collect(self) -> Iterator[Metric]:
@@ -56,7 +82,7 @@ class WorkerCollector(Collector):
         yield from region_metrics(worker)
 
 
-def region_metrics(worker: Worker) -> Iterator[Metric]:
+def region_metrics(worker: WorkerView) -> Iterator[Metric]:
     """The region fan-out's families: the worker's side (`WorkerFanout.stats`) and the region owner's
     (`RegionOwners.stats`), once started."""
     if worker.fanout is not None:
@@ -90,7 +116,7 @@ def region_metrics(worker: Worker) -> Iterator[Metric]:
                       "node, the network, a fenced write)", [([], regions["region_connections_lost"])])
 
 
-def serve_metrics(worker: Worker, port: int, host: str) -> WSGIServer:
+def serve_metrics(worker: WorkerView, port: int, host: str) -> WSGIServer:
     """Serve `worker`'s metrics at http://host:port/metrics (any path) from a thread; `shutdown()` stops it."""
     server, _thread = start_http_server(port, host, registry_with(WorkerCollector(worker)))
     return server

@@ -155,10 +155,9 @@ class RabbitCluster:
             f"management.tcp.port = {self.management_ports[i]}",
             "log.file.level = warning",
         ]) + "\n")
-        log = open(base / "stdout.log", "ab")
-        self.procs[i] = subprocess.Popen([str(self.bin_dir / "rabbitmq-server")], env=self.env(i), stdout=log,
-                                         stderr=subprocess.STDOUT, start_new_session=True)
-        log.close()
+        with open(base / "stdout.log", "ab") as log:
+            self.procs[i] = subprocess.Popen([str(self.bin_dir / "rabbitmq-server")], env=self.env(i), stdout=log,
+                                             stderr=subprocess.STDOUT, start_new_session=True)
 
     def start(self) -> None:
         self.home.mkdir(exist_ok=True)
@@ -231,6 +230,16 @@ class RabbitCluster:
     def kill(self, i: int) -> None:
         os.kill(self.pid(i), signal.SIGKILL)
         self.procs[i].wait()
+
+    def restart(self, i: int) -> None:
+        """Start node i again after `kill`: it rejoins the cluster with its data (its quorum queue members catch
+        up from the leaders); returns once its app runs and its MQTT and management listeners answer."""
+        pid_file = self.root / f"rg{i}" / "pid"
+        pid_file.unlink(missing_ok=True)  # the killed node's: `rabbitmqctl wait` would watch that process
+        self.start_node(i)
+        self.ctl(i, "wait", str(pid_file), "--timeout", "120", timeout_s=150)
+        wait_port(self.mqtt_ports[i], 60)
+        wait_port(self.management_ports[i], 60)
 
     def stop(self) -> None:
         for i, p in enumerate(self.procs):

@@ -19,7 +19,7 @@ import httpx
 import paho.mqtt.client as paho
 import pika
 import pytest
-from cluster_fixtures import running_rabbit_cluster
+from cluster_fixtures import node_killed, running_rabbit_cluster
 from drives import patch_drive
 from fastapi.testclient import TestClient
 from paho.mqtt.enums import CallbackAPIVersion
@@ -454,30 +454,30 @@ def test_a_station_report_sent_again_is_handed_on_again_and_without_a_broker_ans
 
 
 def test_telemetry_is_still_accepted_through_the_next_node_when_a_broker_node_dies(cluster, replicas):
-    """Last in the module: it kills node 0. Replica one publishes through nodes 0, 1, 2; the vehicle's publisher
-    connection is one of those on node 0, which is killed: the next request goes through node 1, confirmed."""
+    """Replica one publishes through nodes 0, 1, 2; the vehicle's publisher connection is one of those on node 0,
+    which is killed: the next request goes through node 1, confirmed. Node 0 is started again after the test."""
     one, _ = replicas
     vehicle_id = next(f"kill-{k:02d}" for k in range(100) if zlib.crc32(f"kill-{k:02d}".encode()) % 4 == 0)
     secret = register(one, vehicle_id)
     samples = wire_samples(patch_drive(0.3, 2), vehicle_id, int(time.time() * 1000) - 60_000)[:20]
     assert one.http.post("/v1/telemetry", json=samples[:10], auth=(vehicle_id, secret)).status_code == 202
-    cluster.kill(0)
-    answer = one.http.post("/v1/telemetry", json=samples[10:], auth=(vehicle_id, secret))
-    if answer.status_code != 202:
-        queues = cluster.ctl(1, "list_queues", "-q", "name", "type", "leader", "members", "online", "messages")
-        bindings = cluster.ctl(1, "list_bindings", "-q", "source_name", "destination_name", "routing_key")
-        pytest.fail(f"{answer.status_code} {answer.text}\nqueues (node 1):\n{queues}\nbindings:\n{bindings}",
-                    pytrace=False)
-    connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(1)))
-    channel = connection.channel()
-    got: list[bytes] = []
-    for p in range(PARTITIONS):
-        channel.basic_consume(partition_queue(p), lambda ch, method, _props, body: (
-            got.append(body) if method.routing_key == f"roadgrip.v1.vehicles.{vehicle_id}.telemetry" else None,
-            ch.basic_ack(method.delivery_tag)))
-    deadline = time.monotonic() + 30
-    while len(got) < 2 and time.monotonic() < deadline:
-        connection.process_data_events(0.2)
-    connection.close()
-    stamps = [s["timestamp_ms"] for body in got for s in json.loads(body)]
-    assert stamps == [s["timestamp_ms"] for s in samples]
+    with node_killed(cluster, 0):
+        answer = one.http.post("/v1/telemetry", json=samples[10:], auth=(vehicle_id, secret))
+        if answer.status_code != 202:
+            queues = cluster.ctl(1, "list_queues", "-q", "name", "type", "leader", "members", "online", "messages")
+            bindings = cluster.ctl(1, "list_bindings", "-q", "source_name", "destination_name", "routing_key")
+            pytest.fail(f"{answer.status_code} {answer.text}\nqueues (node 1):\n{queues}\nbindings:\n{bindings}",
+                        pytrace=False)
+        connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(1)))
+        channel = connection.channel()
+        got: list[bytes] = []
+        for p in range(PARTITIONS):
+            channel.basic_consume(partition_queue(p), lambda ch, method, _props, body: (
+                got.append(body) if method.routing_key == f"roadgrip.v1.vehicles.{vehicle_id}.telemetry" else None,
+                ch.basic_ack(method.delivery_tag)))
+        deadline = time.monotonic() + 30
+        while len(got) < 2 and time.monotonic() < deadline:
+            connection.process_data_events(0.2)
+        connection.close()
+        stamps = [s["timestamp_ms"] for body in got for s in json.loads(body)]
+        assert stamps == [s["timestamp_ms"] for s in samples]

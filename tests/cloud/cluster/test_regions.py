@@ -27,7 +27,7 @@ import pika
 import psycopg
 import pymap3d
 import pytest
-from cluster_fixtures import WorkerProcess, running_rabbit_cluster
+from cluster_fixtures import WorkerProcess, node_killed, running_rabbit_cluster
 from drives import PATCH_M, patch_drive
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy.engine import make_url
@@ -416,9 +416,9 @@ def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(
 
 
 def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, tmp_path):
-    """Last in the module: it leaves node 0 dead. Node 0 carries the first worker's first connections (publisher,
-    region queue 0, partitions) and some queue leaders; after its kill -9 a vehicle braking on each patch again
-    refreshes the region's warnings, through the connections the workers moved to the other nodes."""
+    """Node 0 carries the first worker's first connections (publisher, region queue 0, partitions) and some queue
+    leaders; after its kill -9 a vehicle braking on each patch again refreshes the region's warnings, through the
+    connections the workers moved to the other nodes. Node 0 is started again after the test (`node_killed`)."""
     found = regions_on_distinct_queues(cluster, 2)
     shifts = {tag: shift for tag, (shift, _, _) in zip("xy", found)}
     patches = {t: patch_cells(shifts[t]) for t in "xy"}
@@ -435,22 +435,22 @@ def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, 
         wait_for("warnings on both patches", lambda: all(patch_warnings(db, patches[t]) for t in "xy"), 60, logs)
         before = {w: row["message"]["event"]["sequence_number"] for t in "xy"
                   for w, row in patch_warnings(db, patches[t]).items()}
-        cluster.kill(0)
-        killed_at = time.monotonic()
-        later = START_MS + 240_000  # within the warnings' validity
-        drive(cluster, [run_of(f"{tag}-ice3", 0.2, 2, later, shifts[tag]) for tag in "xy"], node=2)
-        drive(cluster, [run_of(f"{tag}-close3", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
-              node=2)
+        with node_killed(cluster, 0):
+            killed_at = time.monotonic()
+            later = START_MS + 240_000  # within the warnings' validity
+            drive(cluster, [run_of(f"{tag}-ice3", 0.2, 2, later, shifts[tag]) for tag in "xy"], node=2)
+            drive(cluster, [run_of(f"{tag}-close3", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
+                  node=2)
 
-        def refreshed(t: str) -> bool:
-            now = db.warnings()
-            return any(now[w]["message"]["event"]["sequence_number"] > n for w, n in before.items()
-                       if now[w]["cell"] in patches[t])
+            def refreshed(t: str) -> bool:
+                now = db.warnings()
+                return any(now[w]["message"]["event"]["sequence_number"] > n for w, n in before.items()
+                           if now[w]["cell"] in patches[t])
 
-        wait_for("the warnings refreshed in both regions after the node's kill",
-                 lambda: all(refreshed(t) for t in "xy"), 60, logs)
-        print(f"\nbroker node kill: both regions' warnings refreshed {time.monotonic() - killed_at:.1f} s after it "
-              f"(the drives sent after the kill included)")
+            wait_for("the warnings refreshed in both regions after the node's kill",
+                     lambda: all(refreshed(t) for t in "xy"), 60, logs)
+            print(f"\nbroker node kill: both regions' warnings refreshed {time.monotonic() - killed_at:.1f} s after "
+                  f"it (the drives sent after the kill included)")
     finally:
         db.close()
         first.stop()
