@@ -3,7 +3,6 @@ real PostgreSQL (the `storage_url` fixture)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 import xml.etree.ElementTree as ET
@@ -11,8 +10,9 @@ import xml.etree.ElementTree as ET
 import h3
 import numpy as np
 import pytest
-from drives import PATCH_M, patch_drive
+from drives import patch_cells, patch_drive
 from fastapi.testclient import TestClient
+from service_fixtures import ADMIN, START_MS, ndjson, post, register, running_cloud
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.pipeline.pipeline import DEDUP_HORIZON_MS
@@ -23,42 +23,11 @@ from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import vehicle_by_name
 
-ADMIN = ("admin", "admin-secret-for-tests-0123456789")
-START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
-
-
-@contextlib.contextmanager
-def running_cloud(storage_url, tmp_path, **settings):
-    settings = Settings(**{"data_dir": tmp_path, "database_url": storage_url, "mqtt": "off", "admin_secret": ADMIN[1],
-                           "flush_interval_s": 0.01, "reorder_window_s": 0.2, "map_clock": "data", **settings})
-    with CloudService(settings) as service, TestClient(create_app(service)) as client:
-        yield service, client
-
 
 @pytest.fixture
 def cloud(storage_url, tmp_path):
     with running_cloud(storage_url, tmp_path) as running:
         yield running
-
-
-def register(client, vehicle_id: str, profile: str = "paper-suv") -> tuple[str, str]:
-    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
-    assert answer.status_code == 201, answer.text
-    return vehicle_id, answer.json()["secret"]
-
-
-def ndjson(samples: list[dict]) -> bytes:
-    return "\n".join(json.dumps(s) for s in samples).encode()
-
-
-def post(client, auth, samples, chunk: int = 10):
-    answers = []
-    for start in range(0, len(samples), chunk):
-        answer = client.post("/v1/telemetry", content=ndjson(samples[start:start + chunk]), auth=auth,
-                             headers={"content-type": "application/x-ndjson"})
-        assert answer.status_code == 200, answer.text
-        answers.append(answer.json())
-    return answers
 
 
 def test_without_credentials_or_with_wrong_ones_everything_is_refused(cloud):
@@ -240,7 +209,7 @@ def test_unusable_bodies_are_refused_with_clear_errors(cloud):
 def test_a_repeated_query_parameter_is_refused_on_every_route(cloud):
     """Every declared query parameter is a scalar: given twice it is a 422 naming it, not its last value (a fuzzing
     case, issue 17); an undeclared one is ignored, as FastAPI does."""
-    service, client = cloud
+    _service, client = cloud
     auth = register(client, "car-q")
     for path, params in (("/v1/vehicles/car-q/estimates", [("limit", "5"), ("limit", "7")]),
                          ("/v1/vehicles/car-q/estimates", [("start_ms", "1"), ("end_ms", "2"), ("end_ms", "3")]),
@@ -274,18 +243,6 @@ def test_vss_keyed_samples_are_accepted(cloud):
     stored = service.storage.telemetry("car-7")[0]
     assert stored["speed_mps"] == pytest.approx(s["speed_mps"], rel=1e-12)
     assert stored["wheel_speed_rr_radps"] == pytest.approx(s["wheel_speed_rr_radps"], rel=1e-12)
-
-
-def patch_cells(resolution: int = 10) -> set[str]:
-    """Every cell the road crosses between the patch's ends (metres east of the Hebei origin)."""
-    import pymap3d
-
-    from roadgrip.sim.sensors import HEBEI_ORIGIN
-    cells = set()
-    for east in np.arange(PATCH_M[0], PATCH_M[1] + 1.0, 1.0):
-        lat, lon, _ = pymap3d.enu2geodetic(east, 0.0, 0.0, *HEBEI_ORIGIN, 0.0)
-        cells.add(h3.latlng_to_cell(float(lat), float(lon), resolution))
-    return cells
 
 
 def on_or_beside_the_patch() -> set[str]:

@@ -4,8 +4,8 @@ service's whole path (HTTP ingest, per-vehicle estimators, storage, map, warning
 
 from __future__ import annotations
 
-from drives import patch_drive
-from test_api import ADMIN, START_MS, patch_cells, post, register, running_cloud
+from drives import patch_cells, patch_drive
+from service_fixtures import ADMIN, START_MS, post, register, running_cloud
 
 from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples

@@ -4,12 +4,12 @@ settings change them, the rule picks the safe setting with the best recall, and 
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
+from warning_route import PATCH, T0_MS, drive
 
 from roadgrip.cloud.domain.warnings import WarningEngine
 from roadgrip.evaluation.fleet_benchmark import EngineRecorder, FleetConfig
 from roadgrip.evaluation.fleet_report import run_fleet_benchmark
 from roadgrip.evaluation.fleet_sweep import as_warnings, choose, grid_settings, replay, rounds_of
-from tests.cloud.domain.test_warnings import PATCH, T0_MS, drive
 
 
 def _record(rounds, **kwargs):

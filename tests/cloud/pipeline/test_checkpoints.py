@@ -15,7 +15,7 @@ import pytest
 import sqlalchemy as sa
 from broker_fixtures import wait_until
 from drives import patch_drive
-from test_api import ADMIN, START_MS, post, register, running_cloud
+from service_fixtures import ADMIN, START_MS, post, register, running_cloud
 
 from roadgrip.cloud.pipeline.checkpoints import FLOATS, Checkpoints, pack_state, restore_state, unpack_state
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
