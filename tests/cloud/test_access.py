@@ -126,6 +126,7 @@ def test_a_revoked_credential_stops_working_at_once_over_http(cloud):
 
 # ------------------------------------------------------------------------------------------------ MQTT
 
+@pytest.mark.slow
 def test_over_mqtt_a_vehicle_can_neither_publish_as_another_nor_read_its_estimates(mqtt_cloud):
     service, client = mqtt_cloud
     (a, a_secret), (b, b_secret) = register(client, "car-a"), register(client, "car-b")

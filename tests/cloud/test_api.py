@@ -96,6 +96,7 @@ def test_a_repeat_older_than_the_pipelines_memory_is_a_duplicate_not_stored_nor_
         assert service.storage.counts()["telemetry"] == len(samples)
 
 
+@pytest.mark.slow
 def test_out_of_order_samples_inside_the_window_give_the_in_order_estimates(storage_url, tmp_path):
     # a window of 2 s: each post returns once its sample is stored, so on a slow disk two posts can lie more than
     # 0.2 s apart and the first of a pair would be released before the second came (a late sample, not estimated)
@@ -251,6 +252,7 @@ def on_or_beside_the_patch() -> set[str]:
     return {near for cell in patch_cells() for near in h3.grid_disk(cell, 1)}
 
 
+@pytest.mark.slow
 def test_a_slippery_patch_raises_a_warning_there_only_and_dry_passes_cancel_it(cloud):
     service, client = cloud
     for vehicle_id, profile, seed in (("suv-w", "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):

@@ -53,6 +53,7 @@ def test_a_run_published_over_mqtt_comes_back_as_estimates_everywhere(cloud):
     assert len(service.storage.estimates(vehicle_id)) == len(samples)
 
 
+@pytest.mark.slow
 def test_estimate_messages_are_dropped_not_queued_while_the_broker_is_behind(cloud, monkeypatch):
     service, client = cloud
     monkeypatch.setattr(service_module, "MAX_UNACKNOWLEDGED_ESTIMATES", -1)  # as if the broker never caught up

@@ -219,6 +219,7 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
         engine.station_evidence([row(240_000, 0.5, 0.3)], 240_000)
 
 
+@pytest.mark.slow
 def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
     require_chromium()
     now = int(time.time() * 1000)

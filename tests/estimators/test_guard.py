@@ -106,6 +106,7 @@ def estimators():
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
+@pytest.mark.slow
 def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
     """0 <= mu_lower <= mu <= mu_upper and nothing below the tire-force bound, batch and streaming, for any drive."""
     table = _random_telemetry(data.draw, 40)

@@ -161,6 +161,7 @@ def overlaps(cell: str, patch: Patch, origin: tuple[float, float]) -> bool:
     return math.hypot(east - patch.east_m, north - patch.north_m) <= patch.radius_m + circumradius
 
 
+@pytest.mark.slow
 def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkeypatch):
     """Three vehicles and roadside stations for 4 minutes through the service. What it writes is read back: the
     figures are finite and in range, the counts agree across metrics.csv, patches.csv and cells.csv and with the

@@ -64,6 +64,7 @@ def load_patch_drives(service: CloudService, base_url: str) -> str:
         return answer.json()["secret"]
 
 
+@pytest.mark.slow
 def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicles_chart(tmp_path):
     require_chromium()
     with serving(dashboard_settings(tmp_path)) as (service, base_url):

@@ -132,6 +132,7 @@ def test_a_database_of_an_older_version_without_the_table_opens(storage_url, tmp
 
 
 # ------------------------------------------------------------------------------------------------- the service
+@pytest.mark.slow
 def test_a_restarted_service_goes_on_from_each_vehicles_calibration(storage_url, tmp_path):
     """A vehicle drives, the service stops cleanly and starts again on the same database: the vehicle's estimator goes
     on from its calibration, its mu posterior restarted. A vehicle whose profile changed meanwhile starts afresh, and
@@ -263,6 +264,7 @@ def test_while_storage_is_down_the_due_vehicles_wait_for_the_next_round():
     assert len(storage.rows) == 1
 
 
+@pytest.mark.slow
 def test_ingest_processes_store_and_restore_the_states_of_their_own_vehicles(tmp_path):
     from tests.cloud.serve.test_shards import ids_on_each_shard, running_sharded
 

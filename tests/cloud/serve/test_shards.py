@@ -59,6 +59,7 @@ def sharded(storage_url, tmp_path):
         yield running
 
 
+@pytest.mark.slow
 def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(sharded):
     service, client = sharded
     mqtt_ids, http_ids = ids_on_each_shard("mq", 1), ids_on_each_shard("ht", 1)
