@@ -18,6 +18,7 @@ from roadgrip.vehicle.params import PAPER_SUV
 TARGET_UPDATES_PER_S = 2000  # issue 5: one core serves 200 vehicles at 10 Hz
 
 
+@pytest.mark.slow
 def test_bench_reports_throughput_and_latency_and_the_filters_meet_the_target():
     results = bench_estimators(("ekf", "ukf", "default"), 300)
     assert [r["estimator"] for r in results] == ["ekf", "ukf", "default"]

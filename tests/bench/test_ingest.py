@@ -12,6 +12,7 @@ def bodies():
 
 
 @pytest.mark.parametrize(("transport", "batch"), [("mqtt", 10), ("http", 5)])
+@pytest.mark.slow
 def test_a_small_fleet_is_stored_exactly_as_sent(bodies, transport, batch):
     row = run_case(IngestCase(transport, vehicles=12, seconds=4.0, batch=batch), bodies)
     assert row["sent"] == row["acknowledged"] == row["stored_rows"] == 12 * 40

@@ -39,6 +39,7 @@ def _paper_runs(condition):
     return (table.filter(pc.equal(table["experiment"], 1)), table.filter(pc.equal(table["experiment"], 2)))
 
 
+@pytest.mark.slow
 def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
     """The offline command and the benchmark see the same numbers: no skew between training and serving."""
     import numpy as np

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import functools
 
+import h3
 import numpy as np
 import pyarrow as pa
+import pymap3d
 
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.roads import GradeProfile, MuProfile, Path
 from roadgrip.sim.scenario import Scenario
+from roadgrip.sim.sensors import HEBEI_ORIGIN
 from roadgrip.sim.simulate import simulate
 from roadgrip.vehicle.params import vehicle_by_name
 
@@ -36,3 +39,12 @@ def patch_drive(patch_mu: float, seed: int, vehicle: str = "paper-suv", brake_s:
         **({"effects": ProductionEffects.production(), "grade": GradeProfile([0.0, 450.0, 900.0], [0.02, -0.02, 0.0])}
            if production else {}))
     return simulate([scenario])
+
+
+def patch_cells(resolution: int = 10) -> set[str]:
+    """Every cell the road crosses between the patch's ends (metres east of the Hebei origin)."""
+    cells = set()
+    for east in np.arange(PATCH_M[0], PATCH_M[1] + 1.0, 1.0):
+        lat, lon, _ = pymap3d.enu2geodetic(east, 0.0, 0.0, *HEBEI_ORIGIN, 0.0)
+        cells.add(h3.latlng_to_cell(float(lat), float(lon), resolution))
+    return cells

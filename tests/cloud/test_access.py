@@ -8,7 +8,6 @@ import base64
 import json
 import logging
 import pickle
-import queue
 import time
 from pathlib import Path
 from urllib.parse import quote
@@ -17,8 +16,8 @@ import pytest
 import sqlalchemy as sa
 import torch
 from broker_fixtures import wait_until
-from drives import patch_drive
 from fastapi.testclient import TestClient
+from service_fixtures import ADMIN, RECENT_MS, add_reader, collect, register, samples_of, settings_for
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.serve.service import CloudService
@@ -39,16 +38,8 @@ from roadgrip.cloud.transport.mqtt import (
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.demo import settle
-from roadgrip.fleet.terminal import wire_samples
 
-ADMIN = ("admin", "admin-secret-for-tests-0123456789")
-START_MS = int(time.time() * 1000) - 600_000
 NOT_AUTHORIZED = 0x87
-
-
-def settings_for(storage_url: str, data_dir: Path, mqtt: str = "off") -> Settings:
-    return Settings(data_dir=data_dir, database_url=storage_url, mqtt=mqtt, admin_secret=ADMIN[1],
-                    flush_interval_s=0.01, reorder_window_s=0.1, map_clock="data")
 
 
 @pytest.fixture
@@ -65,22 +56,6 @@ def mqtt_cloud(storage_url, tmp_path):
         yield service, client
 
 
-def register(client, vehicle_id: str, profile="paper-suv") -> tuple[str, str]:
-    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
-    assert answer.status_code == 201, answer.text
-    return vehicle_id, answer.json()["secret"]
-
-
-def add_reader(client, name: str) -> tuple[str, str]:
-    answer = client.post("/v1/readers", json={"name": name}, auth=ADMIN)
-    assert answer.status_code == 201, answer.text
-    return name, answer.json()["secret"]
-
-
-def samples_of(vehicle_id: str, n: int, start_ms: int = START_MS) -> list[dict]:
-    return wire_samples(patch_drive(0.9, 3), vehicle_id, start_ms)[:n]
-
-
 def table_snapshot(service: CloudService) -> dict:
     return {"counts": service.storage.counts(), "credentials": [(c.name, c.role, c.revoked)
                                                                for c in service.storage.credentials()]}
@@ -94,7 +69,7 @@ def test_a_vehicle_can_neither_write_nor_read_as_another(cloud):
     post = client.post("/v1/telemetry", json=samples_of("car-b", 5), auth=a)
     assert post.status_code == 422
     assert [(r["index"], r["field"]) for r in post.json()["rejected"]] == [(k, "vehicle_id") for k in range(5)]
-    mixed = samples_of("car-a", 3) + samples_of("car-b", 3, START_MS + 10_000)
+    mixed = samples_of("car-a", 3) + samples_of("car-b", 3, RECENT_MS + 10_000)
     answer = client.post("/v1/telemetry", json=mixed, auth=a)
     assert answer.status_code == 200 and answer.json()["stored"] == 3
     assert {r["field"] for r in answer.json()["rejected"]} == {"vehicle_id"}
@@ -122,7 +97,7 @@ def test_a_reader_reads_but_cannot_write_register_or_revoke(cloud):
     settle(service)
     reader = add_reader(client, "operator")
     before = table_snapshot(service)
-    assert client.post("/v1/telemetry", json=samples_of("car-r", 5, START_MS + 5_000), auth=reader).status_code == 403
+    assert client.post("/v1/telemetry", json=samples_of("car-r", 5, RECENT_MS + 5_000), auth=reader).status_code == 403
     assert client.post("/v1/vehicles", json={"vehicle_id": "car-x"}, auth=reader).status_code == 403
     assert client.post("/v1/vehicles", json=[{"vehicle_id": "car-y"}], auth=reader).status_code == 403
     assert client.post("/v1/readers", json={"name": "operator-2"}, auth=reader).status_code == 403
@@ -139,7 +114,7 @@ def test_a_revoked_credential_stops_working_at_once_over_http(cloud):
     assert client.post("/v1/telemetry", json=samples_of("car-v", 1), auth=vehicle).status_code == 200
     assert client.get("/v1/map", auth=reader).status_code == 200  # both verified secrets are now cached
     assert client.delete("/v1/credentials/car-v", auth=ADMIN).status_code == 204
-    assert client.post("/v1/telemetry", json=samples_of("car-v", 1, START_MS + 100), auth=vehicle).status_code == 401
+    assert client.post("/v1/telemetry", json=samples_of("car-v", 1, RECENT_MS + 100), auth=vehicle).status_code == 401
     assert client.get("/v1/vehicles/car-v/estimates", auth=vehicle).status_code == 401
     assert client.get("/v1/map", auth=reader).status_code == 200  # the others go on
     assert client.delete("/v1/credentials/viewer", auth=ADMIN).status_code == 204
@@ -151,16 +126,7 @@ def test_a_revoked_credential_stops_working_at_once_over_http(cloud):
 
 # ------------------------------------------------------------------------------------------------ MQTT
 
-def collect(messages, until, timeout_s: float = 20.0) -> list[tuple[str, bytes]]:
-    got, deadline = [], time.monotonic() + timeout_s
-    while not until(got) and time.monotonic() < deadline:
-        try:
-            got.append(messages.get(timeout=0.05))
-        except queue.Empty:
-            continue
-    return got
-
-
+@pytest.mark.slow
 def test_over_mqtt_a_vehicle_can_neither_publish_as_another_nor_read_its_estimates(mqtt_cloud):
     service, client = mqtt_cloud
     (a, a_secret), (b, b_secret) = register(client, "car-a"), register(client, "car-b")
@@ -204,7 +170,7 @@ def test_over_mqtt_a_revoked_vehicle_is_disconnected_at_once_and_refused_after(m
         wait_until(lambda: len(service.storage.telemetry(vehicle_id)) == 2, what="the first samples stored")
         assert client.delete(f"/v1/credentials/{vehicle_id}", auth=ADMIN).status_code == 204
         wait_until(lambda: not live.paho.is_connected(), what="the broker dropping the revoked vehicle")
-        live.publish_nowait(live.topic, json.dumps(samples_of(vehicle_id, 2, START_MS + 1_000)))  # lost, not stored
+        live.publish_nowait(live.topic, json.dumps(samples_of(vehicle_id, 2, RECENT_MS + 1_000)))  # lost, not stored
         other.publish_telemetry(json.dumps(samples_of(other_id, 1)))  # the others stay connected
         assert other.paho.is_connected()
     with pytest.raises(BrokerRefused) as refused:
@@ -212,7 +178,7 @@ def test_over_mqtt_a_revoked_vehicle_is_disconnected_at_once_and_refused_after(m
     assert refused.value.reason_code.value == NOT_AUTHORIZED
     settle(service)
     assert len(service.storage.telemetry(vehicle_id)) == 2
-    assert client.post("/v1/telemetry", json=samples_of(vehicle_id, 1, START_MS + 2_000),
+    assert client.post("/v1/telemetry", json=samples_of(vehicle_id, 1, RECENT_MS + 2_000),
                        auth=(vehicle_id, secret)).status_code == 401
 
 
@@ -301,7 +267,7 @@ def test_sql_injection_strings_are_refused_or_stored_as_data_and_the_tables_surv
         assert client.delete(f"/v1/credentials/{path}", auth=ADMIN).status_code in (404, 422), text
         assert client.get("/v1/map", headers=basic_auth(text, vehicle[1])).status_code == 401, text
         assert client.get("/v1/map", headers=basic_auth("reader-i", text)).status_code == 401, text
-        sample = {**samples_of("car-i", 1, START_MS + 50_000)[0], "vehicle_id": text}
+        sample = {**samples_of("car-i", 1, RECENT_MS + 50_000)[0], "vehicle_id": text}
         rejected = post_json(client, "/v1/telemetry", [sample], vehicle).json()["rejected"]
         assert rejected[0]["field"] == "vehicle_id", text
         for name in ("start_ms", "end_ms", "limit"):

@@ -3,7 +3,6 @@ real PostgreSQL (the `storage_url` fixture)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 import xml.etree.ElementTree as ET
@@ -11,8 +10,9 @@ import xml.etree.ElementTree as ET
 import h3
 import numpy as np
 import pytest
-from drives import PATCH_M, patch_drive
+from drives import patch_cells, patch_drive
 from fastapi.testclient import TestClient
+from service_fixtures import ADMIN, START_MS, ndjson, post, register, running_cloud
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.pipeline.pipeline import DEDUP_HORIZON_MS
@@ -23,42 +23,11 @@ from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import vehicle_by_name
 
-ADMIN = ("admin", "admin-secret-for-tests-0123456789")
-START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
-
-
-@contextlib.contextmanager
-def running_cloud(storage_url, tmp_path, **settings):
-    settings = Settings(**{"data_dir": tmp_path, "database_url": storage_url, "mqtt": "off", "admin_secret": ADMIN[1],
-                           "flush_interval_s": 0.01, "reorder_window_s": 0.2, "map_clock": "data", **settings})
-    with CloudService(settings) as service, TestClient(create_app(service)) as client:
-        yield service, client
-
 
 @pytest.fixture
 def cloud(storage_url, tmp_path):
     with running_cloud(storage_url, tmp_path) as running:
         yield running
-
-
-def register(client, vehicle_id: str, profile: str = "paper-suv") -> tuple[str, str]:
-    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
-    assert answer.status_code == 201, answer.text
-    return vehicle_id, answer.json()["secret"]
-
-
-def ndjson(samples: list[dict]) -> bytes:
-    return "\n".join(json.dumps(s) for s in samples).encode()
-
-
-def post(client, auth, samples, chunk: int = 10):
-    answers = []
-    for start in range(0, len(samples), chunk):
-        answer = client.post("/v1/telemetry", content=ndjson(samples[start:start + chunk]), auth=auth,
-                             headers={"content-type": "application/x-ndjson"})
-        assert answer.status_code == 200, answer.text
-        answers.append(answer.json())
-    return answers
 
 
 def test_without_credentials_or_with_wrong_ones_everything_is_refused(cloud):
@@ -127,6 +96,7 @@ def test_a_repeat_older_than_the_pipelines_memory_is_a_duplicate_not_stored_nor_
         assert service.storage.counts()["telemetry"] == len(samples)
 
 
+@pytest.mark.slow
 def test_out_of_order_samples_inside_the_window_give_the_in_order_estimates(storage_url, tmp_path):
     # a window of 2 s: each post returns once its sample is stored, so on a slow disk two posts can lie more than
     # 0.2 s apart and the first of a pair would be released before the second came (a late sample, not estimated)
@@ -276,24 +246,13 @@ def test_vss_keyed_samples_are_accepted(cloud):
     assert stored["wheel_speed_rr_radps"] == pytest.approx(s["wheel_speed_rr_radps"], rel=1e-12)
 
 
-def patch_cells(resolution: int = 10) -> set[str]:
-    """Every cell the road crosses between the patch's ends (metres east of the Hebei origin)."""
-    import pymap3d
-
-    from roadgrip.sim.sensors import HEBEI_ORIGIN
-    cells = set()
-    for east in np.arange(PATCH_M[0], PATCH_M[1] + 1.0, 1.0):
-        lat, lon, _ = pymap3d.enu2geodetic(east, 0.0, 0.0, *HEBEI_ORIGIN, 0.0)
-        cells.add(h3.latlng_to_cell(float(lat), float(lon), resolution))
-    return cells
-
-
 def on_or_beside_the_patch() -> set[str]:
     """The patch's cells and their neighbours: one low pass raises (the product's setting, chosen by the fleet
     benchmark), and a vehicle braking on the patch still reads it low in the next cell (a "beside" warning there)."""
     return {near for cell in patch_cells() for near in h3.grid_disk(cell, 1)}
 
 
+@pytest.mark.slow
 def test_a_slippery_patch_raises_a_warning_there_only_and_dry_passes_cancel_it(cloud):
     service, client = cloud
     for vehicle_id, profile, seed in (("suv-w", "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):

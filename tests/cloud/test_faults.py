@@ -91,6 +91,7 @@ def report(name: str, **figures) -> None:
 
 
 # ------------------------------------------------------------------------------------------------- 1. SIGKILL
+@pytest.mark.slow
 def test_service_sigkill_mid_stream_loses_no_acknowledged_sample(broker, tmp_path):
     """`roadgrip serve` (SQLite, the test's broker) killed with SIGKILL while one vehicle publishes over MQTT and one
     posts over HTTP, kept down 2 s, started again on the same data directory (same MQTT client id: its persistent
@@ -147,6 +148,7 @@ def test_service_sigkill_mid_stream_loses_no_acknowledged_sample(broker, tmp_pat
 
 # ------------------------------------------------------------------------------------------------- 2. broker restart
 @pytest.mark.parametrize("down_s", [0.0, 3.0], ids=["restart", "down-3s"])
+@pytest.mark.slow
 def test_broker_restart_mid_stream_everyone_reconnects_and_nothing_acknowledged_is_lost(broker, tmp_path, down_s):
     """The broker stopped (SIGTERM: it saves its sessions) and started again while a vehicle publishes, at once
     (`ManagedBroker.restart`) or after `down_s`; the vehicle's paho client and the service's MqttClient reconnect by
@@ -196,6 +198,7 @@ def test_broker_restart_mid_stream_everyone_reconnects_and_nothing_acknowledged_
 OUTAGE_S = 30.0
 
 
+@pytest.mark.slow
 def test_postgresql_outage_of_30_s_loses_no_acknowledged_sample(broker, tmp_path):
     """A PostgreSQL cluster of the test's own, stopped (`pg_ctl stop -m fast`) for 30 s while one vehicle publishes
     over MQTT and one posts over HTTP: health says unavailable (503), HTTP ingest answers 503, MQTT messages wait

@@ -266,6 +266,7 @@ def post(ingest, body: bytes, content_type: str | None) -> tuple[set[int] | None
 
 @fuzz(INGEST_EXAMPLES)
 @given(value=json_values, detect=st.booleans())
+@pytest.mark.slow
 def test_http_any_json_gets_clear_rejections_and_stores_only_what_it_says(ingest, value, detect):
     post(ingest, json.dumps(value).encode(), None if detect else JSON_TYPE)
 
@@ -273,6 +274,7 @@ def test_http_any_json_gets_clear_rejections_and_stores_only_what_it_says(ingest
 @fuzz(INGEST_EXAMPLES)
 @given(samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1), bad=valid_samples(), mutation=mutations,
        data=st.data(), fmt=st.sampled_from(["json", "ndjson", "detect"]))
+@pytest.mark.slow
 def test_http_one_mutated_field_loses_no_valid_sample(ingest, samples, bad, mutation, data, fmt):
     key, value = mutation
     assume(not_in_the_fuzzed_window(key, value))
@@ -291,6 +293,7 @@ def test_http_one_mutated_field_loses_no_valid_sample(ingest, samples, bad, muta
 
 @fuzz(INGEST_EXAMPLES)
 @given(body=any_bytes, content_type=content_types)
+@pytest.mark.slow
 def test_http_any_bytes_never_give_a_server_error(ingest, body, content_type):
     post(ingest, body, content_type)
 
@@ -298,6 +301,7 @@ def test_http_any_bytes_never_give_a_server_error(ingest, body, content_type):
 @fuzz(INGEST_EXAMPLES)
 @given(lines=st.lists(valid_samples().map(lambda s: ("sample", s)) | junk_lines.map(lambda j: ("junk", j)),
                       min_size=1, max_size=MAX_SAMPLES))
+@pytest.mark.slow
 def test_http_ndjson_with_junk_lines_keeps_every_valid_line(ingest, lines):
     start_ms = fresh_block()
     text, valid, junk = [], [], set()
@@ -387,6 +391,7 @@ def mqtt_handler(ingest):
 
 @fuzz(MQTT_EXAMPLES)
 @given(value=json_values)
+@pytest.mark.slow
 def test_mqtt_any_json_is_refused_clearly_and_acknowledged_once(mqtt_handler, value):
     mqtt_handler(json.dumps(value).encode())
 
@@ -394,6 +399,7 @@ def test_mqtt_any_json_is_refused_clearly_and_acknowledged_once(mqtt_handler, va
 @fuzz(MQTT_EXAMPLES)
 @given(samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1), bad=valid_samples(), mutation=mutations,
        data=st.data(), ndjson=st.booleans())
+@pytest.mark.slow
 def test_mqtt_one_mutated_field_loses_no_valid_sample(ingest, mqtt_handler, samples, bad, mutation, data, ndjson):
     key, value = mutation
     assume(not_in_the_fuzzed_window(key, value))
@@ -412,5 +418,6 @@ def test_mqtt_one_mutated_field_loses_no_valid_sample(ingest, mqtt_handler, samp
 
 @fuzz(MQTT_EXAMPLES)
 @given(payload=any_bytes)
+@pytest.mark.slow
 def test_mqtt_any_bytes_are_refused_clearly_and_acknowledged_once(mqtt_handler, payload):
     mqtt_handler(payload)

@@ -12,8 +12,7 @@ import pytest
 from broker_fixtures import wait_until
 from drives import patch_drive
 from prometheus_client.parser import text_string_to_metric_families
-from test_api import running_cloud
-from test_service_mqtt import ADMIN, register
+from service_fixtures import ADMIN, register_mqtt, running_cloud
 
 from roadgrip.cloud.metrics import BatchHistogram
 from roadgrip.cloud.transport.mosquitto import mosquitto_available
@@ -58,10 +57,10 @@ def test_batch_histogram_counts_a_bound_in_its_bucket_and_negatives_as_zero():
 
 
 def test_metrics_need_a_credential_as_health_does(cloud):
-    service, client = cloud
+    _service, client = cloud
     assert client.get("/metrics").status_code == 401
     assert client.get("/metrics", auth=("admin", "wrong")).status_code == 401
-    vehicle_id, secret, _ = register(client, "metrics-reader-car")
+    vehicle_id, secret, _ = register_mqtt(client, "metrics-reader-car")
     assert client.get("/v1/health", auth=(vehicle_id, secret)).status_code == 200
     values = scrape(client, auth=(vehicle_id, secret))
     assert {"roadgrip_samples_received_total", "roadgrip_estimate_latency_seconds_bucket",
@@ -71,8 +70,8 @@ def test_metrics_need_a_credential_as_health_does(cloud):
 
 
 def test_http_samples_move_the_counters_and_rejections_are_counted_by_reason(cloud):
-    service, client = cloud
-    vehicle_id, secret, _ = register(client, "metrics-http-car")
+    _service, client = cloud
+    vehicle_id, secret, _ = register_mqtt(client, "metrics-http-car")
     samples = wire_samples(patch_drive(0.9, 0), vehicle_id, START_MS)
     bad = {**samples[0], "timestamp_ms": samples[0]["timestamp_ms"] - 50, "speed_mps": "fast"}
     answer = client.post("/v1/telemetry", json=[*samples, bad], auth=(vehicle_id, secret)).json()
@@ -80,7 +79,7 @@ def test_http_samples_move_the_counters_and_rejections_are_counted_by_reason(clo
     assert client.post("/v1/telemetry", json=samples[:20], auth=(vehicle_id, secret)).json()["duplicates"] == 20
     assert client.post("/v1/telemetry", content=b"{not json", headers={"content-type": "application/json"},
                        auth=(vehicle_id, secret)).status_code == 400
-    flooder, flooder_secret, _ = register(client, "metrics-flooder")
+    flooder, flooder_secret, _ = register_mqtt(client, "metrics-flooder")
     flood = wire_samples(patch_drive(0.9, 1), flooder, START_MS) * 2  # 600 samples: over the 500 of the burst
     assert client.post("/v1/telemetry", json=flood, auth=(flooder, flooder_secret)).status_code == 413
 
@@ -110,8 +109,8 @@ def test_http_samples_move_the_counters_and_rejections_are_counted_by_reason(clo
 
 
 def test_mqtt_samples_move_the_counters_and_rejections_are_counted(cloud):
-    service, client = cloud
-    vehicle_id, secret, url = register(client, "metrics-mqtt-car")
+    _service, client = cloud
+    vehicle_id, secret, url = register_mqtt(client, "metrics-mqtt-car")
     samples = wire_samples(patch_drive(0.9, 2), vehicle_id, START_MS)
     bad = {**samples[0], "timestamp_ms": samples[0]["timestamp_ms"] - 50, "speed_mps": "fast"}
     with UserClient(url, vehicle_id, secret).connect() as car:
@@ -132,8 +131,8 @@ def test_mqtt_samples_move_the_counters_and_rejections_are_counted(cloud):
 
 def test_ingest_processes_report_their_counters_under_their_own_label(tmp_path):
     with running_cloud(f"sqlite:///{tmp_path / 'roadgrip.db'}", tmp_path, ingest_processes=1,
-                       flush_interval_s=0.02) as (service, client):
-        vehicle_id, secret, _ = register(client, "metrics-shard-car")
+                       flush_interval_s=0.02) as (_service, client):
+        vehicle_id, secret, _ = register_mqtt(client, "metrics-shard-car")
         samples = wire_samples(patch_drive(0.9, 3), vehicle_id, START_MS)
         bad = {**samples[0], "timestamp_ms": samples[0]["timestamp_ms"] - 50, "speed_mps": "fast"}
         assert client.post("/v1/telemetry", json=[*samples, bad], auth=(vehicle_id, secret)).json()["stored"] \

@@ -4,8 +4,9 @@ service's whole path (HTTP ingest, per-vehicle estimators, storage, map, warning
 
 from __future__ import annotations
 
-from drives import patch_drive
-from test_api import ADMIN, START_MS, patch_cells, post, register, running_cloud
+import pytest
+from drives import patch_cells, patch_drive
+from service_fixtures import ADMIN, START_MS, post, register, running_cloud
 
 from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
@@ -21,6 +22,7 @@ def _drive(client, patch_mu: float, offset_ms: int, tag: str, brake_s: float = 1
         post(client, auth, wire_samples(run, vehicle_id, START_MS + offset_ms + 40_000 * k), chunk=20)
 
 
+@pytest.mark.slow
 def test_dry_roads_driven_by_production_cars_raise_no_warning(storage_url, tmp_path):
     with running_cloud(storage_url, tmp_path) as (service, client):
         _drive(client, 0.9, 0, "dry")  # cruising, then braking at 0.65 g
@@ -31,6 +33,7 @@ def test_dry_roads_driven_by_production_cars_raise_no_warning(storage_url, tmp_p
         assert service.storage.counts()["estimates"] > 0
 
 
+@pytest.mark.slow
 def test_an_icy_patch_braked_on_by_production_cars_is_warned_about(storage_url, tmp_path):
     with running_cloud(storage_url, tmp_path) as (service, client):
         _drive(client, 0.15, 0, "ice")

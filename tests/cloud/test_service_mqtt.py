@@ -4,14 +4,13 @@ on a real PostgreSQL."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import queue
 import time
 
 import pytest
 from drives import patch_drive
 from fastapi.testclient import TestClient
+from service_fixtures import ADMIN, collect, register_mqtt
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.serve import service as service_module
@@ -22,7 +21,6 @@ from roadgrip.cloud.transport.mqtt import PublishRefused, UserClient, errors_top
 from roadgrip.fleet.demo import settle
 from roadgrip.fleet.terminal import wire_samples
 
-ADMIN = ("admin", "admin-secret-for-tests-0123456789")
 START_MS = int(time.time() * 1000) - 600_000
 
 
@@ -35,22 +33,9 @@ def cloud(storage_url, tmp_path):
         yield service, client
 
 
-def register(client, vehicle_id: str) -> tuple[str, str, str]:
-    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id}, auth=ADMIN).json()
-    return vehicle_id, answer["secret"], answer["mqtt_url"]
-
-
-def collect(messages, until, timeout_s: float = 20.0) -> list[tuple[str, bytes]]:
-    got, deadline = [], time.time() + timeout_s
-    while not until(got) and time.time() < deadline:
-        with contextlib.suppress(queue.Empty):
-            got.append(messages.get(timeout=0.1))
-    return got
-
-
 def test_a_run_published_over_mqtt_comes_back_as_estimates_everywhere(cloud):
     service, client = cloud
-    vehicle_id, secret, url = register(client, "mqtt-car")
+    vehicle_id, secret, url = register_mqtt(client, "mqtt-car")
     samples = wire_samples(patch_drive(0.2, 1), vehicle_id, START_MS)
     with UserClient(url, vehicle_id, secret).connect() as car:
         car.subscribe(friction_topic(vehicle_id))
@@ -68,10 +53,11 @@ def test_a_run_published_over_mqtt_comes_back_as_estimates_everywhere(cloud):
     assert len(service.storage.estimates(vehicle_id)) == len(samples)
 
 
+@pytest.mark.slow
 def test_estimate_messages_are_dropped_not_queued_while_the_broker_is_behind(cloud, monkeypatch):
     service, client = cloud
     monkeypatch.setattr(service_module, "MAX_UNACKNOWLEDGED_ESTIMATES", -1)  # as if the broker never caught up
-    vehicle_id, secret, url = register(client, "slow-car")
+    vehicle_id, secret, url = register_mqtt(client, "slow-car")
     samples = wire_samples(patch_drive(0.2, 1), vehicle_id, START_MS)[:100]
     with UserClient(url, vehicle_id, secret).connect() as car:
         car.subscribe(friction_topic(vehicle_id))
@@ -86,8 +72,8 @@ def test_estimate_messages_are_dropped_not_queued_while_the_broker_is_behind(clo
 
 def test_a_vehicle_cannot_publish_under_another_id(cloud):
     service, client = cloud
-    a_id, a_secret, url = register(client, "car-a")
-    b_id, _, _ = register(client, "car-b")
+    a_id, a_secret, url = register_mqtt(client, "car-a")
+    b_id, _, _ = register_mqtt(client, "car-b")
     sample = wire_samples(patch_drive(0.9, 3), b_id, START_MS)[:1]
     with UserClient(url, a_id, a_secret).connect() as car, pytest.raises(PublishRefused):
         car.publish(telemetry_topic(b_id), json.dumps(sample))
@@ -97,7 +83,7 @@ def test_a_vehicle_cannot_publish_under_another_id(cloud):
 
 def test_bad_samples_are_reported_on_the_error_topic_and_the_good_ones_kept(cloud, caplog):
     service, client = cloud
-    vehicle_id, secret, url = register(client, "car-e")
+    vehicle_id, secret, url = register_mqtt(client, "car-e")
     good = wire_samples(patch_drive(0.9, 3), vehicle_id, START_MS)[:3]
     bad = {**good[1], "timestamp_ms": START_MS + 50, "speed_mps": "fast"}
     with UserClient(url, vehicle_id, secret).connect() as car:

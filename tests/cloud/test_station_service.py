@@ -13,8 +13,9 @@ import httpx
 import pytest
 import sqlalchemy as sa
 from broker_fixtures import wait_until
+from dashboard_fixtures import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 from fastapi.testclient import TestClient
-from test_access import ADMIN, add_reader, collect, register, samples_of, settings_for
+from service_fixtures import ADMIN, add_reader, collect, register, samples_of, settings_for
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.domain.stations import covered_cells
@@ -28,7 +29,6 @@ from roadgrip.cloud.transport.mqtt import (
     station_reports_topic,
     telemetry_topic,
 )
-from tests.cloud.api.test_dashboard import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 
 NOT_AUTHORIZED = 0x87
 LAT, LON = 48.1372, 11.5755
@@ -219,6 +219,7 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
         engine.station_evidence([row(240_000, 0.5, 0.3)], 240_000)
 
 
+@pytest.mark.slow
 def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
     require_chromium()
     now = int(time.time() * 1000)

@@ -21,6 +21,7 @@ from roadgrip.estimators.guard import (
 from roadgrip.estimators.learned import estimator_names, load_estimator
 from roadgrip.fleet.importers import get_importer
 from roadgrip.units import G_MPS2
+from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
 from roadgrip.vehicle.params import PAPER_SUV
 
 ESTIMATORS = estimator_names()
@@ -70,7 +71,7 @@ def test_apply_bound_raises_what_is_below_and_widens_what_is_contradicted():
 @given(st.lists(st.one_of(st.floats(-1.0, 2.0), st.just(float("nan"))), min_size=4, max_size=4), st.booleans())
 def test_the_streaming_guard_is_the_batch_guard(values, excited):
     mu, lower, upper, bound = values
-    bound = abs(bound) if bound == bound else 0.0
+    bound = 0.0 if np.isnan(bound) else abs(bound)
     expected = [float(v[0]) for v in apply_bound([mu], [lower], [upper], [excited], [bound])[:3]]
     got = apply_bound_scalar(mu, lower, upper, excited, bound)
     assert list(got[:3]) == expected
@@ -105,6 +106,7 @@ def estimators():
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
+@pytest.mark.slow
 def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
     """0 <= mu_lower <= mu <= mu_upper and nothing below the tire-force bound, batch and streaming, for any drive."""
     table = _random_telemetry(data.draw, 40)
@@ -130,18 +132,36 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
         assert [e.mu_proven for e in streamed] == pytest.approx(list(stream_bound), abs=1e-9), name
 
 
+def log_accelerometer_sigma(table: pa.Table) -> float:
+    """The accelerometer's noise and bias (1 sigma, m/s^2) as a log shows them: the RMS of its longitudinal reading
+    less the rate of change of the reference speed, wherever the car moves (above 1 m/s)."""
+    t_s = table["timestamp_ms"].to_numpy() / 1000.0
+    speed = table["speed_mps"].to_numpy()
+    residual = table["accel_lon_mps2"].to_numpy() - np.gradient(speed, t_s)
+    return float(np.sqrt(np.mean(np.square(residual[speed > 1.0]))))
+
+
 @pytest.mark.parametrize("name", ESTIMATORS)
 def test_bmw_m8_braking_log_never_below_what_the_car_proves(name, estimators):
-    """A real car braking at 1.2-1.4 g on dry asphalt: mu >= 0.95 |a| / g wherever |a| >= 0.8 g."""
+    """A real car braking at 1.2-1.4 g on dry asphalt. Coulomb's law at the tires: mu g >= |a_road_x|, the road's
+    force along the car per mass (the accelerometer's reading with the air's drag taken out). The reading carries
+    noise and bias: two sigma of them, measured on the log itself against the reference speed (0.25 m/s^2), come off.
+    Neither the guard's margin nor its drag enter the bound, so the estimates could fall below it (without the guard
+    each of the four estimators does, on 11-38 samples)."""
     importer = get_importer("bmw-m8")
     table = importer.load(Path(__file__).parents[2] / "data/real/bmw_m8_braking")
     vehicle = importer.profile()
+    sigma = log_accelerometer_sigma(table)
+    assert 0.05 < sigma < 0.5  # a real sensor's scatter, not a broken log (0.25 m/s^2)
+    speed = table["speed_mps"].to_numpy()
+    drag = 0.5 * AIR_DENSITY_KGPM3 * vehicle.drag_coefficient * vehicle.frontal_area_m2 / vehicle.mass_kg * speed**2
+    road_x = table["accel_lon_mps2"].to_numpy() + drag
+    proven = np.maximum(np.abs(road_x) - 2.0 * sigma, 0.0) / G_MPS2
+    assert (proven > 0.8).sum() >= 10  # the hard braking is in the log
     out = estimators[name].estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), vehicle)
     idx = np.searchsorted(table["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
-    a = np.hypot(table["accel_lon_mps2"].to_numpy()[idx], table["accel_lat_mps2"].to_numpy()[idx]) / G_MPS2
-    hard = a >= 0.8
-    assert hard.sum() >= 10
-    assert (out["mu"].to_numpy()[hard] >= 0.95 * a[hard]).all()
+    assert out.num_rows > 80 and (proven[idx] > 0.8).sum() >= 10
+    assert (out["mu_lower"].to_numpy() >= proven[idx]).all()
 
 
 @pytest.mark.parametrize("name", ("pmf", "default"))

@@ -36,6 +36,7 @@ def test_batch_estimates_follow_the_contract(run_table):
     assert out["timestamp_ms"].to_numpy()[0] == run_table["timestamp_ms"].to_numpy()[estimator.window - 1]
 
 
+@pytest.mark.slow
 def test_streaming_gives_the_batch_numbers_and_its_state_survives_a_restart(run_table):
     estimator = load_estimator("default")
     batch = estimator.estimate_batch(run_table, np.zeros(run_table.num_rows), PAPER_SUV).to_pylist()
@@ -69,6 +70,7 @@ def test_unknown_model_names_are_refused():
         LearnedEstimator.load("missing.pt")
 
 
+@pytest.mark.slow
 def test_a_production_feature_model_streams_the_batch_numbers_across_a_restart(tmp_path):
     """The `production` feature set differences consecutive samples: the estimator keeps the previous sample in its
     state (and through state_to_dict), so that a stream, restarted mid-way, gives the batch's numbers."""

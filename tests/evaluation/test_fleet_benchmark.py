@@ -8,8 +8,10 @@ import math
 import h3
 import numpy as np
 import pyarrow.csv as pacsv
+import pymap3d
 import pytest
 
+from roadgrip.evaluation import fleet_report
 from roadgrip.evaluation.fleet_benchmark import FleetConfig, find_passes, make_scenario, patch_cells
 from roadgrip.evaluation.fleet_metrics import (
     Warning,
@@ -140,15 +142,86 @@ def test_the_scenario_is_seeded_and_its_patches_fall_in_their_bands():
     assert all(t.scenario.effects.speed_from_wheels for t in a.trips)  # production-terminal realism on
 
 
-def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path):
+SHARES = ("recall", "recall_all", "within_3rd_pass", "map_coverage", "map_coverage_low", "bounded_coverage",
+          "bounded_coverage_low", "dry_cells_read_slippery", "evidence_share", "measured_share")
+COUNTS = ("patches", "eligible", "warned_and_dried", "lingering", "linger_over_10min", "censored", "map_cells",
+          "bounded_cells", "warnings", "warnings_on_patch", "warnings_beside", "false_warnings")
+NON_NEGATIVE = ("time_to_first_median_s", "time_to_first_max_s", "passes_to_first_median", "passes_to_first_max",
+                "linger_median_s", "linger_max_s", "map_mae", "map_mae_low", "bounded_mae", "bounded_mae_low", "dry_km",
+                "false_per_100km")
+
+
+def overlaps(cell: str, patch: Patch, origin: tuple[float, float]) -> bool:
+    """Whether an H3 cell and a patch's disc can meet: the cell's centre within the disc's radius plus the cell's
+    circumradius (its farthest vertex) of the patch's centre, in metres on the network's plane."""
+    lat, lon = h3.cell_to_latlng(cell)
+    east, north, _ = pymap3d.geodetic2enu(lat, lon, 0.0, *origin, 0.0)
+    corners = [pymap3d.geodetic2enu(a, b, 0.0, *origin, 0.0)[:2] for a, b in h3.cell_to_boundary(cell)]
+    circumradius = max(math.hypot(e - east, n - north) for e, n in corners)
+    return math.hypot(east - patch.east_m, north - patch.north_m) <= patch.radius_m + circumradius
+
+
+@pytest.mark.slow
+def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkeypatch):
+    """Three vehicles and roadside stations for 4 minutes through the service. What it writes is read back: the
+    figures are finite and in range, the counts agree across metrics.csv, patches.csv and cells.csv and with the
+    warnings the service raised, and every warning counted on a patch was raised over that patch while it was there
+    (checked on the map's geometry, not by the scorer's cell lists)."""
     config = FleetConfig(vehicles=3, duration_s=240.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
                          life_s=(100.0, 150.0), snapshot_every_s=120.0)
+    seeds = []
+    run_seed = fleet_report.run_seed
+    monkeypatch.setattr(fleet_report, "run_seed", lambda *args, **kwargs: seeds.append(run_seed(*args, **kwargs))
+                        or seeds[-1])
     result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config)
+    (seed,) = seeds
     rows = pacsv.read_csv(tmp_path / "metrics.csv").to_pylist()
-    overall = [r for r in rows if r["group"] == "all"]
-    assert [r["seed"] for r in overall] == ["1", "pooled"]
-    assert overall[0]["dry_km"] > 0 and overall[0]["patches"] == 3
-    assert (tmp_path / "cells.csv").exists()  # empty when the map had no excited evidence at a snapshot
-    for name in ("fleet.md", "patches.csv", "map_vs_truth.png", "detection_delay.png"):
-        assert (tmp_path / name).stat().st_size > 0
     assert result["rows"][-1]["seed"] == "pooled"
+    by_seed = {name: {r["group"]: r for r in rows if r["seed"] == name} for name in ("1", "pooled")}
+    assert by_seed["1"] == {g: {**r, "seed": "1"} for g, r in by_seed["pooled"].items()}  # one seed: pooled is it
+    for row in rows:
+        for key in SHARES:
+            assert row[key] is None or 0.0 <= row[key] <= 1.0, (row["group"], key, row[key])
+        for key in COUNTS:
+            assert row.get(key) is None or (row[key] >= 0 and row[key] == int(row[key])), (row["group"], key)
+        for key in NON_NEGATIVE:
+            assert row.get(key) is None or (math.isfinite(row[key]) and row[key] >= 0), (row["group"], key)
+    overall = by_seed["1"]["all"]
+    assert [by_seed["1"][band]["patches"] for band in ("mu<=0.2", "0.2-0.4", "0.4-0.6")] == [1, 1, 1]
+    assert overall["patches"] == 3 and overall["dry_km"] > 1.0
+
+    kinds = seed.kinds
+    assert overall["warnings"] == len(seed.warnings) == len(kinds) >= 1
+    assert (overall["warnings_on_patch"], overall["warnings_beside"], overall["false_warnings"]) == \
+        (kinds.count("on"), kinds.count("beside"), kinds.count("false"))
+    assert overall["false_per_100km"] == pytest.approx(overall["false_warnings"] / (overall["dry_km"] / 100.0))
+
+    patches = pacsv.read_csv(tmp_path / "patches.csv").to_pylist()
+    assert sorted(p["band"] for p in patches) == ["0.2-0.4", "0.4-0.6", "mu<=0.2"]  # the dry control is not scored
+    assert sum(p["warnings"] for p in patches) == overall["warnings_on_patch"] + overall["warnings_beside"]
+    assert sum(p["detected"] for p in patches) == pytest.approx(overall["recall_all"] * 3)
+    assert sum(p["linger_s"] is not None for p in patches) == overall["warned_and_dried"]
+    for p in patches:
+        assert 0.0 <= p["appear_s"] < p["dry_s"] <= config.duration_s and 0.0 < p["mu"] < 0.6
+        assert p["vehicles"] <= p["passes"] and p["observable_passes"] <= p["passes"]
+        assert p["detected"] == (p["time_to_first_s"] is not None) and p["warnings"] >= p["detected"]
+        if p["detected"]:
+            assert 0.0 <= p["time_to_first_s"] <= config.duration_s - p["appear_s"]
+            assert 0 <= p["passes_to_first"] <= p["passes"]
+
+    cells = pacsv.read_csv(tmp_path / "cells.csv").to_pylist()
+    assert len(cells) == overall["map_cells"] + overall["bounded_cells"]
+    assert {c["t_s"] for c in cells} <= {120.0, 240.0}
+    for c in cells:
+        assert c["status"] in ("measured", "bounded") and 0.0 <= c["mu"] <= c["mu_upper"] <= 2.0
+        assert 0.0 < c["mu_truth"] <= SURFACE_MU["dry"] and 0.0 <= c["error"] <= c["error_low"] + 1e-12
+
+    network = seed.scenario.network
+    slippery = [p for p in network.patches if p.mu < 0.6]
+    on_patch = [w for w, kind in zip(seed.warnings, kinds) if kind == "on"]
+    assert on_patch, "the tiny run raised no warning on a patch: nothing to check"
+    for warning in on_patch:
+        assert any(overlaps(warning.cell, p, network.origin) and p.appear_s <= warning.detection_s < p.dry_s
+                   for p in slippery), warning
+    for name in ("fleet.md", "map_vs_truth.png", "detection_delay.png"):
+        assert (tmp_path / name).stat().st_size > 0

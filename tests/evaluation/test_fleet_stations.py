@@ -9,6 +9,7 @@ import math
 import numpy as np
 import orjson
 import pyarrow.csv as pacsv
+import pytest
 
 from roadgrip.cloud.domain.stations import parse_reports
 from roadgrip.evaluation.fleet_benchmark import (
@@ -61,6 +62,7 @@ def test_stations_are_seeded_placed_and_report_in_format_v1_with_failures():
             assert sum(s in ("ice", "snow") for s in states) >= 0.6 * len(states)
 
 
+@pytest.mark.slow
 def test_a_tiny_run_reports_detection_with_and_without_stations(tmp_path):
     config = FleetConfig(vehicles=3, duration_s=300.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
                          life_s=(200.0, 250.0), snapshot_every_s=150.0, stations_at_patches=2, stations_on_dry_road=1)

@@ -7,12 +7,12 @@ from pathlib import Path
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
+from warning_route import PATCH, T0_MS, drive
 
 from roadgrip.cloud.domain.warnings import WarningEngine
 from roadgrip.evaluation.fleet_benchmark import EngineRecorder, FleetConfig
 from roadgrip.evaluation.fleet_report import run_fleet_benchmark
 from roadgrip.evaluation.fleet_sweep import as_warnings, choose, grid_settings, replay, rounds_of
-from tests.cloud.domain.test_warnings import PATCH, T0_MS, drive
 
 
 def _record(rounds, **kwargs):
@@ -83,6 +83,7 @@ def test_unknown_grid_parameters_are_errors():
     assert len(grid_settings({"threshold_mu": (0.3, 0.4), "min_low_passes": (1, 2, 3)})) == 6
 
 
+@pytest.mark.slow
 def test_the_benchmark_keeps_the_engine_s_estimates_and_writes_the_curve(tmp_path):
     config = FleetConfig(vehicles=3, duration_s=240.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
                          life_s=(100.0, 150.0), snapshot_every_s=120.0)

@@ -78,6 +78,7 @@ def test_test_drive_profile_accelerates_and_brakes_hard_enough_to_excite():
     np.testing.assert_array_equal(again.speeds_mps, v)
 
 
+@pytest.mark.slow
 def test_benchmark_on_a_short_road_writes_table_7(short_run):
     out, result = short_run
     table = _read(out / "table7.csv")
@@ -99,6 +100,7 @@ def test_benchmark_on_a_short_road_writes_table_7(short_run):
     assert result["figures"][0].stat().st_size > 20_000
 
 
+@pytest.mark.slow
 def test_group_value_is_the_mean_of_the_excited_estimates_on_the_section(short_run):
     out, result = short_run
     estimates = pq.read_table(out / "estimates.parquet")
@@ -112,6 +114,7 @@ def test_group_value_is_the_mean_of_the_excited_estimates_on_the_section(short_r
             assert own["station_m"].to_numpy().max() <= SHORT_M + 1e-6
 
 
+@pytest.mark.slow
 def test_same_seed_same_table_other_seed_other_table(short_run, tmp_path):
     out, _ = short_run
     rv.run_real_vehicle_benchmark(tmp_path / "again", seed=0, length_m=SHORT_M)
@@ -121,6 +124,7 @@ def test_same_seed_same_table_other_seed_other_table(short_run, tmp_path):
     assert (tmp_path / "other" / "table7.csv").read_bytes() != (out / "table7.csv").read_bytes()
 
 
+@pytest.mark.slow
 def test_cli_runs_the_real_vehicle_benchmark(tmp_path, monkeypatch):
     from roadgrip.cli import app
 

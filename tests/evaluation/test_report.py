@@ -156,7 +156,7 @@ def test_metrics_csv_round_trips(tmp_path):
     path = write_metrics_csv(metrics, tmp_path / "metrics.csv")
     assert path.read_text().splitlines()[0] == "condition,model,feature_set,trained_on,rmse,mae,n,epochs"
     back = read_metrics_csv(path)
-    expected = [{**{"epochs": None}, **row} for row in metrics]
+    expected = [{"epochs": None, **row} for row in metrics]
     assert back == expected
 
 
@@ -181,6 +181,7 @@ def test_figures_are_written_for_every_condition(tmp_path):
         write_figures(predictions, tmp_path, feature_set="paper")
 
 
+@pytest.mark.slow
 def test_figures_are_deterministic_for_a_seed(tmp_path):
     predictions = make_predictions()
     a = write_figures(predictions, tmp_path / "a", seed=3)[0].read_bytes()
@@ -188,6 +189,7 @@ def test_figures_are_deterministic_for_a_seed(tmp_path):
     assert a == b
 
 
+@pytest.mark.slow
 def test_all_figures_and_report(tmp_path):
     predictions = make_predictions()
     metrics = make_metrics()

@@ -8,12 +8,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 def mosquitto_pids() -> set[int]:
     return {int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
             and (p / "comm").exists() and (p / "comm").read_text().strip() == "mosquitto"}
 
 
+@pytest.mark.slow
 def test_the_demo_runs_end_to_end_and_leaves_nothing_behind(tmp_path):
     before = mosquitto_pids()
     result = subprocess.run([sys.executable, "-m", "roadgrip", "demo", "--vehicles", "8", "--speed", "20",

@@ -27,6 +27,7 @@ def cloud(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("transport", ["mqtt", "http"])
+@pytest.mark.slow
 def test_simulated_vehicles_drive_against_the_cloud(cloud, transport):
     result = runner.invoke(app, ["fleet", "--url", cloud.url, "--vehicles", "3", "--speed", "50", "--duration", "20",
                                  "--transport", transport, "--prefix", f"cli-{transport}"])
@@ -37,6 +38,7 @@ def test_simulated_vehicles_drive_against_the_cloud(cloud, transport):
     assert sorted(cloud.service.storage.vehicle_ids()) == [f"cli-{transport}-{k:03d}" for k in range(3)]
 
 
+@pytest.mark.slow
 def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read_back(cloud):
     """The options a cluster needs (--mqtt for each node, --mqtt-protocol 3.1.1, --read-url for another replica),
     here against serve's own broker and API."""

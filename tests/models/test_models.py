@@ -14,6 +14,7 @@ def test_every_candidate_maps_windows_to_one_value_each(name):
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.slow
 def test_a_model_overfits_a_tiny_batch(name):
     torch.manual_seed(0)
     x = torch.randn(16, 10, 7)

@@ -93,10 +93,11 @@ class VehicleFanout:
     """The per-vehicle part (module docstring). Not thread-safe: one caller (serve's Fanout holds a lock around it; a
     worker's pipeline thread)."""
 
-    def __init__(self, settings: Settings, regions: RegionSink, publish=None):
+    def __init__(self, settings: Settings, regions: RegionSink, publish=None, clock=time.monotonic):
         self.settings = settings
         self.regions = regions
         self.publish = publish  # callable(topic, payload bytes) or None
+        self.clock = clock  # callable() -> s, monotonic: when an estimate was queued, when it is due
         self.latency = LatencyRecorder()  # sample time to stored estimate
         self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # the same, in seconds, for the metrics
         self.busy_s = 0.0  # seconds spent in `stored` since start
@@ -112,7 +113,7 @@ class VehicleFanout:
             self.latency_histogram.add(latencies_ms / 1000.0)
         self.regions.estimates(estimates, newest_data_ms)
         if estimates and self.publish is not None:
-            now_s = time.monotonic()
+            now_s = self.clock()
             for row in estimates:
                 self._outbox.setdefault(row["vehicle_id"], (now_s, []))[1].append(estimate_message(row))
         self.busy_s += time.perf_counter() - started
@@ -122,7 +123,7 @@ class VehicleFanout:
         (all of them when `final`). Called after every round."""
         if not self._outbox:
             return
-        due_since = time.monotonic() - self.settings.friction_publish_interval_s
+        due_since = self.clock() - self.settings.friction_publish_interval_s
         due = [v for v, (since, _) in self._outbox.items() if final or since <= due_since]
         for vehicle_id in due:
             self.publish(friction_topic(vehicle_id), orjson.dumps(self._outbox.pop(vehicle_id)[1]))
@@ -134,12 +135,13 @@ class RegionFanout:
     of the rounds it was given. Not thread-safe: one caller at a time."""
 
     def __init__(self, store: WarningsStore, settings: Settings, friction_map: FrictionMap,
-                 warning_engine: WarningEngine, publish=None):
+                 warning_engine: WarningEngine, publish=None, clock=time.time):
         self.store = store
         self.settings = settings
         self.friction_map = friction_map
         self.warning_engine = warning_engine
         self.publish = publish  # callable(topic, payload bytes) or None
+        self.clock = clock  # callable() -> s since the epoch: the server's clock (map_clock "wall")
         self.warning_changes = dict.fromkeys(WARNING_CHANGES, 0)  # warning events by change (metrics)
         self.newest_data_ms = 0
 
@@ -147,7 +149,7 @@ class RegionFanout:
         """The clock for the map and warnings: the server's, or the newest stored sample's (`map_clock`)."""
         if self.settings.map_clock == "data":
             return self.newest_data_ms
-        return int(time.time() * 1000)
+        return int(self.clock() * 1000)
 
     def estimates(self, rows: list[dict], newest_data_ms: int) -> set[str]:
         """A round's estimates into the map and the warning engine; warning changes out. The map cells touched."""
@@ -200,14 +202,17 @@ class RegionFanout:
 
 
 class Fanout:
-    """serve's fan-out: the vehicles' part and one region holding everything, under one lock (module docstring)."""
+    """serve's fan-out: the vehicles' part and one region holding everything, under one lock (module docstring).
+    `clock` (callable() -> s; a test's fake one): both parts read it; by default each its own (time.time for the map
+    and warnings, time.monotonic for the publish interval)."""
 
     def __init__(self, storage: Storage, settings: Settings, friction_map: FrictionMap,
-                 warning_engine: WarningEngine, publish=None):
+                 warning_engine: WarningEngine, publish=None, clock=None):
         self.storage = storage
         self.settings = settings
-        self.region = RegionFanout(storage, settings, friction_map, warning_engine, publish)
-        self.vehicles = VehicleFanout(settings, self.region, publish)
+        clocks = {} if clock is None else {"clock": clock}
+        self.region = RegionFanout(storage, settings, friction_map, warning_engine, publish, **clocks)
+        self.vehicles = VehicleFanout(settings, self.region, publish, **clocks)
         self._lock = threading.Lock()
 
     @property

@@ -145,15 +145,17 @@ class Pipeline:
     """`skip_estimated`: a vehicle first seen is not estimated at or before its newest estimate stored from its first
     sample on: those samples are redeliveries of what another owner estimated (and may have checkpointed into the
     state this pipeline restores, whose calibration would count them twice). A cluster worker sets it
-    (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not."""
+    (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not. `clock` (callable() -> s, monotonic; a test's
+    fake one): the reorder window's (when a vehicle's samples arrived) and the storage retry's backoff."""
 
     def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, sink: StoredSink,
-                 skip_estimated: bool = False):
+                 skip_estimated: bool = False, clock=time.monotonic):
         self.storage = storage
         self.settings = settings
         self.estimator = estimator
         self.sink = sink
         self.skip_estimated = skip_estimated
+        self.clock = clock
         self.counters = PipelineCounters()
         self.estimator_time = BatchHistogram(ESTIMATOR_BUCKETS_S)  # seconds per estimator update (metrics)
         self._inbox: list[_Submission] = []
@@ -313,7 +315,7 @@ class Pipeline:
         except StorageUnavailable as exc:
             self._refuse_or_keep(inbox, exc)
             return
-        now_s = time.monotonic()
+        now_s = self.clock()
         results: list[tuple[_Submission, list[int]]] = []
         new_rows: list[dict] = []
         touched: set[str] = set()
@@ -349,7 +351,7 @@ class Pipeline:
         next try, after a backoff, while those that can (MQTT, unacknowledged until stored) wait. Any other failure
         is a bug: every submitter gets it and the round is dropped (logged)."""
         held = self._held
-        if time.monotonic() < self._retry_at:
+        if self.clock() < self._retry_at:
             return False
         started = time.perf_counter()
         repeats: frozenset[tuple[str, int]] = frozenset()  # rows the database had already
@@ -359,7 +361,7 @@ class Pipeline:
         except StorageUnavailable as exc:
             self.counters.failed_rounds += 1
             self._failures += 1
-            self._retry_at = time.monotonic() + min(MAX_RETRY_S, 0.1 * 2**self._failures)
+            self._retry_at = self.clock() + min(MAX_RETRY_S, 0.1 * 2**self._failures)
             for sub, _ in held.results:
                 if not sub.retry and not sub.future.done():
                     sub.future.set_exception(exc)

@@ -8,61 +8,24 @@ Chromium is part of what is tested: without it the test fails (install it with `
 
 from __future__ import annotations
 
-import contextlib
-import shutil
-import socket
-import subprocess
-import tempfile
-import threading
 import time
-from collections.abc import Iterator
-from html.parser import HTMLParser
-from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
+from dashboard_fixtures import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
 from drives import patch_drive
 from fastapi.testclient import TestClient
+from service_fixtures import ADMIN
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.api.dashboard import content_security_policy, tile_source
 from roadgrip.cloud.serve.service import CloudService
-from roadgrip.cloud.settings import Settings, load_settings
+from roadgrip.cloud.settings import load_settings
 from roadgrip.fleet.terminal import wire_samples
 
-ADMIN = ("admin", "admin-secret-for-tests-0123456789")
 READER = "operator"
 START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
 CHOSEN = "suv-w"
-VIRTUAL_TIME_BUDGET_MS = 5000  # page time Chromium lets pass (fetches pause it): about five polling rounds
-CHROMIUM_TIMEOUT_S = 90
-INSTALL_HINT = "run `bash scripts/install_system_deps.sh`"
-
-
-def dashboard_settings(data_dir: Path, **overrides) -> Settings:
-    return Settings(data_dir=data_dir, mqtt="off", admin_secret=ADMIN[1], flush_interval_s=0.01,
-                    reorder_window_s=0.2, map_clock="data", **overrides)
-
-
-@contextlib.contextmanager
-def serving(settings: Settings) -> Iterator[tuple[CloudService, str]]:
-    """The service with its HTTP API under uvicorn in a thread, on 127.0.0.1 at a free port; (service, base URL)."""
-    with CloudService(settings) as service, socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        server = uvicorn.Server(uvicorn.Config(create_app(service), log_level="warning", lifespan="off"))
-        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-        thread.start()
-        deadline = time.monotonic() + 30
-        while not server.started:
-            if not thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
-        try:
-            yield service, f"http://127.0.0.1:{sock.getsockname()[1]}"
-        finally:
-            server.should_exit = True
-            thread.join(timeout=30)
 
 
 def _post(client: httpx.Client, auth: tuple[str, str], samples: list[dict], chunk: int = 50) -> None:
@@ -101,50 +64,7 @@ def load_patch_drives(service: CloudService, base_url: str) -> str:
         return answer.json()["secret"]
 
 
-def chromium_binary() -> str:
-    found = shutil.which("chromium") or shutil.which("chromium-browser")
-    if found is None:
-        raise RuntimeError(f"chromium is not installed: {INSTALL_HINT}")
-    return found
-
-
-def run_chromium(url: str, *options: str, budget_ms: int = VIRTUAL_TIME_BUDGET_MS) -> str:
-    """Headless Chromium on `url` with a fresh profile and no network but this server's; its stdout."""
-    with tempfile.TemporaryDirectory(prefix="roadgrip-chromium-", ignore_cleanup_errors=True) as profile:
-        command = [chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
-                   "--disable-background-networking", "--no-first-run", f"--user-data-dir={profile}",
-                   f"--virtual-time-budget={budget_ms}", *options, url]
-        done = subprocess.run(command, check=False, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
-    if done.returncode != 0:
-        raise RuntimeError(f"chromium exited with {done.returncode}: {done.stderr[-2000:]}")
-    return done.stdout
-
-
-class _Attributes(HTMLParser):
-    """The attributes of every element with an id, by id."""
-
-    def __init__(self):
-        super().__init__()
-        self.by_id: dict[str, dict[str, str | None]] = {}
-
-    def handle_starttag(self, tag, attrs):
-        attributes = dict(attrs)
-        if "id" in attributes:
-            self.by_id[attributes["id"]] = attributes
-
-
-def attributes_by_id(dom: str) -> dict[str, dict[str, str | None]]:
-    parser = _Attributes()
-    parser.feed(dom)
-    return parser.by_id
-
-
-def require_chromium() -> None:
-    """Fail (never skip) without Chromium: the page in a real browser is what these tests are for."""
-    if shutil.which("chromium") is None and shutil.which("chromium-browser") is None:
-        pytest.fail(f"chromium is not installed: {INSTALL_HINT}", pytrace=False)
-
-
+@pytest.mark.slow
 def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicles_chart(tmp_path):
     require_chromium()
     with serving(dashboard_settings(tmp_path)) as (service, base_url):

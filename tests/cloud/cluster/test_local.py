@@ -26,6 +26,7 @@ from roadgrip.cli import app
 from roadgrip.cloud.cluster.local import DESCRIPTION, LocalCluster
 from roadgrip.cloud.transport.amqp import RabbitCluster
 
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 VEHICLES = 3
 SAMPLES_PER_VEHICLE = 200  # 20 s of driving at 10 Hz
 runner = CliRunner()

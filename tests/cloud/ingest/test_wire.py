@@ -508,6 +508,7 @@ def entries(draw):
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(entries(), min_size=1, max_size=8), st.sampled_from(["json", "ndjson", "object"]),
        st.booleans())
+@pytest.mark.slow
 def test_any_json_mixed_into_valid_samples_loses_no_valid_sample_and_reports_each_bad_one_once(items, fmt, detect):
     kinds, values = [k for k, _ in items], [v for _, v in items]
     if fmt == "object":

@@ -15,7 +15,7 @@ import pytest
 import sqlalchemy as sa
 from broker_fixtures import wait_until
 from drives import patch_drive
-from test_api import ADMIN, START_MS, post, register, running_cloud
+from service_fixtures import ADMIN, START_MS, post, register, running_cloud
 
 from roadgrip.cloud.pipeline.checkpoints import FLOATS, Checkpoints, pack_state, restore_state, unpack_state
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
@@ -134,6 +134,7 @@ def test_a_database_of_an_older_version_without_the_table_opens(storage_url, tmp
 
 
 # ------------------------------------------------------------------------------------------------- the service
+@pytest.mark.slow
 def test_a_restarted_service_goes_on_from_each_vehicles_calibration(storage_url, tmp_path):
     """A vehicle drives, the service stops cleanly and starts again on the same database: the vehicle's estimator goes
     on from its calibration, its mu posterior restarted. A vehicle whose profile changed meanwhile starts afresh, and
@@ -265,6 +266,7 @@ def test_while_storage_is_down_the_due_vehicles_wait_for_the_next_round():
     assert len(storage.rows) == 1
 
 
+@pytest.mark.slow
 def test_ingest_processes_store_and_restore_the_states_of_their_own_vehicles(tmp_path):
     from tests.cloud.serve.test_shards import ids_on_each_shard, running_sharded
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 
 import h3
 import pytest
+from fake_clock import FakeClock
 
 from roadgrip.cloud.cluster.map_cells import stored_friction_map
 from roadgrip.cloud.cluster.regions import Regions, region_messages
@@ -182,14 +182,18 @@ def test_a_region_without_traffic_ends_passes_on_the_servers_clock(tmp_path):
     settings = Settings(data_dir=tmp_path, map_clock="wall", warning_pass_gap_s=1.0)
     storage = open_storage(f"sqlite:///{tmp_path / 'cluster.db'}")
     regions = Regions(settings, storage)
-    rows = drive("stopped", int(time.time() * 1000) - 100 * PATCH[1], HEBEI, icy=True, n=PATCH[1])
+    clock = FakeClock(T0_MS / 1000)  # the server's clock; the last sample 0.1 s before it
+    rows = drive("stopped", T0_MS - 100 * PATCH[1], HEBEI, icy=True, n=PATCH[1])
     for region, message in region_messages(rows, rows[-1]["timestamp_ms"], settings.region_resolution).items():
+        regions.region(region).clock = clock
         regions.apply(region, message)
     last_cell = rows[-1]["h3_cell"]
     assert last_cell not in {w["cell"] for w in storage.warnings()}  # its pass there is still open
     regions.tick()
+    clock.advance(0.5)
+    regions.tick()
     assert last_cell not in {w["cell"] for w in storage.warnings()}  # not yet pass_gap_s
-    time.sleep(1.2)
+    clock.advance(0.6)
     regions.tick()
     assert last_cell in {w["cell"] for w in storage.warnings(active_only=True)}
     storage.close()

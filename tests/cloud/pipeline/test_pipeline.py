@@ -1,5 +1,6 @@
 """The streaming pipeline on its own with the fan-out (real SQLite storage, the EKF, the map and the warning engine):
-what it publishes on the vehicles' friction topics, and how often."""
+what it publishes on the vehicles' friction topics, and when (on a fake clock, the rounds run by the test); how a queue
+longer than a round is worked off (the pipeline's own thread)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import json
 import time
 
 import pytest
+from broker_fixtures import wait_until
 from drives import patch_drive
+from fake_clock import FakeClock
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import WarningEngine
@@ -23,69 +26,132 @@ from roadgrip.fleet.terminal import wire_samples
 START_MS = 1_700_000_000_000
 
 
+def settings_of(tmp_path, **settings) -> Settings:
+    return Settings(**{"data_dir": tmp_path, "mqtt": "off", "flush_interval_s": 0.01, "reorder_window_s": 0.05,
+                       "map_clock": "data", **settings})
+
+
+class Clocked:
+    """A pipeline and its fan-out on a fake clock, without the pipeline's thread: the test runs the rounds. What was
+    published, with the clock's time; when each estimate reached the fan-out (vehicle, timestamp_ms -> s)."""
+
+    def __init__(self, tmp_path, **settings):
+        self.clock = FakeClock()
+        settings = settings_of(tmp_path, **settings)
+        self.storage = open_storage(settings.storage_url)
+        self.published: list[tuple[float, str, list[dict]]] = []
+        self.fanout = Fanout(self.storage, settings, FrictionMap(), WarningEngine(), clock=self.clock,
+                             publish=lambda topic, payload: self.published.append((self.clock(), topic,
+                                                                                   json.loads(payload))))
+        self.queued_s: dict[tuple[str, int], float] = {}
+        self.pipeline = Pipeline(self.storage, settings, load_estimator("ekf"), self, clock=self.clock)
+
+    def stored(self, estimates: list[dict], stored_ms: float, newest_data_ms: int) -> None:
+        for e in estimates:
+            self.queued_s[(e["vehicle_id"], e["timestamp_ms"])] = self.clock()
+        self.fanout.stored(estimates, stored_ms, newest_data_ms)
+
+    def tick(self, final: bool) -> None:
+        self.fanout.tick(final)
+
+    def round(self, final: bool = False) -> None:
+        """One round as the pipeline's thread runs it: estimate and store, then the fan-out's tick."""
+        self.pipeline.run_round(final=final)
+        self.tick(final)
+
+    def drive(self, vehicles: list[str], seconds: float) -> tuple[int, float]:
+        """Each vehicle sends a 30 s run, two samples a message, over `seconds` of the clock: one message each, then
+        a round. The samples per vehicle, and the clock's step between rounds."""
+        streams = {v: wire_samples(patch_drive(0.9, 3), v, START_MS) for v in vehicles}
+        n = len(streams[vehicles[0]])
+        step_s = seconds * 2 / n
+        for k in range(0, n, 2):
+            for v in vehicles:
+                self.pipeline.submit(v, streams[v][k:k + 2])
+            self.clock.advance(step_s)
+            self.round()
+        return n, step_s
+
+    def messages(self, vehicle: str) -> list[tuple[float, list[dict]]]:
+        return [(at_s, estimates) for at_s, topic, estimates in self.published if topic == friction_topic(vehicle)]
+
+    def waited_s(self, at_s: float, estimates: list[dict]) -> float:
+        """How long the oldest estimate of a message published at `at_s` waited for it."""
+        return at_s - min(self.queued_s[(e["vehicle_id"], e["timestamp_ms"])] for e in estimates)
+
+
 @pytest.fixture
-def make_pipeline(tmp_path):
+def clocked(tmp_path):
     made = []
 
-    def make(**settings):
-        settings = Settings(**{"data_dir": tmp_path, "mqtt": "off", "flush_interval_s": 0.01,
-                               "reorder_window_s": 0.05, "map_clock": "data", **settings})
-        published: list[tuple[str, list[dict]]] = []
+    def make(**settings) -> Clocked:
+        made.append(Clocked(tmp_path, **settings))
+        return made[-1]
+
+    yield make
+    for run in made:
+        run.storage.close()
+
+
+def test_each_vehicles_estimates_come_out_together_once_an_interval(clocked):
+    run = clocked(friction_publish_interval_s=0.5)
+    vehicles = ["car-1", "car-2"]
+    n, step_s = run.drive(vehicles, seconds=2.0)
+    run.round(final=True)
+    for vehicle in vehicles:
+        messages = run.messages(vehicle)
+        stamps = [e["timestamp_ms"] for _, estimates in messages for e in estimates]
+        assert stamps == sorted(stamps) and len(stamps) == n  # every estimate once, in time order
+        assert {e["vehicle_id"] for _, estimates in messages for e in estimates} == {vehicle}
+        assert len(messages) >= 4  # 2 s of rounds at 0.5 s, then what the final round held
+        for at_s, estimates in messages[:-1]:  # an interval's estimates, out at the first round once due
+            assert 0.5 <= run.waited_s(at_s, estimates) < 0.5 + step_s
+        at_s, estimates = messages[-1]
+        assert run.waited_s(at_s, estimates) < 0.5  # not yet due: held until the pipeline stopped
+    assert run.pipeline.counters.rounds > 3 * len(run.published)
+
+
+def test_with_no_interval_every_round_publishes(clocked):
+    run = clocked(friction_publish_interval_s=0)
+    _, step_s = run.drive(["car-1"], seconds=1.0)
+    run.clock.advance(step_s)
+    run.round(final=True)  # the stop, a round later
+    rounds_with_estimates = sorted(set(run.queued_s.values()))
+    messages = run.messages("car-1")
+    assert [at_s for at_s, _ in messages] == rounds_with_estimates  # one message a round that estimated
+    assert all(run.waited_s(at_s, estimates) == 0 for at_s, estimates in messages)
+    assert len(messages) > 100  # 150 rounds of two samples, the first few held by the reorder window
+
+
+def test_a_long_interval_holds_the_estimates_until_the_pipeline_stops(clocked):
+    run = clocked(friction_publish_interval_s=60)
+    n, _ = run.drive(["car-1"], seconds=0.5)
+    run.clock.advance(0.3)  # the vehicle is quiet longer than the reorder window: its last samples are released
+    run.round()
+    assert run.published == [] and run.pipeline.counters.estimates == n
+    run.round(final=True)
+    assert [(topic, len(estimates)) for _, topic, estimates in run.published] == [(friction_topic("car-1"), n)]
+
+
+@pytest.fixture
+def make_pipeline(tmp_path):
+    """A pipeline with its own thread (started when asked), on the real clock."""
+    made = []
+
+    def make(start: bool = True, **settings):
+        settings = settings_of(tmp_path, **settings)
         storage = open_storage(settings.storage_url)
-        fanout = Fanout(storage, settings, FrictionMap(), WarningEngine(),
-                        publish=lambda topic, payload: published.append((topic, json.loads(payload))))
-        pipeline = Pipeline(storage, settings, load_estimator("ekf"), fanout)
+        pipeline = Pipeline(storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(),
+                                                                            WarningEngine()))
         made.append((pipeline, storage))
-        pipeline.start()
-        return pipeline, published
+        if start:
+            pipeline.start()
+        return pipeline
 
     yield make
     for pipeline, storage in made:
         pipeline.stop()
         storage.close()
-
-
-def drive(pipeline: Pipeline, vehicles: list[str], seconds: float) -> int:
-    """Each vehicle sends a 30 s run, two samples a message, paced over `seconds` of wall-clock time."""
-    streams = {v: wire_samples(patch_drive(0.9, 3), v, START_MS) for v in vehicles}
-    n = len(streams[vehicles[0]])
-    for k in range(0, n, 2):
-        for v in vehicles:
-            pipeline.submit(v, streams[v][k:k + 2])
-        time.sleep(seconds * 2 / n)
-    return n
-
-
-def test_each_vehicles_estimates_come_out_together_once_an_interval(make_pipeline):
-    pipeline, published = make_pipeline(friction_publish_interval_s=0.5)
-    vehicles = ["car-1", "car-2"]
-    started = time.monotonic()
-    n = drive(pipeline, vehicles, seconds=2.0)
-    pipeline.stop()
-    took_s = time.monotonic() - started
-    for vehicle in vehicles:
-        messages = [estimates for topic, estimates in published if topic == friction_topic(vehicle)]
-        stamps = [e["timestamp_ms"] for estimates in messages for e in estimates]
-        assert stamps == sorted(stamps) and len(stamps) == n  # every estimate once, in time order
-        assert {e["vehicle_id"] for estimates in messages for e in estimates} == {vehicle}
-        assert 2 <= len(messages) <= took_s / 0.5 + 2  # an interval's estimates per message, not a round's
-    assert pipeline.counters.rounds > 3 * len(published)
-
-
-def test_with_no_interval_every_round_publishes(make_pipeline):
-    pipeline, published = make_pipeline(friction_publish_interval_s=0)
-    drive(pipeline, ["car-1"], seconds=1.0)
-    pipeline.stop()
-    assert len(published) > 20  # about one a round: 150 messages over 1 s of 0.01 s rounds
-
-
-def test_a_long_interval_holds_the_estimates_until_the_pipeline_stops(make_pipeline):
-    pipeline, published = make_pipeline(friction_publish_interval_s=60)
-    n = drive(pipeline, ["car-1"], seconds=0.5)
-    time.sleep(0.3)
-    assert published == [] and pipeline.counters.estimates == n
-    pipeline.stop()
-    assert [(topic, len(estimates)) for topic, estimates in published] == [(friction_topic("car-1"), n)]
 
 
 @pytest.fixture
@@ -104,20 +170,20 @@ def small_rounds(monkeypatch):
 
 def test_a_queue_is_worked_off_in_rounds_of_at_most_max_round_samples_one_after_the_other(make_pipeline,
                                                                                         small_rounds):
-    pipeline, _ = make_pipeline(flush_interval_s=2.0)
+    pipeline = make_pipeline(start=False, flush_interval_s=5.0)  # a round waiting for the next: 4 x 5 s
     samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
-    time.sleep(0.2)  # the first round (empty) has run: the next one is 2 s away
     futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
     started = time.monotonic()
-    assert [f.result(timeout=5).stored for f in futures] == [10] * 10
-    assert time.monotonic() - started < 3.0  # one flush interval, then the rounds back to back
-    assert sum(small_rounds) == 100 and max(small_rounds) == 20  # two submissions of 10 a round
+    pipeline.start()
+    assert [f.result(timeout=15) for f in futures] and time.monotonic() - started < 15  # not 4 x 5 s
+    assert [f.result().stored for f in futures] == [10] * 10
+    assert small_rounds == [20] * 5  # two submissions of 10 a round
 
 
 def test_stopping_stores_a_queue_longer_than_a_round(make_pipeline, small_rounds):
-    pipeline, _ = make_pipeline(flush_interval_s=5.0)
+    pipeline = make_pipeline(flush_interval_s=5.0)
     samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
-    time.sleep(0.2)
+    wait_until(lambda: pipeline.counters.rounds >= 1, what="the first (empty) round")  # the next is 5 s away
     futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
     pipeline.stop()
     assert [f.result(timeout=0).stored for f in futures] == [10] * 10

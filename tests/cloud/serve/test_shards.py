@@ -13,8 +13,7 @@ import time
 import pytest
 from broker_fixtures import wait_until
 from drives import patch_drive
-from test_api import running_cloud
-from test_service_mqtt import ADMIN, collect, register
+from service_fixtures import ADMIN, collect, register_mqtt, running_cloud
 
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.serve.shards import shard_of
@@ -60,6 +59,7 @@ def sharded(storage_url, tmp_path):
         yield running
 
 
+@pytest.mark.slow
 def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(sharded):
     service, client = sharded
     mqtt_ids, http_ids = ids_on_each_shard("mq", 1), ids_on_each_shard("ht", 1)
@@ -67,10 +67,10 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
     n = len(runs[mqtt_ids[0]])
     cars = {}
     for vehicle_id in mqtt_ids:
-        _, secret, url = register(client, vehicle_id)
+        _, secret, url = register_mqtt(client, vehicle_id)
         cars[vehicle_id] = UserClient(url, vehicle_id, secret).connect()
         cars[vehicle_id].subscribe(friction_topic(vehicle_id))
-    http_auth = {v: register(client, v)[:2] for v in http_ids}
+    http_auth = {v: register_mqtt(client, v)[:2] for v in http_ids}
     answers = []
     for k in range(0, n, 10):
         for vehicle_id, car in cars.items():
@@ -110,7 +110,7 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
 def test_http_and_mqtt_share_the_owners_rate_limit(tmp_path):
     with running_sharded(f"sqlite:///{tmp_path / 'roadgrip.db'}", tmp_path, rate_limit_samples_per_s=1.0,
                          rate_limit_burst_s=50.0) as (service, client):  # 50 samples of burst, 1 a second more
-        vehicle_id, secret, url = register(client, "limited-car")
+        vehicle_id, secret, url = register_mqtt(client, "limited-car")
         samples = wire_samples(patch_drive(0.9, 3), vehicle_id, START_MS)
         assert client.post("/v1/telemetry", json=samples[:45], auth=(vehicle_id, secret)).status_code == 200
         with UserClient(url, vehicle_id, secret).connect() as car:
@@ -125,7 +125,7 @@ def test_http_and_mqtt_share_the_owners_rate_limit(tmp_path):
 
 def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_acknowledged(sharded):
     service, client = sharded
-    vehicle_id, secret, url = register(client, "crash-car")
+    vehicle_id, secret, url = register_mqtt(client, "crash-car")
     samples = wire_samples(patch_drive(0.9, 5), vehicle_id, START_MS)
     owner = shard_of(vehicle_id, 2)
     pid = client.get("/v1/health", auth=ADMIN).json()["pipeline"]["ingest_processes"][owner]["pid"]
