@@ -40,7 +40,7 @@ def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overw
         task = progress.add_task(f"{preset} preset", total=len(scenarios))
         table = simulate(scenarios, progress=lambda n: progress.advance(task, n))
     manifest = {
-        "format": "roadgrip simulation dataset (DESIGN 3.3)",
+        "format": "roadgrip simulation dataset (CONTRACTS 3.3)",
         "preset": preset,
         "scenario_file": str(scenario_file) if scenario_file else None,
         "seed": seed,
@@ -62,7 +62,7 @@ def simulate(
     seed: int = typer.Option(0, help="seed: the same seed gives the same data"),
     overwrite: bool = typer.Option(False, help="replace an existing dataset in OUT"),
 ):
-    """Simulate a preset (or the runs of a scenario file) and write the dataset (DESIGN 3.3)."""
+    """Simulate a preset (or the runs of a scenario file) and write the dataset (CONTRACTS 3.3)."""
     if (preset is None) == (scenario is None):
         raise ValueError("give exactly one of --preset and --scenario")
     scenarios, table, wall = _simulate_dataset(preset or "custom", runs, seed, out, overwrite, scenario)
@@ -156,7 +156,7 @@ def evaluate(
                                            "fleet_sweep.py)"),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
-    Table 7 (real-vehicle test) in simulation (DESIGN 4), or the fleet benchmark (a simulated fleet through the cloud
+    Table 7 (real-vehicle test) in simulation (CONTRACTS 4), or the fleet benchmark (a simulated fleet through the cloud
     service: warnings and map against the truth; docs/RESULTS.md)."""
     from roadgrip.validation import check_choice
 
@@ -240,9 +240,9 @@ def estimate(
     out: Path = typer.Option(..., help="estimates file (.csv, .parquet or .ndjson)"),
     model: str = typer.Option("pmf", help="model file (.pt) or name: pmf (the default: docs/ESTIMATORS.md) | "
                                           "default (the shipped learned model) | ekf | ukf"),
-    vehicle: Path = typer.Option(None, help="vehicle profile YAML (DESIGN 3.2); default: the paper's SUV"),
+    vehicle: Path = typer.Option(None, help="vehicle profile YAML (CONTRACTS 3.2); default: the paper's SUV"),
 ):
-    """Offline estimates of mu (DESIGN 3.4) for every sample of a telemetry file that can be judged."""
+    """Offline estimates of mu (CONTRACTS 3.4) for every sample of a telemetry file that can be judged."""
     from roadgrip.data.tables import write_table
     from roadgrip.data.telemetry import read_telemetry
     from roadgrip.estimators.base import ESTIMATE_SCHEMA
@@ -260,7 +260,7 @@ def estimate(
         rows = np.flatnonzero(ids == vid)
         results.append(estimator.estimate_batch(batch.table.take(rows), batch.segments[rows], profile))
     estimates = pa.concat_tables(results) if results else ESTIMATE_SCHEMA.empty_table()
-    if batch.time_column == "t_s":  # DESIGN 3.4: the timestamp as the input had it
+    if batch.time_column == "t_s":  # CONTRACTS 3.4: the timestamp as the input had it
         t_s = pc.divide(pc.cast(estimates["timestamp_ms"], pa.float64()), 1000.0)
         estimates = estimates.set_column(estimates.schema.get_field_index("timestamp_ms"), "t_s", t_s)
     write_table(estimates, out)

@@ -134,7 +134,7 @@ def import_log(
     start_ms: int = typer.Option(None, help="timestamp of the first sample, ms since the Unix epoch (default: the "
                                             "importer's)"),
 ):
-    """Import a recorded log into wire format v1 (DESIGN 3.1), ready for `roadgrip estimate` or a replay."""
+    """Import a recorded log into wire format v1 (CONTRACTS 3.1), ready for `roadgrip estimate` or a replay."""
     from roadgrip.data.tables import WRITERS, write_table
     from roadgrip.fleet.importers import resolve_importer
 

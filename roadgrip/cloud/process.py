@@ -21,7 +21,7 @@ from roadgrip.vehicle.params import PAPER_SUV
 SERVING_GC_THRESHOLD = 50_000
 # How often a serving process hands the C allocator's free memory back to the system (glibc's malloc_trim). A sample's
 # dict (17 keys) keeps its table in malloc's heap, not in Python's arenas; after a queue of 100,000 such dicts is freed
-# the heap keeps the pages (+58 MB of RSS in `python scripts/malloc_trim.py`) until malloc_trim(0) returns them
+# the heap keeps the pages (+58 MB of RSS in `python results/trials/reliability/malloc_trim.py`) until malloc_trim(0) returns them
 # (5 ms). So the service's RSS after a stall (a queue that filled, a long round) comes back down instead of staying at
 # the stall's peak for good: the soak's memory steps of docs/RELIABILITY.md.
 TRIM_INTERVAL_S = 10.0
@@ -50,7 +50,7 @@ def tune_memory_for_serving() -> None:
     """For a process that serves, once it has started:
     - move what exists now (modules, numba's kernels, the settings, the restored map) out of the collector's sight
       (`gc.freeze`) and collect the young generation every SERVING_GC_THRESHOLD allocations. Collection took 2.4 s
-      instead of 7.4 s over the 40 s of `python scripts/pipeline_cost.py --seconds 40`;
+      instead of 7.4 s over the 40 s of `python results/trials/reliability/pipeline_cost.py --seconds 40`;
     - every TRIM_INTERVAL_S, hand free memory back (`release_free_memory`), from a daemon thread.
     Process-wide, hence not done by `CloudService.start`, which tests call many times in one process."""
     gc.collect()

@@ -1,4 +1,4 @@
-"""Simulation datasets on disk (DESIGN 3.3): `samples.parquet`, one row per sample, and `manifest.json`.
+"""Simulation datasets on disk (CONTRACTS 3.3): `samples.parquet`, one row per sample, and `manifest.json`.
 
 A dataset is written into a temporary folder beside the target and renamed into place only when complete, so a failed or
 interrupted run never leaves half a dataset behind.

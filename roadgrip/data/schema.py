@@ -1,5 +1,5 @@
-"""The one source of truth for column names, types and units: telemetry wire format v1 (DESIGN 3.1), the simulation
-dataset (DESIGN 3.3) and the estimate (DESIGN 3.4) as the cloud stores and publishes it."""
+"""The one source of truth for column names, types and units: telemetry wire format v1 (CONTRACTS 3.1), the simulation
+dataset (CONTRACTS 3.3) and the estimate (CONTRACTS 3.4) as the cloud stores and publishes it."""
 
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ GROUND_TRUTH = (
 TELEMETRY_COLUMNS = tuple(c.name for c in TELEMETRY)
 DATASET_SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=not c.required) for c in TELEMETRY + GROUND_TRUTH])
 
-# An estimate as the cloud stores it, publishes it on a vehicle's friction topic and hands it to the map (DESIGN 3.4):
+# An estimate as the cloud stores it, publishes it on a vehicle's friction topic and hands it to the map (CONTRACTS 3.4):
 # the estimator's output plus where the vehicle was. Offline files (`roadgrip estimate`) carry the first eight.
 ESTIMATE = (
     Column("vehicle_id", pa.string(), "-", "the vehicle, as in its telemetry"),

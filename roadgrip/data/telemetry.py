@@ -1,4 +1,4 @@
-"""Reading and validating a telemetry file (wire format v1, DESIGN 3.1) for offline estimation (`roadgrip estimate`).
+"""Reading and validating a telemetry file (wire format v1, CONTRACTS 3.1) for offline estimation (`roadgrip estimate`).
 
 `read_telemetry(path)` reads CSV, Parquet, NDJSON/JSONL (one object per line) or JSON (an array of objects) with
 `roadgrip.data.readers` and hands the table to `validate_telemetry`, which returns a `TelemetryBatch`: the accepted
@@ -37,7 +37,7 @@ from roadgrip.data.readers import Rejection, read_file
 from roadgrip.data.schema import TELEMETRY
 from roadgrip.data.unit_checks import WHEEL_COLUMNS, check_units, vehicle_codes
 
-VEHICLE_ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # DESIGN 3.1
+VEHICLE_ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # CONTRACTS 3.1
 BOOL_COLUMNS = ("abs_active", "acc_active", "tcs_active", "esc_active")
 TIME_COLUMNS = ("vehicle_id", "timestamp_ms")
 SCHEMA = {c.name: c for c in TELEMETRY}
@@ -271,7 +271,7 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
     if "timestamp_ms" not in names and "t_s" not in names:
         missing.insert(0, "timestamp_ms (or t_s, seconds from the start)")
     if missing:
-        raise ValueError(f"{source} is missing required telemetry column(s): {', '.join(missing)} (DESIGN 3.1); "
+        raise ValueError(f"{source} is missing required telemetry column(s): {', '.join(missing)} (CONTRACTS 3.1); "
                          f"its columns are {names[:40]}{' ...' if len(names) > 40 else ''}")
 
     n = table.num_rows

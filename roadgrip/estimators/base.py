@@ -38,9 +38,9 @@ def estimate_table(columns: dict) -> pa.Table:
 
 @dataclass(frozen=True)
 class Estimate:
-    """DESIGN 3.4: the most probable mu, a 90 % interval (5 % and 95 %), and whether the manoeuvre made mu observable.
+    """CONTRACTS 3.4: the most probable mu, a 90 % interval (5 % and 95 %), and whether the manoeuvre made mu observable.
 
-    mu_proven (added to DESIGN 3.4, docs/ESTIMATORS.md): what the car's own acceleration proves at this sample,
+    mu_proven (added to CONTRACTS 3.4, docs/ESTIMATORS.md): what the car's own acceleration proves at this sample,
     (|a_road| - k sigma_a) / g at least 0 (roadgrip/estimators/guard.py), excited or not; mu_lower >= mu_proven. None
     from an estimator without the guard. A pass that is not excited still proves this much: the map counts it."""
 

@@ -17,7 +17,7 @@ import numpy as np
 from roadgrip.estimators.excitation import EXCITATION_UTILIZATION
 from roadgrip.units import G_MPS2
 
-UTILIZATION_EDGES = (0.25, EXCITATION_UTILIZATION)  # bins: < 0.25, 0.25-0.5, >= 0.5 or ABS (the last is DESIGN 4's "excited")
+UTILIZATION_EDGES = (0.25, EXCITATION_UTILIZATION)  # bins: < 0.25, 0.25-0.5, >= 0.5 or ABS (the last is CONTRACTS 4's "excited")
 COVERAGE = 0.90
 
 

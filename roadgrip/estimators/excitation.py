@@ -1,4 +1,4 @@
-"""When is mu observable? DESIGN 4: a sample is excited when the tires use at least half of the available friction,
+"""When is mu observable? CONTRACTS 4: a sample is excited when the tires use at least half of the available friction,
 sqrt(a_x^2 + a_y^2) / (mu g) >= 0.5, or when ABS acts. Under steadier driving a tire's force hardly depends on mu (in
 Dugoff's linear region not at all), so no estimator can read mu from the car's motion there."""
 

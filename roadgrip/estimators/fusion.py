@@ -9,7 +9,7 @@ with the interval mu +- 1.645 sigma clipped to [0, 1.5], and excited where eithe
 Where the learned model has no estimate yet (its window still filling) the physics estimate stands alone. The weighting
 treats the two errors as independent and trusts both intervals. docs/ESTIMATORS.md (section 7) measures it: with the
 shipped default model it does not beat both estimators (its intervals are too narrow off its training data), so no
-estimator name is registered for it; it stays for that measurement (scripts/physics_paper_accuracy.py).
+estimator name is registered for it; it stays for that measurement (results/trials/estimators/physics_paper_accuracy.py).
 """
 
 from __future__ import annotations

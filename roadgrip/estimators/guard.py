@@ -1,6 +1,6 @@
 """The physics guard: what a car's own acceleration proves about mu, applied to every estimator's output in one place.
 
-The only horizontal forces on a car are the road's, on its tires, and the air's (DESIGN 3.1 axes). The accelerometer
+The only horizontal forces on a car are the road's, on its tires, and the air's (CONTRACTS 3.1 axes). The accelerometer
 measures their sum per mass (the specific force: gravity on a grade is not in it), so the road's force per mass is
 
     a_road_x = a_x + D(v) / m,   D(v) = 1/2 rho c_d A v^2  (drag, which decelerates the car without the road's help)

@@ -1,5 +1,5 @@
 """What the two Kalman filters (ekf.py, ukf.py) share beyond the model: the per-vehicle memory, the handling of a
-sample (start, gaps, bad values, divergence), the estimate it yields (DESIGN 3.4), small dense linear algebra, and the
+sample (start, gaps, bad values, divergence), the estimate it yields (CONTRACTS 3.4), small dense linear algebra, and the
 `Estimator` plumbing (streaming, save/restore, batch).
 
 Per-vehicle memory `mem`, one flat float64 vector (so that a state saves as a list and a kernel call passes one array):

@@ -1,6 +1,6 @@
 """The physics estimators by name: Kalman filters on a vehicle + Dugoff tire model (docs/ESTIMATORS.md).
 
-They need no training data, only the vehicle profile (DESIGN 3.2), given per call (`start(vehicle)`,
+They need no training data, only the vehicle profile (CONTRACTS 3.2), given per call (`start(vehicle)`,
 `estimate_batch(..., vehicle)`) or once here as the default for calls that pass none.
 """
 

@@ -36,7 +36,7 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
 An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
 The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
-utilisation u / mu is at least 0.5 (DESIGN 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
+utilisation u / mu is at least 0.5 (CONTRACTS 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
 
 The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): the wheels'
 own while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster than the

@@ -68,7 +68,7 @@ STATE_NAMES = ("vx_mps", "vy_mps", "yaw_rate_radps", "speed_scale_error", "mu")
 
 MU_MIN, MU_MAX = 0.05, 1.5  # the state's range: below 0.05 is no road surface (polished ice is about 0.05)
 INTERVAL_Z = 1.6448536269514722  # the 95 % quantile of the normal: mu +- z sigma is a 90 % interval
-INTERVAL_RANGE = (0.0, 1.5)  # DESIGN 3.4 bounds of the reported interval
+INTERVAL_RANGE = (0.0, 1.5)  # CONTRACTS 3.4 bounds of the reported interval
 
 
 @dataclass(frozen=True)

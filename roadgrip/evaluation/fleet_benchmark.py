@@ -111,7 +111,7 @@ STATION_CONFUSION = 0.1  # a report's state one class off
 STATION_LOSS = 0.05  # a report lost
 STATION_FRICTION_NOISE = 0.05  # standard deviation of a friction sensor's reading
 STATE_ORDER = ("ice", "snow", "wet", "moist", "dry")  # a misread moves one step along
-EXCITED_UTILIZATION = 0.5  # DESIGN 4: an excited sample
+EXCITED_UTILIZATION = 0.5  # CONTRACTS 4: an excited sample
 OBSERVABLE_SAMPLES = 3  # excited samples that make a pass observable (the warning engine's min_excited_per_pass)
 
 
@@ -338,7 +338,7 @@ class Drives:
     distance_m: np.ndarray  # driven in the 100 ms before the sample
     cell: np.ndarray  # H3 cell of the reported position (object array)
     start_ms: int
-    excited: np.ndarray  # DESIGN 4: friction utilization >= 0.5 (reported accelerations, true mu) or ABS active
+    excited: np.ndarray  # CONTRACTS 4: friction utilization >= 0.5 (reported accelerations, true mu) or ABS active
 
 
 def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10) -> Drives:

@@ -1,11 +1,11 @@
-"""The generalization benchmark (DESIGN 4): can an estimator judge roads and cars it has never seen?
+"""The generalization benchmark (CONTRACTS 4): can an estimator judge roads and cars it has never seen?
 
 - Train: runs of the `random` preset on the midsize sedan and the paper's SUV (randomized around them), with mu drawn
   from bands that leave out [0.45, 0.55] and [0.85, 1.0] (roadgrip/sim/presets.py: generalization_scenarios).
 - Calibrate the 90 % intervals: other runs of the same distribution (held out from training).
 - Test: runs on the held-out compact hatchback (randomized around it), with mu drawn from the held-out bands only: mu
   values and a vehicle that training never saw. Steps only (ramps would cross the held-out bands).
-For every estimator: RMSE and MAE over the excited samples (DESIGN 4: true friction utilization >= 0.5, or ABS) and over all
+For every estimator: RMSE and MAE over the excited samples (CONTRACTS 4: true friction utilization >= 0.5, or ABS) and over all
 samples, coverage and width of the 90 % interval, and the share of samples the estimator judged excited.
 """
 

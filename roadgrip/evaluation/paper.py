@@ -1,4 +1,4 @@
-"""The paper benchmark (paper 5.1, DESIGN 4): Tables 2-6 and Figures 4-8 regenerated.
+"""The paper benchmark (paper 5.1, CONTRACTS 4): Tables 2-6 and Figures 4-8 regenerated.
 
 Protocol, for each feature set:
 - per condition, as the paper: train on the condition's first experiment (straight and circular runs), with the 4:1 split

@@ -15,7 +15,7 @@ PHYSICS_ROWS = {"pmf": "pmf", "ekf": "EKF", "ukf": "UKF"}  # estimator name: nam
 
 def physics_on_runs(name: str, table: pa.Table, vehicles: dict, test: PreparedData):
     """(mu, lower, upper) of a physics filter at the test windows' last samples; each run filtered from its start with
-    its own vehicle's profile (the profile of a fleet's car is known: DESIGN 3.2)."""
+    its own vehicle's profile (the profile of a fleet's car is known: CONTRACTS 3.2)."""
     estimator = load_estimator(name)
     found = {}
     for run_id in np.unique(test.runs):

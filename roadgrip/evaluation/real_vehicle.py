@@ -1,4 +1,4 @@
-"""The real-vehicle benchmark (paper 5.2, Table 7; DESIGN 4 `real-vehicle`), reproduced in simulation.
+"""The real-vehicle benchmark (paper 5.2, Table 7; CONTRACTS 4 `real-vehicle`), reproduced in simulation.
 
 The paper drove a 10 km expressway forward and reverse, twice each, in fine weather, accelerating and decelerating; its
 vehicle-based system estimated the dry road's adhesion coefficient (0.576-0.628), and a single-wheel sideway-force test
@@ -15,7 +15,7 @@ wet/dry, is about 0.70, against about 0.68 from Burckhardt's wet and dry asphalt
 - Estimates: the EKF and the shipped learned model (load_estimator("ekf"), load_estimator("default")) on each group's
   telemetry, from LEAD_IN_M before the section (a straight approach: a terminal streams all the time, so the estimator
   has a past when the section begins); only the estimates on the section count. A group's value is the mean of the estimator's excited estimates on the test section (its own judgement,
-  DESIGN 3.4), beside the mean of all its estimates and the mean over the samples that DESIGN 4's truth calls excited.
+  CONTRACTS 3.4), beside the mean of all its estimates and the mean over the samples that CONTRACTS 4's truth calls excited.
 - Reference: the SCRIM-like test wheel of sideway_force.py over the wetted road in the group's direction.
 - Outputs: metrics.csv (per group), table7.csv / table7.md (the paper's layout, our columns beside its), ratios.csv (wet/dry
   ratios of the means, with Burckhardt's), estimates.parquet, sfc.parquet and one figure.

@@ -1,9 +1,9 @@
 """Feature set `production`: inputs that hold on a production car, where the reported speed is computed from the wheel
-speeds (DESIGN 3.1) and so is no slip reference.
+speeds (CONTRACTS 3.1) and so is no slip reference.
 
 Every slip-like quantity compares wheels with wheels (normalised by their own mean speed, with the part that the
 car's yaw explains taken out) or a wheel speed's rate of change with the accelerometer; the accelerations are in g.
-The vehicle profile (DESIGN 3.2) gives the wheel radius, steering ratio, wheelbase, tracks and drive layout.
+The vehicle profile (CONTRACTS 3.2) gives the wheel radius, steering ratio, wheelbase, tracks and drive layout.
 
 With v_i = omega_i r the rolling speed of wheel i (m/s) and V = max(|v_mean|, SPEED_FLOOR_MPS):
 

@@ -28,10 +28,10 @@ TERMINAL_INPUTS = ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_ra
 FEATURE_SETS = {
     # paper 3.3: yaw rate, longitudinal speed, lateral speed and the four wheel angular speeds
     "paper": ("yaw_rate_radps", "speed_mps", "lateral_speed_mps") + WHEEL_SPEEDS,
-    # what a production terminal sends (DESIGN 3.1), without the lateral speed that only test vehicles measure
+    # what a production terminal sends (CONTRACTS 3.1), without the lateral speed that only test vehicles measure
     "terminal": ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad")
     + WHEEL_SPEEDS,
-    # the terminal's signals made independent of the vehicle with its profile (DESIGN 3.2): slip ratios from wheel speeds
+    # the terminal's signals made independent of the vehicle with its profile (CONTRACTS 3.2): slip ratios from wheel speeds
     # and radius (eq. 6), accelerations and the yaw rate's centripetal part in g, the road-wheel angle, ABS
     "physics": tuple(f"slip_ratio_{w}" for w in WHEELS)
     + ("accel_lon_g", "accel_lat_g", "centripetal_g", "road_wheel_angle_rad", "speed_mps", "abs_active"),

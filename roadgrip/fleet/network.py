@@ -9,7 +9,7 @@ vehicle the patches that are there when it reaches them. The simulator's mu is a
 is judged at the planned arrival; a patch that appears or dries while a vehicle is on it is the patch as it was
 when the vehicle reached its first station.
 
-Surface adhesion: the peak of the Burckhardt curve of each surface (reference/tire_surfaces.csv, via
+Surface adhesion: the peak of the Burckhardt curve of each surface (roadgrip/vehicle/tires/burckhardt_surfaces.csv, via
 roadgrip.vehicle.tires.burckhardt): dry asphalt 1.17, wet asphalt 0.80, snow 0.19, ice 0.05.
 
 GeoJSON (RFC 7946, lon/lat): LineString features are roads (properties: `name`, `kind` in expressway/ramp/urban, and

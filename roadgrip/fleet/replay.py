@@ -1,7 +1,7 @@
 """Replaying recorded telemetry: a log's wire-format samples sent again at the pace they were recorded.
 
 `replay_file(path)` imports a log with the importer that recognises it (or the one named: roadgrip.fleet.importers)
-and returns its samples as wire-format v1 dicts (DESIGN 3.1). `replay(samples, send)` hands them to `send` in time
+and returns its samples as wire-format v1 dicts (CONTRACTS 3.1). `replay(samples, send)` hands them to `send` in time
 order, in batches, at `speed` times real time. Sending stays abstract: `send` is any callable taking a list of
 samples (an HTTP POST, an MQTT publish, a list's append in a test).
 

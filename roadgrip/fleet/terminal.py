@@ -1,4 +1,4 @@
-"""What a vehicle's terminal sends: simulated runs turned into wire-format v1 samples (DESIGN 3.1)."""
+"""What a vehicle's terminal sends: simulated runs turned into wire-format v1 samples (CONTRACTS 3.1)."""
 
 from __future__ import annotations
 

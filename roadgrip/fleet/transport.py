@@ -24,7 +24,7 @@ class FleetError(RuntimeError):
 
 def register_fleet(base_url: str, admin_secret: str,
                    vehicles: list[tuple[str, str | dict]]) -> tuple[dict[str, str], str | None]:
-    """Register (vehicle_id, profile) pairs in one call, a profile being a known vehicle's name or a DESIGN 3.2
+    """Register (vehicle_id, profile) pairs in one call, a profile being a known vehicle's name or a CONTRACTS 3.2
     mapping; returns {vehicle_id: secret} and the broker's URL (None without one)."""
     body = [{"vehicle_id": vehicle_id, "profile": profile} for vehicle_id, profile in vehicles]
     try:

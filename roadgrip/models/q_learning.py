@@ -84,7 +84,7 @@ from torch import nn
 from roadgrip.validation import bounded, check_bounds
 
 # Real dry asphalt with good tires exceeds mu = 1.0: Burckhardt's dry-asphalt curve (c1 1.2801, c2 23.99, c3 0.52;
-# ../shared/reference/tire_surfaces.csv) peaks at 1.17 near 17 % slip. Below 0 is never physical.
+# roadgrip/vehicle/tires/burckhardt_surfaces.csv) peaks at 1.17 near 17 % slip. Below 0 is never physical.
 DEFAULT_ALLOWED_RANGE = (0.0, 1.2)
 ACTIONS = ("keep", "raise", "lower", "narrow", "widen")
 KEEP = ACTIONS.index("keep")

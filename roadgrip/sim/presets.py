@@ -1,4 +1,4 @@
-"""Scenario presets: `paper` (the paper's CarSim data set, DESIGN 1.2) and `random` (for generalization).
+"""Scenario presets: `paper` (the paper's CarSim data set, CONTRACTS 3.3) and `random` (for generalization).
 
 Both are pure functions of a seed: the same seed gives the same scenarios, and the run seeds that drive the sensor noise are
 spawned from it with numpy's SeedSequence.
@@ -263,7 +263,7 @@ GENERALIZATION_RUNS = {"train": 160, "calibration": 40, "test": 40}
 
 def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None,
                              effects: ProductionEffects = RANDOM_EFFECTS) -> list[Scenario]:
-    """The generalization benchmark's data (DESIGN 4): `train` and `calibration` runs on the sedan and the SUV with mu in
+    """The generalization benchmark's data (CONTRACTS 4): `train` and `calibration` runs on the sedan and the SUV with mu in
     GENERALIZATION_TRAIN_MU_BANDS; `test` runs on the held-out compact hatchback with mu only in the held-out bands.
     Steps only: ramps would pass through the held-out bands."""
     check_choice("generalization", "part", part, set(GENERALIZATION_RUNS))

@@ -4,7 +4,7 @@
 runs:
   - run_id: wet-patch-braking        # required, unique
     duration_s: 30                   # default 40
-    vehicle: paper-suv               # a shipped vehicle's name, or a full profile mapping (DESIGN 3.2 fields)
+    vehicle: paper-suv               # a shipped vehicle's name, or a full profile mapping (CONTRACTS 3.2 fields)
     tire: {model: magic-formula, shape_c: 1.4}   # dugoff | magic-formula | burckhardt (+ that model's parameters)
     road: {kind: straight, length_m: 1500}       # or {kind: circle, radius_m: 200, arc_length_m: 1200}
                                                  # or {kind: polyline, points_m: [[0, 0], [500, 0], [900, 200]]}

@@ -1,4 +1,4 @@
-"""simulate(): scenarios in, a table of telemetry (wire format v1) and ground truth out (DESIGN 3.3)."""
+"""simulate(): scenarios in, a table of telemetry (wire format v1) and ground truth out (CONTRACTS 3.3)."""
 
 from __future__ import annotations
 

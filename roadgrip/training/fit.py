@@ -37,7 +37,7 @@ class PreparedData:
     blocks: np.ndarray  # (m,) time block of each window within its run
     t_s: np.ndarray  # (m,) time of each window's last sample
     feature_set: str
-    excited: np.ndarray  # (m,) DESIGN 4 excitation of each window's last sample (true accelerations against true mu)
+    excited: np.ndarray  # (m,) CONTRACTS 4 excitation of each window's last sample (true accelerations against true mu)
     measured: np.ndarray  # (m, 3) measured accel_lon, accel_lat and abs_active at each window's last sample
 
 

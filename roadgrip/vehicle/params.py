@@ -1,6 +1,6 @@
 """Vehicle and tire parameters: frozen dataclasses in SI units, with the vehicles roadgrip ships.
 
-The field names of `VehicleParams` are the vehicle profile of DESIGN 3.2 (mass_kg, wheelbase_m, cg_to_front_axle_m,
+The field names of `VehicleParams` are the vehicle profile of CONTRACTS 3.2 (mass_kg, wheelbase_m, cg_to_front_axle_m,
 cg_height_m, track_front_m, track_rear_m, wheel_radius_m, steering_ratio, drive) plus the optional fields that the simulator
 needs, each with a documented default. The reasoning behind every value the paper does not give is in docs/VEHICLES.md.
 """

@@ -160,7 +160,7 @@ json_values = st.recursive(
 
 @st.composite
 def valid_samples(draw) -> dict:
-    """A valid sample of wire format v1 (DESIGN 3.1) without vehicle_id and timestamp_ms (the test sets them): every
+    """A valid sample of wire format v1 (CONTRACTS 3.1) without vehicle_id and timestamp_ms (the test sets them): every
     number inside its physical range, optional fields present, null or absent."""
     out = {}
     for c in TELEMETRY:

@@ -1,4 +1,4 @@
-"""The estimate record of DESIGN 3.4."""
+"""The estimate record of CONTRACTS 3.4."""
 
 import dataclasses
 

@@ -105,7 +105,7 @@ def test_slip_growing_faster_than_force_reads_as_low_friction():
 def worn_tire_drive(n: int):
     """A FWD car driven gently (0 to 0.09 g) for n samples on a worn tire (half the profile's slip stiffness), the
     front left tire 2 % fuller than the others (each front wheel +1 % on the rear axle's mean, 2 % left against
-    right), the accelerometer 0.6 m/s^2 off; also scripts/calibration_convergence.py's. Returns (samples, stiffness)."""
+    right), the accelerometer 0.6 m/s^2 off; also results/trials/production/calibration_convergence.py's. Returns (samples, stiffness)."""
     from roadgrip.estimators.guard import drag_per_mass
 
     road = (0.04 + 0.05 * np.sin(np.arange(n) * 2 * np.pi / 200)) * G_MPS2

@@ -16,7 +16,7 @@ from roadgrip.vehicle.tires.burckhardt import SURFACES, peak_mu
 
 
 def test_sfc_of_tabulated_wet_asphalt_is_the_closed_form_at_sin_20_degrees():
-    c1, c2, c3 = 0.857, 33.822, 0.347  # wet asphalt, Burckhardt 1993 (tire_surfaces.csv)
+    c1, c2, c3 = 0.857, 33.822, 0.347  # wet asphalt, Burckhardt 1993 (roadgrip/vehicle/tires/burckhardt_surfaces.csv)
     s = math.sin(math.radians(20.0))
     expected = c1 * (1.0 - math.exp(-c2 * s)) - c3 * s
     wheel = SidewayForceWheel()

@@ -450,7 +450,7 @@ def test_real_log_lateral_signals_agree_in_sign(m8):
 def test_ekf_runs_on_the_real_log(m8):
     """The EKF with the M8's profile gives a finite estimate inside its interval for every sample. What it estimates
     on this dry road is reported (docs), not asserted: there is no friction ground truth. Two things follow from
-    physics alone: the braking at over 1 g is excited (utilization >= 0.5 for any mu <= 2, DESIGN 4), and where it
+    physics alone: the braking at over 1 g is excited (utilization >= 0.5 for any mu <= 2, CONTRACTS 4), and where it
     judges a sample excited its interval cannot lie below the friction the tyres were seen to use (|a| / g, less
     0.1 for accelerometer error and pitch)."""
     from roadgrip.estimators.learned import load_estimator

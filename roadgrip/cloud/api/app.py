@@ -9,15 +9,15 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 
 | route | who | does | routes/ |
 | --- | --- | --- | --- |
-| POST /v1/vehicles | admin | register a vehicle with its profile (DESIGN 3.2); returns its secret once | vehicles.py |
+| POST /v1/vehicles | admin | register a vehicle with its profile (CONTRACTS 3.2); returns its secret once | vehicles.py |
 | GET /v1/vehicles/{id} | admin, reader, the vehicle | its profile | vehicles.py |
 | POST /v1/readers | admin | create a reader credential; returns its secret once | credentials.py |
 | POST /v1/stations | admin | register a roadside station (its own credential); returns its secret once | credentials.py |
 | POST /v1/stations/{id}/reports | the station | its reports (roadgrip/cloud/domain/stations.py: one JSON object or an array) | stations.py |
 | GET /v1/stations | admin, reader | each station's newest report, with the evidence drawn from it and its cells | stations.py |
 | DELETE /v1/credentials/{name} | admin | revoke a credential, at once | credentials.py |
-| POST /v1/telemetry | vehicle | ingest samples (DESIGN 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys) | telemetry.py |
-| GET /v1/vehicles/{id}/estimates | admin, reader, the vehicle | estimates (DESIGN 3.4) over a time range | vehicles.py |
+| POST /v1/telemetry | vehicle | ingest samples (CONTRACTS 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys) | telemetry.py |
+| GET /v1/vehicles/{id}/estimates | admin, reader, the vehicle | estimates (CONTRACTS 3.4) over a time range | vehicles.py |
 | GET /v1/map | admin, reader | the friction map as GeoJSON | map.py |
 | GET /v1/map/datex2 | admin, reader | the map as DATEX II v3 (RoadSurfaceConditionMeasurements, friction) | map.py |
 | GET /v1/warnings | admin, reader, vehicles | slippery-road warnings as DENMs | warnings.py |

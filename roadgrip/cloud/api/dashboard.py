@@ -8,7 +8,7 @@ served with (headers, config); its routes are in roadgrip/cloud/api/routes/dashb
 | GET /dashboard | anyone | the page (static/index.html); it holds no data |
 | GET /dashboard/config.json | anyone | what the page needs to draw, no secrets: tile URL, H3 resolution, refresh period |
 | GET /dashboard/static/... | anyone | the page's script and style, and Leaflet 1.9.4 (vendored: no internet needed) |
-| GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate (DESIGN 3.4) with its position |
+| GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate (CONTRACTS 3.4) with its position |
 
 Data. The page is a reader like any other: it calls /v1/map, /v1/warnings, /v1/vehicles/latest, /v1/stations and
 /v1/vehicles/{id}/estimates with HTTP Basic credentials. It takes them from the URL fragment

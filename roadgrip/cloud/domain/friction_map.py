@@ -1,4 +1,4 @@
-"""The road-friction map (DESIGN 3.6): per H3 cell, a posterior over mu that fuses what vehicles and roadside stations
+"""The road-friction map (CONTRACTS 3.6): per H3 cell, a posterior over mu that fuses what vehicles and roadside stations
 prove, aged.
 
 This module owns the map's evidence model, its mu grid (MU_GRID up to MU_MAX), the ageing, the cell summaries and
@@ -12,7 +12,7 @@ slippery spot is in the cell, wherever it was taken; a reading of grip proves gr
 tires. The evidence model below says so (grip_locality), and the fleet benchmark measured why it matters: without it,
 calm passes over the dry half of a patch's cells hid the patch (docs/RESULTS.md, "The map").
 
-Pure and in memory: `add` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms, latitude_deg,
+Pure and in memory: `add` takes estimate rows (CONTRACTS 3.4 dicts with vehicle_id, timestamp_ms, latitude_deg,
 longitude_deg, mu, mu_lower, mu_upper, excited and, from a guarded estimator, mu_proven); `add_station` takes roadside
 stations' friction evidence (roadgrip/cloud/domain/stations.py); `cells(now_ms)` summarises every cell with evidence younger
 than `max_age_s`. Rows without a position are ignored.
@@ -44,7 +44,7 @@ over it)
   fleet benchmark's recorded estimates, replayed into the map (0.005, 0.2, 0.3 and 0.5 tried, docs/RESULTS.md): 0.5
   keeps the patches in their cells (90 % coverage of the lowest true mu 0.93-1.00 against 0.20-0.78 with 0.005) for
   some coverage on dry road (0.67 against 0.74 of the measured dry cells); held-out seeds agree
-  (scripts/map_replay.py).
+  (results/trials/results/map_replay.py).
 - What a pass proves even without excitation (a car cornering at 0.4 g proves mu >= 0.37): the largest mu_proven of
   the pass's estimates, b, as a sharp lower side Phi((mu - b) / proven_sigma) (0.02: the guard's bound already leaves
   two sigma of the accelerometer's noise and bias, roadgrip/estimators/guard.py), with eps_low: it too is grip where

@@ -1,4 +1,4 @@
-"""The pass rule (DESIGN 3.6), owned here for the friction map (friction_map.py) and the warning engine (warnings.py):
+"""The pass rule (CONTRACTS 3.6), owned here for the friction map (friction_map.py) and the warning engine (warnings.py):
 both take a vehicle's estimates as passes, and they must cut them the same way.
 
 A pass is one vehicle's consecutive estimates in one cell. One vehicle's estimates in one pass share its estimator's

@@ -47,7 +47,7 @@ report says nothing about grip (surface_state unknown and no friction).
 
    | state | mu | 90 % interval | why |
    | --- | --- | --- | --- |
-   | dry | 0.90 | 0.70-1.20 | dry asphalt: 0.8-1.0 in most tables, 1.17 on the Burckhardt dry asphalt (reference/tire_surfaces.csv) |
+   | dry | 0.90 | 0.70-1.20 | dry asphalt: 0.8-1.0 in most tables, 1.17 on the Burckhardt dry asphalt (roadgrip/vehicle/tires/burckhardt_surfaces.csv) |
    | moist | 0.70 | 0.50-0.95 | a trace of water: between dry and wet |
    | wet, film <= 0.2 mm | 0.65 | 0.45-0.90 | wet asphalt 0.5-0.8 (Burckhardt 0.80); a thin film drains in the tread |
    | wet, film 0.2-1 mm | 0.55 | 0.35-0.80 | more water than the tread clears at speed |

@@ -1,4 +1,4 @@
-"""Slippery-road warnings per H3 cell (DESIGN 3.6), in the shape of an ETSI DENM (cause code 6,
+"""Slippery-road warnings per H3 cell (CONTRACTS 3.6), in the shape of an ETSI DENM (cause code 6,
 adverseWeatherCondition-Adhesion).
 
 This module owns the warning rules 2-8 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
@@ -6,7 +6,7 @@ as defaults) and the longest validity a DENM can carry (MAX_VALIDITY_S). Rule 1,
 the friction map's too; the cell of a position is cells.py's; the argument checks are checks.py's. Writing an event
 as a DENM is roadgrip/cloud/formats/denm.py's.
 
-Pure and in memory: `update(estimates, now_ms)` takes estimate rows (DESIGN 3.4 dicts with vehicle_id, timestamp_ms,
+Pure and in memory: `update(estimates, now_ms)` takes estimate rows (CONTRACTS 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
 position are ignored. `station_evidence(rows, now_ms)` takes the evidence of roadside stations' reports
 (roadgrip/cloud/domain/stations.py: dicts with station_id, cell, timestamp_ms, mu, mu_lower, mu_upper) the same way (rule 8).

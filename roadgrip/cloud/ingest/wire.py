@@ -1,7 +1,7 @@
 """Telemetry payloads as they reach the cloud (HTTP bodies, MQTT messages): parsed and validated sample by sample.
 
 `parse_payload(body, content_type=..., now_ms=..., vehicle_id=...)` returns `(samples, errors)`: the valid samples, in
-payload order, as dicts with exactly the wire format v1 names (`roadgrip.data.schema.TELEMETRY`, DESIGN 3.1) holding
+payload order, as dicts with exactly the wire format v1 names (`roadgrip.data.schema.TELEMETRY`, CONTRACTS 3.1) holding
 Python floats, ints, bools and strings, and one `SampleError` per refused sample. A payload that cannot be read at all
 raises `PayloadError`, which carries the HTTP status to answer.
 
@@ -78,7 +78,7 @@ class VssSignal:
 
 _WHEEL_AXLES = {"fl": "Row1.Wheel.Left", "fr": "Row1.Wheel.Right", "rl": "Row2.Wheel.Left", "rr": "Row2.Wheel.Right"}
 
-# DESIGN 3.1: VSS key -> wire field.
+# CONTRACTS 3.1: VSS key -> wire field.
 VSS = {
     "Vehicle.VehicleIdentification.VIN": VssSignal("vehicle_id", "-"),
     "Vehicle.CurrentLocation.Latitude": VssSignal("latitude_deg", "deg"),

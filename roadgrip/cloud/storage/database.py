@@ -1,4 +1,4 @@
-"""The cloud platform's database (DESIGN 3.6): `open_storage(url)` and `Storage`, the facade that every caller outside
+"""The cloud platform's database (CONTRACTS 3.6): `open_storage(url)` and `Storage`, the facade that every caller outside
 storage/ uses, over one small repository per group of tables. This module stays the one to import from: it also
 re-exports the schema's tables and the errors.
 
@@ -149,7 +149,7 @@ class Storage:
         return self._telemetry.write_batch(telemetry, estimates, fences)
 
     def _insert_sql(self, table: Table, n_rows: int, returning: bool) -> str:
-        return self._telemetry.insert_sql(table, n_rows, returning)  # for scripts/sqlite_returning_gil.py
+        return self._telemetry.insert_sql(table, n_rows, returning)  # for results/trials/reliability/sqlite_returning_gil.py
 
     def take_partition(self, partition_id: int, owner: str) -> int:
         return self._partitions.take_partition(partition_id, owner)

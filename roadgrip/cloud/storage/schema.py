@@ -1,11 +1,11 @@
-"""The database's tables (DESIGN 3.6), as SQLAlchemy Core: the one description of the schema that the repositories
+"""The database's tables (CONTRACTS 3.6), as SQLAlchemy Core: the one description of the schema that the repositories
 query and the Alembic migrations (storage/migrations/) bring every database to.
 
 | table | key | columns |
 | --- | --- | --- |
-| telemetry | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.TELEMETRY` (wire format v1, DESIGN 3.1), SI units |
-| estimates | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.ESTIMATE`: mu, mu_lower, mu_upper (the 90% interval), excited, estimator (DESIGN 3.4), mu_proven (what the car's acceleration proves; null from an estimator without the guard); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (storage/migrate.py) |
-| vehicles | vehicle_id | profile (JSON, the fields of DESIGN 3.2), updated_ms |
+| telemetry | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.TELEMETRY` (wire format v1, CONTRACTS 3.1), SI units |
+| estimates | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.ESTIMATE`: mu, mu_lower, mu_upper (the 90% interval), excited, estimator (CONTRACTS 3.4), mu_proven (what the car's acceleration proves; null from an estimator without the guard); latitude_deg, longitude_deg and h3_cell, null where unknown; with PostGIS also `geom` (storage/migrate.py) |
+| vehicles | vehicle_id | profile (JSON, the fields of CONTRACTS 3.2), updated_ms |
 | credentials | name | role (one of ROLES), secret_hash, vehicle_id (vehicles only), revoked, created_ms |
 | warnings | warning_id | cell (H3), status ("active" while in force), detection_ms, updated_ms, message (JSON) |
 | estimator_states | vehicle_id, estimator | state (JSON: the estimator's `state_to_dict`, packed by roadgrip/cloud/pipeline/checkpoints.py), updated_ms |

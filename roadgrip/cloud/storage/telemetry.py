@@ -57,7 +57,7 @@ class Telemetry:
         rows inserted. RETURNING is not used at first because SQLite hands each returned row over in a step of its
         own, releasing Python's interpreter lock around each: with another thread busy, each step then waits for
         the lock (up to `sys.getswitchinterval()`, 5 ms), and 500-row INSERTs fell from 35,000 rows/s to 6,000
-        (`python scripts/sqlite_returning_gil.py`)."""
+        (`python results/trials/reliability/sqlite_returning_gil.py`)."""
         telemetry = checked_rows("telemetry", telemetry, telemetry_table)
         estimates = checked_rows("estimate", estimates, estimates_table)
         try:

@@ -1,4 +1,4 @@
-"""The vehicles table (each vehicle's profile, DESIGN 3.2), and registering a fleet: profiles and their "vehicle"
+"""The vehicles table (each vehicle's profile, CONTRACTS 3.2), and registering a fleet: profiles and their "vehicle"
 credentials in one transaction."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ class Vehicles:
         self._db = db
 
     def put_vehicle(self, vehicle_id: str, profile: dict) -> None:
-        """Store (or replace) the profile of `vehicle_id`: a JSON-able dict of DESIGN 3.2 fields."""
+        """Store (or replace) the profile of `vehicle_id`: a JSON-able dict of CONTRACTS 3.2 fields."""
         if not isinstance(profile, dict):
             raise TypeError(f"profile of vehicle {vehicle_id!r} must be a dict, got {type(profile).__name__}")
         with self._db.transaction() as conn:

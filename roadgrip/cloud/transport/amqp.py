@@ -1,6 +1,6 @@
 """RabbitMQ in cluster mode (issue 17; the choice and its measurements: docs/CLUSTER.md): the partition topology that
 carries vehicles' MQTT telemetry to the workers (roadgrip/cloud/cluster/worker.py), and a local 3-node cluster on 127.0.0.1
-for trials and tests (`RabbitCluster`, used by scripts/broker_trial.py and tests/cloud/cluster/test_worker.py).
+for trials and tests (`RabbitCluster`, used by results/trials/cluster/broker_trial.py and tests/cloud/cluster/test_worker.py).
 
 The topology (`topology`, declared idempotently by `declare_topology`):
 

@@ -128,7 +128,7 @@ def password_hash(password: str, *, salt: bytes | None = None, iterations: int =
 
 
 def _check_name(field: str, name: str) -> None:
-    """Login names follow the vehicle_id rule (DESIGN 3.1), so that none can break the password or ACL file."""
+    """Login names follow the vehicle_id rule (CONTRACTS 3.1), so that none can break the password or ACL file."""
     if not isinstance(name, str) or VEHICLE_ID_RE.fullmatch(name) is None:
         raise ValueError(f"{field} must match {VEHICLE_ID_RE.pattern}, got {name!r}")
 

@@ -1,4 +1,4 @@
-"""The cloud's MQTT side (DESIGN 3.6): the topic names, the service's connection (`MqttClient`), and small clients for
+"""The cloud's MQTT side (CONTRACTS 3.6): the topic names, the service's connection (`MqttClient`), and small clients for
 the other logins: `VehicleClient` for vehicles (and the fleet simulator), `UserClient` for any login (readers, tests).
 The broker itself is `roadgrip.cloud.transport.mosquitto`.
 
@@ -77,7 +77,7 @@ TelemetryHandler = Callable[[str, bytes, Callable[[], None]], None]
 
 
 def check_vehicle_id(vehicle_id: str) -> str:
-    """`vehicle_id` if it is one (DESIGN 3.1: 1-64 of A-Za-z0-9_.-, hence never a topic wildcard or separator)."""
+    """`vehicle_id` if it is one (CONTRACTS 3.1: 1-64 of A-Za-z0-9_.-, hence never a topic wildcard or separator)."""
     if not isinstance(vehicle_id, str) or VEHICLE_ID_RE.fullmatch(vehicle_id) is None:
         raise ValueError(f"vehicle_id must match {VEHICLE_ID_RE.pattern}, got {vehicle_id!r}")
     return vehicle_id

@@ -1,6 +1,6 @@
 """Importers of recorded logs: one plug-in point for every logger's format.
 
-An importer turns one recorded log (a file, or a folder of files) into telemetry in wire format v1 (DESIGN 3.1): a
+An importer turns one recorded log (a file, or a folder of files) into telemetry in wire format v1 (CONTRACTS 3.1): a
 `pyarrow.Table` with the columns of `roadgrip.data.schema.TELEMETRY` (vehicle_id, timestamp_ms in ms since the Unix
 epoch, SI units, ISO 8855 signs), sorted by (vehicle_id, timestamp_ms). It is any object with
 
@@ -51,7 +51,7 @@ class Importer(Protocol):
         """Whether `path` looks like a log of this format."""
 
     def load(self, path: Path, **options) -> pa.Table:
-        """The log as wire-format v1 telemetry (DESIGN 3.1)."""
+        """The log as wire-format v1 telemetry (CONTRACTS 3.1)."""
 
 
 _REGISTRY: dict[str, Importer] = {}

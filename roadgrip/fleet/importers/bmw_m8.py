@@ -91,7 +91,7 @@ FAST_COLUMNS = ("time", "steering", "Velocity_X", "Velocity_Y", *(f"v_wheel_{w}"
 SLOW_COLUMNS = ("car_time", "Acceleration_X", "Acceleration_Y", "Yaw_Velocity", "Rel_pos_x", "Rel_pos_y")
 PROFILE_PATH = Path(__file__).with_name("bmw_m8.yaml")
 
-PERIOD_S = 0.1  # wire format v1: one sample every 100 ms (DESIGN 3.1)
+PERIOD_S = 0.1  # wire format v1: one sample every 100 ms (CONTRACTS 3.1)
 DEFAULT_VEHICLE_ID = "bmw-m8"
 DEFAULT_START_MS = 1_704_067_200_000  # 2024-01-01T00:00:00Z: the log has no date, so any fixed epoch will do
 # Technische Hochschule Ingolstadt (CARISSMA), Esplanade 10, Ingolstadt, Germany: where the recording team sits; the
@@ -111,7 +111,7 @@ OPTIONS = ("vehicle_id", "start_ms", "origin_lat_deg", "origin_lon_deg", "clock_
 
 @functools.cache
 def m8_profile() -> VehicleParams:
-    """The BMW M8 of the log as a vehicle profile (DESIGN 3.2): bmw_m8.yaml, sources in its comments."""
+    """The BMW M8 of the log as a vehicle profile (CONTRACTS 3.2): bmw_m8.yaml, sources in its comments."""
     return VehicleParams.from_yaml(PROFILE_PATH)
 
 

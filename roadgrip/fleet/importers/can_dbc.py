@@ -13,7 +13,7 @@ data/real/toyota_rav4_street).
 | key          | meaning                                                                                       |
 | ------------ | --------------------------------------------------------------------------------------------- |
 | `dbc`        | the DBC file's name it was written for (picks the DBC of a folder of several, and a shipped mapping) |
-| `vehicle`    | the vehicle profile (DESIGN 3.2): a YAML file beside the mapping, or its fields inline         |
+| `vehicle`    | the vehicle profile (CONTRACTS 3.2): a YAML file beside the mapping, or its fields inline         |
 | `vehicle_id` | the samples' vehicle_id unless the option says otherwise (default: the log folder's name)      |
 | `bus`        | the bus of every signal that names none (default 0)                                            |
 | `max_age_s`  | staleness limit of every signal that names none (default 0.3 s)                               |
@@ -26,7 +26,7 @@ converted to the field's SI unit with `roadgrip.units`; wheel speeds given as a 
 divided by the profile's `wheel_radius_m`, so that wheel speed x radius gives back the car's own figure; `sign: -1`
 turns a signal of the car's convention into ISO 8855's (x forward, y left, z up, yaw and steering positive to the
 left). A flag (a boolean field: abs_active, acc_active, ...) has no unit and is true where its signal is not 0;
-`false` instead of a source means the log does not report it. Every required field of DESIGN 3.1 must be mapped;
+`false` instead of a source means the log does not report it. Every required field of CONTRACTS 3.1 must be mapped;
 the optional ones (latitude_deg, longitude_deg, lateral_speed_mps, ...) may be, else they are left empty.
 
 **Resampling**: the grid instants are the multiples of 100 ms since the Unix epoch between the log's first and last
@@ -91,7 +91,7 @@ logger = logging.getLogger(__name__)
 
 CAN_COLUMNS = ("Time", "Bus", "MessageID", "Message")
 OPTIONS = ("vehicle_id", "start_ms", "mapping", "max_age_s")
-PERIOD_MS = 100  # wire format v1: one sample every 100 ms (DESIGN 3.1)
+PERIOD_MS = 100  # wire format v1: one sample every 100 ms (CONTRACTS 3.1)
 DEFAULT_START_MS = 1_704_067_200_000  # 2024-01-01T00:00:00Z, for a log whose clock counts from its start
 RELATIVE_CLOCK_S = 1e9  # a Time below this (2001-09-09) counts from the log's start, not from the epoch
 SHIPPED_MAPPINGS = Path(__file__).parent  # the mappings shipped with roadgrip, beside this file

@@ -77,7 +77,7 @@ def load_mapping(path: str | Path) -> CanMapping:
     if "fields" not in data or not isinstance(data["fields"], dict):
         raise ValueError(f"{where} needs `fields`: a mapping of wire-format fields to their CAN signals")
     if "vehicle" not in data:
-        raise ValueError(f"{where} needs `vehicle`: a vehicle profile (DESIGN 3.2), a file beside it or inline")
+        raise ValueError(f"{where} needs `vehicle`: a vehicle profile (CONTRACTS 3.2), a file beside it or inline")
     default_bus = _bus(data.get("bus", 0), f"{where}: bus")
     default_age = _max_age(data.get("max_age_s", DEFAULT_MAX_AGE_S), f"{where}: max_age_s")
     dbc = data.get("dbc")

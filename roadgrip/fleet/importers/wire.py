@@ -1,4 +1,4 @@
-"""The `wire` importer: any file already in wire format v1 (DESIGN 3.1): CSV, Parquet, NDJSON/JSONL or JSON.
+"""The `wire` importer: any file already in wire format v1 (CONTRACTS 3.1): CSV, Parquet, NDJSON/JSONL or JSON.
 
 It reads the file with `roadgrip.data.telemetry.read_telemetry` (`roadgrip.data.readers`, then `validate_telemetry`),
 so that a replay sends exactly what `roadgrip estimate` would accept: rows that fail a check are left out (logged

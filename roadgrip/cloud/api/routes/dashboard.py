@@ -14,7 +14,7 @@ router = APIRouter()
 
 @router.get("/v1/vehicles/latest", tags=["dashboard"])
 def latest_estimates(caller: Caller, backend: Backend) -> dict:
-    """Each vehicle's newest estimate (DESIGN 3.4) with its position (latitude_deg, longitude_deg, h3_cell; null
+    """Each vehicle's newest estimate (CONTRACTS 3.4) with its position (latitude_deg, longitude_deg, h3_cell; null
     where the sample had none), by vehicle_id."""
     require(caller, "admin", "reader")
     return {"vehicles": backend.storage.latest_estimates()}

@@ -1,4 +1,4 @@
-"""POST /v1/telemetry: a vehicle's samples (DESIGN 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys), read by
+"""POST /v1/telemetry: a vehicle's samples (CONTRACTS 3.1: NDJSON, a JSON array or object; wire v1 or VSS keys), read by
 the wire parser (roadgrip/cloud/ingest/wire.py) and handed to the backend.
 
 Ingest answers 200 with counts and the rejected samples (index, field, reason) when at least one sample was valid, 422

@@ -1,4 +1,4 @@
-"""Vehicles: registration with a profile (DESIGN 3.2), a vehicle's profile, its estimates (DESIGN 3.4) over a time
+"""Vehicles: registration with a profile (CONTRACTS 3.2), a vehicle's profile, its estimates (CONTRACTS 3.4) over a time
 range."""
 
 from typing import Annotated
@@ -22,7 +22,7 @@ router = APIRouter()
 class VehicleRegistration(BaseModel):
     vehicle_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-, not 'latest'")
     profile: str | dict = Field("paper-suv", description=f"a known vehicle ({', '.join(VEHICLES)}) or a profile "
-                                                         "mapping with the DESIGN 3.2 fields (SI)")
+                                                         "mapping with the CONTRACTS 3.2 fields (SI)")
     _params: VehicleParams | None = PrivateAttr(None)  # the profile read, by `_checked`
 
     @property
@@ -32,7 +32,7 @@ class VehicleRegistration(BaseModel):
 
 def _checked(body: VehicleRegistration | list[VehicleRegistration]):
     """The rules of a registration beyond its schema, for one vehicle or a list (Refused, naming where, for the first
-    broken): no reserved vehicle_id; a profile that is a known vehicle or valid DESIGN 3.2 fields, with no text a
+    broken): no reserved vehicle_id; a profile that is a known vehicle or valid CONTRACTS 3.2 fields, with no text a
     database cannot store. Each registration gets its profile read (`params`)."""
     batch = body if isinstance(body, list) else [body]
     reserved = [item.vehicle_id for item in batch if item.vehicle_id in RESERVED_IDS]
