@@ -7,8 +7,8 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
 | at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
-| a wheel locked or spinning | a wheel's slip against the reference speed beyond LOCK_SLIP | u / mu in [ETA_LOCK, 1] |
-| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+| a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
+| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -28,7 +28,8 @@ returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +- 0.1
 Self-calibration, kept in the state (so the cloud keeps it per vehicle through state_to_dict):
 - the accelerometer's bias: a slow average (BIAS_TAU_S of steady driving) of a_x - dv/dt, dv/dt from the wheels;
   a_road uses a_x minus it, and s_u shrinks from BIAS_SIGMA0 towards BIAS_SIGMA_FLOOR (grades that vary) as it settles;
-- the left/right rolling-radius ratio of each axle, from straight driving (RADIUS_TAU_S);
+- the left/right rolling-radius ratio of each axle, from straight driving, each wheel against its kinematic speed
+  (RADIUS_TAU_S);
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
   over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
   has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope.
@@ -38,10 +39,21 @@ inconsistency of the model with the measurement: it is skipped and counted, neve
 The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
 utilisation u / mu is at least 0.5 (DESIGN 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
 
+Kinematics before slip: in a turn the wheels roll at different speeds without slipping (the outer faster than the
+inner by track / R, 17 % at R = 10 m; the front axle on a larger radius than the rear). Every slip term first takes out
+what the car's motion explains: `wheel_kinematics` gives the speed along its heading at which each wheel rolls freely,
+as an affine function of the CoG's speed v, from the yaw rate, the half-tracks, the axle positions, the steer angle
+delta = steering_wheel_angle / steering_ratio (ISO 8855, positive left) and the rear tires' slip angle; each wheel's
+measured speed is mapped back to the CoG through it, and a wheel's slip is (omega_i R_i - v_wheel_i) / max(|.|) against
+its own kinematic speed at the reference speed. The reference speed, the axle slip and the left/right radius
+calibration all use the mapped speeds. Below SLIP_MIN_SPEED_MPS no slip term speaks (the wheel-speed resolution is too
+large a share of v); the bound and the controllers' flags speak at every speed, ABS's slip band included (it is the
+flag's reading, not a measured slip).
+
 The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): the wheels'
-own while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster than the
-accelerometer's a_x allows, so that locked or spinning wheels do not drag it along; a wheel far from it is past its
-friction peak. Where the tires work hard (the recent largest utilisation at least half the median, or an axle at a
+own (mapped to the CoG) while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster
+than the accelerometer's a_x allows, so that locked or spinning wheels do not drag it along; a wheel far from it is past
+its friction peak. Where the tires work hard (the recent largest utilisation at least half the median, or an axle at a
 controller's limit) the interval's lower end reaches that utilisation: the truth may lie right at the proven bound.
 """
 
