@@ -7,8 +7,8 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
 | at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
-| a wheel locked or spinning | a wheel's slip against the reference speed beyond LOCK_SLIP | u / mu in [ETA_LOCK, 1] |
-| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= 5 m/s | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+| a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
+| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -28,7 +28,8 @@ returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +- 0.1
 Self-calibration, kept in the state (so the cloud keeps it per vehicle through state_to_dict):
 - the accelerometer's bias: a slow average (BIAS_TAU_S of steady driving) of a_x - dv/dt, dv/dt from the wheels;
   a_road uses a_x minus it, and s_u shrinks from BIAS_SIGMA0 towards BIAS_SIGMA_FLOOR (grades that vary) as it settles;
-- the left/right rolling-radius ratio of each axle, from straight driving (RADIUS_TAU_S);
+- the left/right rolling-radius ratio of each axle, from straight driving, each wheel against its kinematic speed
+  (RADIUS_TAU_S);
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
   over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
   has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope.
@@ -38,16 +39,27 @@ inconsistency of the model with the measurement: it is skipped and counted, neve
 The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
 utilisation u / mu is at least 0.5 (CONTRACTS 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
 
+Kinematics before slip: in a turn the wheels roll at different speeds without slipping (the outer faster than the
+inner by track / R, 17 % at R = 10 m; the front axle on a larger radius than the rear). Every slip term first takes out
+what the car's motion explains: `wheel_kinematics` gives the speed along its heading at which each wheel rolls freely,
+as an affine function of the CoG's speed v, from the yaw rate, the half-tracks, the axle positions, the steer angle
+delta = steering_wheel_angle / steering_ratio (ISO 8855, positive left) and the rear tires' slip angle; each wheel's
+measured speed is mapped back to the CoG through it, and a wheel's slip is (omega_i R_i - v_wheel_i) / max(|.|) against
+its own kinematic speed at the reference speed. The reference speed, the axle slip and the left/right radius
+calibration all use the mapped speeds. Below SLIP_MIN_SPEED_MPS no slip term speaks (the wheel-speed resolution is too
+large a share of v); the bound and the controllers' flags speak at every speed, ABS's slip band included (it is the
+flag's reading, not a measured slip).
+
 The reference speed is what an ABS controller keeps (Bosch, Automotive Handbook, "Antilock braking system"): the wheels'
-own while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster than the
-accelerometer's a_x allows, so that locked or spinning wheels do not drag it along; a wheel far from it is past its
-friction peak. Where the tires work hard (the recent largest utilisation at least half the median, or an axle at a
+own (mapped to the CoG) while they agree; otherwise the fastest wheel (the slowest while driving), changing no faster
+than the accelerometer's a_x allows, so that locked or spinning wheels do not drag it along; a wheel far from it is past
+its friction peak. Where the tires work hard (the recent largest utilisation at least half the median, or an axle at a
 controller's limit) the interval's lower end reaches that utilisation: the truth may lie right at the proven bound.
 """
 
 from __future__ import annotations
 
-from math import erf, exp, sqrt
+from math import cos, erf, exp, sin, sqrt
 
 import numpy as np
 import pyarrow as pa
@@ -105,6 +117,12 @@ STIFFNESS_SURFACE_SPREAD = 0.25  # what the slope at low force leaves unknown of
 SLIP_SIGMA0 = 0.0015  # slip noise floor: wheel-speed noise, CAN quantisation, signal time offsets
 SLIP_SIGMA_PER_MPS = 0.01  # ... growing at low speed (quantisation of 0.01 km/h over v)
 SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic Formula, Burckhardt in the simulator)
+# Slip is evidence from this speed on, for every slip term (a wheel past its peak, the axle slip, the radius ratios and
+# the slip line); the bound and the controllers' flags speak at every speed. A wheel speed's error is absolute, so its
+# share of v grows as v falls: one edge of a 48-tooth tone wheel counted in a 100 ms sample is 2 pi R / 4.8 = 0.39-0.50
+# m/s (R 0.30-0.38 m), 8-10 % of 5 m/s, so two wheels a count apart either way reach LOCK_SLIP; and the noise term
+# SLIP_SIGMA_PER_MPS / v (CAN resolution, tone-wheel jitter) is 0.002 at 5 m/s, the brush slip of gentle driving
+# (f = 0.05 at C = 25), which the axle slip term needs to see. Parking, junctions and roundabouts lie mostly below.
 SLIP_MIN_SPEED_MPS = 5.0
 INCONSISTENT = 1e-3
 EXCITED_WIDTH = 0.25
@@ -120,8 +138,9 @@ S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10
 N_S = len(SAMPLE_COLUMNS)
 
 # Parameter vector
-(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO, Q_BRAKE_FRONT) = range(12)
-N_Q = 12
+(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO, Q_BRAKE_FRONT, Q_TRACK_F,
+ Q_TRACK_R, Q_CA_REAR) = range(15)
+N_Q = 15
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
@@ -153,6 +172,8 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
     q[Q_FRR] = vehicle.rolling_resistance
     q[Q_STEER_RATIO] = vehicle.steering_ratio
     q[Q_BRAKE_FRONT] = vehicle.brake_front_share
+    q[Q_TRACK_F], q[Q_TRACK_R] = vehicle.track_front_m, vehicle.track_rear_m
+    q[Q_CA_REAR] = vehicle.tire_rear.cornering_stiffness_per_load_per_rad
     return q
 
 
@@ -342,7 +363,32 @@ def _quantile(pm, level):
 
 
 @njit(cache=True)
-def _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving):
+def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
+    """The speed over ground along its heading at which each wheel (fl, fr, rl, rr) rolls without slip, as
+    gain_i * v + offset_i of the CoG's longitudinal speed v, for a rigid body turning at `yaw_rate` with the front
+    wheels steered by `delta` (ISO 8855: both positive left; the left wheels at +track / 2).
+
+    Hub velocity in the body frame: (v - r y_i, v_y + r x_i). The CoG's lateral speed v_y is the rear axle's
+    kinematics with the rear tires' slip angle: v_y = r b - v alpha_r, alpha_r = a_y / (g C_alpha_r) (the rear axle
+    carries m a_y a / L of lateral force on m g a / L of load, whatever the load transfer). The rear wheels roll along
+    the body's x axis: v - r y_i. The front wheels along their heading, the common delta (cos, sin projection):
+    (v - r y_i) cos delta + (r L - v alpha_r) sin delta. Not Ackermann's own angle for each: the projection's
+    error is second order in the heading's error (the hub speed times 1 - cos), at R = 10 m 1.3 degrees and 3e-4 of
+    the speed, below the slip noise, and a car's real steering geometry lies between parallel and Ackermann."""
+    lf, lr = q[Q_LF], q[Q_LR]
+    half_f, half_r = 0.5 * q[Q_TRACK_F], 0.5 * q[Q_TRACK_R]
+    alpha_r = ay / (G_MPS2 * q[Q_CA_REAR])
+    c, s = cos(delta), sin(delta)
+    gain[0] = gain[1] = max(c - alpha_r * s, 0.1)  # 0.1: a steer of 84 degrees, beyond any road wheel's
+    offset[0] = yaw_rate * ((lf + lr) * s - half_f * c)
+    offset[1] = yaw_rate * ((lf + lr) * s + half_f * c)
+    gain[2] = gain[3] = 1.0
+    offset[2] = -yaw_rate * half_r
+    offset[3] = yaw_rate * half_r
+
+
+@njit(cache=True)
+def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving):
     """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     if dt <= 0.0 or controller or v < 3.0:
@@ -356,13 +402,16 @@ def _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, dr
         mem[K_BIAS_W] += dt
     if v < SLIP_MIN_SPEED_MPS or not straight or not driving:
         return
+    kin = np.empty(4)
     for i in range(4):
-        if not v_wheels[i] > 0.5 * v:  # a wheel locked or spinning backwards: no ratio to learn
+        if not v_cog[i] > 0.5 * v:  # a wheel locked or spinning backwards: no ratio to learn
             return
-    # left/right radius ratios (straight driving: both sides roll the same way)
+        kin[i] = gain[i] * v + offset[i]  # the speed it rolls at without slip
+    # left/right radius ratios (straight driving, each wheel's count against its own kinematic speed: a gentle curve
+    # turns the outer wheels faster by track / R, 2.6 % at the 60 m radius that `straight` still admits)
     w = 1.0 - exp(-dt / RADIUS_TAU_S)
-    mem[K_LR_F] += w * (smp[S_W0] / smp[S_W0 + 1] - 1.0 - mem[K_LR_F])
-    mem[K_LR_R] += w * (smp[S_W0 + 2] / smp[S_W0 + 3] - 1.0 - mem[K_LR_R])
+    mem[K_LR_F] += w * (smp[S_W0] * kin[1] / (smp[S_W0 + 1] * kin[0]) - 1.0 - mem[K_LR_F])
+    mem[K_LR_R] += w * (smp[S_W0 + 2] * kin[3] / (smp[S_W0 + 3] * kin[2]) - 1.0 - mem[K_LR_R])
     mem[K_LR_W] += dt
     # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting
     if abs(f_d) < 0.15:
@@ -426,8 +475,15 @@ def pmf_step(mem, q, smp, t_prev, out):
     v_wheels[1] = smp[S_W0 + 1] * radius * (1.0 + 0.5 * mem[K_LR_F])
     v_wheels[2] = smp[S_W0 + 2] * radius / (1.0 + 0.5 * mem[K_LR_R])
     v_wheels[3] = smp[S_W0 + 3] * radius * (1.0 + 0.5 * mem[K_LR_R])
-    v_front = 0.5 * (v_wheels[0] + v_wheels[1])
-    v_rear = 0.5 * (v_wheels[2] + v_wheels[3])
+    # what the car's motion explains: each wheel's speed mapped back to the CoG (wheel_kinematics), so that the inner
+    # and outer wheels of a turn, and the front axle's larger radius, are not read as slip
+    aty = smp[S_AY] / (1.0 + G_MPS2 * q[Q_ROLL])
+    gain, offset, v_cog = np.empty(4), np.empty(4), np.empty(4)
+    wheel_kinematics(q, smp[S_R], smp[S_SWA] / q[Q_STEER_RATIO], aty, gain, offset)
+    for i in range(4):
+        v_cog[i] = (v_wheels[i] - offset[i]) / gain[i]
+    v_front = 0.5 * (v_cog[0] + v_cog[1])
+    v_rear = 0.5 * (v_cog[2] + v_cog[3])
     drive = int(q[Q_DRIVE])
     v = v_rear if drive == 0 else (v_front if drive == 1 else 0.5 * (v_front + v_rear))
     v = abs(v)
@@ -435,7 +491,6 @@ def pmf_step(mem, q, smp, t_prev, out):
     bias_w = mem[K_BIAS_W]
     ax_c = smp[S_AX] - mem[K_BIAS]
     atx = ax_c + q[Q_DRAG] * v * v
-    aty = smp[S_AY] / (1.0 + G_MPS2 * q[Q_ROLL])
     u = sqrt(atx * atx + aty * aty) / G_MPS2
     bias_sd = sqrt(BIAS_SIGMA0_MPS2 ** 2 * exp(-bias_w / BIAS_TAU_S) + BIAS_SIGMA_FLOOR_MPS2 ** 2)
     s_u = sqrt(ACCEL_NOISE_MPS2 ** 2 + bias_sd ** 2) / G_MPS2
@@ -453,18 +508,19 @@ def pmf_step(mem, q, smp, t_prev, out):
     wb = lf + lr
     fz_front = m * (G_MPS2 * lr - atx * h) / wb
     fz_rear = m * (G_MPS2 * lf + atx * h) / wb
-    # the reference speed, and wheels past their peak
-    v_max, v_min = max(v_wheels[0], v_wheels[1], v_wheels[2], v_wheels[3]), min(v_wheels[0], v_wheels[1],
-                                                                                  v_wheels[2], v_wheels[3])
+    # the reference speed (at the CoG), and wheels past their peak
+    v_max, v_min = max(v_cog[0], v_cog[1], v_cog[2], v_cog[3]), min(v_cog[0], v_cog[1], v_cog[2], v_cog[3])
     v_ref = v_max if atx < 0.0 else v_min
     if dt > 0.0 and mem[K_V_REF] > 0.0 and v_max - v_min > REF_AGREE * v_max:  # wheels that agree are the reference
         tol = (REF_TOLERANCE_MPS2 + 2.0 * bias_sd) * dt
         v_ref = min(max(v_ref, mem[K_V_REF] + ax_c * dt - tol), mem[K_V_REF] + ax_c * dt + tol)
     mem[K_V_REF] = max(v_ref, 0.0)
     past_peak = False
-    if v_ref >= 3.0:
+    if v_ref >= SLIP_MIN_SPEED_MPS:
         for i in range(4):
-            if abs(v_wheels[i] - v_ref) > LOCK_SLIP * v_ref:
+            # the wheel's slip against the speed it rolls at without slip (eq. 6's form)
+            kin = gain[i] * v_ref + offset[i]
+            if abs(v_wheels[i] - kin) > LOCK_SLIP * max(abs(v_wheels[i]), abs(kin)):
                 past_peak = True
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     limit = controller or past_peak
@@ -502,7 +558,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         if straight and driving:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply(mem, like, 1.0, INCONSISTENT ** TEMPER)
-    _calibrate(mem, q, smp, dt, v_wheels, v, ax_c, atx, f_d, s_raw, straight, driving)
+    _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving)
     mem[K_V_PREV] = v
     mem[K_U] = u
     mem[K_LIMIT] = 1.0 if limit else 0.0
@@ -550,7 +606,7 @@ def run_rows(mem, q, samples, segments, out):
 class PMFState:
     """One vehicle's filter: its profile, the packed parameters, the memory, and the last accepted time (ms)."""
 
-    __slots__ = ("vehicle", "q", "mem", "t_prev")
+    __slots__ = ("mem", "q", "t_prev", "vehicle")
 
     def __init__(self, vehicle: VehicleParams, q: np.ndarray, mem: np.ndarray, t_prev: float = 0.0):
         self.vehicle, self.q, self.mem, self.t_prev = vehicle, q, mem, t_prev
