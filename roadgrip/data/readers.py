@@ -110,7 +110,7 @@ def _read_json(path: Path):
         hint = " (one object per line is NDJSON: name the file .ndjson or .jsonl)" if e.msg == "Extra data" else ""
         raise ValueError(f"cannot read {path} as JSON: {e.msg} at line {e.lineno}{hint}") from None
     if not isinstance(data, list):
-        raise ValueError(f"{path} must hold a JSON array of objects, got a JSON {type(data).__name__}")
+        raise ValueError(f"{path} must hold a JSON array of objects, got a JSON {type(data).__name__}")  # noqa: TRY004 (bad file content, not a bad argument)
     records, rejections = [], []
     for i, obj in enumerate(data):
         if isinstance(obj, dict):

@@ -88,9 +88,9 @@ def apply_bound_scalar(mu: float, lower: float, upper: float, excited: bool, bou
     contradicted = not upper >= bound  # NaN counts as contradicted
     if contradicted:
         upper = max(PRIOR_UPPER_MU, bound)
-        mu = mu if mu >= PRIOR_MU else PRIOR_MU  # NaN becomes the prior's
-    lower = max(lower if lower == lower else 0.0, bound)
-    mu = max(mu if mu == mu else PRIOR_MU, lower)
+        mu = max(mu, PRIOR_MU)  # NaN becomes the prior's
+    lower = max(0.0 if math.isnan(lower) else lower, bound)
+    mu = max(PRIOR_MU if math.isnan(mu) else mu, lower)
     return mu, lower, max(upper, mu), excited and not contradicted
 
 

@@ -285,7 +285,7 @@ def run_batch(step, prm, samples, segments, out, counters):
 class FilterState:
     """One vehicle's filter: its profile, the packed model, and the memory the kernels update in place."""
 
-    __slots__ = ("vehicle", "prm", "mem")
+    __slots__ = ("mem", "prm", "vehicle")
 
     def __init__(self, vehicle: VehicleParams, prm: np.ndarray, mem: np.ndarray):
         self.vehicle = vehicle

@@ -79,7 +79,7 @@ def evaluate_predictions(model: str, feature_set: str, test: PreparedData, pred,
         "width_excited": float(width[exc].mean()), "width_not_excited": float(width[~exc].mean()),
         "judged_excited": float(judged.mean()), "truly_excited": float(exc.mean()),
         "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
-        "n": int(len(pred)), "n_excited": int(exc.sum()),
+        "n": len(pred), "n_excited": int(exc.sum()),
     }
 
 

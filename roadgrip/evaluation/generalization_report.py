@@ -30,10 +30,10 @@ def generalization_markdown(metrics: list[dict]) -> str:
     lines = [
         "# Generalization benchmark",
         "",
-        "Test: runs of the held-out compact hatchback on roads whose mu lies only in the held-out bands [0.45, 0.55] and "
+        ("Test: runs of the held-out compact hatchback on roads whose mu lies only in the held-out bands [0.45, 0.55] and "
         f"[0.85, 1.0]; {n} test estimates, {n_exc} of them excited (CONTRACTS 4). 'coverage' is the share of true mu "
         "inside the 90 % interval (target 0.87-0.93), 'width' its mean width; 'judged excited' is the share the "
-        "estimator flagged excited. Sorted by RMSE over excited samples (the target: at most 0.05).",
+        "estimator flagged excited. Sorted by RMSE over excited samples (the target: at most 0.05)."),
         "",
         "| " + " | ".join(label for _, label, _ in COLUMNS) + " |",
         "| " + " | ".join(":---" if key in ("model", "feature_set") else "---:" for key, _, _ in COLUMNS) + " |",

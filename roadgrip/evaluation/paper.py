@@ -143,7 +143,7 @@ def _row(condition, model, feature_set, scope, pred, test: PreparedData, extra) 
     true, exc = test.targets, test.excited
     return {"condition": condition, "model": model, "feature_set": feature_set,
             "trained_on": "all" if scope == "all" else "condition", "rmse": rmse(pred, true), "mae": mae(pred, true),
-            "n": int(len(true)), "rmse_excited": rmse(pred[exc], true[exc]) if exc.any() else float("nan"),
+            "n": len(true), "rmse_excited": rmse(pred[exc], true[exc]) if exc.any() else float("nan"),
             "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
             "n_excited": int(exc.sum()), **extra}
 

@@ -95,7 +95,7 @@ def load_paper_results() -> list[dict]:
 
 def _check_metrics(metrics) -> dict[tuple[str, str, str, str], Mapping]:
     """{(trained_on, feature_set, condition, model): row}; ValueError on a missing key, unknown condition, duplicate."""
-    if isinstance(metrics, Mapping) or isinstance(metrics, (str, bytes)):
+    if isinstance(metrics, (Mapping, str, bytes)):
         raise TypeError(f"metrics must be a list of dicts, got {type(metrics).__name__}")
     index = {}
     for i, row in enumerate(metrics):
@@ -168,9 +168,9 @@ def tables_markdown(metrics: list[dict]) -> str:
     index = _check_metrics(metrics)
     paper = {(r["condition"], r["model"]): r for r in load_paper_results()}
     lines = ["# Paper benchmark: Tables 2-6", "",
-             "RMSE and MAE (eq. 14) of the adhesion coefficient on each condition's second experiment. Paper values "
+             ("RMSE and MAE (eq. 14) of the adhesion coefficient on each condition's second experiment. Paper values "
              "are those of the seed paper's Tables 2-6; n is the number of test estimates; a dash marks a missing "
-             "value.", ""]
+             "value."), ""]
     for scope in _ordered({k[0] for k in index}, SCOPES):
         feature_sets = _ordered({k[1] for k in index if k[0] == scope}, FEATURE_SETS)
         lines += [f"## {SCOPE_TITLES.get(scope, f'Trained on {scope}')}", ""]
@@ -194,10 +194,10 @@ def tables_markdown(metrics: list[dict]) -> str:
             lines += [f"### Table {TABLE_NUMBER[condition]}: {condition} adhesion coefficient", ""]
             lines += _markdown_table(header, body) + [""]
     lines += ["## Summary: SA-CNN-LSTM against DNN, CNN and ConvLSTM", "",
-              f"Conditions (of {len(CONDITIONS)}) on which SA-CNN-LSTM has a lower RMSE than the model named. "
+              (f"Conditions (of {len(CONDITIONS)}) on which SA-CNN-LSTM has a lower RMSE than the model named. "
               f"Acceptance criterion: lower than DNN, CNN and ConvLSTM on at least {CRITERION_WINS} of "
               f"{len(CONDITIONS)} conditions. "
-              "'compared' counts the conditions where all four models have an RMSE.", ""]
+              "'compared' counts the conditions where all four models have an RMSE."), ""]
     header = ["results", "trained", "features", *(f"vs {b}" for b in BASELINES), "vs all three", "compared",
               f"criterion (>= {CRITERION_WINS} of {len(CONDITIONS)})"]
     body = []

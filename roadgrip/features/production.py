@@ -65,7 +65,7 @@ def flag(data: dict, name: str, n: int) -> np.ndarray:
         return np.zeros(n)
     values = np.asarray(data[name]).reshape(-1)
     if values.dtype == object:
-        return np.array([0.0 if v is None or v != v else float(bool(v)) for v in values])
+        return np.array([0.0 if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v)) else float(bool(v)) for v in values])
     return np.nan_to_num(values.astype(np.float64), nan=0.0)
 
 

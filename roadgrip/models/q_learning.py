@@ -74,6 +74,7 @@ here (the layer's output is not its prediction); `refine_model` refuses it.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -133,7 +134,7 @@ class QConfig:
             raise ValueError("QConfig.accuracy_weight, share_weight and excess_weight must not all be 0, got 0, 0, 0")
         edges = self.share_edges
         if (not isinstance(edges, tuple) or not edges or not all(_is_number(v) and 0 < v <= 1 for v in edges)
-                or any(a >= b for a, b in zip(edges, edges[1:]))):
+                or any(a >= b for a, b in itertools.pairwise(edges))):
             raise ValueError(f"QConfig.share_edges must be a non-empty increasing tuple of numbers in (0, 1], "
                              f"got {edges!r}")
 

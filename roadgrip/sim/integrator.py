@@ -231,7 +231,7 @@ def simulate_batch(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade, n_grade, 
 
 def run_batch(packed, n_samples: int, sample_period_s: float) -> np.ndarray:
     """Integrate every run of a packed batch; returns the recorded channels, shape (runs, n_samples, N_CH)."""
-    n_sub = int(round(sample_period_s / STEP_S))
+    n_sub = round(sample_period_s / STEP_S)
     out = np.zeros((packed.vp.shape[0], n_samples, N_CH))
     return simulate_batch(packed.vp, packed.tp, packed.path, packed.n_path, packed.mu, packed.n_mu, packed.mu_mode,
                           packed.grade, packed.n_grade, packed.speed, packed.n_speed, packed.steer, packed.flags, n_sub, n_samples, out)

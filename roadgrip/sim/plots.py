@@ -7,11 +7,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import pyarrow as pa  # noqa: E402
-import pyarrow.compute as pc  # noqa: E402
+import matplotlib.pyplot as plt
+import pyarrow as pa
+import pyarrow.compute as pc
 
-from roadgrip.units import mps_to_kmh  # noqa: E402
+from roadgrip.units import mps_to_kmh
 
 
 def plot_run(table: pa.Table, run_id: str, path: str | Path) -> Path:

@@ -64,7 +64,7 @@ class Path:
             raise ValueError(f"circular road radius_m must be > 0, got {radius_m!r}")
         if not arc_length_m > 0:
             raise ValueError(f"circular road arc_length_m must be > 0, got {arc_length_m!r}")
-        n = max(int(math.ceil(arc_length_m / segment_m)), 2)
+        n = max(math.ceil(arc_length_m / segment_m), 2)
         theta = np.linspace(0.0, arc_length_m / radius_m, n + 1)
         side = 1.0 if left else -1.0
         return cls(np.column_stack([radius_m * np.sin(theta), side * radius_m * (1.0 - np.cos(theta))]))

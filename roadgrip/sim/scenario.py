@@ -30,7 +30,7 @@ class Scenario:
     condition: str = "custom"
     road: str = "custom"
     vehicle: VehicleParams = PAPER_SUV
-    tire: TireModel = DugoffTire()
+    tire: TireModel = field(default_factory=DugoffTire)
     steer: SteerInput | None = None
     duration_s: float = field(default=40.0, metadata=bounded(0.0, 3600.0, low_open=True))
     abs_enabled: bool = True
@@ -38,8 +38,8 @@ class Scenario:
     seed: int = 0
     experiment: int = 1
     manoeuvre: str = "custom"
-    grade: GradeProfile = GradeProfile.flat()
-    effects: ProductionEffects = ProductionEffects.off()
+    grade: GradeProfile = field(default_factory=GradeProfile.flat)
+    effects: ProductionEffects = field(default_factory=ProductionEffects.off)
 
     def __post_init__(self):
         check_bounds(self)
@@ -54,7 +54,7 @@ class Scenario:
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.duration_s / SAMPLE_PERIOD_S))
+        return round(self.duration_s / SAMPLE_PERIOD_S)
 
     def replace(self, **changes) -> Scenario:
         return dataclasses.replace(self, **changes)

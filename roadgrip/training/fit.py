@@ -114,7 +114,7 @@ def calibration_of(fitted: FittedModel, data: PreparedData, idx: np.ndarray | No
     pred = predict(fitted.model, fitted.scaler.transform(data.windows[idx]))
     m = data.measured[idx]
     bins = utilization_bin(m[:, 0], m[:, 1], m[:, 2] > 0.5, pred)
-    return calibrate(pred, data.targets[idx], bins) | {"calibrated_on": int(len(idx))}
+    return calibrate(pred, data.targets[idx], bins) | {"calibrated_on": len(idx)}
 
 
 def cross_validate(model_name: str, data: PreparedData, n_folds: int, overrides: dict | None = None,

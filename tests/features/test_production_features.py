@@ -20,7 +20,7 @@ R = PAPER_SUV.wheel_radius_m
 def telemetry(v_fl, v_fr, v_rl, v_rr, ax=0.0, ay=0.0, yaw=0.0, steer=0.0, dt_s=0.1, **extra) -> pa.Table:
     """A table of wheel rolling speeds (m/s, arrays or numbers) and body signals, sampled every dt_s."""
     n = max(np.size(x) for x in (v_fl, v_fr, v_rl, v_rr, ax, ay, yaw, steer))
-    full = lambda x: np.broadcast_to(np.asarray(x, dtype=np.float64), (n,)).copy()  # noqa: E731
+    full = lambda x: np.broadcast_to(np.asarray(x, dtype=np.float64), (n,)).copy()
     cols = {"timestamp_ms": (np.arange(n) * dt_s * 1000).astype(np.int64), "accel_lon_mps2": full(ax),
             "accel_lat_mps2": full(ay), "yaw_rate_radps": full(yaw), "steering_wheel_angle_rad": full(steer),
             "abs_active": np.zeros(n, dtype=bool)}
@@ -49,7 +49,7 @@ def test_a_kinematic_turn_reads_no_slip():
     corrections take the turn out of the left/right and front/rear differences."""
     v, r = 20.0, 0.2  # 0.41 g of centripetal acceleration
     a, tf, tr = PAPER_SUV.wheelbase_m, PAPER_SUV.track_front_m, PAPER_SUV.track_rear_m
-    speed = lambda x, y: np.hypot(v - r * y, r * x)  # noqa: E731  (x forward of the rear axle, y to the left)
+    speed = lambda x, y: np.hypot(v - r * y, r * x)
     table = telemetry(speed(a, tf / 2), speed(a, -tf / 2), speed(0, tr / 2), speed(0, -tr / 2), ay=r * v, yaw=r,
                       steer=PAPER_SUV.steering_ratio * np.arctan(a * r / v))
     f = features(table)

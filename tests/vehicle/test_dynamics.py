@@ -237,7 +237,7 @@ def test_positive_steer_turns_left():
     x = np.zeros(N_STATE)
     x[VX] = 20.0
     x[W0:W0 + 4] = 20.0 / v.wheel_radius_m
-    dx, ax, ay, out = _derivatives_at(v, x, delta=0.02)
+    dx, _ax, ay, out = _derivatives_at(v, x, delta=0.02)
     assert out["alpha"][0] == pytest.approx(0.02) and out["alpha"][2] == 0.0  # eq. 8 at the front, zero at the rear
     assert out["fy"][0] > 0 and out["fy"][1] > 0
     assert ay > 0.0 and dx[R] > 0.0  # pushed to the left, yawing to the left

@@ -186,14 +186,13 @@ def test_a_vehicle_speaks_mqtt_3_1_1_when_asked_and_auto_keeps_5_where_the_broke
     """The fleet's "auto" falls back to 3.1.1 only for a broker that does not take MQTT 5 (RabbitMQ 3.10: the local
     cluster's test, tests/cloud/cluster/test_local.py); Mosquitto does, so nothing changes for serve."""
     inbox = Inbox()
-    with service(fleet, inbox):
-        with VehicleClient(fleet.url, "A", "secret-A", protocol="3.1.1") as old, \
+    with service(fleet, inbox), VehicleClient(fleet.url, "A", "secret-A", protocol="3.1.1") as old, \
                 VehicleClient(fleet.url, "B", "secret-B", protocol="auto") as new:
-            assert old.protocol == "3.1.1" and old.paho.protocol == paho.MQTTv311
-            assert new.protocol == "5" and new.paho.protocol == paho.MQTTv5
-            old.publish_telemetry(b"over 3.1.1")
-            new.publish_telemetry(b"over 5")
-            assert sorted(inbox.payloads(2)) == [("A", b"over 3.1.1"), ("B", b"over 5")]
+        assert old.protocol == "3.1.1" and old.paho.protocol == paho.MQTTv311
+        assert new.protocol == "5" and new.paho.protocol == paho.MQTTv5
+        old.publish_telemetry(b"over 3.1.1")
+        new.publish_telemetry(b"over 5")
+        assert sorted(inbox.payloads(2)) == [("A", b"over 3.1.1"), ("B", b"over 5")]
 
 
 def test_auto_does_not_fall_back_on_a_refused_login(fleet):
