@@ -48,13 +48,27 @@ SI_UNITS = {
     "s": ("s", 1.0),
 }
 UNIT_ALIASES = {
-    "kph": "km/h", "kmh": "km/h", "km/hr": "km/h", "kmph": "km/h",
-    "m/s2": "m/s^2", "m/s²": "m/s^2", "m/s/s": "m/s^2", "mps2": "m/s^2",
+    "kph": "km/h",
+    "kmh": "km/h",
+    "km/hr": "km/h",
+    "kmph": "km/h",
+    "m/s2": "m/s^2",
+    "m/s²": "m/s^2",
+    "m/s/s": "m/s^2",
+    "mps2": "m/s^2",
     "mps": "m/s",
-    "degree": "deg", "degrees": "deg", "°": "deg",
-    "deg/sec": "deg/s", "degree/s": "deg/s", "degrees/s": "deg/s", "°/s": "deg/s",
-    "radian": "rad", "radians": "rad", "rad/sec": "rad/s",
-    "1/min": "rpm", "rev/min": "rpm",
+    "degree": "deg",
+    "degrees": "deg",
+    "°": "deg",
+    "deg/sec": "deg/s",
+    "degree/s": "deg/s",
+    "degrees/s": "deg/s",
+    "°/s": "deg/s",
+    "radian": "rad",
+    "radians": "rad",
+    "rad/sec": "rad/s",
+    "1/min": "rpm",
+    "rev/min": "rpm",
 }
 
 

@@ -33,11 +33,17 @@ def main() -> None:
     args = parser.parse_args()
     out = args.out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="roadgrip-screenshot-") as data_dir, \
-            serving(dashboard_settings(Path(data_dir))) as (service, base_url):
+    with (
+        tempfile.TemporaryDirectory(prefix="roadgrip-screenshot-") as data_dir,
+        serving(dashboard_settings(Path(data_dir))) as (service, base_url),
+    ):
         secret = load_patch_drives(service, base_url)
-        run_chromium(f"{base_url}/dashboard?vehicle={CHOSEN}#{READER}:{secret}", f"--screenshot={out}",
-                     "--window-size=1280,800", "--hide-scrollbars")
+        run_chromium(
+            f"{base_url}/dashboard?vehicle={CHOSEN}#{READER}:{secret}",
+            f"--screenshot={out}",
+            "--window-size=1280,800",
+            "--hide-scrollbars",
+        )
     if not out.is_file():
         sys.exit(f"chromium wrote no screenshot to {out}")
     print(f"wrote {out}")

@@ -73,7 +73,7 @@ def _imports(name: str, path: Path, known: set[str], running_only: bool = False)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     tree = ast.parse(path.read_text(), str(path))
-    for node in (_running_nodes(tree) if running_only else ast.walk(tree)):
+    for node in _running_nodes(tree) if running_only else ast.walk(tree):
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name.startswith("roadgrip"))
         elif isinstance(node, ast.ImportFrom):
@@ -152,15 +152,20 @@ def test_every_module_is_ranked(graph):
     """A new top-level package or cloud folder must be given its place in the layers before it is used."""
     unranked = [m for m in graph if m != "roadgrip" and _rank(m, TOP_LEVEL_RANKS, 1) is None]
     unranked += [m for m in graph if m.startswith("roadgrip.cloud.") and _rank(m, CLOUD_RANKS, 2) is None]
-    assert not unranked, f"modules outside every layer (add them to tests/test_layers.py and ARCHITECTURE.md): {unranked}"
+    assert not unranked, (
+        f"modules outside every layer (add them to tests/test_layers.py and ARCHITECTURE.md): {unranked}"
+    )
 
 
 def test_no_import_circle(running_graph):
     assert _cycles(running_graph) == []
 
 
-@pytest.mark.parametrize(("ranks", "depth", "scope"), [(TOP_LEVEL_RANKS, 1, "roadgrip."),
-                                                      (CLOUD_RANKS, 2, "roadgrip.cloud.")], ids=["package", "cloud"])
+@pytest.mark.parametrize(
+    ("ranks", "depth", "scope"),
+    [(TOP_LEVEL_RANKS, 1, "roadgrip."), (CLOUD_RANKS, 2, "roadgrip.cloud.")],
+    ids=["package", "cloud"],
+)
 def test_imports_point_down(graph, ranks, depth, scope):
     upward = []
     for name, targets in graph.items():
@@ -182,29 +187,49 @@ def test_assemblies_stay_apart(graph):
         for apart in CLOUD_APART:
             own = name.split(".")[2]
             if own in apart:
-                crossing += [f"{name} -> {t}" for t in targets
-                             if t.startswith("roadgrip.cloud.") and t.split(".")[2] in apart - {own}]
+                crossing += [
+                    f"{name} -> {t}"
+                    for t in targets
+                    if t.startswith("roadgrip.cloud.") and t.split(".")[2] in apart - {own}
+                ]
     assert crossing == []
 
 
 def test_domain_and_formats_are_pure(graph):
     """The map, the warnings, the stations and their formats know no transport, storage, settings or service."""
     pure = ("roadgrip.cloud.domain", "roadgrip.cloud.formats")
-    allowed_outside = ("roadgrip.units", "roadgrip.validation", "roadgrip.data.schema", "roadgrip.data.telemetry",
-                       "roadgrip.estimators.guard")
-    leaks = [f"{name} -> {t}" for name, targets in graph.items() if name.startswith(pure) for t in targets
-             if not t.startswith(pure) and not t.startswith(allowed_outside)]
+    allowed_outside = (
+        "roadgrip.units",
+        "roadgrip.validation",
+        "roadgrip.data.schema",
+        "roadgrip.data.telemetry",
+        "roadgrip.estimators.guard",
+    )
+    leaks = [
+        f"{name} -> {t}"
+        for name, targets in graph.items()
+        if name.startswith(pure)
+        for t in targets
+        if not t.startswith(pure) and not t.startswith(allowed_outside)
+    ]
     assert leaks == []
 
 
 def test_nothing_imports_the_benchmarks(graph):
-    users = [f"{name} -> {t}" for name, targets in graph.items() for t in targets
-             if t.startswith("roadgrip.bench") and not name.startswith(("roadgrip.bench", "roadgrip.cli"))]
+    users = [
+        f"{name} -> {t}"
+        for name, targets in graph.items()
+        for t in targets
+        if t.startswith("roadgrip.bench") and not name.startswith(("roadgrip.bench", "roadgrip.cli"))
+    ]
     assert users == []
 
 
 def test_the_rules_catch_a_forbidden_import():
     """The checker itself: an upward import and a circle, made up, are found."""
-    fake = {"roadgrip.cloud.domain.a": {"roadgrip.cloud.storage.b"}, "roadgrip.cloud.storage.b": {"roadgrip.cloud.domain.a"}}
+    fake = {
+        "roadgrip.cloud.domain.a": {"roadgrip.cloud.storage.b"},
+        "roadgrip.cloud.storage.b": {"roadgrip.cloud.domain.a"},
+    }
     assert _cycles(fake) == [["roadgrip.cloud.domain.a", "roadgrip.cloud.storage.b"]]
     assert _rank("roadgrip.cloud.storage.b", CLOUD_RANKS, 2) > _rank("roadgrip.cloud.domain.a", CLOUD_RANKS, 2)

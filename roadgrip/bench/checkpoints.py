@@ -32,18 +32,29 @@ from roadgrip.vehicle.params import PAPER_SUV
 def _driven_state(estimator: Estimator, seconds: float, seed: int):
     """A state after `seconds` of a simulated production car (every terminal effect on) cruising and braking."""
     times = np.array([0.0, 5.0, 0.4 * seconds, 0.4 * seconds + 3.0, seconds])
-    scenario = Scenario(run_id="checkpoint-cost", path=RoadPath.straight(30.0 * seconds),
-                        mu=MuProfile(np.array([0.0]), np.array([0.9]), np.array([0.9]), "step"),
-                        speed=SpeedProfile(times, np.array([15.0, 25.0, 25.0, 8.0, 20.0])), vehicle=PAPER_SUV,
-                        duration_s=seconds, seed=seed, effects=ProductionEffects.production())
+    scenario = Scenario(
+        run_id="checkpoint-cost",
+        path=RoadPath.straight(30.0 * seconds),
+        mu=MuProfile(np.array([0.0]), np.array([0.9]), np.array([0.9]), "step"),
+        speed=SpeedProfile(times, np.array([15.0, 25.0, 25.0, 8.0, 20.0])),
+        vehicle=PAPER_SUV,
+        duration_s=seconds,
+        seed=seed,
+        effects=ProductionEffects.production(),
+    )
     state = estimator.start(PAPER_SUV)
     for sample in wire_samples(simulate([scenario]), "car", 1_700_000_000_000):
         estimator.update(state, sample)
     return state
 
 
-def measure_cost(vehicles: int = 1000, estimator_name: str = "pmf", database_url: str | None = None,
-                 seconds: float = 60.0, seed: int = 0) -> dict:
+def measure_cost(
+    vehicles: int = 1000,
+    estimator_name: str = "pmf",
+    database_url: str | None = None,
+    seconds: float = 60.0,
+    seed: int = 0,
+) -> dict:
     """The cost of checkpointing `vehicles` vehicles: encoding, storing (rounds of MAX_CHECKPOINTS_PER_ROUND, and
     all in one transaction, as at a stop), reading back and restoring; the bytes of a state. Each vehicle holds the
     state of one simulated `seconds` drive (the states differ only in their vehicle_id's row)."""
@@ -56,12 +67,14 @@ def measure_cost(vehicles: int = 1000, estimator_name: str = "pmf", database_url
             ids = [f"ckpt-{k:05d}" for k in range(vehicles)]
             states = {v: estimator.state_from_dict(driven) for v in ids}
             started = time.perf_counter()
-            rows = [{"vehicle_id": v, "estimator": estimator.name, "state": pack_state(estimator.state_to_dict(s))}
-                    for v, s in states.items()]
+            rows = [
+                {"vehicle_id": v, "estimator": estimator.name, "state": pack_state(estimator.state_to_dict(s))}
+                for v, s in states.items()
+            ]
             encode_s = time.perf_counter() - started
             started = time.perf_counter()
             for start in range(0, vehicles, MAX_CHECKPOINTS_PER_ROUND):
-                storage.put_estimator_states(rows[start:start + MAX_CHECKPOINTS_PER_ROUND])
+                storage.put_estimator_states(rows[start : start + MAX_CHECKPOINTS_PER_ROUND])
             rounds_s = time.perf_counter() - started
             started = time.perf_counter()
             storage.put_estimator_states(rows)
@@ -77,15 +90,24 @@ def measure_cost(vehicles: int = 1000, estimator_name: str = "pmf", database_url
         finally:
             storage.close()
     packed = len(json.dumps(rows[0]["state"]))
-    return {"vehicles": vehicles, "estimator": estimator.name, "database": url.partition("://")[0],
-            "state_bytes_packed": packed, "state_bytes_plain_json": len(json.dumps(driven)),
-            "encode_s": round(encode_s, 4), "store_in_rounds_s": round(rounds_s, 4),
-            "rounds": -(-vehicles // MAX_CHECKPOINTS_PER_ROUND), "store_one_transaction_s": round(one_transaction_s, 4),
-            "read_and_restore_s": round(restore_s, 4),
-            "per_vehicle_us": {"encode": round(encode_s / vehicles * 1e6, 1),
-                               "store_in_rounds": round(rounds_s / vehicles * 1e6, 1),
-                               "read_and_restore": round(restore_s / vehicles * 1e6, 1)},
-            "sqlite_file_bytes": database_bytes}
+    return {
+        "vehicles": vehicles,
+        "estimator": estimator.name,
+        "database": url.partition("://")[0],
+        "state_bytes_packed": packed,
+        "state_bytes_plain_json": len(json.dumps(driven)),
+        "encode_s": round(encode_s, 4),
+        "store_in_rounds_s": round(rounds_s, 4),
+        "rounds": -(-vehicles // MAX_CHECKPOINTS_PER_ROUND),
+        "store_one_transaction_s": round(one_transaction_s, 4),
+        "read_and_restore_s": round(restore_s, 4),
+        "per_vehicle_us": {
+            "encode": round(encode_s / vehicles * 1e6, 1),
+            "store_in_rounds": round(rounds_s / vehicles * 1e6, 1),
+            "read_and_restore": round(restore_s / vehicles * 1e6, 1),
+        },
+        "sqlite_file_bytes": database_bytes,
+    }
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -119,8 +119,17 @@ def sample_bodies() -> list[list[str]]:
     return ingest_bodies(runs=4)
 
 
-def _drive(slot: int, ports: list[int], secret: str, vehicles: list[str], bodies: list[list[str]], start_ms: int,
-           rate: float, counters, stop) -> None:
+def _drive(
+    slot: int,
+    ports: list[int],
+    secret: str,
+    vehicles: list[str],
+    bodies: list[list[str]],
+    start_ms: int,
+    rate: float,
+    counters,
+    stop,
+) -> None:
     """One load-generator process (module docstring). Its vehicles connect; then, until `stop`, with `rate` 0 each
     keeps IN_FLIGHT messages unacknowledged (the next leaves when a PUBACK comes), else each publishes `rate`
     messages a second (the vehicles staggered over the period), skipping a message while IN_FLIGHT are
@@ -135,8 +144,15 @@ def _drive(slot: int, ports: list[int], secret: str, vehicles: list[str], bodies
 
     def message(k: int, vehicle: str, run: list[str]) -> str:
         first = k * SAMPLES_PER_MESSAGE
-        return "[" + ",".join(f'{{"vehicle_id":"{vehicle}","timestamp_ms":{start_ms + (first + j) * SAMPLE_PERIOD_MS},'
-                              f'{run[(first + j) % len(run)]}}}' for j in range(SAMPLES_PER_MESSAGE)) + "]"
+        return (
+            "["
+            + ",".join(
+                f'{{"vehicle_id":"{vehicle}","timestamp_ms":{start_ms + (first + j) * SAMPLE_PERIOD_MS},'
+                f"{run[(first + j) % len(run)]}}}"
+                for j in range(SAMPLES_PER_MESSAGE)
+            )
+            + "]"
+        )
 
     def publish(client, state) -> None:
         client.publish(state["topic"], message(state["next"], state["vehicle"], state["run"]), qos=1)
@@ -145,15 +161,19 @@ def _drive(slot: int, ports: list[int], secret: str, vehicles: list[str], bodies
             counts["sent"] += 1
 
     def report() -> None:
-        counters[3 * slot:3 * slot + 3] = [counts["acked"], counts["connected"], counts["held_back"]]
+        counters[3 * slot : 3 * slot + 3] = [counts["acked"], counts["connected"], counts["held_back"]]
 
     for i, vehicle in enumerate(vehicles):
-        client = paho.Client(CallbackAPIVersion.VERSION2, client_id=vehicle, protocol=paho.MQTTv311,
-                             clean_session=True)
+        client = paho.Client(CallbackAPIVersion.VERSION2, client_id=vehicle, protocol=paho.MQTTv311, clean_session=True)
         client.username_pw_set(vehicle, secret)
         client.max_inflight_messages_set(IN_FLIGHT)
-        state = {"next": 0, "acked": 0, "topic": telemetry_topic(vehicle), "run": bodies[i % len(bodies)],
-                 "vehicle": vehicle}
+        state = {
+            "next": 0,
+            "acked": 0,
+            "topic": telemetry_topic(vehicle),
+            "run": bodies[i % len(bodies)],
+            "vehicle": vehicle,
+        }
 
         def on_connect(c, userdata, flags, rc, props, state=state):
             if rc.is_failure or state["next"]:
@@ -210,9 +230,21 @@ def _start_load(cluster: RabbitCluster, vehicles: list[str], bodies: list[list[s
     start_ms = int(time.time() * 1000) - (1000 if 0 < rate <= 1 else DATA_START_MS_AGO)
     share = math.ceil(len(vehicles) / n)
     for slot in range(n):
-        process = ctx.Process(target=_drive, args=(slot, cluster.mqtt_ports, cluster.secret,
-                                                   vehicles[slot * share:(slot + 1) * share], bodies, start_ms,
-                                                   rate, load.counters, load.stop), daemon=True)
+        process = ctx.Process(
+            target=_drive,
+            args=(
+                slot,
+                cluster.mqtt_ports,
+                cluster.secret,
+                vehicles[slot * share : (slot + 1) * share],
+                bodies,
+                start_ms,
+                rate,
+                load.counters,
+                load.stop,
+            ),
+            daemon=True,
+        )
         process.start()
         load.processes.append(process)
     deadline = time.monotonic() + 60 + len(vehicles) / 20
@@ -240,8 +272,10 @@ class _AckOnly:
     def __init__(self, cluster: RabbitCluster, partitions: int):
         self.consumed = [0] * partitions
         self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._consume, args=(cluster.amqp_url(p % 3), p), daemon=True)
-                         for p in range(partitions)]
+        self._threads = [
+            threading.Thread(target=self._consume, args=(cluster.amqp_url(p % 3), p), daemon=True)
+            for p in range(partitions)
+        ]
         self._ready = threading.Barrier(partitions + 1)
         for thread in self._threads:
             thread.start()
@@ -286,9 +320,22 @@ class _Workers:
         for k, log_path in enumerate(self.logs):
             brokers = [arg for i in range(3) for arg in ("--broker", cluster.amqp_url((k + i) % 3))]
             with open(log_path, "wb") as log:
-                self.procs.append(subprocess.Popen(
-                    [str(ROADGRIP), "worker", "--database", database_url, "--partitions", str(partitions), *brokers],
-                    stdout=log, stderr=subprocess.STDOUT, env=env))
+                self.procs.append(
+                    subprocess.Popen(
+                        [
+                            str(ROADGRIP),
+                            "worker",
+                            "--database",
+                            database_url,
+                            "--partitions",
+                            str(partitions),
+                            *brokers,
+                        ],
+                        stdout=log,
+                        stderr=subprocess.STDOUT,
+                        env=env,
+                    )
+                )
 
     def wait_ready(self, timeout_s: float = 180.0) -> None:
         deadline = time.monotonic() + timeout_s
@@ -315,8 +362,9 @@ class _Workers:
 
 class _Database:
     def __init__(self, url: str):
-        self.conn = psycopg.connect(make_url(url).set(drivername="postgresql").render_as_string(hide_password=False),
-                                    autocommit=True)
+        self.conn = psycopg.connect(
+            make_url(url).set(drivername="postgresql").render_as_string(hide_password=False), autocommit=True
+        )
 
     def stored(self) -> int:
         return self.conn.execute("SELECT count(*) FROM telemetry").fetchone()[0]
@@ -344,8 +392,9 @@ def _ready_messages(cluster: RabbitCluster, partitions: int) -> int:
     connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(0)))
     try:
         channel = connection.channel()
-        return sum(channel.queue_declare(partition_queue(p), passive=True).method.message_count
-                   for p in range(partitions))
+        return sum(
+            channel.queue_declare(partition_queue(p), passive=True).method.message_count for p in range(partitions)
+        )
     finally:
         connection.close()
 
@@ -381,8 +430,10 @@ def run_cluster_bench(bench: ClusterBench, progress: Progress = lambda message, 
     vehicles = [f"bench{k:05d}" for k in range(bench.vehicles)]
     progress("simulating the telemetry", 0.0)
     bodies = sample_bodies()
-    result: dict = {"config": {**asdict(bench), "samples_per_message": SAMPLES_PER_MESSAGE, "in_flight": IN_FLIGHT},
-                    "machine": machine_description()}
+    result: dict = {
+        "config": {**asdict(bench), "samples_per_message": SAMPLES_PER_MESSAGE, "in_flight": IN_FLIGHT},
+        "machine": machine_description(),
+    }
     with tempfile.TemporaryDirectory(prefix="roadgrip-bench-cluster-") as tmp, LocalPostgres() as postgres:
         workdir = Path(tmp)
         progress("starting 3 RabbitMQ nodes and PostgreSQL", 0.0)
@@ -402,19 +453,34 @@ def run_cluster_bench(bench: ClusterBench, progress: Progress = lambda message, 
             try:
                 time.sleep(WARM_UP_S)
                 (acked0, consumed0), (acked1, consumed1), took = _window(
-                    bench.seconds, lambda: (load.acked_messages(), sum(consumers.consumed)),
-                    lambda f: progress("the broker alone: ack-only consumers", fraction(0, f)))
+                    bench.seconds,
+                    lambda: (load.acked_messages(), sum(consumers.consumed)),
+                    lambda f: progress("the broker alone: ack-only consumers", fraction(0, f)),
+                )
             finally:
                 _stop_load(load)
                 consumers.close()
-            result["broker"] = {"pubacked_messages_per_s": (acked1 - acked0) / took,
-                                "pubacked_samples_per_s": SAMPLES_PER_MESSAGE * (acked1 - acked0) / took,
-                                "consumed_messages_per_s": (consumed1 - consumed0) / took, "window_s": took}
+            result["broker"] = {
+                "pubacked_messages_per_s": (acked1 - acked0) / took,
+                "pubacked_samples_per_s": SAMPLES_PER_MESSAGE * (acked1 - acked0) / took,
+                "consumed_messages_per_s": (consumed1 - consumed0) / took,
+                "window_s": took,
+            }
             _purge(cluster, bench.partitions)
             result["workers"] = []
             for case, count in enumerate(bench.workers, start=1):
-                result["workers"].append(_worker_case(bench, count, cluster, postgres, vehicles, bodies, workdir,
-                                                      lambda message, f, case=case: progress(message, fraction(case, f))))
+                result["workers"].append(
+                    _worker_case(
+                        bench,
+                        count,
+                        cluster,
+                        postgres,
+                        vehicles,
+                        bodies,
+                        workdir,
+                        lambda message, f, case=case: progress(message, fraction(case, f)),
+                    )
+                )
                 _purge(cluster, bench.partitions)
         finally:
             progress("stopping the cluster", 1.0)
@@ -423,8 +489,16 @@ def run_cluster_bench(bench: ClusterBench, progress: Progress = lambda message, 
     return result
 
 
-def _worker_case(bench: ClusterBench, count: int, cluster: RabbitCluster, postgres, vehicles: list[str],
-                 bodies: list[list[str]], workdir: Path, progress: Progress) -> dict:
+def _worker_case(
+    bench: ClusterBench,
+    count: int,
+    cluster: RabbitCluster,
+    postgres,
+    vehicles: list[str],
+    bodies: list[list[str]],
+    workdir: Path,
+    progress: Progress,
+) -> dict:
     name = f"{count} worker" + ("s" if count > 1 else "")
     url = postgres.create_database(f"bench_{count}_workers")
     db = _Database(url)
@@ -446,8 +520,10 @@ def _worker_case(bench: ClusterBench, count: int, cluster: RabbitCluster, postgr
         time.sleep(WARM_UP_S)
         ready0 = _ready_messages(cluster, bench.partitions)
         (stored0, acked0, held0), (stored1, acked1, held1), took = _window(
-            bench.seconds, lambda: (db.stored(), load.acked_messages(), load.held_back()),
-            lambda f: progress(f"{name}: measuring", f))
+            bench.seconds,
+            lambda: (db.stored(), load.acked_messages(), load.held_back()),
+            lambda f: progress(f"{name}: measuring", f),
+        )
         ready1 = _ready_messages(cluster, bench.partitions)
         held = db.held()
     finally:
@@ -455,14 +531,19 @@ def _worker_case(bench: ClusterBench, count: int, cluster: RabbitCluster, postgr
             _stop_load(load)
         workers.stop()
         db.close()
-    return {"workers": count, "stored_samples_per_s": (stored1 - stored0) / took,
-            "offered_samples_per_s": None if not bench.rate else SAMPLES_PER_MESSAGE * bench.rate * bench.vehicles,
-            "pubacked_samples_per_s": SAMPLES_PER_MESSAGE * (acked1 - acked0) / took,
-            "held_back_messages": held1 - held0,
-            "ready_messages_start": ready0, "ready_messages_end": ready1, "stored_total": stored1,
-            "spread_s": spread_s, "partitions_held": sorted((held.get(pid, 0) for pid in workers.pids()),
-                                                            reverse=True),
-            "window_s": took}
+    return {
+        "workers": count,
+        "stored_samples_per_s": (stored1 - stored0) / took,
+        "offered_samples_per_s": None if not bench.rate else SAMPLES_PER_MESSAGE * bench.rate * bench.vehicles,
+        "pubacked_samples_per_s": SAMPLES_PER_MESSAGE * (acked1 - acked0) / took,
+        "held_back_messages": held1 - held0,
+        "ready_messages_start": ready0,
+        "ready_messages_end": ready1,
+        "stored_total": stored1,
+        "spread_s": spread_s,
+        "partitions_held": sorted((held.get(pid, 0) for pid in workers.pids()), reverse=True),
+        "window_s": took,
+    }
 
 
 def format_cluster_bench(result: dict):
@@ -470,21 +551,38 @@ def format_cluster_bench(result: dict):
     from rich.table import Table
 
     config = result["config"]
-    table = Table(title=f"roadgrip bench cluster: {config['vehicles']} vehicles, {config['partitions']} partitions, "
-                        f"{config['seconds']:.0f} s a case", caption="samples/s, except the queue (messages ready at "
-                        "the window's start and end) and held back (messages vehicles skipped: 10 unacknowledged)")
+    table = Table(
+        title=f"roadgrip bench cluster: {config['vehicles']} vehicles, {config['partitions']} partitions, "
+        f"{config['seconds']:.0f} s a case",
+        caption="samples/s, except the queue (messages ready at "
+        "the window's start and end) and held back (messages vehicles skipped: 10 unacknowledged)",
+    )
     for column in ("case", "offered", "PUBACKed", "stored", "queue", "held back", "partitions", "spread"):
         table.add_column(column, justify="left" if column == "case" else "right")
     broker = result["broker"]
-    table.add_row("broker", "max", f"{broker['pubacked_samples_per_s']:,.0f}",
-                  f"{SAMPLES_PER_MESSAGE * broker['consumed_messages_per_s']:,.0f} acked", "", "", "", "")
+    table.add_row(
+        "broker",
+        "max",
+        f"{broker['pubacked_samples_per_s']:,.0f}",
+        f"{SAMPLES_PER_MESSAGE * broker['consumed_messages_per_s']:,.0f} acked",
+        "",
+        "",
+        "",
+        "",
+    )
     for case in result["workers"]:
         offered = "max" if case["offered_samples_per_s"] is None else f"{case['offered_samples_per_s']:,.0f}"
         spread = f"> {SPREAD_WAIT_S:.0f} s" if case["spread_s"] is None else f"{case['spread_s']:.0f} s"
-        table.add_row(f"{case['workers']} worker" + ("s" if case["workers"] > 1 else ""), offered,
-                      f"{case['pubacked_samples_per_s']:,.0f}", f"{case['stored_samples_per_s']:,.0f}",
-                      f"{case['ready_messages_start']:,} > {case['ready_messages_end']:,}",
-                      f"{case['held_back_messages']:,}", "/".join(map(str, case["partitions_held"])), spread)
+        table.add_row(
+            f"{case['workers']} worker" + ("s" if case["workers"] > 1 else ""),
+            offered,
+            f"{case['pubacked_samples_per_s']:,.0f}",
+            f"{case['stored_samples_per_s']:,.0f}",
+            f"{case['ready_messages_start']:,} > {case['ready_messages_end']:,}",
+            f"{case['held_back_messages']:,}",
+            "/".join(map(str, case["partitions_held"])),
+            spread,
+        )
     return table
 
 

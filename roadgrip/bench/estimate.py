@@ -39,8 +39,13 @@ def _stream(n_updates: int):
 
     scenario = next(s for s in paper_scenarios() if s.run_id == BENCH_RUN)
     table = simulate([scenario])
-    rows = table.select([c for c in table.column_names if c not in ("run_id", "condition", "road", "manoeuvre",
-                                                                     "vehicle", "tire_model")]).to_pylist()
+    rows = table.select(
+        [
+            c
+            for c in table.column_names
+            if c not in ("run_id", "condition", "road", "manoeuvre", "vehicle", "tire_model")
+        ]
+    ).to_pylist()
     span_ms = int(rows[-1]["timestamp_ms"] - rows[0]["timestamp_ms"]) + 100
     samples = []
     for k in range(n_updates):
@@ -82,15 +87,17 @@ def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000) -> list[dict]:
             for _ in range(repeats):
                 estimator.estimate_batch(table, segments, vehicle)
             batch_s = (time.perf_counter() - t0) / repeats
-            results.append({
-                "estimator": name,
-                "updates": n_updates,
-                "updates_per_s": n_updates / total_s,
-                "latency_median_us": float(np.median(latencies)) / 1e3,
-                "latency_p99_us": float(np.percentile(latencies, 99)) / 1e3,
-                "batch_rows_per_s": table.num_rows / batch_s,
-                "threads": 1,
-            })
+            results.append(
+                {
+                    "estimator": name,
+                    "updates": n_updates,
+                    "updates_per_s": n_updates / total_s,
+                    "latency_median_us": float(np.median(latencies)) / 1e3,
+                    "latency_p99_us": float(np.percentile(latencies, 99)) / 1e3,
+                    "batch_rows_per_s": table.num_rows / batch_s,
+                    "threads": 1,
+                }
+            )
     finally:
         torch.set_num_threads(threads)
     return results
@@ -98,9 +105,13 @@ def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000) -> list[dict]:
 
 def format_bench(results: list[dict]) -> str:
     """The results as a Markdown table."""
-    lines = ["| estimator | updates/s (1 core) | latency median (us) | latency p99 (us) | batch rows/s |",
-             "| --- | ---: | ---: | ---: | ---: |"]
+    lines = [
+        "| estimator | updates/s (1 core) | latency median (us) | latency p99 (us) | batch rows/s |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
     for r in results:
-        lines.append(f"| {r['estimator']} | {r['updates_per_s']:,.0f} | {r['latency_median_us']:.1f} | "
-                     f"{r['latency_p99_us']:.1f} | {r['batch_rows_per_s']:,.0f} |")
+        lines.append(
+            f"| {r['estimator']} | {r['updates_per_s']:,.0f} | {r['latency_median_us']:.1f} | "
+            f"{r['latency_p99_us']:.1f} | {r['batch_rows_per_s']:,.0f} |"
+        )
     return "\n".join(lines)

@@ -48,11 +48,11 @@ MQTT_CLIENTS_PER_PROCESS = 250
 
 @dataclass(frozen=True)
 class IngestCase:
-    transport: str        # "http" or "mqtt"
+    transport: str  # "http" or "mqtt"
     vehicles: int
     seconds: float
-    batch: int            # samples per message
-    workers: int = 2      # load-generator processes (MQTT: at least vehicles / MQTT_CLIENTS_PER_PROCESS)
+    batch: int  # samples per message
+    workers: int = 2  # load-generator processes (MQTT: at least vehicles / MQTT_CLIENTS_PER_PROCESS)
     ingest_processes: int = 0  # the service's setting (roadgrip/cloud/serve/shards.py); 0: ingest in its own process
 
     def __post_init__(self):
@@ -74,8 +74,9 @@ def sample_bodies(runs: int = 8, seed: int = 0) -> list[list[str]]:
     for run_id in dict.fromkeys(table["run_id"].to_pylist()):
         run = table.filter(pc.equal(table["run_id"], run_id))
         samples = wire_samples(run, "x", 0)
-        bodies.append([json.dumps({k: v for k, v in s.items() if k not in ("vehicle_id", "timestamp_ms")})[1:-1]
-                       for s in samples])
+        bodies.append(
+            [json.dumps({k: v for k, v in s.items() if k not in ("vehicle_id", "timestamp_ms")})[1:-1] for s in samples]
+        )
     return bodies
 
 
@@ -84,8 +85,16 @@ def _message(vehicle_id: str, timestamp_ms: int, body: str) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- load generator
-def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]], start_wall: float,
-           base_ms: int, offset: int, results) -> None:
+def _drive(
+    case: IngestCase,
+    target: dict,
+    vehicles: list[tuple[str, str]],
+    bodies: list[list[str]],
+    start_wall: float,
+    base_ms: int,
+    offset: int,
+    results,
+) -> None:
     """One load-generator process: its vehicles send `case.batch` samples each every batch x 100 ms until
     case.seconds have passed; puts (sent, acknowledged, refused) on `results`."""
     n_ticks = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch
@@ -93,19 +102,26 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
     lag_s = 0.0  # how late the most belated batch left: the generator itself falling behind
     if case.transport == "mqtt":
         from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
+
         clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
         topics = [telemetry_topic(vid) for vid, _ in vehicles]
         infos = []
     else:
         from concurrent.futures import ThreadPoolExecutor
-        http = httpx.Client(base_url=target["http_url"], timeout=60.0,
-                            limits=httpx.Limits(max_connections=32, max_keepalive_connections=32))
+
+        http = httpx.Client(
+            base_url=target["http_url"],
+            timeout=60.0,
+            limits=httpx.Limits(max_connections=32, max_keepalive_connections=32),
+        )
         pool = ThreadPoolExecutor(32)
         futures = []
 
         def post(vid: str, secret: str, body: str):
-            return http.post("/v1/telemetry", content=body, auth=(vid, secret),
-                             headers={"content-type": "application/x-ndjson"})
+            return http.post(
+                "/v1/telemetry", content=body, auth=(vid, secret), headers={"content-type": "application/x-ndjson"}
+            )
+
     for tick in range(n_ticks):
         # a batch leaves when its last sample has been measured (timestamps are never ahead of the clock)
         wait = start_wall + ((tick + 1) * case.batch - 1) * SAMPLE_PERIOD_MS / 1000 - time.time()
@@ -116,8 +132,10 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
         for i, (vid, secret) in enumerate(vehicles):
             run = bodies[(offset + i) % len(bodies)]
             first = tick * case.batch
-            lines = [_message(vid, base_ms + (first + j) * SAMPLE_PERIOD_MS, run[(first + j) % len(run)])
-                     for j in range(case.batch)]
+            lines = [
+                _message(vid, base_ms + (first + j) * SAMPLE_PERIOD_MS, run[(first + j) % len(run)])
+                for j in range(case.batch)
+            ]
             payload = lines[0] if case.batch == 1 else ("[" + ",".join(lines) + "]")
             if case.transport == "mqtt":
                 infos.append(clients[i].publish_nowait(topics[i], payload))
@@ -148,8 +166,9 @@ def _drive(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodi
     results.put((sent, acked, refused, done_at, lag_s))
 
 
-def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]],
-              on_tick=None) -> dict:
+def _generate(
+    case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]], on_tick=None
+) -> dict:
     """Run the load generators; counts of samples sent, acknowledged and refused, when sending started, and how long
     until the last acknowledgement (longer than case.seconds when the generators or the service could not keep the
     pace)."""
@@ -158,9 +177,14 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
     start_wall = time.time() + 3.0 + case.vehicles / 250  # time for every generator to connect first
     base_ms = int(start_wall * 1000)  # live timestamps: sample k is due at start + k x 100 ms
     share = -(-len(vehicles) // case.workers)
-    procs = [ctx.Process(target=_drive, args=(case, target, vehicles[k * share:(k + 1) * share], bodies, start_wall,
-                                              base_ms, k * share, results))
-             for k in range(case.workers) if vehicles[k * share:(k + 1) * share]]
+    procs = [
+        ctx.Process(
+            target=_drive,
+            args=(case, target, vehicles[k * share : (k + 1) * share], bodies, start_wall, base_ms, k * share, results),
+        )
+        for k in range(case.workers)
+        if vehicles[k * share : (k + 1) * share]
+    ]
     for p in procs:
         p.start()
     deadline = start_wall + case.seconds + 300
@@ -175,10 +199,15 @@ def _generate(case: IngestCase, target: dict, vehicles: list[tuple[str, str]], b
                 on_tick()
     for p in procs:
         p.join()
-    return {"sent": sum(t[0] for t in totals), "acknowledged": sum(t[1] for t in totals),
-            "refused": sum(t[2] for t in totals), "start_wall": start_wall, "base_ms": base_ms,
-            "generator_lag_max_s": max(t[4] for t in totals),
-            "acked_s": max(t[3] for t in totals) - start_wall}
+    return {
+        "sent": sum(t[0] for t in totals),
+        "acknowledged": sum(t[1] for t in totals),
+        "refused": sum(t[2] for t in totals),
+        "start_wall": start_wall,
+        "base_ms": base_ms,
+        "generator_lag_max_s": max(t[4] for t in totals),
+        "acked_s": max(t[3] for t in totals) - start_wall,
+    }
 
 
 # ------------------------------------------------------------------------------------------------- the service
@@ -189,14 +218,21 @@ class _Service:
         self.workdir = workdir
         self.admin = ("admin", secrets.token_urlsafe(24))
         self.port = free_port()
-        env = {**os.environ, "ROADGRIP_ADMIN_SECRET": self.admin[1], "ROADGRIP_DATA_DIR": str(workdir),
-               "ROADGRIP_PORT": str(self.port), "ROADGRIP_MQTT": "managed" if mqtt else "off",
-               "ROADGRIP_MAP_CLOCK": "data", "ROADGRIP_INGEST_PROCESSES": str(ingest_processes)}
+        env = {
+            **os.environ,
+            "ROADGRIP_ADMIN_SECRET": self.admin[1],
+            "ROADGRIP_DATA_DIR": str(workdir),
+            "ROADGRIP_PORT": str(self.port),
+            "ROADGRIP_MQTT": "managed" if mqtt else "off",
+            "ROADGRIP_MAP_CLOCK": "data",
+            "ROADGRIP_INGEST_PROCESSES": str(ingest_processes),
+        }
         if database_url:
             env["ROADGRIP_DATABASE_URL"] = database_url
         self.log = open(workdir / "serve.log", "w")  # noqa: SIM115 (the server's output for its whole life)
-        self.process = subprocess.Popen([sys.executable, "-m", "roadgrip", "serve"], env=env, stdout=self.log,
-                                        stderr=subprocess.STDOUT)
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "roadgrip", "serve"], env=env, stdout=self.log, stderr=subprocess.STDOUT
+        )
         self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", auth=self.admin, timeout=120.0)
         deadline = time.time() + 120
         while True:
@@ -267,13 +303,20 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
 
             def record() -> None:  # every 5 s: what a soak must show flat
                 h = service.health()
-                timeline.append({"t_s": round(time.time() - started, 1), "stored": h["pipeline"]["stored"],
-                                 "backlog": h["pipeline"]["backlog"], "rss_mb": h["memory_rss_mb"],
-                                 "ingest_rss_mb": [p["rss_mb"] for p in h["pipeline"].get("ingest_processes", [])],
-                                 "slow_rounds": h["pipeline"]["slow_rounds"],
-                                 "mqtt_unacknowledged": h["pipeline"]["mqtt_unacknowledged"],
-                                 **{k: round(h["pipeline"][k], 2) for k in ("estimate_s", "write_s", "fanout_s")},
-                                 **h["pipeline"]["latency"]})
+                timeline.append(
+                    {
+                        "t_s": round(time.time() - started, 1),
+                        "stored": h["pipeline"]["stored"],
+                        "backlog": h["pipeline"]["backlog"],
+                        "rss_mb": h["memory_rss_mb"],
+                        "ingest_rss_mb": [p["rss_mb"] for p in h["pipeline"].get("ingest_processes", [])],
+                        "slow_rounds": h["pipeline"]["slow_rounds"],
+                        "mqtt_unacknowledged": h["pipeline"]["mqtt_unacknowledged"],
+                        **{k: round(h["pipeline"][k], 2) for k in ("estimate_s", "write_s", "fanout_s")},
+                        **h["pipeline"]["latency"],
+                    }
+                )
+
             load = _generate(case, target, vehicles, bodies, on_tick=record)
             ended = time.time()
             while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
@@ -298,27 +341,44 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
     per_vehicle = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch * case.batch
     expected = (per_vehicle, load["base_ms"], load["base_ms"] + (per_vehicle - 1) * SAMPLE_PERIOD_MS)
     since_start = pipeline["latency_since_start"]
-    return {"case": case.transport, "vehicles": case.vehicles, "batch": case.batch, "seconds": case.seconds,
-            "ingest_processes": case.ingest_processes, "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS,
-            "sent": load["sent"],
-            "acked_s": round(load["acked_s"], 2), "acked_per_s": load["acknowledged"] / load["acked_s"],
-            "acknowledged": load["acknowledged"], "refused": load["refused"], "stored_rows": counts["telemetry"],
-            "estimate_rows": counts["estimates"], "lost": load["acknowledged"] - counts["telemetry"],
-            "end_to_end_s": round(e2e_s, 2), "stored_per_s": counts["telemetry"] / e2e_s,
-            "drain_s": round(stored_at - ended, 2), "failed_rounds": pipeline["failed_rounds"],
-            "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
-            "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
-            "ingest_cpu_s": round(cpu_after["ingest"] - cpu_before["ingest"], 1),
-            "vehicles_stored_exactly": sum(extent.get(vid) == expected for vid, _ in vehicles),
-            "latency_p50_ms": since_start["p50_ms"], "latency_p99_ms": since_start["p99_ms"],
-            "latency_over_max": since_start["over_max"], "rss_mb_end": health["memory_rss_mb"],
-            "slowest_round_s": round(pipeline["slowest_round_s"], 2), "slow_rounds": pipeline["slow_rounds"],
-            "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
-            "estimate_messages_dropped": pipeline["estimate_messages_dropped"],
-            # estimator state checkpoints while serving (roadgrip/cloud/pipeline/checkpoints.py; not those of the stop)
-            "checkpoints_written": pipeline["checkpoints_written"], "checkpoint_s": round(pipeline["checkpoint_s"], 3),
-            **memory_trend(timeline), "timeline": timeline,
-            "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0}
+    return {
+        "case": case.transport,
+        "vehicles": case.vehicles,
+        "batch": case.batch,
+        "seconds": case.seconds,
+        "ingest_processes": case.ingest_processes,
+        "offered_per_s": case.vehicles * 1000 / SAMPLE_PERIOD_MS,
+        "sent": load["sent"],
+        "acked_s": round(load["acked_s"], 2),
+        "acked_per_s": load["acknowledged"] / load["acked_s"],
+        "acknowledged": load["acknowledged"],
+        "refused": load["refused"],
+        "stored_rows": counts["telemetry"],
+        "estimate_rows": counts["estimates"],
+        "lost": load["acknowledged"] - counts["telemetry"],
+        "end_to_end_s": round(e2e_s, 2),
+        "stored_per_s": counts["telemetry"] / e2e_s,
+        "drain_s": round(stored_at - ended, 2),
+        "failed_rounds": pipeline["failed_rounds"],
+        "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
+        "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
+        "ingest_cpu_s": round(cpu_after["ingest"] - cpu_before["ingest"], 1),
+        "vehicles_stored_exactly": sum(extent.get(vid) == expected for vid, _ in vehicles),
+        "latency_p50_ms": since_start["p50_ms"],
+        "latency_p99_ms": since_start["p99_ms"],
+        "latency_over_max": since_start["over_max"],
+        "rss_mb_end": health["memory_rss_mb"],
+        "slowest_round_s": round(pipeline["slowest_round_s"], 2),
+        "slow_rounds": pipeline["slow_rounds"],
+        "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
+        "estimate_messages_dropped": pipeline["estimate_messages_dropped"],
+        # estimator state checkpoints while serving (roadgrip/cloud/pipeline/checkpoints.py; not those of the stop)
+        "checkpoints_written": pipeline["checkpoints_written"],
+        "checkpoint_s": round(pipeline["checkpoint_s"], 3),
+        **memory_trend(timeline),
+        "timeline": timeline,
+        "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0,
+    }
 
 
 def memory_trend(timeline: list[dict]) -> dict:
@@ -330,20 +390,31 @@ def memory_trend(timeline: list[dict]) -> dict:
     half = min(points, key=lambda p: abs(p["t_s"] - points[-1]["t_s"] / 2))
     end = points[-1]
     growth = end["rss_mb"] - half["rss_mb"]
-    return {"rss_mb_half": half["rss_mb"], "rss_growth_mb_per_min": 60 * growth / (end["t_s"] - half["t_s"]),
-            "memory_flat": growth <= MEMORY_FLAT_FRACTION * half["rss_mb"]}
+    return {
+        "rss_mb_half": half["rss_mb"],
+        "rss_growth_mb_per_min": 60 * growth / (end["t_s"] - half["t_s"]),
+        "memory_flat": growth <= MEMORY_FLAT_FRACTION * half["rss_mb"],
+    }
 
 
 # ------------------------------------------------------------------------------------------------- ceilings
 def database_ceiling(bodies: list[list[str]], database_url: str | None = None, rows: int = 200_000) -> dict:
     """Telemetry rows per second through Storage.write_batch alone, 1,000-row batches, a fresh database."""
-    samples = [json.loads(_message(f"db-{k % 1000:04d}", 1_700_000_000_000 + k * SAMPLE_PERIOD_MS,
-                                   bodies[k % len(bodies)][k % len(bodies[k % len(bodies)])])) for k in range(rows)]
+    samples = [
+        json.loads(
+            _message(
+                f"db-{k % 1000:04d}",
+                1_700_000_000_000 + k * SAMPLE_PERIOD_MS,
+                bodies[k % len(bodies)][k % len(bodies[k % len(bodies)])],
+            )
+        )
+        for k in range(rows)
+    ]
     with tempfile.TemporaryDirectory(prefix="roadgrip-bench-db-") as tmp:
         storage = open_storage(database_url or f"sqlite:///{Path(tmp) / 'ceiling.sqlite'}")
         started = time.perf_counter()
         for k in range(0, rows, 1000):
-            storage.write_batch(samples[k:k + 1000], [])
+            storage.write_batch(samples[k : k + 1000], [])
         elapsed = time.perf_counter() - started
         stored = storage.counts()["telemetry"]
         storage.close()
@@ -369,8 +440,10 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
             with lock:
                 received[0] += 1
             ack()
-        counter = MqttClient(broker.url, broker.service_user, broker.service_password, "bench-counter",
-                             on_telemetry=count)
+
+        counter = MqttClient(
+            broker.url, broker.service_user, broker.service_password, "bench-counter", on_telemetry=count
+        )
         counter.connect()
         case = IngestCase("mqtt", vehicles, seconds, batch, workers)
         load = _generate(case, {"mqtt_url": broker.url}, logins, bodies)
@@ -380,9 +453,15 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
         ended = time.time()
         counter.close()
     elapsed = ended - load["start_wall"]
-    return {"case": f"broker alone (mosquitto, QoS 1, {batch} sample(s) a message)", "batch": batch,
-            "sent": load["sent"], "acknowledged": load["acknowledged"], "messages_received": received[0],
-            "messages_per_s": received[0] / elapsed, "samples_per_s": received[0] * batch / elapsed}
+    return {
+        "case": f"broker alone (mosquitto, QoS 1, {batch} sample(s) a message)",
+        "batch": batch,
+        "sent": load["sent"],
+        "acknowledged": load["acknowledged"],
+        "messages_received": received[0],
+        "messages_per_s": received[0] / elapsed,
+        "samples_per_s": received[0] * batch / elapsed,
+    }
 
 
 def format_ingest(rows: list[dict]):
@@ -403,19 +482,28 @@ def format_ingest(rows: list[dict]):
         ("stored end to end, samples/s", lambda r: f"{r['stored_per_s']:,.0f}"),
         ("stored after the last ack, s", lambda r: f"{r['drain_s']:.1f}"),
         ("latency to stored estimate p50 / p99, ms", latency),
-        ("service RSS (with its ingest processes) at half-time / end, MB",
-         lambda r: ("-" if r["rss_mb_half"] is None else f"{r['rss_mb_half']:,.0f}") + f" / {r['rss_mb_end']:,.0f}"),
-        ("RSS growth over the second half, MB/min", lambda r: "-" if r["rss_growth_mb_per_min"] is None
-         else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")),
-        ("CPU s: service (of which ingest processes) / broker",
-         lambda r: f"{r['service_cpu_s']:.1f} ({r.get('ingest_cpu_s', 0.0):.1f}) / {r['broker_cpu_s']:.1f}"),
+        (
+            "service RSS (with its ingest processes) at half-time / end, MB",
+            lambda r: ("-" if r["rss_mb_half"] is None else f"{r['rss_mb_half']:,.0f}") + f" / {r['rss_mb_end']:,.0f}",
+        ),
+        (
+            "RSS growth over the second half, MB/min",
+            lambda r: (
+                "-"
+                if r["rss_growth_mb_per_min"] is None
+                else f"{r['rss_growth_mb_per_min']:+.1f}" + (" (flat)" if r["memory_flat"] else " (growing)")
+            ),
+        ),
+        (
+            "CPU s: service (of which ingest processes) / broker",
+            lambda r: f"{r['service_cpu_s']:.1f} ({r.get('ingest_cpu_s', 0.0):.1f}) / {r['broker_cpu_s']:.1f}",
+        ),
         ("slowest pipeline round, s (rounds over 1 s)", lambda r: f"{r['slowest_round_s']:.2f} ({r['slow_rounds']})"),
         ("load generator's worst lag, s", lambda r: f"{r['generator_lag_max_s']:.2f}"),
         ("estimate messages dropped (broker behind)", lambda r: f"{r['estimate_messages_dropped']:,}"),
         ("sustained", lambda r: "yes" if r["sustained"] else "no"),
     ]
-    table = Table(title=f"roadgrip bench ingest: {rows[0]['vehicles']:,} vehicles at 10 Hz, "
-                        f"{rows[0]['seconds']:.0f} s")
+    table = Table(title=f"roadgrip bench ingest: {rows[0]['vehicles']:,} vehicles at 10 Hz, {rows[0]['seconds']:.0f} s")
     table.add_column("")
     for r in rows:
         table.add_column(r["case"], justify="right")

@@ -30,8 +30,14 @@ def bench_sim(batch_runs: int = 256, seed: int = 0) -> list[dict]:
     """Measure the simulator after compiling it once; returns one row per case."""
     paper = paper_scenarios(seed)
     batch = random_scenarios(batch_runs, seed)
-    rows = [{"case": "first call (compiles, or loads the cached kernels)", "runs": 1, "simulated_s": paper[0].duration_s,
-             "wall_s": _timed(lambda: simulate_truth(paper[:1]))}]
+    rows = [
+        {
+            "case": "first call (compiles, or loads the cached kernels)",
+            "runs": 1,
+            "simulated_s": paper[0].duration_s,
+            "wall_s": _timed(lambda: simulate_truth(paper[:1])),
+        }
+    ]
     for case, scenarios, fn in (
         ("one run (paper, 40 s), dynamics only", paper[:1], simulate_truth),
         ("paper preset, 20 runs, dynamics + sensors", paper, simulate),
@@ -39,8 +45,9 @@ def bench_sim(batch_runs: int = 256, seed: int = 0) -> list[dict]:
         (f"batch of {batch_runs} random runs, dynamics + sensors", batch, simulate),
     ):
         wall = min(_timed(lambda fn=fn, scenarios=scenarios: fn(scenarios)) for _ in range(3))
-        rows.append({"case": case, "runs": len(scenarios), "simulated_s": sum(s.duration_s for s in scenarios),
-                     "wall_s": wall})
+        rows.append(
+            {"case": case, "runs": len(scenarios), "simulated_s": sum(s.duration_s for s in scenarios), "wall_s": wall}
+        )
     for row in rows:
         row["realtime_factor"] = row["simulated_s"] / row["wall_s"]
     return rows

@@ -11,8 +11,11 @@ import typer
 
 from roadgrip.cli import bench, cloud, cluster, data, fleet
 
-app = typer.Typer(help="roadgrip: tire-road adhesion (mu) estimation from connected-vehicle telemetry.",
-                  no_args_is_help=True, add_completion=False)
+app = typer.Typer(
+    help="roadgrip: tire-road adhesion (mu) estimation from connected-vehicle telemetry.",
+    no_args_is_help=True,
+    add_completion=False,
+)
 bench_app = typer.Typer(help="Performance benchmarks.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 cluster_app = typer.Typer(help="The cluster mode on one machine (docs/CLUSTER.md).", no_args_is_help=True)

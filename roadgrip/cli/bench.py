@@ -12,7 +12,9 @@ from roadgrip.cli.common import console, friendly_errors
 
 @friendly_errors
 def estimate(
-    estimators: list[str] = typer.Option(["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"),
+    estimators: list[str] = typer.Option(
+        ["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"
+    ),
     updates: int = typer.Option(20000, help="streamed updates per estimator"),
 ):
     """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
@@ -33,8 +35,9 @@ def ingest(
     http_batch: int = typer.Option(10, min=1, help="samples per HTTP request (10: a terminal posting once a second)"),
     mqtt_batch: int = typer.Option(1, min=1, help="samples per MQTT message (1: every 100 ms)"),
     database_url: str | None = typer.Option(None, help="PostgreSQL URL (default: SQLite in a scratch folder)"),
-    ingest_processes: int = typer.Option(0, min=0, help="the service's ingest processes (0: ingest in the service's "
-                                                        "own process; docs/CLOUD.md)"),
+    ingest_processes: int = typer.Option(
+        0, min=0, help="the service's ingest processes (0: ingest in the service's own process; docs/CLOUD.md)"
+    ),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
 ):
     """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
@@ -59,8 +62,9 @@ def ingest(
         bodies = sample_bodies()
     rows = []
     for t in transport:
-        case = IngestCase(t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch,
-                          ingest_processes=ingest_processes)
+        case = IngestCase(
+            t, vehicles, seconds, mqtt_batch if t == "mqtt" else http_batch, ingest_processes=ingest_processes
+        )
         with console.status(f"{t}: {vehicles} vehicles for {seconds:.0f} s..."):
             rows.append(run_case(case, bodies, database_url, progress=lambda m: None))
     ceilings = []
@@ -76,8 +80,9 @@ def ingest(
     console.print(f"machine: {machine_description()}")
     if out is not None:
         out.write_text(json.dumps({"cases": rows, "ceilings": ceilings, "machine": machine_description()}, indent=1))
-        console.print(f"results: {out}; memory, backlog and latency over time: "
-                      f"{plot_timelines(rows, out.with_suffix('.png'))}")
+        console.print(
+            f"results: {out}; memory, backlog and latency over time: {plot_timelines(rows, out.with_suffix('.png'))}"
+        )
 
 
 @friendly_errors
@@ -86,8 +91,12 @@ def cluster(
     seconds: float = typer.Option(20.0, min=1.0, help="measuring window of each case"),
     workers: str = typer.Option("1,2,4", help="worker counts to measure, comma-separated"),
     partitions: int = typer.Option(8, min=1, help="partition queues"),
-    rate: float = typer.Option(1.0, min=0.0, help="messages of 10 samples a second per vehicle in the worker cases "
-                                                  "(1: a terminal; 0: as fast as PUBACKs allow)"),
+    rate: float = typer.Option(
+        1.0,
+        min=0.0,
+        help="messages of 10 samples a second per vehicle in the worker cases "
+        "(1: a terminal; 0: as fast as PUBACKs allow)",
+    ),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
 ):
     """Cluster mode's capacity on this machine (docs/CLUSTER.md, "Capacity"): 3 RabbitMQ nodes and PostgreSQL on
@@ -105,8 +114,12 @@ def cluster(
     bench = ClusterBench(vehicles, seconds, counts, partitions, rate)
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("starting", total=1.0)
-        result = run_cluster_bench(bench, lambda message, fraction: bar.update(
-            task, description=message, **({} if fraction is None else {"completed": fraction})))
+        result = run_cluster_bench(
+            bench,
+            lambda message, fraction: bar.update(
+                task, description=message, **({} if fraction is None else {"completed": fraction})
+            ),
+        )
     console.print(format_cluster_bench(result))
     console.print(f"machine: {result['machine']}; {result['elapsed_s']:.0f} s in all")
     if out is not None:
@@ -128,7 +141,12 @@ def sim(
     for name in ("case", "runs", "simulated s", "wall s", "x real time"):
         table.add_column(name, justify="left" if name == "case" else "right")
     for row in rows:
-        table.add_row(row["case"], str(row["runs"]), f"{row['simulated_s']:.0f}", f"{row['wall_s']:.3f}",
-                      f"{row['realtime_factor']:,.0f}")
+        table.add_row(
+            row["case"],
+            str(row["runs"]),
+            f"{row['simulated_s']:.0f}",
+            f"{row['wall_s']:.3f}",
+            f"{row['realtime_factor']:,.0f}",
+        )
     console.print(table)
     console.print(f"machine: {machine_description()}")

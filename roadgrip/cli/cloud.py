@@ -15,15 +15,22 @@ def serve(
     config: Path | None = typer.Option(None, help="settings file (YAML); environment variables ROADGRIP_* override it"),
     host: str | None = typer.Option(None, help="HTTP listen address (default 127.0.0.1)"),
     port: int | None = typer.Option(None, help="HTTP port (default 8000)"),
-    database_url: str | None = typer.Option(None, help="sqlite:///FILE or postgresql://... (default: SQLite in "
-                                                       "--data-dir)"),
-    mqtt: str | None = typer.Option(None, help="off | auto (start Mosquitto when installed) | managed | mqtt://host:port"),
+    database_url: str | None = typer.Option(
+        None, help="sqlite:///FILE or postgresql://... (default: SQLite in --data-dir)"
+    ),
+    mqtt: str | None = typer.Option(
+        None, help="off | auto (start Mosquitto when installed) | managed | mqtt://host:port"
+    ),
     data_dir: Path | None = typer.Option(None, help="folder for the database, broker files and the admin secret"),
     estimator: str | None = typer.Option(None, help="pmf (default), ekf, ukf, default (learned) or a model file"),
-    ingest_processes: int | None = typer.Option(None, min=0, help="processes that ingest, estimate and store, each "
-                                                                  "for its share of the vehicles (default 0: this "
-                                                                  "process; 2 kept up with 1,000 vehicles at 10 Hz "
-                                                                  "here, docs/RELIABILITY.md)"),
+    ingest_processes: int | None = typer.Option(
+        None,
+        min=0,
+        help="processes that ingest, estimate and store, each "
+        "for its share of the vehicles (default 0: this "
+        "process; 2 kept up with 1,000 vehicles at 10 Hz "
+        "here, docs/RELIABILITY.md)",
+    ),
 ):
     """The cloud platform: HTTP (and MQTT) ingest, per-vehicle estimation, storage, friction map, warnings."""
     import logging
@@ -37,8 +44,16 @@ def serve(
     from roadgrip.cloud.serve.service import CloudService
     from roadgrip.cloud.settings import load_settings
 
-    settings = load_settings(config, host=host, port=port, database_url=database_url, mqtt=mqtt, data_dir=data_dir,
-                             estimator=estimator, ingest_processes=ingest_processes)
+    settings = load_settings(
+        config,
+        host=host,
+        port=port,
+        database_url=database_url,
+        mqtt=mqtt,
+        data_dir=data_dir,
+        estimator=estimator,
+        ingest_processes=ingest_processes,
+    )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # uvicorn answers SIGTERM by shutting down and raising it again with the default action, which would end the
     # process before `service.stop()` (the last reorder windows, MQTT and storage closed): exit through Python instead
@@ -47,12 +62,19 @@ def serve(
     service.start()
     tune_memory_for_serving()
     try:
-        console.print(f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
-                      f"mqtt {service.mqtt_url or 'off'}")
-        console.print(f"dashboard: http://{settings.host}:{settings.port}/dashboard (log in as a reader: "
-                      "POST /v1/readers with the admin secret)")
-        console.print(f"admin secret: {settings.data_dir / 'admin-secret'}" if settings.admin_secret is None
-                      else "admin secret: from the settings")
+        console.print(
+            f"roadgrip cloud: http://{settings.host}:{settings.port}/docs  storage {service.storage}  "
+            f"mqtt {service.mqtt_url or 'off'}"
+        )
+        console.print(
+            f"dashboard: http://{settings.host}:{settings.port}/dashboard (log in as a reader: "
+            "POST /v1/readers with the admin secret)"
+        )
+        console.print(
+            f"admin secret: {settings.data_dir / 'admin-secret'}"
+            if settings.admin_secret is None
+            else "admin secret: from the settings"
+        )
         uvicorn.run(create_app(service), host=settings.host, port=settings.port, log_level="warning")
     finally:
         service.stop()
@@ -60,17 +82,27 @@ def serve(
 
 @friendly_errors
 def worker(
-    broker: list[str] = typer.Option(..., help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
-                                               "(repeatable: partition p connects to the (p mod count)-th, the next "
-                                               "one after a failure)"),
+    broker: list[str] = typer.Option(
+        ...,
+        help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
+        "(repeatable: partition p connects to the (p mod count)-th, the next "
+        "one after a failure)",
+    ),
     database: str = typer.Option(..., help="postgresql://... shared by every worker"),
     partitions: int = typer.Option(..., min=1, help="partition queues rg.telemetry.p0..pN-1 (the same N everywhere)"),
     prefetch: int = typer.Option(100, min=1, help="unacknowledged messages per partition"),
-    config: Path | None = typer.Option(None, help="settings file (YAML; the estimator, ingest and pipeline settings "
-                                                  "of `serve` apply); environment variables ROADGRIP_* override it"),
+    config: Path | None = typer.Option(
+        None,
+        help="settings file (YAML; the estimator, ingest and pipeline settings "
+        "of `serve` apply); environment variables ROADGRIP_* override it",
+    ),
     estimator: str | None = typer.Option(None, help="pmf (default), ekf, ukf, default (learned) or a model file"),
-    metrics_port: int | None = typer.Option(None, min=0, max=65535, help="serve Prometheus metrics at "
-                                            "http://METRICS_HOST:PORT/metrics (0: a free port, logged)"),
+    metrics_port: int | None = typer.Option(
+        None,
+        min=0,
+        max=65535,
+        help="serve Prometheus metrics at http://METRICS_HOST:PORT/metrics (0: a free port, logged)",
+    ),
     metrics_host: str = typer.Option("127.0.0.1", help="address the metrics listen on (0.0.0.0: every interface)"),
 ):
     """A cluster worker: consumes the partition queues of RabbitMQ (single active consumer per queue), estimates
@@ -93,19 +125,31 @@ def worker(
 @friendly_errors
 def api(
     database: str = typer.Option(..., help="postgresql://... shared by every replica and worker"),
-    broker: list[str] = typer.Option(..., help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
-                                               "(repeatable: telemetry is published through them, the next one "
-                                               "after a failure)"),
-    management: list[str] = typer.Option(..., help="RabbitMQ management API of a node, http://host:15672 or "
-                                                   "http://user:password@host:15672 (repeatable; without a login, "
-                                                   "the first --broker's): vehicles' broker users"),
+    broker: list[str] = typer.Option(
+        ...,
+        help="AMQP URL of a RabbitMQ node, amqp://user:password@host:port/%2F "
+        "(repeatable: telemetry is published through them, the next one "
+        "after a failure)",
+    ),
+    management: list[str] = typer.Option(
+        ...,
+        help="RabbitMQ management API of a node, http://host:15672 or "
+        "http://user:password@host:15672 (repeatable; without a login, "
+        "the first --broker's): vehicles' broker users",
+    ),
     host: str | None = typer.Option(None, help="HTTP listen address (default 127.0.0.1)"),
     port: int | None = typer.Option(None, help="HTTP port (default 8000)"),
-    mqtt: str | None = typer.Option(None, help="mqtt://host:port that registered vehicles are told to connect to "
-                                               "(the broker nodes' load balancer); default: none"),
-    config: Path | None = typer.Option(None, help="settings file (YAML; admin_secret, payload limits, rate limit, "
-                                                  "map settings of `serve` apply); environment variables ROADGRIP_* "
-                                                  "override it"),
+    mqtt: str | None = typer.Option(
+        None,
+        help="mqtt://host:port that registered vehicles are told to connect to "
+        "(the broker nodes' load balancer); default: none",
+    ),
+    config: Path | None = typer.Option(
+        None,
+        help="settings file (YAML; admin_secret, payload limits, rate limit, "
+        "map settings of `serve` apply); environment variables ROADGRIP_* "
+        "override it",
+    ),
 ):
     """A stateless API replica of the cluster: run any number behind a load balancer, all on one database and
     broker (docs/CLUSTER.md, "Stateless API"). The admin secret comes from ROADGRIP_ADMIN_SECRET or --config."""
@@ -125,8 +169,10 @@ def api(
     backend = ClusterBackend(settings, broker, management)
     backend.start()
     try:
-        console.print(f"roadgrip api: http://{settings.host}:{settings.port}/docs  storage {backend.storage}  "
-                      f"brokers {len(broker)}  mqtt for vehicles {backend.mqtt_url or 'none'}")
+        console.print(
+            f"roadgrip api: http://{settings.host}:{settings.port}/docs  storage {backend.storage}  "
+            f"brokers {len(broker)}  mqtt for vehicles {backend.mqtt_url or 'none'}"
+        )
         uvicorn.run(create_app(backend), host=settings.host, port=settings.port, log_level="warning")
     finally:
         backend.stop()

@@ -13,17 +13,21 @@ from roadgrip.cli.common import console, friendly_errors
 
 @friendly_errors
 def up(
-    data_dir: Path | None = typer.Option(None, help="new or empty folder for the cluster's databases, logs and "
-                                                    "secrets (default: a new temporary folder)"),
-    nodes: int = typer.Option(3, min=1, help="RabbitMQ nodes joined into one cluster (quorum queues: 3 survive "
-                                             "the loss of one)"),
+    data_dir: Path | None = typer.Option(
+        None, help="new or empty folder for the cluster's databases, logs and secrets (default: a new temporary folder)"
+    ),
+    nodes: int = typer.Option(
+        3, min=1, help="RabbitMQ nodes joined into one cluster (quorum queues: 3 survive the loss of one)"
+    ),
     workers: int = typer.Option(2, min=0, help="`roadgrip worker` processes"),
     apis: int = typer.Option(2, min=0, help="`roadgrip api` replicas"),
     partitions: int = typer.Option(4, min=1, help="partition queues of the vehicles' telemetry"),
-    api_port: int = typer.Option(0, min=0, max=65535, help="HTTP port of the first API replica, the others on the "
-                                                           "next ports (0: free ports)"),
-    config: Path | None = typer.Option(None, help="settings file (YAML) for every worker and API replica; "
-                                                  "environment variables ROADGRIP_* apply too"),
+    api_port: int = typer.Option(
+        0, min=0, max=65535, help="HTTP port of the first API replica, the others on the next ports (0: free ports)"
+    ),
+    config: Path | None = typer.Option(
+        None, help="settings file (YAML) for every worker and API replica; environment variables ROADGRIP_* apply too"
+    ),
 ):
     """A local cluster on 127.0.0.1: RabbitMQ nodes joined into one cluster, PostgreSQL, workers and API replicas,
     each waited for until healthy; runs until Ctrl-C or SIGTERM, then stops everything it started."""
@@ -35,8 +39,9 @@ def up(
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     data_dir = data_dir or Path(tempfile.mkdtemp(prefix="roadgrip-cluster-"))
-    cluster = LocalCluster(data_dir, nodes=nodes, workers=workers, apis=apis, partitions=partitions,
-                           api_port=api_port, config=config)
+    cluster = LocalCluster(
+        data_dir, nodes=nodes, workers=workers, apis=apis, partitions=partitions, api_port=api_port, config=config
+    )
 
     def interrupt(signum, _frame):
         raise KeyboardInterrupt(signal.Signals(signum).name)
@@ -52,13 +57,16 @@ def up(
             for child in cluster.exited():
                 if child.name not in reported:
                     reported.add(child.name)
-                    console.print(f"[bold red]{child.name} exited[/] with status {child.returncode}: see "
-                                  f"{child.log_path}")
+                    console.print(
+                        f"[bold red]{child.name} exited[/] with status {child.returncode}: see {child.log_path}"
+                    )
             for node in cluster.nodes_down():
                 if f"node {node}" not in reported:
                     reported.add(f"node {node}")
-                    console.print(f"[bold red]RabbitMQ node {cluster.rabbit.node_name(node)} exited[/]: see "
-                                  f"{cluster.data_dir / 'rabbitmq' / f'rg{node}'}")
+                    console.print(
+                        f"[bold red]RabbitMQ node {cluster.rabbit.node_name(node)} exited[/]: see "
+                        f"{cluster.data_dir / 'rabbitmq' / f'rg{node}'}"
+                    )
     except KeyboardInterrupt:
         pass
     except ClusterError as err:
@@ -79,17 +87,24 @@ def _print_cluster(cluster) -> None:
     for name in ("process", "where", "pid", "log"):
         table.add_column(name)
     for node in d["rabbitmq"]:
-        table.add_row(f"RabbitMQ {node['node']}", f"{node['mqtt']}  {node['amqp']}  {node['management']}",
-                      str(node["pid"]), node["log"])
+        table.add_row(
+            f"RabbitMQ {node['node']}",
+            f"{node['mqtt']}  {node['amqp']}  {node['management']}",
+            str(node["pid"]),
+            node["log"],
+        )
     table.add_row("PostgreSQL", d["postgres"]["url"], str(d["postgres"]["pid"]), d["postgres"]["log"])
     for child in d["workers"]:
-        table.add_row(child["name"], f"{d['partitions']} partitions, {child['metrics']}", str(child["pid"]),
-                      child["log"])
+        table.add_row(
+            child["name"], f"{d['partitions']} partitions, {child['metrics']}", str(child["pid"]), child["log"]
+        )
     for child in d["apis"]:
         table.add_row(child["name"], f"{child['url']}/docs", str(child["pid"]), child["log"])
     console.print(table)
     console.print(f"admin secret: {d['admin_secret_file']}   broker user svc's secret: {d['broker_secret_file']}")
     if d["fleet_command"]:
         console.print(f"drive a fleet against it: {d['fleet_command']}")
-    console.print(f"[bold green]local cluster ready[/] in {cluster.started_s:.0f} s ({d['data_dir']}/cluster.json); "
-                  "Ctrl-C stops it")
+    console.print(
+        f"[bold green]local cluster ready[/] in {cluster.started_s:.0f} s ({d['data_dir']}/cluster.json); "
+        "Ctrl-C stops it"
+    )

@@ -21,22 +21,35 @@ from roadgrip.sim.presets import PRESETS, preset_scenarios
 
 def _code_version() -> str:
     try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
-                             check=False, cwd=Path(__file__).parent).stdout.strip()
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+            cwd=Path(__file__).parent,
+        ).stdout.strip()
     except OSError:
         sha = ""
     return f"{roadgrip.__version__}+{sha}" if sha else roadgrip.__version__
 
 
-def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overwrite: bool,
-                      scenario_file: Path | None = None):
+def _simulate_dataset(
+    preset: str, runs: int | None, seed: int, out: Path, overwrite: bool, scenario_file: Path | None = None
+):
     from roadgrip.sim.scenario_file import load_scenarios
     from roadgrip.sim.simulate import simulate
 
     scenarios = load_scenarios(scenario_file) if scenario_file else preset_scenarios(preset, runs, seed)
     start = time.perf_counter()
-    with Progress(TextColumn("[bold]simulating[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), console=console, transient=True) as progress:
+    with Progress(
+        TextColumn("[bold]simulating[/] {task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as progress:
         task = progress.add_task(f"{preset} preset", total=len(scenarios))
         table = simulate(scenarios, progress=lambda n: progress.advance(task, n))
     manifest = {
@@ -57,7 +70,9 @@ def _simulate_dataset(preset: str, runs: int | None, seed: int, out: Path, overw
 def simulate(
     out: Path = typer.Option(..., help="output folder (Parquet + manifest)"),
     preset: str = typer.Option(None, help=f"scenario preset: {' | '.join(PRESETS)}"),
-    scenario: Path = typer.Option(None, help="a scenario YAML file (see roadgrip/sim/scenario_file.py) instead of a preset"),
+    scenario: Path = typer.Option(
+        None, help="a scenario YAML file (see roadgrip/sim/scenario_file.py) instead of a preset"
+    ),
     runs: int = typer.Option(None, help="number of runs (random preset; the paper preset has 20)"),
     seed: int = typer.Option(0, help="seed: the same seed gives the same data"),
     overwrite: bool = typer.Option(False, help="replace an existing dataset in OUT"),
@@ -93,8 +108,11 @@ def train(
     condition: list[str] = typer.Option(None, help="train on these conditions only (repeatable)"),
     config: list[str] = typer.Option(None, help="model config override KEY=VALUE (repeatable)"),
     folds: int = typer.Option(0, help="also report K-fold cross-validation grouped by run (0: none)"),
-    calibration: Path = typer.Option(None, help="a dataset of held-out runs to calibrate the 90 % intervals on "
-                                                "(default: the validation blocks of the training runs)"),
+    calibration: Path = typer.Option(
+        None,
+        help="a dataset of held-out runs to calibrate the 90 % intervals on "
+        "(default: the validation blocks of the training runs)",
+    ),
     stride: int = typer.Option(1, help="keep every STRIDE-th training window"),
     batch_size: int = typer.Option(64, help="training batch size"),
     max_epochs: int = typer.Option(100, help="training epochs at most (early stopping on validation)"),
@@ -126,21 +144,38 @@ def train(
     if folds:
         with console.status(f"{folds}-fold cross-validation grouped by run..."):
             cv = cross_validate(model, prepared, folds, overrides, train_config)
-        console.print(f"cross-validation RMSE per fold: {', '.join(f'{v:.4f}' for v in cv)} "
-                      f"(mean {np.mean(cv):.4f}, std {np.std(cv):.4f})")
+        console.print(
+            f"cross-validation RMSE per fold: {', '.join(f'{v:.4f}' for v in cv)} "
+            f"(mean {np.mean(cv):.4f}, std {np.std(cv):.4f})"
+        )
     with console.status(f"training {model} on {len(prepared.targets)} windows..."):
         train_idx, val_idx = block_split(prepared)
         fitted = fit(model, prepared, train_idx, val_idx, overrides, train_config)
     if calibration is not None:
-        held_out = prepare(read_dataset(calibration), features, vehicles=vehicles_from_manifest(read_manifest(calibration)))
+        held_out = prepare(
+            read_dataset(calibration), features, vehicles=vehicles_from_manifest(read_manifest(calibration))
+        )
         fitted.interval = calibration_of(fitted, held_out)
-    save_fitted(out, fitted, features, {
-        "command": "roadgrip " + " ".join(sys.argv[1:]), "dataset": str(data), "preset": manifest.get("preset"),
-        "data_seed": manifest.get("seed"), "code_version": _code_version(), "seed": seed, "windows": len(train_idx),
-        "cv_rmse": cv})
-    console.print(f"wrote {out}: validation RMSE {fitted.result.best_val_rmse:.4f} after {fitted.result.epochs_run} "
-                  f"epochs; 90 % interval half-widths by excitation level "
-                  f"{', '.join(f'{lo:+.3f}/{hi:+.3f}' for lo, hi in zip(fitted.interval['q_low'], fitted.interval['q_high']))}")
+    save_fitted(
+        out,
+        fitted,
+        features,
+        {
+            "command": "roadgrip " + " ".join(sys.argv[1:]),
+            "dataset": str(data),
+            "preset": manifest.get("preset"),
+            "data_seed": manifest.get("seed"),
+            "code_version": _code_version(),
+            "seed": seed,
+            "windows": len(train_idx),
+            "cv_rmse": cv,
+        },
+    )
+    console.print(
+        f"wrote {out}: validation RMSE {fitted.result.best_val_rmse:.4f} after {fitted.result.epochs_run} "
+        f"epochs; 90 % interval half-widths by excitation level "
+        f"{', '.join(f'{lo:+.3f}/{hi:+.3f}' for lo, hi in zip(fitted.interval['q_low'], fitted.interval['q_high']))}"
+    )
 
 
 @friendly_errors
@@ -151,9 +186,12 @@ def evaluate(
     seed: int = typer.Option(0, help="seed of the data and the training (fleet: the first seed)"),
     seeds: int = typer.Option(3, min=1, help="fleet benchmark: how many seeds (seed, seed + 1, ...)"),
     workers: int = typer.Option(2, help="training processes in parallel"),
-    sweep: bool = typer.Option(False, help="fleet benchmark: also replay the warning engine's estimates over a grid of "
-                                           "its settings: tradeoff.csv, tradeoff.png (roadgrip/evaluation/"
-                                           "fleet_sweep.py)"),
+    sweep: bool = typer.Option(
+        False,
+        help="fleet benchmark: also replay the warning engine's estimates over a grid of "
+        "its settings: tradeoff.csv, tradeoff.png (roadgrip/evaluation/"
+        "fleet_sweep.py)",
+    ),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
     Table 7 (real-vehicle test) in simulation (CONTRACTS 4), or the fleet benchmark (a simulated fleet through the cloud
@@ -184,12 +222,21 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
         _simulate_dataset("paper", None, seed, out / "data", overwrite=True)
         data = out / "data"
     table = read_dataset(data)
-    with Progress(TextColumn("[bold]training[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), console=console, transient=True) as progress:
+    with Progress(
+        TextColumn("[bold]training[/] {task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as progress:
         task = progress.add_task("paper benchmark", total=None)
         metrics, predictions = run_paper_benchmark(
-            table, seed=seed, workers=workers, progress=lambda done, total: progress.update(task, completed=done,
-                                                                                            total=total))
+            table,
+            seed=seed,
+            workers=workers,
+            progress=lambda done, total: progress.update(task, completed=done, total=total),
+        )
     return write_report(metrics, predictions, out)
 
 
@@ -197,22 +244,43 @@ def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False) -> di
     from roadgrip.evaluation.fleet_report import run_fleet_benchmark
     from roadgrip.evaluation.fleet_sweep import GRID
 
-    with Progress(TextColumn("[bold]fleet[/] {task.description}"), BarColumn(), TimeElapsedColumn(), console=console,
-                  transient=True) as progress:
+    with Progress(
+        TextColumn("[bold]fleet[/] {task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as progress:
         task = progress.add_task("starting", total=1.0)
-        result = run_fleet_benchmark(out, seed, seeds, progress=lambda message, fraction: progress.update(
-            task, completed=fraction, description=message), sweep=GRID if sweep else None)
+        result = run_fleet_benchmark(
+            out,
+            seed,
+            seeds,
+            progress=lambda message, fraction: progress.update(task, completed=fraction, description=message),
+            sweep=GRID if sweep else None,
+        )
     return result["paths"]
 
 
 def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
     from roadgrip.evaluation.real_vehicle import run_real_vehicle_benchmark
 
-    with Progress(TextColumn("[bold]real-vehicle[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), console=console, transient=True) as progress:
+    with Progress(
+        TextColumn("[bold]real-vehicle[/] {task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as progress:
         task = progress.add_task("starting", total=None)
-        result = run_real_vehicle_benchmark(out, seed, progress=lambda done, total, message: progress.update(
-            task, completed=done, total=total, description=message))
+        result = run_real_vehicle_benchmark(
+            out,
+            seed,
+            progress=lambda done, total, message: progress.update(
+                task, completed=done, total=total, description=message
+            ),
+        )
     return {k: v for k, v in result.items() if k not in ("metrics", "ratios")}
 
 
@@ -238,8 +306,11 @@ def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:
 def estimate(
     input: Path = typer.Option(..., help="telemetry file: CSV, Parquet, NDJSON or JSON (wire format v1)"),
     out: Path = typer.Option(..., help="estimates file (.csv, .parquet or .ndjson)"),
-    model: str = typer.Option("pmf", help="model file (.pt) or name: pmf (the default: docs/ESTIMATORS.md) | "
-                                          "default (the shipped learned model) | ekf | ukf"),
+    model: str = typer.Option(
+        "pmf",
+        help="model file (.pt) or name: pmf (the default: docs/ESTIMATORS.md) | "
+        "default (the shipped learned model) | ekf | ukf",
+    ),
     vehicle: Path = typer.Option(None, help="vehicle profile YAML (CONTRACTS 3.2); default: the paper's SUV"),
 ):
     """Offline estimates of mu (CONTRACTS 3.4) for every sample of a telemetry file that can be judged."""
@@ -264,8 +335,10 @@ def estimate(
         t_s = pc.divide(pc.cast(estimates["timestamp_ms"], pa.float64()), 1000.0)
         estimates = estimates.set_column(estimates.schema.get_field_index("timestamp_ms"), "t_s", t_s)
     write_table(estimates, out)
-    console.print(f"wrote {estimates.num_rows} estimates for {batch.table.num_rows} accepted samples of "
-                  f"{len(set(ids.tolist()))} vehicle(s) to {out} ({estimator.name})")
+    console.print(
+        f"wrote {estimates.num_rows} estimates for {batch.table.num_rows} accepted samples of "
+        f"{len(set(ids.tolist()))} vehicle(s) to {out} ({estimator.name})"
+    )
     if batch.rejections:
         report = out.with_name(out.stem + ".rejections.csv")
         write_table(batch.rejection_table(), report)

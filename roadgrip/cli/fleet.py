@@ -16,28 +16,41 @@ from roadgrip.cli.common import console, friendly_errors
 @friendly_errors
 def fleet(
     url: str = typer.Option("http://127.0.0.1:8000", help="the running cloud (roadgrip serve)"),
-    admin_secret_file: Path = typer.Option(Path("roadgrip-data/admin-secret"),
-                                           help="the cloud's admin secret (or ROADGRIP_ADMIN_SECRET)"),
+    admin_secret_file: Path = typer.Option(
+        Path("roadgrip-data/admin-secret"), help="the cloud's admin secret (or ROADGRIP_ADMIN_SECRET)"
+    ),
     vehicles: int = typer.Option(10, min=1, help="simulated vehicles"),
     transport: str = typer.Option("auto", help="auto (MQTT when the cloud has a broker) | mqtt | http"),
     speed: float = typer.Option(1.0, min=0.01, help="times real time"),
     duration: float = typer.Option(120.0, min=1.0, help="simulated seconds of driving"),
     seed: int = typer.Option(0, help="seed of the plan and the sensors"),
-    network_file: Path | None = typer.Option(None, "--network", help="roads and patches as GeoJSON (default: the "
-                                                                     "generated network around the Hebei origin)"),
+    network_file: Path | None = typer.Option(
+        None, "--network", help="roads and patches as GeoJSON (default: the generated network around the Hebei origin)"
+    ),
     per_slippery_patch: int = typer.Option(0, min=0, help="vehicles sent to brake on each slippery patch first"),
     prefix: str = typer.Option("fleet", help="vehicle ids are PREFIX-000, PREFIX-001, ..."),
     replay_log: Path | None = typer.Option(None, "--replay", help="replay a recorded log instead of simulating"),
     importer: str | None = typer.Option(None, help="importer of the log (default: detected)"),
-    vehicle: str | None = typer.Option(None, help="profile of the replayed vehicle: a known name or a YAML file "
-                                                  "(default: the importer's own, else paper-suv)"),
-    mqtt_urls: list[str] | None = typer.Option(None, "--mqtt", help="broker to send to instead of the one the "
-                                                                   "registration names (repeatable: vehicles are "
-                                                                   "spread over them, e.g. a cluster's nodes)"),
-    mqtt_protocol: str = typer.Option("auto", help="auto (MQTT 5, else 3.1.1 when the broker does not take 5: "
-                                                   "RabbitMQ 3.10) | 5 | 3.1.1"),
-    read_url: str | None = typer.Option(None, help="after the drive, read each vehicle's estimates and the map back "
-                                                   "from this cloud (e.g. another API replica of a cluster)"),
+    vehicle: str | None = typer.Option(
+        None,
+        help="profile of the replayed vehicle: a known name or a YAML file "
+        "(default: the importer's own, else paper-suv)",
+    ),
+    mqtt_urls: list[str] | None = typer.Option(
+        None,
+        "--mqtt",
+        help="broker to send to instead of the one the "
+        "registration names (repeatable: vehicles are "
+        "spread over them, e.g. a cluster's nodes)",
+    ),
+    mqtt_protocol: str = typer.Option(
+        "auto", help="auto (MQTT 5, else 3.1.1 when the broker does not take 5: RabbitMQ 3.10) | 5 | 3.1.1"
+    ),
+    read_url: str | None = typer.Option(
+        None,
+        help="after the drive, read each vehicle's estimates and the map back "
+        "from this cloud (e.g. another API replica of a cluster)",
+    ),
 ):
     """Drive simulated vehicles (or replay a log) against a running cloud: each vehicle registers, then sends its
     telemetry at 10 Hz with its own credentials."""
@@ -53,18 +66,22 @@ def fleet(
         raise ValueError(f"--transport must be auto, mqtt or http, got {transport!r}")
     if mqtt_protocol not in ("auto", "5", "3.1.1"):
         raise ValueError(f"--mqtt-protocol must be auto, 5 or 3.1.1, got {mqtt_protocol!r}")
-    secret = os.environ.get("ROADGRIP_ADMIN_SECRET") or (admin_secret_file.read_text().strip()
-                                                          if admin_secret_file.is_file() else None)
+    secret = os.environ.get("ROADGRIP_ADMIN_SECRET") or (
+        admin_secret_file.read_text().strip() if admin_secret_file.is_file() else None
+    )
     if not secret:
-        raise ValueError(f"no admin secret: set ROADGRIP_ADMIN_SECRET or give --admin-secret-file "
-                         f"({admin_secret_file} does not exist)")
+        raise ValueError(
+            f"no admin secret: set ROADGRIP_ADMIN_SECRET or give --admin-secret-file "
+            f"({admin_secret_file} does not exist)"
+        )
     if replay_log is not None:
         samples, profiles = _replay_samples(replay_log, importer, vehicle, prefix)
     else:
         network = network_from_geojson(network_file) if network_file else generated_network()
         with console.status(f"simulating {vehicles} vehicles..."):
-            plans = plan_fleet(network, vehicles, duration_s=duration, seed=seed,
-                               per_slippery_patch=per_slippery_patch, prefix=prefix)
+            plans = plan_fleet(
+                network, vehicles, duration_s=duration, seed=seed, per_slippery_patch=per_slippery_patch, prefix=prefix
+            )
             samples = simulate_fleet(plans, network)
         profiles = {p.vehicle_id: p.vehicle.name for p in plans}
     secrets, mqtt_url = register_fleet(url, secret, list(profiles.items()))
@@ -74,32 +91,44 @@ def fleet(
         raise ValueError("--transport mqtt, but the cloud runs without a broker (and no --mqtt was given)")
     terminals = MqttTerminals(brokers, secrets, mqtt_protocol) if use_mqtt else HttpTerminals(url, secrets)
     total = sum(len(run) for run in samples.values())
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console) as bar:
-        task = bar.add_task(f"{len(samples)} vehicles over {'MQTT' if use_mqtt else 'HTTP'} at {speed:g}x "
-                            "(samples)", total=total)
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
+    ) as bar:
+        task = bar.add_task(
+            f"{len(samples)} vehicles over {'MQTT' if use_mqtt else 'HTTP'} at {speed:g}x (samples)", total=total
+        )
 
         def send(batch: list[dict]) -> None:
             terminals.send(batch[0]["vehicle_id"], batch)
             bar.advance(task, len(batch))
-        result = replay(timeline(samples, speed, time.time()), send, speed=speed if speed < 1e6 else math.inf,
-                        batch=1 if use_mqtt else 10)
+
+        result = replay(
+            timeline(samples, speed, time.time()),
+            send,
+            speed=speed if speed < 1e6 else math.inf,
+            batch=1 if use_mqtt else 10,
+        )
         terminals.close()
     acknowledged = terminals.acknowledged if use_mqtt else terminals.stored
     over = f" over MQTT {terminals.protocol} to {len(brokers)} broker(s)" if use_mqtt else ""
-    console.print(f"sent {result.samples:,} samples in {result.batches:,} messages over {result.wall_s:.1f} s "
-                  f"({result.late_batches} late){over}; {'acknowledged' if use_mqtt else 'stored'}: {acknowledged:,}")
+    console.print(
+        f"sent {result.samples:,} samples in {result.batches:,} messages over {result.wall_s:.1f} s "
+        f"({result.late_batches} late){over}; {'acknowledged' if use_mqtt else 'stored'}: {acknowledged:,}"
+    )
     if read_url is not None:
         with console.status(f"reading the estimates and the map back from {read_url}..."):
             stored = read_back(read_url, secret, list(samples))
         counts = stored["estimates"]
-        console.print(f"read back from {read_url}: {sum(counts.values()):,} estimates of "
-                      f"{sum(1 for n in counts.values() if n)} of {len(counts)} vehicles, {stored['map_cells']} map "
-                      f"cells ({'settled' if stored['settled'] else 'still growing'} after {stored['wait_s']:.0f} s)")
+        console.print(
+            f"read back from {read_url}: {sum(counts.values()):,} estimates of "
+            f"{sum(1 for n in counts.values() if n)} of {len(counts)} vehicles, {stored['map_cells']} map "
+            f"cells ({'settled' if stored['settled'] else 'still growing'} after {stored['wait_s']:.0f} s)"
+        )
 
 
-def _replay_samples(log: Path, importer: str | None, vehicle: str | None,
-                    prefix: str) -> tuple[dict[str, list[dict]], dict[str, object]]:
+def _replay_samples(
+    log: Path, importer: str | None, vehicle: str | None, prefix: str
+) -> tuple[dict[str, list[dict]], dict[str, object]]:
     """The log's samples per vehicle (timestamps from 0) and each vehicle's profile (a name or a mapping)."""
     from roadgrip.fleet.importers import resolve_importer
     from roadgrip.fleet.replay import replay_file
@@ -109,8 +138,9 @@ def _replay_samples(log: Path, importer: str | None, vehicle: str | None,
     rows = replay_file(log, chosen, start_ms=0)
     samples: dict[str, list[dict]] = {}
     for row in rows:
-        samples.setdefault(f"{prefix}-{row['vehicle_id']}", []).append({**row, "vehicle_id": f"{prefix}-"
-                                                                                          f"{row['vehicle_id']}"})
+        samples.setdefault(f"{prefix}-{row['vehicle_id']}", []).append(
+            {**row, "vehicle_id": f"{prefix}-{row['vehicle_id']}"}
+        )
     first = min(s["timestamp_ms"] for run in samples.values() for s in run)
     for run in samples.values():
         for s in run:
@@ -128,11 +158,15 @@ def _replay_samples(log: Path, importer: str | None, vehicle: str | None,
 def import_log(
     input: Path = typer.Argument(..., help="a recorded log: a file or folder that an importer recognises"),
     out: Path = typer.Option(..., help="wire-format telemetry file to write (.csv, .parquet, .ndjson or .jsonl)"),
-    importer: str = typer.Option(None, help="importer name (default: the one that recognises INPUT): "
-                                            "wire | bmw-m8 | can-dbc | any installed through entry points"),
+    importer: str = typer.Option(
+        None,
+        help="importer name (default: the one that recognises INPUT): "
+        "wire | bmw-m8 | can-dbc | any installed through entry points",
+    ),
     vehicle_id: str = typer.Option(None, help="vehicle_id of the samples (default: the importer's)"),
-    start_ms: int = typer.Option(None, help="timestamp of the first sample, ms since the Unix epoch (default: the "
-                                            "importer's)"),
+    start_ms: int = typer.Option(
+        None, help="timestamp of the first sample, ms since the Unix epoch (default: the importer's)"
+    ),
 ):
     """Import a recorded log into wire format v1 (CONTRACTS 3.1), ready for `roadgrip estimate` or a replay."""
     from roadgrip.data.tables import WRITERS, write_table
@@ -147,11 +181,13 @@ def import_log(
     write_table(table, out)
     ts = table["timestamp_ms"].to_numpy()
     vehicles = sorted(set(table["vehicle_id"].to_pylist()))
-    console.print(f"wrote {table.num_rows} samples of {len(vehicles)} vehicle(s) ({', '.join(vehicles[:5])}), "
-                  f"{(ts.max() - ts.min()) / 1000:.1f} s, to {out} (importer {chosen.name})")
+    console.print(
+        f"wrote {table.num_rows} samples of {len(vehicles)} vehicle(s) ({', '.join(vehicles[:5])}), "
+        f"{(ts.max() - ts.min()) / 1000:.1f} s, to {out} (importer {chosen.name})"
+    )
     for key, value in (table.schema.metadata or {}).items():
         if key.startswith(b"roadgrip.") and key != b"roadgrip.importer":
-            console.print(f"  {key.decode()[len('roadgrip.'):]}: {value.decode()}")
+            console.print(f"  {key.decode()[len('roadgrip.') :]}: {value.decode()}")
 
 
 @friendly_errors
@@ -169,40 +205,70 @@ def demo(
     road network with icy, snowy and wet patches, and summarise the estimates and warnings the cloud produced."""
     from roadgrip.fleet.demo import run_demo
 
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console) as bar:
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
+    ) as bar:
         task = bar.add_task("simulating the fleet and starting the cloud", total=None)
 
         def ready(url: str, dashboard: str) -> None:
             bar.console.print(f"cloud: {url}/docs   dashboard: {dashboard}")
             bar.update(task, description=f"{vehicles} vehicles driving at {speed:g}x real time (samples)")
 
-        report, cloud = run_demo(vehicles=vehicles, speed=speed, duration_s=duration, seed=seed, data_dir=data_dir,
-                                 port=port, mqtt=mqtt, on_ready=ready,
-                                 progress=lambda done, total: bar.update(task, completed=done, total=total))
+        report, cloud = run_demo(
+            vehicles=vehicles,
+            speed=speed,
+            duration_s=duration,
+            seed=seed,
+            data_dir=data_dir,
+            port=port,
+            mqtt=mqtt,
+            on_ready=ready,
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+        )
     try:
         summary = Table(title=f"roadgrip demo: {report.vehicles} vehicles over {report.transport.upper()}")
         summary.add_column("what")
         summary.add_column("value", justify="right")
-        for name, value in (("samples sent", f"{report.samples_sent:,}"),
-                            ("telemetry stored", f"{report.telemetry_stored:,}"),
-                            ("estimates stored", f"{report.estimates_stored:,}"),
-                            ("share judged excited", f"{report.excited_share:.0%}"),
-                            ("streaming wall time", f"{report.stream_wall_s:.1f} s")):
+        for name, value in (
+            ("samples sent", f"{report.samples_sent:,}"),
+            ("telemetry stored", f"{report.telemetry_stored:,}"),
+            ("estimates stored", f"{report.estimates_stored:,}"),
+            ("share judged excited", f"{report.excited_share:.0%}"),
+            ("streaming wall time", f"{report.stream_wall_s:.1f} s"),
+        ):
             summary.add_row(name, value)
         console.print(summary)
         warnings = Table(title=f"slippery-road warnings ({len(report.warnings)})")
-        for name in ("cell", "status", "reason", "latitude", "longitude", "evidence mu_upper", "passes", "vehicles",
-                     "nearest patch"):
-            warnings.add_column(name, justify="left" if name in ("cell", "status", "reason", "nearest patch")
-                                else "right")
+        for name in (
+            "cell",
+            "status",
+            "reason",
+            "latitude",
+            "longitude",
+            "evidence mu_upper",
+            "passes",
+            "vehicles",
+            "nearest patch",
+        ):
+            warnings.add_column(
+                name, justify="left" if name in ("cell", "status", "reason", "nearest patch") else "right"
+            )
         for w in report.warnings:
-            warnings.add_row(w["cell"], w["status"], w["reason"], f"{w['latitude_deg']:.5f}",
-                             f"{w['longitude_deg']:.5f}", f"{w['mu_upper']:.2f}", str(w["n_passes"]),
-                             str(w["n_vehicles"]), f"{w['nearest_patch']} ({w['patch_distance_m']:.0f} m)")
+            warnings.add_row(
+                w["cell"],
+                w["status"],
+                w["reason"],
+                f"{w['latitude_deg']:.5f}",
+                f"{w['longitude_deg']:.5f}",
+                f"{w['mu_upper']:.2f}",
+                str(w["n_passes"]),
+                str(w["n_vehicles"]),
+                f"{w['nearest_patch']} ({w['patch_distance_m']:.0f} m)",
+            )
         console.print(warnings)
-        console.print("patches: " + ", ".join(f"{p['name']} (mu {p['mu']:.2f}, {p['radius_m']:.0f} m)"
-                                              for p in report.patches))
+        console.print(
+            "patches: " + ", ".join(f"{p['name']} (mu {p['mu']:.2f}, {p['radius_m']:.0f} m)" for p in report.patches)
+        )
         console.print(f"cloud log: {report.log_path}")
         console.print(f"dashboard: {report.dashboard_url}")
         if keep_serving:

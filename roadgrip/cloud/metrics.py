@@ -78,13 +78,13 @@ class IngestCounters:
     integers, each written by one thread only (HTTP: the event loop or an ingest process's channel; MQTT: paho's
     network thread or the same channel)."""
 
-    received_http: int = 0       # samples in readable payloads, valid or not, rate limited or not
+    received_http: int = 0  # samples in readable payloads, valid or not, rate limited or not
     received_mqtt: int = 0
-    invalid_http: int = 0        # samples refused by validation (roadgrip/cloud/ingest/wire.py)
+    invalid_http: int = 0  # samples refused by validation (roadgrip/cloud/ingest/wire.py)
     invalid_mqtt: int = 0
-    rate_limited_http: int = 0   # samples refused by the vehicle's rate limit (every sample of the payload)
+    rate_limited_http: int = 0  # samples refused by the vehicle's rate limit (every sample of the payload)
     rate_limited_mqtt: int = 0
-    unreadable_mqtt: int = 0     # MQTT messages refused whole (not UTF-8 or JSON, empty, too large, too many samples)
+    unreadable_mqtt: int = 0  # MQTT messages refused whole (not UTF-8 or JSON, empty, too large, too many samples)
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -105,8 +105,9 @@ class ProcessView:
     forwarded_unacknowledged: int | None = None
 
 
-def counter(name: str, documentation: str, series: Iterable[tuple[list[str], float]],
-            labels: Iterable[str] = ()) -> CounterMetricFamily:
+def counter(
+    name: str, documentation: str, series: Iterable[tuple[list[str], float]], labels: Iterable[str] = ()
+) -> CounterMetricFamily:
     """A counter family (`name` without `_total`: the library adds it) with one series per (label values, value)."""
     result = CounterMetricFamily(name, documentation, labels=list(labels))
     for label_values, value in series:
@@ -114,16 +115,22 @@ def counter(name: str, documentation: str, series: Iterable[tuple[list[str], flo
     return result
 
 
-def gauge(name: str, documentation: str, series: Iterable[tuple[list[str], float]],
-          labels: Iterable[str] = ()) -> GaugeMetricFamily:
+def gauge(
+    name: str, documentation: str, series: Iterable[tuple[list[str], float]], labels: Iterable[str] = ()
+) -> GaugeMetricFamily:
     result = GaugeMetricFamily(name, documentation, labels=list(labels))
     for label_values, value in series:
         result.add_metric(label_values, value)
     return result
 
 
-def histogram(name: str, documentation: str, buckets: tuple[float, ...], series: Iterable[tuple[list[str], dict]],
-              labels: Iterable[str] = ()) -> HistogramMetricFamily:
+def histogram(
+    name: str,
+    documentation: str,
+    buckets: tuple[float, ...],
+    series: Iterable[tuple[list[str], dict]],
+    labels: Iterable[str] = (),
+) -> HistogramMetricFamily:
     """A histogram family with one series per (label values, `BatchHistogram.state()` of a histogram of `buckets`)."""
     result = HistogramMetricFamily(name, documentation, labels=list(labels))
     bounds = [*(f"{b:g}" for b in buckets), "+Inf"]
@@ -148,52 +155,114 @@ def pipeline_metrics(views: list[ProcessView], http_payloads_rejected: int | Non
 
     def per(key: str) -> list[tuple[list[str], float]]:
         return [([v.process], v.stats[key]) for v in views]
+
     ingest = [(v.process, v.metrics["ingest"]) for v in views]
-    yield counter("roadgrip_samples_received", "Samples received in readable payloads (valid or not), by the "
-                  "process that admitted them and transport",
-                  [([p, t], c[f"received_{t}"]) for p, c in ingest for t in TRANSPORTS], ["process", "transport"])
-    yield counter("roadgrip_samples_rejected", "Samples refused: invalid (validation) or rate_limited",
-                  [([p, t, reason], c[f"{reason}_{t}"]) for p, c in ingest for t in TRANSPORTS
-                   for reason in ("invalid", "rate_limited")], ["process", "transport", "reason"])
-    yield counter("roadgrip_payloads_rejected", "HTTP requests and MQTT messages refused whole before any sample "
-                  "was read (not UTF-8 or JSON, empty, too large, too many samples, wrong content type)",
-                  ([] if http_payloads_rejected is None else [([MAIN_PROCESS, "http"], http_payloads_rejected)])
-                  + [([p, "mqtt"], c["unreadable_mqtt"]) for p, c in ingest], ["process", "transport"])
+    yield counter(
+        "roadgrip_samples_received",
+        "Samples received in readable payloads (valid or not), by the process that admitted them and transport",
+        [([p, t], c[f"received_{t}"]) for p, c in ingest for t in TRANSPORTS],
+        ["process", "transport"],
+    )
+    yield counter(
+        "roadgrip_samples_rejected",
+        "Samples refused: invalid (validation) or rate_limited",
+        [
+            ([p, t, reason], c[f"{reason}_{t}"])
+            for p, c in ingest
+            for t in TRANSPORTS
+            for reason in ("invalid", "rate_limited")
+        ],
+        ["process", "transport", "reason"],
+    )
+    yield counter(
+        "roadgrip_payloads_rejected",
+        "HTTP requests and MQTT messages refused whole before any sample "
+        "was read (not UTF-8 or JSON, empty, too large, too many samples, wrong content type)",
+        ([] if http_payloads_rejected is None else [([MAIN_PROCESS, "http"], http_payloads_rejected)])
+        + [([p, "mqtt"], c["unreadable_mqtt"]) for p, c in ingest],
+        ["process", "transport"],
+    )
     yield counter("roadgrip_samples_stored", "Samples newly stored", per("stored"), ["process"])
-    yield counter("roadgrip_samples_duplicate", "Samples already stored (a repeated request or MQTT redelivery)",
-                  per("duplicates"), ["process"])
-    yield counter("roadgrip_samples_late", "Samples stored but not estimated: older than one already estimated",
-                  per("late"), ["process"])
+    yield counter(
+        "roadgrip_samples_duplicate",
+        "Samples already stored (a repeated request or MQTT redelivery)",
+        per("duplicates"),
+        ["process"],
+    )
+    yield counter(
+        "roadgrip_samples_late",
+        "Samples stored but not estimated: older than one already estimated",
+        per("late"),
+        ["process"],
+    )
     yield counter("roadgrip_estimates", "Estimates made and stored", per("estimates"), ["process"])
-    yield counter("roadgrip_estimator_restarts", "Estimators restarted after a gap longer than max_gap_s",
-                  per("restarts"), ["process"])
+    yield counter(
+        "roadgrip_estimator_restarts",
+        "Estimators restarted after a gap longer than max_gap_s",
+        per("restarts"),
+        ["process"],
+    )
     yield counter("roadgrip_pipeline_rounds", "Pipeline rounds run", per("rounds"), ["process"])
-    yield counter("roadgrip_pipeline_failed_rounds", "Pipeline rounds whose write failed (storage down: retried)",
-                  per("failed_rounds"), ["process"])
-    yield counter("roadgrip_pipeline_slow_rounds", "Pipeline rounds that took over 1 s", per("slow_rounds"),
-                  ["process"])
-    yield counter("roadgrip_pipeline_estimate_seconds", "Seconds spent in reorder buffers and estimators",
-                  per("estimate_s"), ["process"])
-    yield counter("roadgrip_pipeline_write_seconds", "Seconds spent writing rounds (telemetry and estimates)",
-                  per("write_s"), ["process"])
-    yield counter("roadgrip_checkpoints_written", "Estimator states stored", per("checkpoints_written"),
-                  ["process"])
-    yield counter("roadgrip_checkpoints_restored", "Vehicles that went on from a stored estimator state",
-                  per("checkpoints_restored"), ["process"])
-    yield gauge("roadgrip_pipeline_backlog_samples", "Samples submitted and not yet taken by a round",
-                per("backlog"), ["process"])
-    yield gauge("roadgrip_pipeline_last_round_seconds", "Duration of the last pipeline round",
-                per("last_round_s"), ["process"])
-    yield gauge("roadgrip_pipeline_storage_failing", "1 while the pipeline's writes fail and it holds a round",
-                [([v.process], float(v.stats["storage_down"])) for v in views], ["process"])
-    yield histogram("roadgrip_estimator_update_seconds", "Time of one estimator update", ESTIMATOR_BUCKETS_S,
-                    [([v.process], v.metrics["estimator_seconds"]) for v in views], ["process"])
+    yield counter(
+        "roadgrip_pipeline_failed_rounds",
+        "Pipeline rounds whose write failed (storage down: retried)",
+        per("failed_rounds"),
+        ["process"],
+    )
+    yield counter(
+        "roadgrip_pipeline_slow_rounds", "Pipeline rounds that took over 1 s", per("slow_rounds"), ["process"]
+    )
+    yield counter(
+        "roadgrip_pipeline_estimate_seconds",
+        "Seconds spent in reorder buffers and estimators",
+        per("estimate_s"),
+        ["process"],
+    )
+    yield counter(
+        "roadgrip_pipeline_write_seconds",
+        "Seconds spent writing rounds (telemetry and estimates)",
+        per("write_s"),
+        ["process"],
+    )
+    yield counter("roadgrip_checkpoints_written", "Estimator states stored", per("checkpoints_written"), ["process"])
+    yield counter(
+        "roadgrip_checkpoints_restored",
+        "Vehicles that went on from a stored estimator state",
+        per("checkpoints_restored"),
+        ["process"],
+    )
+    yield gauge(
+        "roadgrip_pipeline_backlog_samples",
+        "Samples submitted and not yet taken by a round",
+        per("backlog"),
+        ["process"],
+    )
+    yield gauge(
+        "roadgrip_pipeline_last_round_seconds", "Duration of the last pipeline round", per("last_round_s"), ["process"]
+    )
+    yield gauge(
+        "roadgrip_pipeline_storage_failing",
+        "1 while the pipeline's writes fail and it holds a round",
+        [([v.process], float(v.stats["storage_down"])) for v in views],
+        ["process"],
+    )
+    yield histogram(
+        "roadgrip_estimator_update_seconds",
+        "Time of one estimator update",
+        ESTIMATOR_BUCKETS_S,
+        [([v.process], v.metrics["estimator_seconds"]) for v in views],
+        ["process"],
+    )
 
 
 def estimate_latency(latency: BatchHistogram) -> HistogramMetricFamily:
     """The latency family from a BatchHistogram of LATENCY_BUCKETS_S, in seconds."""
-    return histogram("roadgrip_estimate_latency_seconds", "From a sample's own time (timestamp_ms) to its stored "
-                     "estimate", LATENCY_BUCKETS_S, [([], latency.state())])
+    return histogram(
+        "roadgrip_estimate_latency_seconds",
+        "From a sample's own time (timestamp_ms) to its stored estimate",
+        LATENCY_BUCKETS_S,
+        [([], latency.state())],
+    )
 
 
 class ServiceCollector(Collector):
@@ -210,23 +279,51 @@ class ServiceCollector(Collector):
         yield from pipeline_metrics(views, http_payloads_rejected=service.http_payloads_rejected)
         shards = [v for v in views if v.restarts is not None]
         if shards:
-            yield counter("roadgrip_ingest_process_restarts", "Ingest processes started again after they stopped",
-                          [([v.process], v.restarts) for v in shards], ["process"])
-            yield gauge("roadgrip_ingest_process_up", "1 while the ingest process is alive",
-                        [([v.process], float(v.alive)) for v in shards], ["process"])
-            yield gauge("roadgrip_ingest_process_resident_memory_bytes", "Resident memory of the ingest process",
-                        [([v.process], v.rss_bytes) for v in shards if v.rss_bytes is not None], ["process"])
-            yield gauge("roadgrip_mqtt_forwarded_unacknowledged_messages", "MQTT messages forwarded to the ingest "
-                        "process and not yet acknowledged by it (stored)",
-                        [([v.process], v.forwarded_unacknowledged) for v in shards], ["process"])
+            yield counter(
+                "roadgrip_ingest_process_restarts",
+                "Ingest processes started again after they stopped",
+                [([v.process], v.restarts) for v in shards],
+                ["process"],
+            )
+            yield gauge(
+                "roadgrip_ingest_process_up",
+                "1 while the ingest process is alive",
+                [([v.process], float(v.alive)) for v in shards],
+                ["process"],
+            )
+            yield gauge(
+                "roadgrip_ingest_process_resident_memory_bytes",
+                "Resident memory of the ingest process",
+                [([v.process], v.rss_bytes) for v in shards if v.rss_bytes is not None],
+                ["process"],
+            )
+            yield gauge(
+                "roadgrip_mqtt_forwarded_unacknowledged_messages",
+                "MQTT messages forwarded to the ingest process and not yet acknowledged by it (stored)",
+                [([v.process], v.forwarded_unacknowledged) for v in shards],
+                ["process"],
+            )
         fanout = service.fanout
         yield estimate_latency(fanout.latency_histogram)
-        yield counter("roadgrip_warnings", "Warning changes: raised, refreshed, cancelled, expired",
-                      [([change], n) for change, n in fanout.warning_changes.items()], ["change"])
+        yield counter(
+            "roadgrip_warnings",
+            "Warning changes: raised, refreshed, cancelled, expired",
+            [([change], n) for change, n in fanout.warning_changes.items()],
+            ["change"],
+        )
         mqtt = service.mqtt
-        yield gauge("roadgrip_mqtt_connected", "1 while the service's MQTT connection is up (0 also with MQTT off)",
-                    [([], float(mqtt is not None and mqtt.connected))])
-        yield gauge("roadgrip_mqtt_publishes_waiting", "The service's own MQTT publishes not yet acknowledged",
-                    [([], 0 if mqtt is None else mqtt.unacknowledged)])
-        yield counter("roadgrip_mqtt_estimate_messages_dropped", "Estimate messages not published because the broker "
-                      "was behind (the estimates are stored)", [([], service.estimate_messages_dropped)])
+        yield gauge(
+            "roadgrip_mqtt_connected",
+            "1 while the service's MQTT connection is up (0 also with MQTT off)",
+            [([], float(mqtt is not None and mqtt.connected))],
+        )
+        yield gauge(
+            "roadgrip_mqtt_publishes_waiting",
+            "The service's own MQTT publishes not yet acknowledged",
+            [([], 0 if mqtt is None else mqtt.unacknowledged)],
+        )
+        yield counter(
+            "roadgrip_mqtt_estimate_messages_dropped",
+            "Estimate messages not published because the broker was behind (the estimates are stored)",
+            [([], service.estimate_messages_dropped)],
+        )

@@ -64,6 +64,7 @@ def tune_memory_for_serving() -> None:
         while True:
             time.sleep(TRIM_INTERVAL_S)
             release_free_memory()
+
     threading.Thread(target=trim_periodically, name="roadgrip-malloc-trim", daemon=True).start()
 
 
@@ -81,9 +82,20 @@ def warm_up(estimator) -> None:
     """One update on a made-up sample, so that compiling (or loading from numba's cache) the estimator's kernels
     happens before the process says it is up, not in the pipeline's first round (~15 s cold)."""
     state = estimator.start(PAPER_SUV)
-    sample = {"vehicle_id": "warm-up", "timestamp_ms": 0, "latitude_deg": None, "longitude_deg": None,
-              "speed_mps": 20.0, "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0,
-              "steering_wheel_angle_rad": 0.0, "abs_active": False, "acc_active": False, "lateral_speed_mps": None,
-              **{f"wheel_speed_{w}_radps": 20.0 / PAPER_SUV.wheel_radius_m for w in ("fl", "fr", "rl", "rr")}}
+    sample = {
+        "vehicle_id": "warm-up",
+        "timestamp_ms": 0,
+        "latitude_deg": None,
+        "longitude_deg": None,
+        "speed_mps": 20.0,
+        "accel_lon_mps2": 0.0,
+        "accel_lat_mps2": 0.0,
+        "yaw_rate_radps": 0.0,
+        "steering_wheel_angle_rad": 0.0,
+        "abs_active": False,
+        "acc_active": False,
+        "lateral_speed_mps": None,
+        **{f"wheel_speed_{w}_radps": 20.0 / PAPER_SUV.wheel_radius_m for w in ("fl", "fr", "rl", "rr")},
+    }
     for k in range(12):  # a learned model's window fills before it estimates
         estimator.update(state, {**sample, "timestamp_ms": 100 * k})

@@ -23,9 +23,12 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="ROADGRIP_", extra="forbid", frozen=True)
 
     # where things live
-    data_dir: Path = Field(Path("roadgrip-data"), description="directory for the SQLite file, broker files and the "
-                                                              "generated admin secret")
-    database_url: str | None = Field(None, description="sqlite:///FILE or postgresql://...; default: SQLite in data_dir")
+    data_dir: Path = Field(
+        Path("roadgrip-data"), description="directory for the SQLite file, broker files and the generated admin secret"
+    )
+    database_url: str | None = Field(
+        None, description="sqlite:///FILE or postgresql://...; default: SQLite in data_dir"
+    )
     host: str = Field("127.0.0.1", description="HTTP listen address")
     port: int = Field(8000, ge=0, le=65535, description="HTTP port (0: pick a free one)")
 
@@ -37,64 +40,97 @@ class Settings(BaseSettings):
     mqtt_password: str | None = None
 
     # access
-    admin_secret: str | None = Field(None, min_length=16, description="the admin's secret; generated into "
-                                                                      "data_dir/admin-secret when absent")
+    admin_secret: str | None = Field(
+        None, min_length=16, description="the admin's secret; generated into data_dir/admin-secret when absent"
+    )
 
     # ingest and estimation
-    estimator: str = Field("pmf", description="estimator for every vehicle: pmf (the grid filter, docs/ESTIMATORS.md), "
-                                              "ekf, ukf, default (the shipped learned model) or a model file")
+    estimator: str = Field(
+        "pmf",
+        description="estimator for every vehicle: pmf (the grid filter, docs/ESTIMATORS.md), "
+        "ekf, ukf, default (the shipped learned model) or a model file",
+    )
     max_payload_bytes: int = Field(1_048_576, ge=1024, description="largest accepted body or MQTT message")
     max_samples_per_payload: int = Field(10_000, ge=1)
     max_future_s: float = Field(60.0, gt=0, description="samples further ahead of the server clock are refused")
     max_gap_s: float = Field(0.25, gt=0, description="a longer gap between samples restarts the estimator")
-    reorder_window_s: float = Field(0.3, ge=0, description="how long a vehicle's samples are held to put late "
-                                                           "arrivals back in order before estimation")
+    reorder_window_s: float = Field(
+        0.3,
+        ge=0,
+        description="how long a vehicle's samples are held to put late arrivals back in order before estimation",
+    )
     flush_interval_s: float = Field(0.1, gt=0, le=5, description="the pipeline's batching period")
-    ingest_processes: int = Field(0, ge=0, le=64, description="processes that parse, estimate and store the "
-                                                          "vehicles' telemetry, each for its share of the vehicles "
-                                                          "(0: the service's own process; roadgrip/cloud/serve/shards.py)")
-    friction_publish_interval_s: float = Field(1.0, ge=0, le=60, description="each vehicle's estimates are published "
-                                                                         "together on its friction topic at most "
-                                                                         "this often (0: every round)")
-    rate_limit_samples_per_s: float = Field(50.0, ge=0, allow_inf_nan=False,
-                                            description="samples a vehicle may send per second, HTTP and MQTT "
-                                                        "together (5x the 10 Hz of a terminal); 0: no limit "
-                                                        "(roadgrip/cloud/ingest/ratelimit.py)")
-    rate_limit_burst_s: float = Field(10.0, gt=0, allow_inf_nan=False,
-                                      description="seconds of rate_limit_samples_per_s a vehicle may send at once "
-                                                  "after a quiet spell (the bucket's size)")
+    ingest_processes: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description="processes that parse, estimate and store the "
+        "vehicles' telemetry, each for its share of the vehicles "
+        "(0: the service's own process; roadgrip/cloud/serve/shards.py)",
+    )
+    friction_publish_interval_s: float = Field(
+        1.0,
+        ge=0,
+        le=60,
+        description="each vehicle's estimates are published "
+        "together on its friction topic at most "
+        "this often (0: every round)",
+    )
+    rate_limit_samples_per_s: float = Field(
+        50.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="samples a vehicle may send per second, HTTP and MQTT "
+        "together (5x the 10 Hz of a terminal); 0: no limit "
+        "(roadgrip/cloud/ingest/ratelimit.py)",
+    )
+    rate_limit_burst_s: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="seconds of rate_limit_samples_per_s a vehicle may send at once "
+        "after a quiet spell (the bucket's size)",
+    )
 
     # map and warnings
     h3_resolution: int = Field(10, ge=0, le=15)
     map_half_life_s: float = Field(600.0, gt=0, description="an estimate's weight halves every half-life")
     map_max_age_s: float = Field(3600.0, gt=0, description="older evidence leaves the map")
-    map_clock: Literal["wall", "data"] = Field("wall", description="age against the server clock, or against the "
-                                                                   "newest sample (replays of old logs)")
+    map_clock: Literal["wall", "data"] = Field(
+        "wall", description="age against the server clock, or against the newest sample (replays of old logs)"
+    )
     # the warning defaults live in one place, roadgrip/cloud/domain/warnings.py (THRESHOLD_MU, ...)
-    warning_threshold_mu: float = Field(we.THRESHOLD_MU, gt=0, lt=2,
-                                        description="a pass is low when its mu_upper lies below")
-    warning_min_low_passes: int = Field(we.MIN_LOW_PASSES, ge=1,
-                                        description="low passes (vehicles or repeated passes) to raise")
+    warning_threshold_mu: float = Field(
+        we.THRESHOLD_MU, gt=0, lt=2, description="a pass is low when its mu_upper lies below"
+    )
+    warning_min_low_passes: int = Field(
+        we.MIN_LOW_PASSES, ge=1, description="low passes (vehicles or repeated passes) to raise"
+    )
     warning_min_dry_passes: int = Field(we.MIN_DRY_PASSES, ge=1, description="dry passes after a warning to cancel it")
-    warning_pass_gap_s: float = Field(we.PASS_GAP_S, gt=0,
-                                      description="a vehicle back in a cell after this is a new pass")
+    warning_pass_gap_s: float = Field(
+        we.PASS_GAP_S, gt=0, description="a vehicle back in a cell after this is a new pass"
+    )
     warning_min_excited_per_pass: int = Field(we.MIN_EXCITED_PER_PASS, ge=1)
-    warning_validity_s: float = Field(we.VALIDITY_S, gt=0,
-                                      description="DENM validity; a warning not refreshed expires")
+    warning_validity_s: float = Field(we.VALIDITY_S, gt=0, description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
     # cluster mode: the map and the warnings are kept per region, an H3 parent cell of the map's cells, by the worker
     # that owns the region's queue (roadgrip/cloud/cluster/regions.py); resolution 5 cells are about 250 km^2
-    region_resolution: int = Field(5, ge=0, le=15, description="H3 resolution of the regions (at most "
-                                                               "h3_resolution; checked in cluster mode)")
-    region_queues: int = Field(4, ge=1, le=1024, description="queues the regions are spread over (fixed once "
-                                                             "declared, as the partitions)")
+    region_resolution: int = Field(
+        5, ge=0, le=15, description="H3 resolution of the regions (at most h3_resolution; checked in cluster mode)"
+    )
+    region_queues: int = Field(
+        4, ge=1, le=1024, description="queues the regions are spread over (fixed once declared, as the partitions)"
+    )
 
     # dashboard
-    map_tiles_url: str | None = Field(None, pattern=r"^(https?://|/)",
-                                      description="base-map tile URL template (http, https or a path on this "
-                                                  "server) for the dashboard, e.g. "
-                                                  "https://tile.openstreetmap.org/{z}/{x}/{y}.png; none: no base map, "
-                                                  "the cells on a plain background")
+    map_tiles_url: str | None = Field(
+        None,
+        pattern=r"^(https?://|/)",
+        description="base-map tile URL template (http, https or a path on this "
+        "server) for the dashboard, e.g. "
+        "https://tile.openstreetmap.org/{z}/{x}/{y}.png; none: no base map, "
+        "the cells on a plain background",
+    )
 
     @field_validator("mqtt")
     @classmethod
@@ -104,9 +140,14 @@ class Settings(BaseSettings):
         raise ValueError(f"mqtt must be off, auto, managed or mqtt://host:port, got {value!r}")
 
     @classmethod
-    def settings_customise_sources(cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
-                                   env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
-                                   file_secret_settings: PydanticBaseSettingsSource):
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ):
         return init_settings, env_settings, YamlConfigSettingsSource(settings_cls)
 
     @property
@@ -128,6 +169,7 @@ def load_settings(config_file: str | Path | None = None, **overrides) -> Setting
     try:
         return settings_cls(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
-                             for e in exc.errors())
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})" for e in exc.errors()
+        )
         raise ValueError(f"invalid settings: {problems}") from None

@@ -40,8 +40,9 @@ def read_file(path: Path) -> tuple[pa.Table, np.ndarray, list[Rejection]]:
     """(the table, each of its rows' index among the file's records, the records rejected) of a telemetry file."""
     suffix = path.suffix.lower()
     if suffix not in FORMATS:
-        raise ValueError(f"unknown telemetry file extension {path.suffix!r} of {path}; "
-                         f"expected one of {sorted(FORMATS)}")
+        raise ValueError(
+            f"unknown telemetry file extension {path.suffix!r} of {path}; expected one of {sorted(FORMATS)}"
+        )
     if not path.is_file():
         raise FileNotFoundError(f"telemetry file {path} does not exist")
     if path.stat().st_size == 0:
@@ -57,8 +58,9 @@ def _read_csv(path: Path):
         table = pacsv.read_csv(
             path,
             parse_options=pacsv.ParseOptions(invalid_row_handler=lambda row: invalid.append(row) or "skip"),
-            convert_options=pacsv.ConvertOptions(column_types={"vehicle_id": pa.string()}, null_values=CSV_NULLS,
-                                                 strings_can_be_null=True),
+            convert_options=pacsv.ConvertOptions(
+                column_types={"vehicle_id": pa.string()}, null_values=CSV_NULLS, strings_can_be_null=True
+            ),
         )
         if not invalid:
             return table, np.arange(table.num_rows), []
@@ -70,8 +72,9 @@ def _read_csv(path: Path):
         records, rejections = [], []
         for i, fields in enumerate(reader):
             if len(fields) != len(header):
-                rejections.append(Rejection(i, None, None, "", f"row has {len(fields)} fields, the header has "
-                                                                 f"{len(header)}"))
+                rejections.append(
+                    Rejection(i, None, None, "", f"row has {len(fields)} fields, the header has {len(header)}")
+                )
             else:
                 values = [None if v.strip() in CSV_NULLS else v for v in fields]
                 records.append((i, dict(zip(header, values, strict=True))))

@@ -33,12 +33,19 @@ TELEMETRY = (
     *(Column(f"wheel_speed_{w}_radps", pa.float64(), "rad/s", f"wheel angular speed, {w}") for w in WHEELS),
     Column("abs_active", pa.bool_(), "-", "ABS intervening"),
     Column("acc_active", pa.bool_(), "-", "adaptive cruise control engaged"),
-    Column("tcs_active", pa.bool_(), "-", "traction control intervening (absent: unknown, taken as false)",
-           required=False),
-    Column("esc_active", pa.bool_(), "-", "stability control intervening (absent: unknown, taken as false)",
-           required=False),
-    Column("lateral_speed_mps", pa.float64(), "m/s", "lateral speed of the CoG (simulations, some test vehicles)",
-           required=False),
+    Column(
+        "tcs_active", pa.bool_(), "-", "traction control intervening (absent: unknown, taken as false)", required=False
+    ),
+    Column(
+        "esc_active", pa.bool_(), "-", "stability control intervening (absent: unknown, taken as false)", required=False
+    ),
+    Column(
+        "lateral_speed_mps",
+        pa.float64(),
+        "m/s",
+        "lateral speed of the CoG (simulations, some test vehicles)",
+        required=False,
+    ),
 )
 
 GROUND_TRUTH = (
@@ -60,7 +67,9 @@ GROUND_TRUTH = (
     Column("yaw_rate_true_radps", pa.float64(), "rad/s", "true yaw rate"),
     Column("roll_true_rad", pa.float64(), "rad", "true roll angle, positive right side down"),
     Column("steer_true_rad", pa.float64(), "rad", "true road-wheel steering angle"),
-    Column("mu", pa.float64(), "-", "road adhesion coefficient at the vehicle (mean of the two tracks at the CoG): label"),
+    Column(
+        "mu", pa.float64(), "-", "road adhesion coefficient at the vehicle (mean of the two tracks at the CoG): label"
+    ),
     *(Column(f"mu_{w}", pa.float64(), "-", f"road adhesion coefficient under wheel {w}") for w in WHEELS),
     *(Column(f"slip_ratio_{w}", pa.float64(), "-", f"slip ratio (eq. 6), wheel {w}") for w in WHEELS),
     *(Column(f"slip_angle_{w}_rad", pa.float64(), "rad", f"slip angle (eq. 8), wheel {w}") for w in WHEELS),
@@ -82,8 +91,13 @@ ESTIMATE = (
     Column("mu_upper", pa.float64(), "-", "95 % quantile: upper end of the 90 % interval"),
     Column("excited", pa.bool_(), "-", "the manoeuvre made mu observable"),
     Column("estimator", pa.string(), "-", "name of the estimator"),
-    Column("mu_proven", pa.float64(), "-", "what the car's own acceleration proves (null without the physics guard)",
-           required=False),
+    Column(
+        "mu_proven",
+        pa.float64(),
+        "-",
+        "what the car's own acceleration proves (null without the physics guard)",
+        required=False,
+    ),
     Column("latitude_deg", pa.float64(), "deg", "WGS84 latitude of the sample", required=False),
     Column("longitude_deg", pa.float64(), "deg", "WGS84 longitude of the sample", required=False),
     Column("h3_cell", pa.string(), "-", "H3 cell of the position at the map's resolution", required=False),

@@ -58,8 +58,15 @@ RANGES = {
     "lateral_speed_mps": (-30.0, 30.0),
 }
 
-REJECTION_SCHEMA = pa.schema([("row", pa.int64()), ("vehicle_id", pa.string()), ("timestamp_ms", pa.int64()),
-                              ("column", pa.string()), ("reason", pa.string())])
+REJECTION_SCHEMA = pa.schema(
+    [
+        ("row", pa.int64()),
+        ("vehicle_id", pa.string()),
+        ("timestamp_ms", pa.int64()),
+        ("column", pa.string()),
+        ("reason", pa.string()),
+    ]
+)
 TELEMETRY_SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=not c.required) for c in TELEMETRY])
 
 
@@ -88,14 +95,16 @@ def read_telemetry(path: str | Path, *, max_gap_s: float = 0.25, wheel_radius_m:
     return _validate(table, rows, rejections, str(path), max_gap_s, wheel_radius_m)
 
 
-def validate_telemetry(table: pa.Table, *, source: str = "input", max_gap_s: float = 0.25,
-                       wheel_radius_m: float | None = None) -> TelemetryBatch:
+def validate_telemetry(
+    table: pa.Table, *, source: str = "input", max_gap_s: float = 0.25, wheel_radius_m: float | None = None
+) -> TelemetryBatch:
     """Validate a table of telemetry (the columns of a file: wire-format names, `t_s` allowed in place of timestamp_ms,
     vehicle_id optional); `source` names the input in messages and, without vehicle_id, names the vehicle."""
     return _validate(table, np.arange(table.num_rows), [], source, max_gap_s, wheel_radius_m)
 
 
 # ------------------------------------------------------------------------------------------------- column parsing
+
 
 class _Faults:
     """The first fault of each row: column and reason (None while the row is clean)."""
@@ -254,8 +263,15 @@ def _vehicle_ids(table: pa.Table, source: str, faults: _Faults, warnings: list[s
 
 # --------------------------------------------------------------------------------------------------- validation
 
-def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], source: str, max_gap_s: float,
-              wheel_radius_m: float | None) -> TelemetryBatch:
+
+def _validate(
+    table: pa.Table,
+    rows: np.ndarray,
+    rejections: list[Rejection],
+    source: str,
+    max_gap_s: float,
+    wheel_radius_m: float | None,
+) -> TelemetryBatch:
     _check_options(max_gap_s, wheel_radius_m)
     names = [n.strip() for n in table.column_names]
     table = table.rename_columns(names)
@@ -264,15 +280,18 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
         raise ValueError(f"{source} has column(s) {doubled} more than once")
     if table.num_rows == 0:
         if rejections:
-            raise ValueError(f"{source} has no valid rows of telemetry: all {len(rejections)} were rejected "
-                             f"({_summary(rejections)})")
+            raise ValueError(
+                f"{source} has no valid rows of telemetry: all {len(rejections)} were rejected ({_summary(rejections)})"
+            )
         raise ValueError(f"{source} has no rows of telemetry")
     missing = [c.name for c in TELEMETRY if c.required and c.name not in TIME_COLUMNS and c.name not in names]
     if "timestamp_ms" not in names and "t_s" not in names:
         missing.insert(0, "timestamp_ms (or t_s, seconds from the start)")
     if missing:
-        raise ValueError(f"{source} is missing required telemetry column(s): {', '.join(missing)} (CONTRACTS 3.1); "
-                         f"its columns are {names[:40]}{' ...' if len(names) > 40 else ''}")
+        raise ValueError(
+            f"{source} is missing required telemetry column(s): {', '.join(missing)} (CONTRACTS 3.1); "
+            f"its columns are {names[:40]}{' ...' if len(names) > 40 else ''}"
+        )
 
     n = table.num_rows
     faults = _Faults(n)
@@ -294,8 +313,9 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
     if extras:
         warnings.append(f"ignored {len(extras)} column(s) that are not telemetry (wire format v1): {', '.join(extras)}")
 
-    errors, unit_warnings = check_units(values, vehicle, ts, ts_raw, time_column, faults.clean, max_gap_s,
-                                        wheel_radius_m)
+    errors, unit_warnings = check_units(
+        values, vehicle, ts, ts_raw, time_column, faults.clean, max_gap_s, wheel_radius_m
+    )
     if errors:
         raise ValueError(f"implausible units in {source}: " + "; ".join(errors))
     warnings += unit_warnings
@@ -303,9 +323,13 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
     for name, (low, high) in RANGES.items():
         v = values[name]
         unit = SCHEMA[name].unit
-        faults.add(~np.isnan(v) & ((v < low) | (v > high)), name,
-                   lambda i, v=v, name=name, low=low, high=high, unit=unit:
-                   f"{name} {v[i]:.6g} outside [{low:g}, {high:g}] {unit}")
+        faults.add(
+            ~np.isnan(v) & ((v < low) | (v > high)),
+            name,
+            lambda i, v=v, name=name, low=low, high=high, unit=unit: (
+                f"{name} {v[i]:.6g} outside [{low:g}, {high:g}] {unit}"
+            ),
+        )
 
     # Stable sort by (vehicle_id, timestamp): duplicates end up next to each other, the first in file order first.
     ok = np.flatnonzero(faults.clean)
@@ -315,22 +339,34 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
     same = vehicle[by_vehicle[1:]] == vehicle[by_vehicle[:-1]]
     unsorted = sorted(set(vehicle[by_vehicle[1:]][same & (np.diff(ts[by_vehicle]) < 0)]))
     if unsorted:
-        warnings.append(f"input was not sorted by timestamp for {len(unsorted)} vehicle(s) ({_few(unsorted)}); "
-                        "sorted it (stable)")
+        warnings.append(
+            f"input was not sorted by timestamp for {len(unsorted)} vehicle(s) ({_few(unsorted)}); sorted it (stable)"
+        )
     if order.size:
         dup = np.zeros(order.size, bool)
         dup[1:] = (vehicle[order[1:]] == vehicle[order[:-1]]) & (ts[order[1:]] == ts[order[:-1]])
         mask = np.zeros(n, bool)
         mask[order[dup]] = True
-        faults.add(mask, time_column,
-                   lambda i: f"duplicate timestamp {ts[i]} for vehicle {vehicle[i]} (kept the first)")
+        faults.add(
+            mask, time_column, lambda i: f"duplicate timestamp {ts[i]} for vehicle {vehicle[i]} (kept the first)"
+        )
         order = order[~dup]
 
     total = n + len(rejections)  # the rows of the table and the records that could not become rows
-    rejections = sorted(rejections + [
-        Rejection(int(rows[i]), vehicle[i], int(ts[i]) if np.isfinite(ts_raw[i]) else None, faults.column[i],
-                  faults.reason[i])
-        for i in np.flatnonzero(~faults.clean)], key=lambda r: r.row)
+    rejections = sorted(
+        rejections
+        + [
+            Rejection(
+                int(rows[i]),
+                vehicle[i],
+                int(ts[i]) if np.isfinite(ts_raw[i]) else None,
+                faults.column[i],
+                faults.reason[i],
+            )
+            for i in np.flatnonzero(~faults.clean)
+        ],
+        key=lambda r: r.row,
+    )
     if not order.size:
         raise ValueError(f"{source} has no valid rows of telemetry: all {total} were rejected ({_summary(rejections)})")
     if rejections:
@@ -342,11 +378,17 @@ def _validate(table: pa.Table, rows: np.ndarray, rejections: list[Rejection], so
 
 
 def _check_options(max_gap_s, wheel_radius_m) -> None:
-    if isinstance(max_gap_s, bool) or not isinstance(max_gap_s, (int, float)) or not (
-            math.isfinite(max_gap_s) and max_gap_s > 0):
+    if (
+        isinstance(max_gap_s, bool)
+        or not isinstance(max_gap_s, (int, float))
+        or not (math.isfinite(max_gap_s) and max_gap_s > 0)
+    ):
         raise ValueError(f"max_gap_s must be a finite number of seconds > 0, got {max_gap_s!r}")
-    if wheel_radius_m is not None and (isinstance(wheel_radius_m, bool) or not isinstance(wheel_radius_m, (int, float))
-                                       or not 0.1 < wheel_radius_m <= 1.5):
+    if wheel_radius_m is not None and (
+        isinstance(wheel_radius_m, bool)
+        or not isinstance(wheel_radius_m, (int, float))
+        or not 0.1 < wheel_radius_m <= 1.5
+    ):
         raise ValueError(f"wheel_radius_m must be None or in (0.1, 1.5] m (as VehicleParams), got {wheel_radius_m!r}")
 
 
@@ -358,7 +400,8 @@ def _few(items, k: int = 5) -> str:
 def _summary(rejections: list[Rejection]) -> str:
     counts = Counter(r.column or "(row)" for r in rejections)
     return ", ".join(f"{k}: {v}" for k, v in counts.most_common(8)) + (
-        f"; e.g. row {rejections[0].row}: {rejections[0].reason}" if rejections else "")
+        f"; e.g. row {rejections[0].row}: {rejections[0].reason}" if rejections else ""
+    )
 
 
 def _output_table(vehicle, ts, values, order) -> pa.Table:
@@ -397,10 +440,14 @@ def _segments(vehicle: np.ndarray, ts: np.ndarray, max_gap_s: float, time_column
             longest = g[np.argmax(dt_ms[g])]
             details.append(f"{v}: {g.size} (longest {dt_ms[longest] / 1000:.3g} s, before timestamp {ts[longest]})")
         more = f" and {len(vehicles) - 5} more vehicles" if len(vehicles) > 5 else ""
-        warnings.append(f"{int(gap.sum())} gap(s) longer than max_gap_s={max_gap_s:g} s split the data into "
-                        f"{int(segments[-1]) + 1} segments: {', '.join(details)}{more}")
+        warnings.append(
+            f"{int(gap.sum())} gap(s) longer than max_gap_s={max_gap_s:g} s split the data into "
+            f"{int(segments[-1]) + 1} segments: {', '.join(details)}{more}"
+        )
     steps = dt_ms[~new_vehicle]
     if steps.size and np.median(steps) > max_gap_s * 1000.0:
-        warnings.append(f"the median sampling interval, {np.median(steps) / 1000:.3g} s, exceeds max_gap_s="
-                        f"{max_gap_s:g} s: nearly every sample is its own segment (check the unit of {time_column})")
+        warnings.append(
+            f"the median sampling interval, {np.median(steps) / 1000:.3g} s, exceeds max_gap_s="
+            f"{max_gap_s:g} s: nearly every sample is its own segment (check the unit of {time_column})"
+        )
     return segments.astype(np.int64), warnings

@@ -52,10 +52,22 @@ WHEEL_COLUMNS = tuple(f"wheel_speed_{w}_radps" for w in WHEELS)
 SPEED_UNITS = {"m/s": 1.0, "km/h": KMH_PER_MPS, "mph": MPH_PER_MPS}
 WHEEL_UNITS = {"rad/s": 1.0, "rpm": RPM_PER_RADPS, "deg/s": DEG_PER_RAD}
 ACCEL_UNITS = {"m/s^2": 1.0, "g": 1.0 / G_MPS2}
-FIXES = {"km/h": f"divide by {KMH_PER_MPS}", "mph": f"multiply by {MPS_PER_MPH}", "rpm": "multiply by 2 pi / 60",
-         "deg/s": "multiply by pi / 180", "g": f"multiply by {G_MPS2}", "deg": "multiply by pi / 180"}
-SI_UNITS = {"speed_mps": "m/s", "accel_lon_mps2": "m/s^2", "yaw_rate_radps": "rad/s", "steering_wheel_angle_rad": "rad",
-            "timestamp_ms": "milliseconds", **{c: "rad/s" for c in WHEEL_COLUMNS}}
+FIXES = {
+    "km/h": f"divide by {KMH_PER_MPS}",
+    "mph": f"multiply by {MPS_PER_MPH}",
+    "rpm": "multiply by 2 pi / 60",
+    "deg/s": "multiply by pi / 180",
+    "g": f"multiply by {G_MPS2}",
+    "deg": "multiply by pi / 180",
+}
+SI_UNITS = {
+    "speed_mps": "m/s",
+    "accel_lon_mps2": "m/s^2",
+    "yaw_rate_radps": "rad/s",
+    "steering_wheel_angle_rad": "rad",
+    "timestamp_ms": "milliseconds",
+    **{c: "rad/s" for c in WHEEL_COLUMNS},
+}
 UNIT_NAMES = {"deg/s": "degrees per second", "deg": "degrees"}
 
 UNIT_TOLERANCE = 1.2  # a ratio matches a unit within this factor; neighbouring units' ratios are >= 1.6 apart
@@ -69,9 +81,16 @@ STEER_MIN_CURVATURE_PER_M = 0.002  # a 500 m radius: below it, sensor bias domin
 STEER_LOCK_RAD = 15.0
 
 
-def check_units(values: dict[str, np.ndarray], vehicle: np.ndarray, ts: np.ndarray, ts_raw: np.ndarray,
-                time_column: str, ok: np.ndarray, max_gap_s: float,
-                wheel_radius_m: float | None) -> tuple[list[str], list[str]]:
+def check_units(
+    values: dict[str, np.ndarray],
+    vehicle: np.ndarray,
+    ts: np.ndarray,
+    ts_raw: np.ndarray,
+    time_column: str,
+    ok: np.ndarray,
+    max_gap_s: float,
+    wheel_radius_m: float | None,
+) -> tuple[list[str], list[str]]:
     """(errors, warnings) of the unit checks of the module docstring over the rows `ok` that parsed, vehicle by vehicle
     (a fleet's terminals need not agree: one sending km/h among many sending m/s must not hide in a pooled median).
 
@@ -82,11 +101,20 @@ def check_units(values: dict[str, np.ndarray], vehicle: np.ndarray, ts: np.ndarr
     errors, warnings = [], []
     if time_column == "timestamp_ms" and ok.any():
         median = float(np.median(ts_raw[ok]))
-        unit = ("seconds" if 1e9 <= median < 1e10 else "microseconds" if 1e14 <= median < 1e17
-                else "nanoseconds" if median >= 1e17 else None)
+        unit = (
+            "seconds"
+            if 1e9 <= median < 1e10
+            else "microseconds"
+            if 1e14 <= median < 1e17
+            else "nanoseconds"
+            if median >= 1e17
+            else None
+        )
         if unit:
-            errors.append(f"column timestamp_ms looks like {unit} since the epoch, not milliseconds (median "
-                          f"{median:.4g}, where milliseconds now are about 1.7e12); convert it")
+            errors.append(
+                f"column timestamp_ms looks like {unit} since the epoch, not milliseconds (median "
+                f"{median:.4g}, where milliseconds now are about 1.7e12); convert it"
+            )
     rows = np.flatnonzero(ok)
     codes = vehicle_codes(vehicle[rows])
     by_vehicle = rows[np.argsort(codes, kind="stable")]
@@ -138,8 +166,10 @@ class _UnitReport:
         out = []
         for (unit, evidence), cols in self.found.items():
             subject = f"column {cols[0]} looks" if len(cols) == 1 else f"columns {', '.join(cols)} look"
-            out.append(f"{subject} like {UNIT_NAMES.get(unit, unit)}, not {SI_UNITS[cols[0]]}: {evidence}; "
-                       f"convert {'it' if len(cols) == 1 else 'them'} ({FIXES[unit]})")
+            out.append(
+                f"{subject} like {UNIT_NAMES.get(unit, unit)}, not {SI_UNITS[cols[0]]}: {evidence}; "
+                f"convert {'it' if len(cols) == 1 else 'them'} ({FIXES[unit]})"
+            )
         return out + self.errors
 
 
@@ -157,28 +187,41 @@ def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitRepo
         match = _match(slope, {(s, a): fs / fa for s, fs in SPEED_UNITS.items() for a, fa in ACCEL_UNITS.items()})
         if speed_unit is None and match is not None:
             speed_unit = match[0]
-            evidence = (f"its rate of change is {slope:.3g} times accel_lon_mps2 (least-squares slope; 1 "
-                        f"expected, {SPEED_UNITS[speed_unit]:.3g} for {speed_unit})")
+            evidence = (
+                f"its rate of change is {slope:.3g} times accel_lon_mps2 (least-squares slope; 1 "
+                f"expected, {SPEED_UNITS[speed_unit]:.3g} for {speed_unit})"
+            )
         elif speed_unit is not None and match is not None and match[0] != speed_unit:
-            report.errors.append(f"{evidence}, but the rate of change of speed_mps is {slope:.3g} times "
-                                 f"accel_lon_mps2, which says {match[0]}: check wheel_radius_m={radius:g} m and the "
-                                 "units of speed_mps and the wheel speeds")
+            report.errors.append(
+                f"{evidence}, but the rate of change of speed_mps is {slope:.3g} times "
+                f"accel_lon_mps2, which says {match[0]}: check wheel_radius_m={radius:g} m and the "
+                "units of speed_mps and the wheel speeds"
+            )
             return None
         accel_unit = _match(slope / SPEED_UNITS[speed_unit or "m/s"], {u: 1 / f for u, f in ACCEL_UNITS.items()})
         if accel_unit == "g":
-            report.wrong_unit("accel_lon_mps2", "g", f"the rate of change of speed is {slope:.3g} times it "
-                                                     f"(least-squares slope; 1 expected, {G_MPS2:.3g} for g)")
+            report.wrong_unit(
+                "accel_lon_mps2",
+                "g",
+                f"the rate of change of speed is {slope:.3g} times it "
+                f"(least-squares slope; 1 expected, {G_MPS2:.3g} for g)",
+            )
         elif accel_unit is None:
-            report.warnings.append(f"the rate of change of speed_mps is {slope:.3g} times accel_lon_mps2 "
-                                   "(least-squares slope, 1 expected): check the sign and unit of accel_lon_mps2")
+            report.warnings.append(
+                f"the rate of change of speed_mps is {slope:.3g} times accel_lon_mps2 "
+                "(least-squares slope, 1 expected): check the sign and unit of accel_lon_mps2"
+            )
 
     lo, hi = WHEEL_RADIUS_RANGE_M
     confirmed = speed_unit is not None
     if not confirmed and radius is None and implied:  # 1, without a radius: too large an implied radius
         r = float(np.median(list(implied.values())))
         fits = {u: r / SPEED_UNITS[u] for u in ("km/h", "mph") if lo <= r / SPEED_UNITS[u] <= hi}
-        text = f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected; " + " or ".join(
-            f"{x:.2g} m if it is {u}" for u, x in fits.items()) + ")"
+        text = (
+            f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected; "
+            + " or ".join(f"{x:.2g} m if it is {u}" for u, x in fits.items())
+            + ")"
+        )
         if r > hi and len(fits) == 1:
             speed_unit, evidence, confirmed = next(iter(fits)), text, True
         elif r > hi and fits:
@@ -188,9 +231,11 @@ def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitRepo
         p99 = float(np.percentile(np.abs(speed), 99))
         if p99 > MAX_PLAUSIBLE_SPEED_MPS:
             speed_unit = "km/h"
-            evidence = (f"its 99th percentile is {p99:.4g}, above {MAX_PLAUSIBLE_SPEED_MPS:g} m/s "
-                        f"({MAX_PLAUSIBLE_SPEED_MPS * KMH_PER_MPS:.0f} km/h), and neither wheel speeds nor "
-                        "accelerations could be compared with it")
+            evidence = (
+                f"its 99th percentile is {p99:.4g}, above {MAX_PLAUSIBLE_SPEED_MPS:g} m/s "
+                f"({MAX_PLAUSIBLE_SPEED_MPS * KMH_PER_MPS:.0f} km/h), and neither wheel speeds nor "
+                "accelerations could be compared with it"
+            )
     if speed_unit not in (None, "m/s"):
         report.wrong_unit("speed_mps", speed_unit, evidence)
     speed_factor = SPEED_UNITS[speed_unit or "m/s"]
@@ -213,22 +258,30 @@ def _check_speed_and_wheels(v, vehicle, ts, max_gap_s, radius, report: _UnitRepo
     for unit, ratios in found.items():
         x = float(np.median(list(ratios.values())))
         if radius is not None:
-            evidence = (f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {x:.3g} (1 expected; "
-                        f"{speed_factor / WHEEL_UNITS[unit]:.3g} for {unit})")
+            evidence = (
+                f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {x:.3g} (1 expected; "
+                f"{speed_factor / WHEEL_UNITS[unit]:.3g} for {unit})"
+            )
         else:
-            evidence = (f"speed / wheel speed implies a wheel radius of {x:.2g} m ({lo}-{hi} m expected; "
-                        f"{x * WHEEL_UNITS[unit]:.2g} m for {unit}{'' if confirmed else ', if speed_mps is m/s'})")
+            evidence = (
+                f"speed / wheel speed implies a wheel radius of {x:.2g} m ({lo}-{hi} m expected; "
+                f"{x * WHEEL_UNITS[unit]:.2g} m for {unit}{'' if confirmed else ', if speed_mps is m/s'})"
+            )
         for col in ratios:
             report.wrong_unit(col, unit, evidence)
     if unexplained:
         r = float(np.median(list(unexplained.values()))) * speed_factor
-        combos = [f"speed in {s} with wheel speeds in {w}" for s, fs in SPEED_UNITS.items()
-                  for w, fw in WHEEL_UNITS.items() if (s, w) != ("m/s", "rad/s") and lo <= r * fw / fs <= hi
-                  and (not confirmed or s == (speed_unit or "m/s"))]
+        combos = [
+            f"speed in {s} with wheel speeds in {w}"
+            for s, fs in SPEED_UNITS.items()
+            for w, fw in WHEEL_UNITS.items()
+            if (s, w) != ("m/s", "rad/s") and lo <= r * fw / fs <= hi and (not confirmed or s == (speed_unit or "m/s"))
+        ]
         report.errors.append(
             f"speed_mps / wheel speed implies a wheel radius of {r:.3g} m ({lo}-{hi} m expected for a road vehicle) "
             f"for {', '.join(unexplained)}: check the units of speed_mps and the wheel speeds"
-            + (f" ({' or '.join(combos)} would explain it)" if combos else ""))
+            + (f" ({' or '.join(combos)} would explain it)" if combos else "")
+        )
         if not confirmed:
             return None  # the speed itself may be wrong: leave the checks that use it alone
     return speed_factor, confirmed
@@ -246,14 +299,18 @@ def _implied_radii(speed: np.ndarray, v: dict, report: _UnitReport) -> dict[str,
     implied = {}
     for col in WHEEL_COLUMNS:
         w = v[col]
-        moving = (np.abs(speed) >= _moving_threshold(speed)) & (np.abs(w) >= _moving_threshold(w)) & (
-            np.sign(speed) == np.sign(w))
+        moving = (
+            (np.abs(speed) >= _moving_threshold(speed))
+            & (np.abs(w) >= _moving_threshold(w))
+            & (np.sign(speed) == np.sign(w))
+        )
         if moving.sum() >= MIN_SAMPLES:
             implied[col] = float(np.median(speed[moving] / w[moving]))
     unchecked = [c for c in WHEEL_COLUMNS if c not in implied]
     if unchecked:
-        report.warnings.append(f"too few moving samples to compare {', '.join(unchecked)} with speed_mps (units not "
-                               "verified)")
+        report.warnings.append(
+            f"too few moving samples to compare {', '.join(unchecked)} with speed_mps (units not verified)"
+        )
     return implied
 
 
@@ -269,15 +326,23 @@ def _units_from_radius(implied: dict[str, float], radius: float, report: _UnitRe
             if 0.5 <= q <= 2.0:
                 report.warnings.append(f"{text}: check wheel_radius_m={radius:g} m")
             else:
-                report.errors.append(f"{text}, and no unit of speed (m/s, km/h, mph) and wheel speed (rad/s, rpm, "
-                                     f"deg/s) explains it: check these columns and wheel_radius_m={radius:g} m")
+                report.errors.append(
+                    f"{text}, and no unit of speed (m/s, km/h, mph) and wheel speed (rad/s, rpm, "
+                    f"deg/s) explains it: check these columns and wheel_radius_m={radius:g} m"
+                )
     votes = Counter(u for u in units.values() if u is not None).most_common(1)
     if not votes or votes[0][1] < len(implied) // 2 + 1:
         return None, "", units
     pair = votes[0][0]
     q = float(np.median([implied[c] / radius for c, u in units.items() if u == pair]))
-    return pair[0], (f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {q:.3g} (1 expected; "
-                     f"{pairs[pair]:.3g} for speed in {pair[0]}, wheel speeds in {pair[1]})"), units
+    return (
+        pair[0],
+        (
+            f"speed_mps / (wheel speed x wheel_radius_m) over moving samples is {q:.3g} (1 expected; "
+            f"{pairs[pair]:.3g} for speed in {pair[0]}, wheel speeds in {pair[1]})"
+        ),
+        units,
+    )
 
 
 def _check_yaw_and_steering(v, speed_factor: float, confirmed: bool, report: _UnitReport) -> None:
@@ -297,17 +362,22 @@ def _check_yaw_and_steering(v, speed_factor: float, confirmed: bool, report: _Un
         yaw_factor = 1.0
         if ay95 > 0 and vr95 / ay95 > YAW_RATIO_LIMIT * margin and (ay95 >= 0.5 or r99 > 1.5):
             yaw_factor = DEG_PER_RAD
-            report.wrong_unit("yaw_rate_radps", "deg/s",
-                              f"speed x yaw rate is {vr95 / ay95:.3g} times the lateral acceleration (95th percentiles "
-                              f"above {MOVING_MPS:g} m/s; about 1 expected, as ay = v r; 99th percentile of |yaw rate| "
-                              f"{r99:.3g})")
+            report.wrong_unit(
+                "yaw_rate_radps",
+                "deg/s",
+                f"speed x yaw rate is {vr95 / ay95:.3g} times the lateral acceleration (95th percentiles "
+                f"above {MOVING_MPS:g} m/s; about 1 expected, as ay = v r; 99th percentile of |yaw rate| "
+                f"{r99:.3g})",
+            )
         kappa = r / yaw_factor / speed  # path curvature, 1/m
         curving = np.abs(kappa) >= STEER_MIN_CURVATURE_PER_M
         if curving.sum() >= MIN_SAMPLES:
             ratio = float(np.median(np.abs(v["steering_wheel_angle_rad"][moving][curving]) / np.abs(kappa[curving])))
             if ratio > STEER_RATIO_LIMIT * margin:
-                steer_evidence = (f"the median of |angle| / path curvature (yaw rate / speed) is {ratio:.4g} m "
-                                  "(steering ratio x wheelbase, more when understeering: 37-750 m in rad)")
+                steer_evidence = (
+                    f"the median of |angle| / path curvature (yaw rate / speed) is {ratio:.4g} m "
+                    "(steering ratio x wheelbase, more when understeering: 37-750 m in rad)"
+                )
     if steer_evidence is None and sw95 > STEER_LOCK_RAD:
         steer_evidence = f"its 95th percentile of |angle| is {sw95:.4g}, past any steering lock (about 15 rad)"
     if steer_evidence:

@@ -17,16 +17,18 @@ import pyarrow as pa
 
 from roadgrip.vehicle.params import PAPER_SUV, VehicleParams
 
-ESTIMATE_SCHEMA = pa.schema([
-    pa.field("vehicle_id", pa.string(), nullable=False),
-    pa.field("timestamp_ms", pa.int64(), nullable=False),
-    pa.field("mu", pa.float64(), nullable=False),
-    pa.field("mu_lower", pa.float64(), nullable=False),
-    pa.field("mu_upper", pa.float64(), nullable=False),
-    pa.field("excited", pa.bool_(), nullable=False),
-    pa.field("estimator", pa.string(), nullable=False),
-    pa.field("mu_proven", pa.float64(), nullable=True),
-])
+ESTIMATE_SCHEMA = pa.schema(
+    [
+        pa.field("vehicle_id", pa.string(), nullable=False),
+        pa.field("timestamp_ms", pa.int64(), nullable=False),
+        pa.field("mu", pa.float64(), nullable=False),
+        pa.field("mu_lower", pa.float64(), nullable=False),
+        pa.field("mu_upper", pa.float64(), nullable=False),
+        pa.field("excited", pa.bool_(), nullable=False),
+        pa.field("estimator", pa.string(), nullable=False),
+        pa.field("mu_proven", pa.float64(), nullable=True),
+    ]
+)
 
 
 def estimate_table(columns: dict) -> pa.Table:
@@ -55,9 +57,16 @@ class Estimate:
 
     def to_dict(self) -> dict:
         # by hand: dataclasses.asdict deep-copies field by field, ten times slower (the cloud calls this 10,000 times a s)
-        return {"vehicle_id": self.vehicle_id, "timestamp_ms": self.timestamp_ms, "mu": self.mu,
-                "mu_lower": self.mu_lower, "mu_upper": self.mu_upper, "excited": self.excited,
-                "estimator": self.estimator, "mu_proven": self.mu_proven}
+        return {
+            "vehicle_id": self.vehicle_id,
+            "timestamp_ms": self.timestamp_ms,
+            "mu": self.mu,
+            "mu_lower": self.mu_lower,
+            "mu_upper": self.mu_upper,
+            "excited": self.excited,
+            "estimator": self.estimator,
+            "mu_proven": self.mu_proven,
+        }
 
 
 def profile_of_call(vehicle: VehicleParams | None, own: VehicleParams | None) -> VehicleParams:

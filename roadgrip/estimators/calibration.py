@@ -17,7 +17,10 @@ import numpy as np
 from roadgrip.estimators.excitation import EXCITATION_UTILIZATION
 from roadgrip.units import G_MPS2
 
-UTILIZATION_EDGES = (0.25, EXCITATION_UTILIZATION)  # bins: < 0.25, 0.25-0.5, >= 0.5 or ABS (the last is CONTRACTS 4's "excited")
+UTILIZATION_EDGES = (
+    0.25,
+    EXCITATION_UTILIZATION,
+)  # bins: < 0.25, 0.25-0.5, >= 0.5 or ABS (the last is CONTRACTS 4's "excited")
 COVERAGE = 0.90
 
 
@@ -44,8 +47,14 @@ def calibrate(predictions, truth, bins, coverage: float = COVERAGE) -> dict:
         q_low.append(float(np.quantile(r, level_low, method="lower")))
         q_high.append(float(np.quantile(r, level_high, method="higher")))
         counts.append(int((bins == b).sum()))
-    return {"method": "split conformal by utilization bin", "coverage": coverage, "edges": list(UTILIZATION_EDGES),
-            "q_low": q_low, "q_high": q_high, "counts": counts}
+    return {
+        "method": "split conformal by utilization bin",
+        "coverage": coverage,
+        "edges": list(UTILIZATION_EDGES),
+        "q_low": q_low,
+        "q_high": q_high,
+        "counts": counts,
+    }
 
 
 def interval(predictions, bins, calibration: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -127,19 +127,19 @@ def ekf_step(mem, prm, smp, out):
     if decision == REJECT:
         output(mem, prm, False, out)
         return
-    x = mem[M_X:M_X + N_X].copy()
-    P = mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X).copy()
+    x = mem[M_X : M_X + N_X].copy()
+    P = mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X).copy()
     if decision == STEP:
         # x- = f(x+), P- = F P+ F' + Q
         x_prior = np.empty(N_X)
         F = np.empty((N_X, N_X))
-        predict_state(x, mem[M_U:M_U + N_U], u, dt, prm, x_prior, F)
+        predict_state(x, mem[M_U : M_U + N_U], u, dt, prm, x_prior, F)
         FP = np.empty((N_X, N_X))
         matmul(F, P, FP)
         P_prior = np.empty((N_X, N_X))
         matmul_bt(FP, F, P_prior)
         Q = np.empty((N_X, N_X))
-        process_noise(prm, dt, mem[M_U:M_U + N_U], u, P[MU, MU], Q)
+        process_noise(prm, dt, mem[M_U : M_U + N_U], u, P[MU, MU], Q)
         P_prior += Q
     else:
         x_prior, P_prior = x, P
@@ -155,4 +155,3 @@ class EKFEstimator(KalmanEstimator):
 
     name = "ekf"
     step_kernel = staticmethod(ekf_step)
-

@@ -56,20 +56,25 @@ class FusionEstimator(Estimator):
         if learned is None:
             return Estimate(p.vehicle_id, p.timestamp_ms, p.mu, p.mu_lower, p.mu_upper, p.excited, self.name)
         mu, lower, upper = fuse(p.mu, p.mu_lower, p.mu_upper, learned.mu, learned.mu_lower, learned.mu_upper)
-        return Estimate(p.vehicle_id, p.timestamp_ms, float(mu), float(lower), float(upper),
-                        p.excited or learned.excited, self.name)
+        return Estimate(
+            p.vehicle_id, p.timestamp_ms, float(mu), float(lower), float(upper), p.excited or learned.excited, self.name
+        )
 
     def reset(self, state) -> None:
         self.physics.reset(state["physics"])
         self.learned.reset(state["learned"])
 
     def state_to_dict(self, state) -> dict:
-        return {"physics": self.physics.state_to_dict(state["physics"]),
-                "learned": self.learned.state_to_dict(state["learned"])}
+        return {
+            "physics": self.physics.state_to_dict(state["physics"]),
+            "learned": self.learned.state_to_dict(state["learned"]),
+        }
 
     def state_from_dict(self, data: dict):
-        return {"physics": self.physics.state_from_dict(data["physics"]),
-                "learned": self.learned.state_from_dict(data["learned"])}
+        return {
+            "physics": self.physics.state_from_dict(data["physics"]),
+            "learned": self.learned.state_from_dict(data["learned"]),
+        }
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
         p = self.physics.estimate_batch(table, segments, vehicle)
@@ -79,14 +84,24 @@ class FusionEstimator(Estimator):
         # a vehicle's timestamps are unique (validated), so they join the two outputs
         p_ts, l_ts = p["timestamp_ms"].to_numpy(), learned["timestamp_ms"].to_numpy()
         order = np.argsort(p_ts, kind="stable")
-        where = order[np.clip(np.searchsorted(p_ts[order], l_ts), 0, max(p.num_rows - 1, 0))] if p.num_rows else \
-            np.zeros(0, dtype=np.int64)
+        where = (
+            order[np.clip(np.searchsorted(p_ts[order], l_ts), 0, max(p.num_rows - 1, 0))]
+            if p.num_rows
+            else np.zeros(0, dtype=np.int64)
+        )
         hit = p_ts[where] == l_ts if p.num_rows else np.zeros(l_ts.size, dtype=bool)
         where = where[hit]
         lm = {k: learned[k].to_numpy()[hit] for k in ("mu", "mu_lower", "mu_upper")}
         col["mu"][where], col["mu_lower"][where], col["mu_upper"][where] = fuse(
-            col["mu"][where], col["mu_lower"][where], col["mu_upper"][where], lm["mu"], lm["mu_lower"],
-            lm["mu_upper"])
+            col["mu"][where], col["mu_lower"][where], col["mu_upper"][where], lm["mu"], lm["mu_lower"], lm["mu_upper"]
+        )
         excited[where] |= learned["excited"].to_numpy(zero_copy_only=False)[hit]
-        return estimate_table({"vehicle_id": p["vehicle_id"], "timestamp_ms": p["timestamp_ms"], **col,
-                         "excited": excited, "estimator": pa.array([self.name] * p.num_rows, pa.string())})
+        return estimate_table(
+            {
+                "vehicle_id": p["vehicle_id"],
+                "timestamp_ms": p["timestamp_ms"],
+                **col,
+                "excited": excited,
+                "estimator": pa.array([self.name] * p.num_rows, pa.string()),
+            }
+        )

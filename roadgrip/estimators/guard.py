@@ -73,8 +73,9 @@ def road_acceleration(vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, sp
     return ax, ay
 
 
-def tire_force_bound(vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, speed_mps,
-                     settings: GuardSettings = GuardSettings()) -> np.ndarray:
+def tire_force_bound(
+    vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, speed_mps, settings: GuardSettings = GuardSettings()
+) -> np.ndarray:
     """The lower bound on mu that the measured acceleration proves: (|a_road| - k sigma_a) / g, at least 0."""
     ax, ay = road_acceleration(vehicle, accel_lon_mps2, accel_lat_mps2, speed_mps)
     margin = settings.k_sigma * settings.accel_sigma_mps2
@@ -118,8 +119,9 @@ WHEELS = ("wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps"
 class GuardedEstimator(Estimator):
     """Any estimator with the physics guard on its output (the name and state are the inner estimator's)."""
 
-    def __init__(self, inner: Estimator, settings: GuardSettings = GuardSettings(),
-                 vehicle: VehicleParams | None = None):
+    def __init__(
+        self, inner: Estimator, settings: GuardSettings = GuardSettings(), vehicle: VehicleParams | None = None
+    ):
         self.inner = inner
         self.settings = settings
         self.vehicle = vehicle
@@ -135,9 +137,13 @@ class GuardedEstimator(Estimator):
 
     def _state(self, vehicle: VehicleParams, inner) -> dict:
         # the bound's constants, so that a streamed sample costs a few float operations (numpy on scalars: 50 us)
-        return {"vehicle": vehicle, "inner": inner, "drag": drag_per_mass(vehicle),
-                "roll": 1.0 + G_MPS2 * roll_per_lateral_accel(vehicle),
-                "margin": self.settings.k_sigma * self.settings.accel_sigma_mps2}
+        return {
+            "vehicle": vehicle,
+            "inner": inner,
+            "drag": drag_per_mass(vehicle),
+            "roll": 1.0 + G_MPS2 * roll_per_lateral_accel(vehicle),
+            "margin": self.settings.k_sigma * self.settings.accel_sigma_mps2,
+        }
 
     def start(self, vehicle: VehicleParams | None = None):
         vehicle = self._vehicle(vehicle)
@@ -155,11 +161,16 @@ class GuardedEstimator(Estimator):
         road = math.sqrt(ax * ax + ay * ay)  # as tire_force_bound computes it, to the last bit
         bound = max((road - state["margin"]) / G_MPS2, 0.0)
         if bound <= est.mu_lower <= est.mu <= est.mu_upper:  # already physical: only the bound is added
-            return Estimate(est.vehicle_id, est.timestamp_ms, est.mu, est.mu_lower, est.mu_upper, est.excited,
-                            est.estimator, bound)
-        return Estimate(est.vehicle_id, est.timestamp_ms,
-                        *apply_bound_scalar(est.mu, est.mu_lower, est.mu_upper, est.excited, bound), est.estimator,
-                        bound)
+            return Estimate(
+                est.vehicle_id, est.timestamp_ms, est.mu, est.mu_lower, est.mu_upper, est.excited, est.estimator, bound
+            )
+        return Estimate(
+            est.vehicle_id,
+            est.timestamp_ms,
+            *apply_bound_scalar(est.mu, est.mu_lower, est.mu_upper, est.excited, bound),
+            est.estimator,
+            bound,
+        )
 
     def reset(self, state) -> None:
         self.inner.reset(state["inner"])
@@ -177,13 +188,28 @@ class GuardedEstimator(Estimator):
             return est
         # the estimates' rows are a subset of the table's, in order, one vehicle: join on the timestamp
         where = np.searchsorted(table["timestamp_ms"].to_numpy(), est["timestamp_ms"].to_numpy())
-        col = {c: table[c].to_numpy(zero_copy_only=False).astype(np.float64)[where]
-               for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps", *WHEELS)}
+        col = {
+            c: table[c].to_numpy(zero_copy_only=False).astype(np.float64)[where]
+            for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps", *WHEELS)
+        }
         speed = _speed(col["speed_mps"], np.stack([col[w] for w in WHEELS]), vehicle.wheel_radius_m)
         bound = tire_force_bound(vehicle, col["accel_lon_mps2"], col["accel_lat_mps2"], speed, self.settings)
-        mu, lower, upper, excited = apply_bound(est["mu"].to_numpy(), est["mu_lower"].to_numpy(),
-                                                est["mu_upper"].to_numpy(),
-                                                est["excited"].to_numpy(zero_copy_only=False), bound)
-        return estimate_table({"vehicle_id": est["vehicle_id"], "timestamp_ms": est["timestamp_ms"], "mu": mu,
-                               "mu_lower": lower, "mu_upper": upper, "excited": excited,
-                               "estimator": est["estimator"], "mu_proven": bound})
+        mu, lower, upper, excited = apply_bound(
+            est["mu"].to_numpy(),
+            est["mu_lower"].to_numpy(),
+            est["mu_upper"].to_numpy(),
+            est["excited"].to_numpy(zero_copy_only=False),
+            bound,
+        )
+        return estimate_table(
+            {
+                "vehicle_id": est["vehicle_id"],
+                "timestamp_ms": est["timestamp_ms"],
+                "mu": mu,
+                "mu_lower": lower,
+                "mu_upper": upper,
+                "excited": excited,
+                "estimator": est["estimator"],
+                "mu_proven": bound,
+            }
+        )

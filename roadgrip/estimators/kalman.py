@@ -57,8 +57,16 @@ from roadgrip.vehicle.params import VehicleParams
 logger = logging.getLogger(__name__)
 
 SAMPLE_COLUMNS = (
-    "timestamp_ms", "wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps", "wheel_speed_rr_radps",
-    "steering_wheel_angle_rad", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "speed_mps",
+    "timestamp_ms",
+    "wheel_speed_fl_radps",
+    "wheel_speed_fr_radps",
+    "wheel_speed_rl_radps",
+    "wheel_speed_rr_radps",
+    "steering_wheel_angle_rad",
+    "accel_lon_mps2",
+    "accel_lat_mps2",
+    "yaw_rate_radps",
+    "speed_mps",
 )
 S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_V = 0, 1, 5, 6, 7, 8, 9
 N_S = len(SAMPLE_COLUMNS)
@@ -75,6 +83,7 @@ N_OUT = 5
 
 
 # --------------------------------------------------------------------------------------------- linear algebra
+
 
 @njit(cache=True)
 def cholesky(A, L):
@@ -158,6 +167,7 @@ def all_finite(a):
 
 # ----------------------------------------------------------------------------------------- sample handling
 
+
 @njit(cache=True)
 def read_sample(prm, smp, u, z):
     """Inputs u and measurements z of a sample vector (SAMPLE_COLUMNS)."""
@@ -174,7 +184,7 @@ def read_sample(prm, smp, u, z):
 
 @njit(cache=True)
 def start_filter(mem, prm, u, z):
-    initial_state(prm, u, z[Z_V], z[Z_R], mem[M_X:M_X + N_X], mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X))
+    initial_state(prm, u, z[Z_V], z[Z_R], mem[M_X : M_X + N_X], mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X))
     mem[M_STARTED] = 1.0
 
 
@@ -282,6 +292,7 @@ def run_batch(step, prm, samples, segments, out, counters):
 
 # ------------------------------------------------------------------------------------------ estimator plumbing
 
+
 class FilterState:
     """One vehicle's filter: its profile, the packed model, and the memory the kernels update in place."""
 
@@ -332,8 +343,15 @@ class KalmanEstimator(Estimator):
         type(self).step_kernel(state.mem, state.prm, smp, out)
         if out[O_VALID] == 0.0 or not np.isfinite(smp[S_T]):  # nothing to say yet, or no time to say it at
             return None
-        return Estimate(str(sample["vehicle_id"]), int(smp[S_T]), float(out[O_MU]), float(out[O_LOWER]),
-                        float(out[O_UPPER]), bool(out[O_EXCITED]), self.name)
+        return Estimate(
+            str(sample["vehicle_id"]),
+            int(smp[S_T]),
+            float(out[O_MU]),
+            float(out[O_LOWER]),
+            float(out[O_UPPER]),
+            bool(out[O_EXCITED]),
+            self.name,
+        )
 
     def reset(self, state: FilterState) -> None:
         new_segment(state.mem)
@@ -348,9 +366,13 @@ class KalmanEstimator(Estimator):
     def diagnostics(self, state: FilterState) -> dict:
         """The filter's inner estimates (what the terminal does not send: lateral speed) and its counters."""
         mem = state.mem
-        return {**{name: float(mem[M_X + i]) for i, name in enumerate(STATE_NAMES)},
-                "covariance": mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X).copy(), "mu_snr": float(mem[M_SNR]),
-                "rejected": int(mem[M_REJECTED]), "restarts": int(mem[M_RESTARTS])}
+        return {
+            **{name: float(mem[M_X + i]) for i, name in enumerate(STATE_NAMES)},
+            "covariance": mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X).copy(),
+            "mu_snr": float(mem[M_SNR]),
+            "rejected": int(mem[M_REJECTED]),
+            "restarts": int(mem[M_RESTARTS]),
+        }
 
     # batch
     def run_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> tuple[np.ndarray, dict]:
@@ -367,21 +389,31 @@ class KalmanEstimator(Estimator):
             raise ValueError(f"segments must give one id per row ({table.num_rows}), got shape {segments.shape}")
         out = np.zeros((table.num_rows, N_OUT))
         counters = np.zeros(2)
-        run_batch(type(self).step_kernel, pack_model(vehicle, self.tuning), samples, segments.astype(np.int64), out,
-                  counters)
+        run_batch(
+            type(self).step_kernel, pack_model(vehicle, self.tuning), samples, segments.astype(np.int64), out, counters
+        )
         return out, {"rejected": int(counters[0]), "restarts": int(counters[1])}
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
         out, counters = self.run_batch(table, segments, vehicle)
         if counters["rejected"] or counters["restarts"]:
-            logger.warning("%s: %d sample(s) rejected, %d restart(s) (non-finite values, time not increasing, steps "
-                           "longer than %.2f s, or an update that would have broken the covariance)", self.name,
-                           counters["rejected"], counters["restarts"], self.tuning.max_step_s)
+            logger.warning(
+                "%s: %d sample(s) rejected, %d restart(s) (non-finite values, time not increasing, steps "
+                "longer than %.2f s, or an update that would have broken the covariance)",
+                self.name,
+                counters["rejected"],
+                counters["restarts"],
+                self.tuning.max_step_s,
+            )
         valid = out[:, O_VALID] > 0.5
-        return estimate_table({
-            "vehicle_id": pa.array(table["vehicle_id"].to_numpy(zero_copy_only=False)[valid], pa.string()),
-            "timestamp_ms": table["timestamp_ms"].to_numpy()[valid].astype(np.int64),
-            "mu": out[valid, O_MU], "mu_lower": out[valid, O_LOWER], "mu_upper": out[valid, O_UPPER],
-            "excited": out[valid, O_EXCITED] > 0.5,
-            "estimator": pa.array([self.name] * int(valid.sum()), pa.string()),
-        })
+        return estimate_table(
+            {
+                "vehicle_id": pa.array(table["vehicle_id"].to_numpy(zero_copy_only=False)[valid], pa.string()),
+                "timestamp_ms": table["timestamp_ms"].to_numpy()[valid].astype(np.int64),
+                "mu": out[valid, O_MU],
+                "mu_lower": out[valid, O_LOWER],
+                "mu_upper": out[valid, O_UPPER],
+                "excited": out[valid, O_EXCITED] > 0.5,
+                "estimator": pa.array([self.name] * int(valid.sum()), pa.string()),
+            }
+        )

@@ -60,16 +60,23 @@ class LearnedEstimator(Estimator):
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams = PAPER_SUV) -> pa.Table:
         features = feature_matrix(table, self.feature_set, profile=vehicle_profile(vehicle), segments=segments)
         windows, ends = make_windows(features, np.asarray(segments), self.window)
-        col = {c: table[c].to_numpy(zero_copy_only=False)[ends] for c in ("accel_lon_mps2", "accel_lat_mps2",
-                                                                          "abs_active")}
-        mu, lower, upper, exc = self._estimates(windows, col["accel_lon_mps2"], col["accel_lat_mps2"],
-                                                col["abs_active"])
-        return estimate_table({
-            "vehicle_id": np.asarray(table["vehicle_id"].to_pylist(), dtype=object)[ends],
-            "timestamp_ms": table["timestamp_ms"].to_numpy()[ends],
-            "mu": mu, "mu_lower": lower, "mu_upper": upper, "excited": exc,
-            "estimator": [self.name] * len(ends),
-        })
+        col = {
+            c: table[c].to_numpy(zero_copy_only=False)[ends] for c in ("accel_lon_mps2", "accel_lat_mps2", "abs_active")
+        }
+        mu, lower, upper, exc = self._estimates(
+            windows, col["accel_lon_mps2"], col["accel_lat_mps2"], col["abs_active"]
+        )
+        return estimate_table(
+            {
+                "vehicle_id": np.asarray(table["vehicle_id"].to_pylist(), dtype=object)[ends],
+                "timestamp_ms": table["timestamp_ms"].to_numpy()[ends],
+                "mu": mu,
+                "mu_lower": lower,
+                "mu_upper": upper,
+                "excited": exc,
+                "estimator": [self.name] * len(ends),
+            }
+        )
 
     def start(self, vehicle: VehicleParams = PAPER_SUV):
         # previous: the last sample's inputs, for the features that difference consecutive samples
@@ -78,32 +85,52 @@ class LearnedEstimator(Estimator):
     def update(self, state, sample: dict) -> Estimate | None:
         inputs = {k: sample[k] for k in self.required}
         inputs |= {k: sample[k] for k in self.optional if sample.get(k) is not None}
-        row = features_from_columns({k: np.asarray([float(v)], dtype=np.float64) for k, v in inputs.items()},
-                                    self.feature_set, profile=state["profile"], previous=state["previous"])
+        row = features_from_columns(
+            {k: np.asarray([float(v)], dtype=np.float64) for k, v in inputs.items()},
+            self.feature_set,
+            profile=state["profile"],
+            previous=state["previous"],
+        )
         state["previous"] = {k: float(v) for k, v in inputs.items()}
         state["buffer"].append(row[0].tolist())
         if len(state["buffer"]) < self.window:
             return None
         windows = np.asarray([state["buffer"]], dtype=np.float32)
-        mu, lower, upper, exc = self._estimates(windows, sample["accel_lon_mps2"], sample["accel_lat_mps2"],
-                                                bool(sample["abs_active"]))
-        return Estimate(str(sample["vehicle_id"]), int(sample["timestamp_ms"]), float(mu[0]), float(lower[0]),
-                        float(upper[0]), bool(exc[0]), self.name)
+        mu, lower, upper, exc = self._estimates(
+            windows, sample["accel_lon_mps2"], sample["accel_lat_mps2"], bool(sample["abs_active"])
+        )
+        return Estimate(
+            str(sample["vehicle_id"]),
+            int(sample["timestamp_ms"]),
+            float(mu[0]),
+            float(lower[0]),
+            float(upper[0]),
+            bool(exc[0]),
+            self.name,
+        )
 
     def reset(self, state) -> None:
         state["buffer"].clear()
         state["previous"] = None
 
     def state_to_dict(self, state) -> dict:
-        return {"buffer": [list(row) for row in state["buffer"]], "profile": dict(state["profile"]),
-                "previous": state["previous"]}
+        return {
+            "buffer": [list(row) for row in state["buffer"]],
+            "profile": dict(state["profile"]),
+            "previous": state["previous"],
+        }
 
     def state_from_dict(self, data: dict):
         # states saved before the profile was kept whole held only the wheel radius and steering ratio
-        profile = data.get("profile") or {"wheel_radius_m": data["wheel_radius_m"],
-                                          "steering_ratio": data["steering_ratio"]}
-        return {"buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window), "profile": profile,
-                "previous": data.get("previous")}
+        profile = data.get("profile") or {
+            "wheel_radius_m": data["wheel_radius_m"],
+            "steering_ratio": data["steering_ratio"],
+        }
+        return {
+            "buffer": deque((list(row) for row in data["buffer"]), maxlen=self.window),
+            "profile": profile,
+            "previous": data.get("previous"),
+        }
 
 
 def default_model_path() -> Path:
@@ -125,8 +152,11 @@ def _named_estimators() -> dict:
     from roadgrip.estimators.physics import PHYSICS_ESTIMATORS, physics_estimator
     from roadgrip.estimators.pmf import PMFEstimator
 
-    return {DEFAULT_MODEL: lambda: LearnedEstimator.load(default_model_path()), PMFEstimator.name: PMFEstimator,
-            **{name: functools.partial(physics_estimator, name) for name in PHYSICS_ESTIMATORS}}
+    return {
+        DEFAULT_MODEL: lambda: LearnedEstimator.load(default_model_path()),
+        PMFEstimator.name: PMFEstimator,
+        **{name: functools.partial(physics_estimator, name) for name in PHYSICS_ESTIMATORS},
+    }
 
 
 def estimator_names() -> tuple[str, ...]:

@@ -15,8 +15,9 @@ from roadgrip.vehicle.params import VehicleParams
 PHYSICS_ESTIMATORS: dict[str, type[KalmanEstimator]] = {"ekf": EKFEstimator, "ukf": UKFEstimator}
 
 
-def physics_estimator(name: str, vehicle: VehicleParams | None = None,
-                      tuning: FilterTuning | None = None) -> KalmanEstimator:
+def physics_estimator(
+    name: str, vehicle: VehicleParams | None = None, tuning: FilterTuning | None = None
+) -> KalmanEstimator:
     """The physics estimator `name` ('ekf' or 'ukf'); `vehicle` is the profile used when a call passes none (default:
     the paper's SUV), `tuning` its noise settings (default: FilterTuning())."""
     if name not in PHYSICS_ESTIMATORS:

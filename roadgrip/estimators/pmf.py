@@ -129,29 +129,81 @@ EXCITED_WIDTH = 0.25
 MAX_STEP_S = 0.5
 
 SAMPLE_COLUMNS = (
-    "timestamp_ms", "wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps", "wheel_speed_rr_radps",
-    "steering_wheel_angle_rad", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps",
-    "abs_active", "tcs_active", "esc_active",
+    "timestamp_ms",
+    "wheel_speed_fl_radps",
+    "wheel_speed_fr_radps",
+    "wheel_speed_rl_radps",
+    "wheel_speed_rr_radps",
+    "steering_wheel_angle_rad",
+    "accel_lon_mps2",
+    "accel_lat_mps2",
+    "yaw_rate_radps",
+    "abs_active",
+    "tcs_active",
+    "esc_active",
 )
 OPTIONAL_COLUMNS = ("tcs_active", "esc_active")  # absent: not reported, taken as not acting
 S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10, 11
 N_S = len(SAMPLE_COLUMNS)
 
 # Parameter vector
-(Q_M, Q_DRAG, Q_ROLL, Q_LF, Q_LR, Q_H, Q_RADIUS, Q_DRIVE, Q_C0, Q_FRR, Q_STEER_RATIO, Q_BRAKE_FRONT, Q_TRACK_F,
- Q_TRACK_R, Q_CA_REAR) = range(15)
+(
+    Q_M,
+    Q_DRAG,
+    Q_ROLL,
+    Q_LF,
+    Q_LR,
+    Q_H,
+    Q_RADIUS,
+    Q_DRIVE,
+    Q_C0,
+    Q_FRR,
+    Q_STEER_RATIO,
+    Q_BRAKE_FRONT,
+    Q_TRACK_F,
+    Q_TRACK_R,
+    Q_CA_REAR,
+) = range(15)
 N_Q = 15
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
 G0 = 0
 K_T = NM * NC
-(K_STARTED, K_BIAS, K_BIAS_W, K_LR_F, K_LR_R, K_LR_W, K_S0, K_SLOPE, K_P00, K_P01, K_P11, K_RLS_W, K_V_PREV,
- K_REJECTED, K_RESTARTS, K_INCONSISTENT, K_U, K_LIMIT, K_V_REF, K_U_SEEN, K_U_LIMIT) = range(K_T + 1, K_T + 22)
+(
+    K_STARTED,
+    K_BIAS,
+    K_BIAS_W,
+    K_LR_F,
+    K_LR_R,
+    K_LR_W,
+    K_S0,
+    K_SLOPE,
+    K_P00,
+    K_P01,
+    K_P11,
+    K_RLS_W,
+    K_V_PREV,
+    K_REJECTED,
+    K_RESTARTS,
+    K_INCONSISTENT,
+    K_U,
+    K_LIMIT,
+    K_V_REF,
+    K_U_SEEN,
+    K_U_LIMIT,
+) = range(K_T + 1, K_T + 22)
 N_MEM = K_T + 22
-CALIBRATION = {"accel_bias_mps2": K_BIAS, "accel_bias_weight_s": K_BIAS_W, "radius_ratio_left_right_front": K_LR_F,
-               "radius_ratio_left_right_rear": K_LR_R, "radius_ratio_weight_s": K_LR_W,
-               "slip_offset_front_rear": K_S0, "slip_slope": K_SLOPE, "slip_line_weight_s": K_RLS_W}
+CALIBRATION = {
+    "accel_bias_mps2": K_BIAS,
+    "accel_bias_weight_s": K_BIAS_W,
+    "radius_ratio_left_right_front": K_LR_F,
+    "radius_ratio_left_right_rear": K_LR_R,
+    "radius_ratio_weight_s": K_LR_W,
+    "slip_offset_front_rear": K_S0,
+    "slip_slope": K_SLOPE,
+    "slip_line_weight_s": K_RLS_W,
+}
 O_MU, O_LOWER, O_UPPER, O_EXCITED, O_VALID = range(5)
 N_OUT = 5
 
@@ -213,7 +265,7 @@ def _stiffness_prior(mem, q, out):
     centre, spread = 0.0, 1.0
     if calibrated:
         centre = -np.log(mem[K_SLOPE] * q[Q_C0])  # log of the calibrated stiffness factor
-        spread = sqrt(mem[K_P11] / mem[K_SLOPE] ** 2 + STIFFNESS_SURFACE_SPREAD ** 2)
+        spread = sqrt(mem[K_P11] / mem[K_SLOPE] ** 2 + STIFFNESS_SURFACE_SPREAD**2)
     total = 0.0
     for j in range(NC):
         out[j] = C_PRIOR[j]
@@ -246,8 +298,9 @@ def _predict(mem, dt, c_prior):
             right = col[i + 1] if i < NM - 1 else col[i]
             p = (1.0 - 2.0 * side) * col[i] + side * (left + right)
             c_target = (1.0 - forget_c) * cm[j] + forget_c * c_prior[j]
-            mem[G0 + i * NC + j] = (1.0 - forget) * ((1.0 - forget_c) * p + forget_c * PRIOR[i] * c_prior[j]) \
-                + forget * PRIOR[i] * c_target
+            mem[G0 + i * NC + j] = (1.0 - forget) * (
+                (1.0 - forget_c) * p + forget_c * PRIOR[i] * c_prior[j]
+            ) + forget * PRIOR[i] * c_target
 
 
 @njit(cache=True)
@@ -267,7 +320,7 @@ def _apply(mem, like, temper, inconsistent=INCONSISTENT):
     for i in range(NM):
         for j in range(NC):
             ratio = like[i, j] / best
-            v = mem[G0 + i * NC + j] * (ratio if temper == 1.0 else ratio ** temper)
+            v = mem[G0 + i * NC + j] * (ratio if temper == 1.0 else ratio**temper)
             mem[G0 + i * NC + j] = v
             norm += v
     for k in range(NM * NC):
@@ -436,7 +489,7 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
 def init_memory(mem, q):
     mem[:] = 0.0
     mem[K_SLOPE] = 1.0 / q[Q_C0]
-    mem[K_P00] = 0.02 ** 2  # radius mismatch: +-2 % a wheel
+    mem[K_P00] = 0.02**2  # radius mismatch: +-2 % a wheel
     mem[K_P11] = (0.5 / q[Q_C0]) ** 2
     mem[K_P01] = 0.0
     _start(mem, False)
@@ -492,8 +545,8 @@ def pmf_step(mem, q, smp, t_prev, out):
     ax_c = smp[S_AX] - mem[K_BIAS]
     atx = ax_c + q[Q_DRAG] * v * v
     u = sqrt(atx * atx + aty * aty) / G_MPS2
-    bias_sd = sqrt(BIAS_SIGMA0_MPS2 ** 2 * exp(-bias_w / BIAS_TAU_S) + BIAS_SIGMA_FLOOR_MPS2 ** 2)
-    s_u = sqrt(ACCEL_NOISE_MPS2 ** 2 + bias_sd ** 2) / G_MPS2
+    bias_sd = sqrt(BIAS_SIGMA0_MPS2**2 * exp(-bias_w / BIAS_TAU_S) + BIAS_SIGMA_FLOOR_MPS2**2)
+    s_u = sqrt(ACCEL_NOISE_MPS2**2 + bias_sd**2) / G_MPS2
     like = np.empty((NM, NC))
     # the bound is a maximum, not a sum: only a utilisation above the largest recent one (aged as the grid forgets)
     # tells more; applying every sample's bound would count the same bias again and again
@@ -557,7 +610,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
         if straight and driving:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
-            _apply(mem, like, 1.0, INCONSISTENT ** TEMPER)
+            _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
     _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving)
     mem[K_V_PREV] = v
     mem[K_U] = u
@@ -654,15 +707,22 @@ class PMFEstimator(Estimator):
         state.t_prev = pmf_step(state.mem, state.q, smp, state.t_prev, out)
         if out[O_VALID] == 0.0 or not np.isfinite(smp[S_T]):
             return None
-        return Estimate(str(sample["vehicle_id"]), int(smp[S_T]), float(out[O_MU]), float(out[O_LOWER]),
-                        float(out[O_UPPER]), bool(out[O_EXCITED]), self.name)
+        return Estimate(
+            str(sample["vehicle_id"]),
+            int(smp[S_T]),
+            float(out[O_MU]),
+            float(out[O_LOWER]),
+            float(out[O_UPPER]),
+            bool(out[O_EXCITED]),
+            self.name,
+        )
 
     def reset(self, state: PMFState) -> None:
         state.mem[K_STARTED] = 0.0
 
     def calibration(self, state: PMFState) -> dict:
         """The self-calibration this vehicle has reached, with the stiffness factor's posterior mean."""
-        grid = state.mem[G0:G0 + NM * NC].reshape(NM, NC)
+        grid = state.mem[G0 : G0 + NM * NC].reshape(NM, NC)
         cm = grid.sum(axis=0)
         out = {name: float(state.mem[k]) for name, k in CALIBRATION.items()}
         out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
@@ -670,8 +730,12 @@ class PMFEstimator(Estimator):
         return out
 
     def state_to_dict(self, state: PMFState) -> dict:
-        return {"estimator": self.name, "vehicle": state.vehicle.to_dict(), "memory": state.mem.tolist(),
-                "t_prev": state.t_prev}
+        return {
+            "estimator": self.name,
+            "vehicle": state.vehicle.to_dict(),
+            "memory": state.mem.tolist(),
+            "t_prev": state.t_prev,
+        }
 
     def state_from_dict(self, data: dict) -> PMFState:
         vehicle, memory = memory_state(data, self.name, N_MEM)
@@ -685,8 +749,10 @@ class PMFEstimator(Estimator):
         samples = np.zeros((table.num_rows, N_S))
         for k, column in enumerate(SAMPLE_COLUMNS):
             if column in table.column_names:
-                samples[:, k] = np.nan_to_num(table[column].to_numpy(zero_copy_only=False).astype(np.float64),
-                                              nan=0.0 if column in OPTIONAL_COLUMNS else np.nan)
+                samples[:, k] = np.nan_to_num(
+                    table[column].to_numpy(zero_copy_only=False).astype(np.float64),
+                    nan=0.0 if column in OPTIONAL_COLUMNS else np.nan,
+                )
         segments = np.asarray(segments)
         if segments.shape != (table.num_rows,):
             raise ValueError(f"segments must give one id per row ({table.num_rows}), got shape {segments.shape}")
@@ -696,9 +762,14 @@ class PMFEstimator(Estimator):
         out = np.zeros((table.num_rows, N_OUT))
         run_rows(mem, q, samples, segments.astype(np.int64), out)
         valid = out[:, O_VALID] > 0.0
-        return estimate_table({
-            "vehicle_id": table["vehicle_id"].filter(pa.array(valid)),
-            "timestamp_ms": table["timestamp_ms"].to_numpy()[valid],
-            "mu": out[valid, O_MU], "mu_lower": out[valid, O_LOWER], "mu_upper": out[valid, O_UPPER],
-            "excited": out[valid, O_EXCITED] > 0.0, "estimator": [self.name] * int(valid.sum()),
-        })
+        return estimate_table(
+            {
+                "vehicle_id": table["vehicle_id"].filter(pa.array(valid)),
+                "timestamp_ms": table["timestamp_ms"].to_numpy()[valid],
+                "mu": out[valid, O_MU],
+                "mu_lower": out[valid, O_LOWER],
+                "mu_upper": out[valid, O_UPPER],
+                "excited": out[valid, O_EXCITED] > 0.0,
+                "estimator": [self.name] * int(valid.sum()),
+            }
+        )

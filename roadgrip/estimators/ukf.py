@@ -252,13 +252,13 @@ def ukf_step(mem, prm, smp, out):
     if decision == REJECT:
         output(mem, prm, False, out)
         return
-    x = mem[M_X:M_X + N_X].copy()
-    P = mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X).copy()
+    x = mem[M_X : M_X + N_X].copy()
+    P = mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X).copy()
     x_prior, P_prior = x, P
     if decision == STEP:
         x_prior = np.empty(N_X)
         P_prior = np.empty((N_X, N_X))
-        if not ukf_predict(prm, x, P, mem[M_U:M_U + N_U], u, dt, x_prior, P_prior):
+        if not ukf_predict(prm, x, P, mem[M_U : M_U + N_U], u, dt, x_prior, P_prior):
             x_prior[:] = np.nan  # cannot happen with a committed (positive definite) P; commit() restarts
             P_prior[:, :] = np.nan
     x_post = np.empty(N_X)

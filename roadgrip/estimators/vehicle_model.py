@@ -113,8 +113,26 @@ PM_TP_REAR = PM_TP_FRONT + TP_LEN
 PM_ROLL_PER_AY = PM_TP_REAR + TP_LEN  # steady-state roll angle per lateral acceleration, rad per m/s^2
 PM_TUNING = PM_ROLL_PER_AY + 1
 (
-    T_MU0, T_MU0_STD, T_MU_WALK, T_MU_STD_MAX, T_ACC_IN, T_YAW_ACC, T_AX, T_AY, T_YAW, T_SPEED, T_SPEED_SHARE,
-    T_SCALE0, T_SCALE_WALK, T_WHEEL, T_VY0, T_R0, T_MIN_SPEED, T_SNR, T_MAX_STEP, T_UKF_ALPHA,
+    T_MU0,
+    T_MU0_STD,
+    T_MU_WALK,
+    T_MU_STD_MAX,
+    T_ACC_IN,
+    T_YAW_ACC,
+    T_AX,
+    T_AY,
+    T_YAW,
+    T_SPEED,
+    T_SPEED_SHARE,
+    T_SCALE0,
+    T_SCALE_WALK,
+    T_WHEEL,
+    T_VY0,
+    T_R0,
+    T_MIN_SPEED,
+    T_SNR,
+    T_MAX_STEP,
+    T_UKF_ALPHA,
 ) = range(PM_TUNING, PM_TUNING + 20)
 N_PM = PM_TUNING + 20
 
@@ -129,8 +147,10 @@ def roll_per_lateral_accel(vehicle: VehicleParams) -> float:
     ms_e = vehicle.sprung_mass_kg * arm_m
     stiffness = vehicle.roll_stiffness_front_nmprad + vehicle.roll_stiffness_rear_nmprad - ms_e * G_MPS2
     if stiffness <= 0.0:
-        raise ValueError(f"vehicle {vehicle.name!r}: roll stiffness {stiffness + ms_e * G_MPS2:.0f} N m/rad does not "
-                         f"hold the sprung mass's roll moment m_s g e = {ms_e * G_MPS2:.0f} N m/rad")
+        raise ValueError(
+            f"vehicle {vehicle.name!r}: roll stiffness {stiffness + ms_e * G_MPS2:.0f} N m/rad does not "
+            f"hold the sprung mass's roll moment m_s g e = {ms_e * G_MPS2:.0f} N m/rad"
+        )
     return ms_e / stiffness
 
 
@@ -142,21 +162,37 @@ def pack_model(vehicle: VehicleParams, tuning: FilterTuning = FilterTuning()) ->
         raise TypeError(f"tuning must be a FilterTuning, got {type(tuning).__name__}")
     prm = np.zeros(N_PM)
     prm[:N_VP] = pack_vehicle(vehicle)
-    prm[PM_TP_FRONT:PM_TP_FRONT + TP_LEN] = DugoffTire().row(vehicle.tire_front)
-    prm[PM_TP_REAR:PM_TP_REAR + TP_LEN] = DugoffTire().row(vehicle.tire_rear)
+    prm[PM_TP_FRONT : PM_TP_FRONT + TP_LEN] = DugoffTire().row(vehicle.tire_front)
+    prm[PM_TP_REAR : PM_TP_REAR + TP_LEN] = DugoffTire().row(vehicle.tire_rear)
     prm[PM_ROLL_PER_AY] = roll_per_lateral_accel(vehicle)
     t = tuning
     prm[PM_TUNING:] = [
-        t.mu_initial, t.mu_initial_std, t.mu_walk_std_per_sqrt_s, t.mu_std_max, t.accel_input_std_mps2,
-        t.yaw_accel_std_radps2, t.ax_std_mps2, t.ay_std_mps2, t.yaw_rate_std_radps, t.speed_std_mps,
-        t.speed_std_share, t.speed_scale_initial_std, t.speed_scale_walk_per_sqrt_s, t.wheel_speed_std_radps,
-        t.vy_initial_std_mps, t.yaw_rate_initial_std_radps,
-        t.min_speed_mps, t.excitation_snr, t.max_step_s, t.ukf_alpha,
+        t.mu_initial,
+        t.mu_initial_std,
+        t.mu_walk_std_per_sqrt_s,
+        t.mu_std_max,
+        t.accel_input_std_mps2,
+        t.yaw_accel_std_radps2,
+        t.ax_std_mps2,
+        t.ay_std_mps2,
+        t.yaw_rate_std_radps,
+        t.speed_std_mps,
+        t.speed_std_share,
+        t.speed_scale_initial_std,
+        t.speed_scale_walk_per_sqrt_s,
+        t.wheel_speed_std_radps,
+        t.vy_initial_std_mps,
+        t.yaw_rate_initial_std_radps,
+        t.min_speed_mps,
+        t.excitation_snr,
+        t.max_step_s,
+        t.ukf_alpha,
     ]
     return prm
 
 
 # ------------------------------------------------------------------------------------------------------ tire model
+
 
 @njit(cache=True)
 def dugoff_partials(tp, sigma, alpha_rad, fz_n, mu, out):
@@ -221,6 +257,7 @@ def slip_ratio_per_hub_speed(wheel_speed_mps, hub_speed_mps):
 
 
 # ---------------------------------------------------------------------------------------------- vehicle kernels
+
 
 @njit(cache=True)
 def lateral_accel_from_sensor(prm, ay_sensor_mps2):
@@ -312,7 +349,7 @@ def measure(x, u, prm, fz, z, H, G):
         sigma = slip_ratio(wheel_speed, v_long)  # eq. 6
         ds_dvl = slip_ratio_per_hub_speed(wheel_speed, v_long)
         ds_dw = slip_ratio_per_spin(wheel_speed, v_long, radius)
-        tp = prm[PM_TP_FRONT:PM_TP_FRONT + TP_LEN] if i < 2 else prm[PM_TP_REAR:PM_TP_REAR + TP_LEN]
+        tp = prm[PM_TP_FRONT : PM_TP_FRONT + TP_LEN] if i < 2 else prm[PM_TP_REAR : PM_TP_REAR + TP_LEN]
         dugoff_partials(tp, sigma, alpha, fz[i], mu, part)
         fx, fy = part[0], part[1]
         # wheel frame to body frame (eq. 1), and the same rotation of each partial derivative

@@ -44,12 +44,19 @@ def binned_metrics(mu, lower, upper, excited, truth, bins, bound) -> list[dict]:
         if n == 0:
             rows.append({"bin": name, "n": 0})
             continue
-        rows.append({
-            "bin": name, "n": n, "rmse": rmse(mu[m], truth[m]), "mae": mae(mu[m], truth[m]),
-            "coverage": float(((truth[m] >= lower[m]) & (truth[m] <= upper[m])).mean()),
-            "width": float((upper[m] - lower[m]).mean()), "judged_excited": float(excited[m].mean()),
-            "below_bound": float((mu[m] < bound[m] - 1e-9).mean()), "negative": int((lower[m] < 0.0).sum()),
-        })
+        rows.append(
+            {
+                "bin": name,
+                "n": n,
+                "rmse": rmse(mu[m], truth[m]),
+                "mae": mae(mu[m], truth[m]),
+                "coverage": float(((truth[m] >= lower[m]) & (truth[m] <= upper[m])).mean()),
+                "width": float((upper[m] - lower[m]).mean()),
+                "judged_excited": float(excited[m].mean()),
+                "below_bound": float((mu[m] < bound[m] - 1e-9).mean()),
+                "negative": int((lower[m] < 0.0).sum()),
+            }
+        )
     return rows
 
 
@@ -62,10 +69,21 @@ def estimates_on_runs(estimator, table: pa.Table, vehicles: dict, progress=None)
         run = table.filter(pc.equal(table["run_id"], run_id))
         out = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), vehicles[run_id])
         rows = np.searchsorted(run["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
-        col = {c: run[c].to_numpy(zero_copy_only=False)[rows] for c in (
-            "mu", "ax_true_mps2", "ay_true_mps2", "abs_active", "accel_lon_mps2", "accel_lat_mps2", "speed_mps")}
-        col["bound"] = tire_force_bound(vehicles[run_id], col["accel_lon_mps2"], col["accel_lat_mps2"],
-                                        col["speed_mps"], GuardSettings())
+        col = {
+            c: run[c].to_numpy(zero_copy_only=False)[rows]
+            for c in (
+                "mu",
+                "ax_true_mps2",
+                "ay_true_mps2",
+                "abs_active",
+                "accel_lon_mps2",
+                "accel_lat_mps2",
+                "speed_mps",
+            )
+        }
+        col["bound"] = tire_force_bound(
+            vehicles[run_id], col["accel_lon_mps2"], col["accel_lat_mps2"], col["speed_mps"], GuardSettings()
+        )
         col |= {c: out[c].to_numpy(zero_copy_only=False) for c in ("mu_lower", "mu_upper", "excited")}
         col["mu_est"] = out["mu"].to_numpy()
         col["run_id"] = np.full(len(rows), run_id, dtype=object)
@@ -106,13 +124,17 @@ def run_bins_benchmark(seed: int = 0, estimators=BIN_ESTIMATORS, progress=None) 
 
 def bins_markdown(rows: list[dict]) -> str:
     """The per-bin table: one line per estimator and bin."""
-    lines = ["| estimator | bin | n | RMSE | MAE | 90 % coverage | width | judged excited | below bound | negative |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| estimator | bin | n | RMSE | MAE | 90 % coverage | width | judged excited | below bound | negative |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         if r["n"] == 0:
             lines.append(f"| {r['estimator']} | {r['bin']} | 0 | - | - | - | - | - | - | - |")
             continue
-        lines.append(f"| {r['estimator']} | {r['bin']} | {r['n']} | {r['rmse']:.3f} | {r['mae']:.3f} | "
-                     f"{r['coverage']:.2f} | {r['width']:.2f} | {r['judged_excited']:.2f} | "
-                     f"{r['below_bound']:.3f} | {r['negative']} |")
+        lines.append(
+            f"| {r['estimator']} | {r['bin']} | {r['n']} | {r['rmse']:.3f} | {r['mae']:.3f} | "
+            f"{r['coverage']:.2f} | {r['width']:.2f} | {r['judged_excited']:.2f} | "
+            f"{r['below_bound']:.3f} | {r['negative']} |"
+        )
     return "\n".join(lines) + "\n"

@@ -96,9 +96,11 @@ log = logging.getLogger(__name__)
 BANDS = (("mu<=0.2", 0.05, 0.2), ("0.2-0.4", 0.2, 0.4), ("0.4-0.6", 0.4, 0.6))  # name, low, high (mu)
 CONTROL_MU = SURFACE_MU["wet"]  # 0.80: wet asphalt, not slippery
 # driver styles: (share of drivers, braking deceleration, re-acceleration), m/s^2
-STYLES = {"gentle": (0.70, 0.15 * G_MPS2, 0.10 * G_MPS2),
-          "firm": (0.25, 0.30 * G_MPS2, 0.15 * G_MPS2),
-          "hard": (0.05, 0.60 * G_MPS2, 0.20 * G_MPS2)}
+STYLES = {
+    "gentle": (0.70, 0.15 * G_MPS2, 0.10 * G_MPS2),
+    "firm": (0.25, 0.30 * G_MPS2, 0.15 * G_MPS2),
+    "hard": (0.05, 0.60 * G_MPS2, 0.20 * G_MPS2),
+}
 BRAKINGS_PER_KM = {"urban": 2.0, "ramp": 1.0, "expressway": 0.4}  # junctions and traffic in town, a merge, traffic
 TRIP_GAP_S = (5.0, 60.0)  # pause between two trips of one vehicle (parking, a road not in the network)
 PATCH_RADIUS_M = (40.0, 70.0)
@@ -156,9 +158,11 @@ class FleetScenario:
 
 # --------------------------------------------------------------------------------------------------- scenario
 def _place_patches(rng: np.random.Generator, roads: tuple[Road, ...], config: FleetConfig) -> tuple[Patch, ...]:
-    wanted = [(name, surface, float(rng.uniform(low, high)))
-              for (name, low, high), surface in zip(BANDS, ("ice", "snow", "wet"))
-              for _ in range(config.patches_per_band)]
+    wanted = [
+        (name, surface, float(rng.uniform(low, high)))
+        for (name, low, high), surface in zip(BANDS, ("ice", "snow", "wet"))
+        for _ in range(config.patches_per_band)
+    ]
     wanted += [("control", "wet", None)] * config.control_patches
     lengths = np.array([r.path.length_m for r in roads])
     placed: list[Patch] = []
@@ -167,10 +171,14 @@ def _place_patches(rng: np.random.Generator, roads: tuple[Road, ...], config: Fl
             i = int(rng.choice(len(roads), p=lengths / lengths.sum()))
             road, radius = roads[i], float(rng.uniform(*PATCH_RADIUS_M))
             east, north = points_at(road.path, np.array([rng.uniform(0.15, 0.85) * road.path.length_m]))[0]
-            clear = all(math.hypot(east - p.east_m, north - p.north_m) > radius + p.radius_m + PATCH_CLEARANCE_M
-                        for p in placed)
-            clear = clear and all(np.hypot(*(other.points_m - [east, north]).T).min() > radius + PATCH_CLEARANCE_M
-                                  for j, other in enumerate(roads) if j != i)
+            clear = all(
+                math.hypot(east - p.east_m, north - p.north_m) > radius + p.radius_m + PATCH_CLEARANCE_M for p in placed
+            )
+            clear = clear and all(
+                np.hypot(*(other.points_m - [east, north]).T).min() > radius + PATCH_CLEARANCE_M
+                for j, other in enumerate(roads)
+                if j != i
+            )
             if clear:
                 break
         else:
@@ -208,8 +216,10 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
         style = names[int(rng.choice(len(names), p=shares / shares.sum()))]
         _, brake, accel = STYLES[style]
         vehicle = kinds[v % len(kinds)]
-        tire = dataclasses.replace(DugoffTire(), stiffness_scale=float(rng.uniform(1 - effects.tire_stiffness_spread,
-                                                                                   1 + effects.tire_stiffness_spread)))
+        tire = dataclasses.replace(
+            DugoffTire(),
+            stiffness_scale=float(rng.uniform(1 - effects.tire_stiffness_spread, 1 + effects.tire_stiffness_spread)),
+        )
         sensor_seed = int(rng.integers(2**31))  # one terminal: its biases and mounting stay with the vehicle
         styles[vehicle_id], vehicle_kinds[vehicle_id] = style, vehicle
         t = float(rng.uniform(0.0, 60.0))
@@ -220,16 +230,35 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
             cruise = road.cruise_mps * float(rng.uniform(0.9, 1.05))
             n_brakes = int(rng.poisson(BRAKINGS_PER_KM[road.kind] * length / 1000.0))
             brakes = sorted(rng.uniform(0.05 * length, 0.85 * length, size=n_brakes).tolist())
-            speed, duration = _speed_profile(cruise, brakes, length, config.duration_s - t, brake_mps2=brake,
-                                             reaccelerate_mps2=accel)
+            speed, duration = _speed_profile(
+                cruise, brakes, length, config.duration_s - t, brake_mps2=brake, reaccelerate_mps2=accel
+            )
             duration = math.floor(duration * 10) / 10
             if duration < 10.0:
                 break
             mu = network.mu_profile(road, planned_arrival(speed, t))
-            trips.append(Trip(vehicle_id, style, round(t, 1), Scenario(
-                run_id=f"{vehicle_id}-{k:03d}", path=road.path, mu=mu, speed=speed, vehicle=vehicle, tire=tire,
-                duration_s=duration, seed=sensor_seed, condition="fleet", road=road.name, manoeuvre=style,
-                grade=grade, effects=effects)))
+            trips.append(
+                Trip(
+                    vehicle_id,
+                    style,
+                    round(t, 1),
+                    Scenario(
+                        run_id=f"{vehicle_id}-{k:03d}",
+                        path=road.path,
+                        mu=mu,
+                        speed=speed,
+                        vehicle=vehicle,
+                        tire=tire,
+                        duration_s=duration,
+                        seed=sensor_seed,
+                        condition="fleet",
+                        road=road.name,
+                        manoeuvre=style,
+                        grade=grade,
+                        effects=effects,
+                    ),
+                )
+            )
             t = round(t + duration + float(rng.uniform(*TRIP_GAP_S)), 1)
             k += 1
     return FleetScenario(seed, config, network, tuple(trips), styles, vehicle_kinds)
@@ -264,8 +293,10 @@ def place_stations(scenario: FleetScenario, rng: np.random.Generator) -> list[Si
     config, network = scenario.config, scenario.network
     slippery = [p for p in network.patches if p.mu is not None and p.mu < CONTROL_MU]
     chosen = rng.choice(len(slippery), size=min(config.stations_at_patches, len(slippery)), replace=False)
-    stations = [SimStation(f"rws-{k:02d}", slippery[i].east_m, slippery[i].north_m, slippery[i].name, k % 2 == 1)
-                for k, i in enumerate(sorted(chosen.tolist()))]
+    stations = [
+        SimStation(f"rws-{k:02d}", slippery[i].east_m, slippery[i].north_m, slippery[i].name, k % 2 == 1)
+        for k, i in enumerate(sorted(chosen.tolist()))
+    ]
     points = np.concatenate([road.points_m for road in network.roads])
     clear = np.ones(len(points), bool)
     for patch in network.patches:
@@ -306,9 +337,13 @@ def simulate_station_reports(scenario: FleetScenario, start_ms: int) -> tuple[li
             if rng.random() < STATION_CONFUSION:
                 k = STATE_ORDER.index(state) + (1 if rng.random() < 0.5 else -1)
                 state = STATE_ORDER[min(len(STATE_ORDER) - 1, max(0, k))]
-            reading = {"surface_state": state, "water_film_thickness_mm": film,
-                       "surface_temperature_c": round(float(rng.uniform(-8.0, -1.0) if state in ("ice", "snow")
-                                                            else rng.uniform(1.0, 8.0)), 1)}
+            reading = {
+                "surface_state": state,
+                "water_film_thickness_mm": film,
+                "surface_temperature_c": round(
+                    float(rng.uniform(-8.0, -1.0) if state in ("ice", "snow") else rng.uniform(1.0, 8.0)), 1
+                ),
+            }
             if station.friction_sensor:
                 friction = min(1.0, mu) + float(rng.normal(0.0, STATION_FRICTION_NOISE))
                 reading.update(friction=round(min(1.0, max(0.0, friction)), 3), friction_uncertainty=0.1)
@@ -317,8 +352,18 @@ def simulate_station_reports(scenario: FleetScenario, start_ms: int) -> tuple[li
                 reading = frozen
             lost = outage[0] <= t < outage[1] or rng.random() < STATION_LOSS
             if not lost:
-                out.append((round(t, 1), {"station_id": station.station_id, "timestamp_ms": start_ms + round(t * 1000),
-                                          "latitude_deg": float(lat), "longitude_deg": float(lon), **reading}))
+                out.append(
+                    (
+                        round(t, 1),
+                        {
+                            "station_id": station.station_id,
+                            "timestamp_ms": start_ms + round(t * 1000),
+                            "latitude_deg": float(lat),
+                            "longitude_deg": float(lon),
+                            **reading,
+                        },
+                    )
+                )
     out.sort(key=lambda item: (item[0], item[1]["station_id"]))
     return stations, out
 
@@ -353,8 +398,11 @@ def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10
     order = np.argsort(t_s, kind="stable")
     vehicle = np.array([runs[r].vehicle_id for r in run_ids.tolist()], dtype=object)[order]
     t_s = np.round(t_s[order], 1)
-    wire = [c for c in TELEMETRY_COLUMNS if c in table.column_names and c not in ("vehicle_id", "timestamp_ms",
-                                                                                "lateral_speed_mps")]
+    wire = [
+        c
+        for c in TELEMETRY_COLUMNS
+        if c in table.column_names and c not in ("vehicle_id", "timestamp_ms", "lateral_speed_mps")
+    ]
     telemetry = table.select(wire).take(pa.array(order))  # a production terminal has no lateral speed
     timestamps = start_ms + np.round(t_s * 1000.0).astype(np.int64)
     telemetry = telemetry.append_column("vehicle_id", pa.array(vehicle.tolist(), pa.string()))
@@ -364,10 +412,22 @@ def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10
     lon = telemetry["longitude_deg"].to_numpy()
     cells = np.array([h3.latlng_to_cell(a, b, resolution) for a, b in zip(lat.tolist(), lon.tolist())], dtype=object)
     mu = table["mu"].to_numpy()[order]
-    utilization = np.hypot(telemetry["accel_lon_mps2"].to_numpy(), telemetry["accel_lat_mps2"].to_numpy()) / (mu * G_MPS2)
+    utilization = np.hypot(telemetry["accel_lon_mps2"].to_numpy(), telemetry["accel_lat_mps2"].to_numpy()) / (
+        mu * G_MPS2
+    )
     excited = (utilization >= EXCITED_UTILIZATION) | telemetry["abs_active"].to_numpy(zero_copy_only=False)
-    return Drives(telemetry, t_s, vehicle, table["x_m"].to_numpy()[order], table["y_m"].to_numpy()[order], mu,
-                  np.abs(speed) * 0.1, cells, start_ms, excited)
+    return Drives(
+        telemetry,
+        t_s,
+        vehicle,
+        table["x_m"].to_numpy()[order],
+        table["y_m"].to_numpy()[order],
+        mu,
+        np.abs(speed) * 0.1,
+        cells,
+        start_ms,
+        excited,
+    )
 
 
 # --------------------------------------------------------------------------------------------------- service
@@ -385,15 +445,42 @@ class ServiceRun:
     station_sites: tuple = ()  # the SimStations
 
 
-REPLAY_FIELDS = ("vehicle_id", "timestamp_ms", "latitude_deg", "longitude_deg", "mu_lower", "mu_upper", "excited",
-                 "mu_proven")
-STATION_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("station_id", pa.string()),
-                            ("cell", pa.string()), ("timestamp_ms", pa.int64()), ("mu", pa.float64()),
-                            ("mu_lower", pa.float64()), ("mu_upper", pa.float64())])
-REPLAY_SCHEMA = pa.schema([("round", pa.int64()), ("now_ms", pa.int64()), ("vehicle_id", pa.string()),
-                           ("timestamp_ms", pa.int64()), ("latitude_deg", pa.float64()),
-                           ("longitude_deg", pa.float64()), ("mu_lower", pa.float64()), ("mu_upper", pa.float64()),
-                           ("excited", pa.bool_()), ("mu_proven", pa.float64())])
+REPLAY_FIELDS = (
+    "vehicle_id",
+    "timestamp_ms",
+    "latitude_deg",
+    "longitude_deg",
+    "mu_lower",
+    "mu_upper",
+    "excited",
+    "mu_proven",
+)
+STATION_SCHEMA = pa.schema(
+    [
+        ("round", pa.int64()),
+        ("now_ms", pa.int64()),
+        ("station_id", pa.string()),
+        ("cell", pa.string()),
+        ("timestamp_ms", pa.int64()),
+        ("mu", pa.float64()),
+        ("mu_lower", pa.float64()),
+        ("mu_upper", pa.float64()),
+    ]
+)
+REPLAY_SCHEMA = pa.schema(
+    [
+        ("round", pa.int64()),
+        ("now_ms", pa.int64()),
+        ("vehicle_id", pa.string()),
+        ("timestamp_ms", pa.int64()),
+        ("latitude_deg", pa.float64()),
+        ("longitude_deg", pa.float64()),
+        ("mu_lower", pa.float64()),
+        ("mu_upper", pa.float64()),
+        ("excited", pa.bool_()),
+        ("mu_proven", pa.float64()),
+    ]
+)
 
 
 class EngineRecorder:
@@ -448,12 +535,27 @@ def _wait_idle(service: CloudService) -> None:
         time.sleep(WAIT_STEP_S)
 
 
-def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_backlog: int = 20_000,
-                progress: Callable[[float], None] | None = None, **settings) -> ServiceRun:
+def run_service(
+    scenario: FleetScenario,
+    drives: Drives,
+    data_dir: Path,
+    *,
+    max_backlog: int = 20_000,
+    progress: Callable[[float], None] | None = None,
+    **settings,
+) -> ServiceRun:
     """Feed the drives to a CloudService through its ingest path (parse_payload, then ingest.submit, as the HTTP
     route does), one second of every vehicle a message, in timestamp order; read the map at each snapshot instant."""
-    settings = Settings(**{"data_dir": data_dir, "mqtt": "off", "map_clock": "data", "rate_limit_samples_per_s": 0,
-                           "admin_secret": "fleet-benchmark-admin", **settings})
+    settings = Settings(
+        **{
+            "data_dir": data_dir,
+            "mqtt": "off",
+            "map_clock": "data",
+            "rate_limit_samples_per_s": 0,
+            "admin_secret": "fleet-benchmark-admin",
+            **settings,
+        }
+    )
     started = time.perf_counter()
     snapshots: dict[float, list] = {}
     rejected = sent = station_sent = 0
@@ -478,21 +580,28 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
                 chunk_start, stop = a, int(np.searchsorted(second, second[a] + 60))
                 chunk_rows = drives.table.slice(a, stop - a).to_pylist()
             by_vehicle: dict[str, list] = {}
-            for row in chunk_rows[a - chunk_start:b - chunk_start]:
+            for row in chunk_rows[a - chunk_start : b - chunk_start]:
                 by_vehicle.setdefault(row["vehicle_id"], []).append(row)
             now_ms = int(time.time() * 1000)
             for vehicle_id, rows in by_vehicle.items():
-                samples, errors = parse_payload(orjson.dumps(rows), content_type="application/json", now_ms=now_ms,
-                                                max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
-                                                max_future_ms=int(s.max_future_s * 1000), vehicle_id=vehicle_id)
+                samples, errors = parse_payload(
+                    orjson.dumps(rows),
+                    content_type="application/json",
+                    now_ms=now_ms,
+                    max_bytes=s.max_payload_bytes,
+                    max_samples=s.max_samples_per_payload,
+                    max_future_ms=int(s.max_future_s * 1000),
+                    vehicle_id=vehicle_id,
+                )
                 rejected += len(errors)
                 sent += len(rows)
                 futures.append(service.ingest.submit(vehicle_id, samples, len(samples) + len(errors)))
             t_end = float(second[a] + 1)
             while reports and reports[0][0] < t_end:  # as the HTTP route does: parse, then store and fan out
                 _, report = reports.pop(0)
-                service.station_reports(parse_reports(orjson.dumps(report), station_id=report["station_id"],
-                                                      now_ms=int(time.time() * 1000)))
+                service.station_reports(
+                    parse_reports(orjson.dumps(report), station_id=report["station_id"], now_ms=int(time.time() * 1000))
+                )
                 station_sent += 1
             while instants and t_end >= instants[0]:
                 _wait_idle(service)
@@ -513,16 +622,26 @@ def run_service(scenario: FleetScenario, drives: Drives, data_dir: Path, *, max_
             raise RuntimeError(f"{len(failed)} submissions failed, the first: {failed[0]!r}")
         stats = service.ingest.stats()
     # the service stopped: every round stored; read what it decided
-    storage_settings = Settings(data_dir=data_dir, mqtt="off", map_clock="data",
-                                admin_secret="fleet-benchmark-admin")
+    storage_settings = Settings(data_dir=data_dir, mqtt="off", map_clock="data", admin_secret="fleet-benchmark-admin")
     from roadgrip.cloud.storage.database import open_storage
+
     storage = open_storage(storage_settings.storage_url)
     try:
         warnings = storage.warnings(active_only=False)
     finally:
         storage.close()
-    return ServiceRun(warnings, snapshots, sent, rejected, stats, time.perf_counter() - started, recorder.table(),
-                      recorder.station_table(), station_sent, tuple(stations))
+    return ServiceRun(
+        warnings,
+        snapshots,
+        sent,
+        rejected,
+        stats,
+        time.perf_counter() - started,
+        recorder.table(),
+        recorder.station_table(),
+        station_sent,
+        tuple(stations),
+    )
 
 
 # --------------------------------------------------------------------------------------------------- truth
@@ -538,8 +657,16 @@ def patch_cells(network: Network, patch: Patch, resolution: int = 10, step_m: fl
     return cells
 
 
-def find_passes(t_s: np.ndarray, vehicle: np.ndarray, east_m: np.ndarray, north_m: np.ndarray, mu: np.ndarray,
-                patch: Patch, gap_s: float = 1.0, while_there: bool = True) -> list[tuple[str, float, float]]:
+def find_passes(
+    t_s: np.ndarray,
+    vehicle: np.ndarray,
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    mu: np.ndarray,
+    patch: Patch,
+    gap_s: float = 1.0,
+    while_there: bool = True,
+) -> list[tuple[str, float, float]]:
     """(vehicle_id, entered s, left s) of every pass over the patch while it was there: consecutive samples of a
     vehicle on the patch whose true mu is the patch's (gap_s apart at most). `while_there` False: every pass over its
     place, whatever the road was."""

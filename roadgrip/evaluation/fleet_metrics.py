@@ -48,8 +48,12 @@ def warning_from_row(row: dict, start_ms: int) -> Warning:
     """A warning from the service's storage row (its latest event)."""
     event = row["message"]["event"]
     ended = row["status"] != "active"
-    return Warning(row["cell"], (row["detection_ms"] - start_ms) / 1000.0,
-                   (event["evidence_ms"] - start_ms) / 1000.0 if ended else None, event["reason"] if ended else None)
+    return Warning(
+        row["cell"],
+        (row["detection_ms"] - start_ms) / 1000.0,
+        (event["evidence_ms"] - start_ms) / 1000.0 if ended else None,
+        event["reason"] if ended else None,
+    )
 
 
 def classify(warning: Warning, patches: list[Patch], cells: dict[str, set[str]], validity_s: float) -> tuple:
@@ -67,8 +71,15 @@ def classify(warning: Warning, patches: list[Patch], cells: dict[str, set[str]],
     return "false", None
 
 
-def patch_outcome(patch: Patch, passes: list[tuple[str, float, float]], on: list[Warning], beside: list[Warning],
-                  run_end_s: float, passes_after_dry: int = 0, observable_passes: int | None = None) -> dict:
+def patch_outcome(
+    patch: Patch,
+    passes: list[tuple[str, float, float]],
+    on: list[Warning],
+    beside: list[Warning],
+    run_end_s: float,
+    passes_after_dry: int = 0,
+    observable_passes: int | None = None,
+) -> dict:
     """One patch's row. `passes`: (vehicle, entered, left) while it was there; `on` and `beside`: the warnings
     attributed to it (classify); `passes_after_dry`: passes over its place within TARGET_LINGER_S after it dried;
     `observable_passes`: the passes whose manoeuvre made mu observable (fleet_benchmark.observable)."""
@@ -76,13 +87,25 @@ def patch_outcome(patch: Patch, passes: list[tuple[str, float, float]], on: list
     vehicles = {p[0] for p in passes}
     warnings = [*on, *beside]
     first = min((w.detection_s for w in on), default=None)
-    row = {"patch": patch.name, "band": band_of(patch.mu), "mu": patch.mu, "appear_s": patch.appear_s,
-           "dry_s": patch.dry_s, "passes": len(passes), "observable_passes": observable_passes, "vehicles": len(vehicles),
-           "eligible": len(vehicles) >= TARGET_MIN_VEHICLES, "detected": first is not None,
-           "time_to_first_s": None if first is None else first - patch.appear_s,
-           "passes_to_first": None if first is None else sum(p[1] <= first for p in passes),
-           "warnings": len(warnings), "dried_in_run": patch.dry_s < run_end_s, "passes_after_dry": passes_after_dry,
-           "linger_s": None, "censored": False}
+    row = {
+        "patch": patch.name,
+        "band": band_of(patch.mu),
+        "mu": patch.mu,
+        "appear_s": patch.appear_s,
+        "dry_s": patch.dry_s,
+        "passes": len(passes),
+        "observable_passes": observable_passes,
+        "vehicles": len(vehicles),
+        "eligible": len(vehicles) >= TARGET_MIN_VEHICLES,
+        "detected": first is not None,
+        "time_to_first_s": None if first is None else first - patch.appear_s,
+        "passes_to_first": None if first is None else sum(p[1] <= first for p in passes),
+        "warnings": len(warnings),
+        "dried_in_run": patch.dry_s < run_end_s,
+        "passes_after_dry": passes_after_dry,
+        "linger_s": None,
+        "censored": False,
+    }
     if warnings and patch.dry_s < run_end_s:
         ends = [run_end_s if w.end_s is None else w.end_s for w in warnings]
         row["linger_s"] = max(0.0, max(ends) - patch.dry_s)
@@ -103,8 +126,9 @@ class PatchTruth:
     observable: dict  # slippery patch name -> count
 
 
-def score_warnings(seed: int, truth: PatchTruth, warnings: list[Warning], validity_s: float,
-                   run_end_s: float) -> tuple[list[str], list[dict]]:
+def score_warnings(
+    seed: int, truth: PatchTruth, warnings: list[Warning], validity_s: float, run_end_s: float
+) -> tuple[list[str], list[dict]]:
     """The class of every warning ("on", "beside", "false"; `classify`) and one row per slippery patch
     (`patch_outcome`): the scoring shared by the run (fleet_report.py) and the sweep (fleet_sweep.py)."""
     patches = list(truth.patches)
@@ -115,9 +139,20 @@ def score_warnings(seed: int, truth: PatchTruth, warnings: list[Warning], validi
             continue
         on = [w for w, (kind, p) in zip(warnings, classes) if kind == "on" and p is patch]
         beside = [w for w, (kind, p) in zip(warnings, classes) if kind == "beside" and p is patch]
-        patch_rows.append({"seed": seed, **patch_outcome(patch, truth.passes[patch.name], on, beside, run_end_s,
-                                                         truth.passes_after_dry[patch.name],
-                                                         truth.observable[patch.name])})
+        patch_rows.append(
+            {
+                "seed": seed,
+                **patch_outcome(
+                    patch,
+                    truth.passes[patch.name],
+                    on,
+                    beside,
+                    run_end_s,
+                    truth.passes_after_dry[patch.name],
+                    truth.observable[patch.name],
+                ),
+            }
+        )
     return [kind for kind, _ in classes], patch_rows
 
 
@@ -127,8 +162,15 @@ def score_cell(mu: float, mu_lower: float, mu_upper: float, truth: tuple[float, 
     patch, in a cell that holds one): `error_low` and `covered_low` (the interval holds it)."""
     lo, hi = truth
     error = 0.0 if lo <= mu <= hi else min(abs(mu - lo), abs(mu - hi))
-    return {"band": band_of(lo), "mu": mu, "mu_truth": lo, "error": error, "covered": mu_lower <= hi and mu_upper >= lo,
-            "error_low": abs(mu - lo), "covered_low": mu_lower <= lo <= mu_upper}
+    return {
+        "band": band_of(lo),
+        "mu": mu,
+        "mu_truth": lo,
+        "error": error,
+        "covered": mu_lower <= hi and mu_upper >= lo,
+        "error_low": abs(mu - lo),
+        "covered_low": mu_lower <= lo <= mu_upper,
+    }
 
 
 def _median(values) -> float | None:
@@ -151,11 +193,14 @@ def summarize(group: str, patch_rows: list[dict], cell_scores: list[dict]) -> di
     detected = [r for r in patch_rows if r["detected"]]
     dried = [r for r in patch_rows if r["linger_s"] is not None]
     return {
-        "group": group, "patches": len(patch_rows), "eligible": len(eligible),
+        "group": group,
+        "patches": len(patch_rows),
+        "eligible": len(eligible),
         "recall": _share(sum(r["detected"] for r in eligible), len(eligible)),
         "recall_all": _share(len(detected), len(patch_rows)),
-        "within_3rd_pass": _share(sum(r["detected"] and r["passes_to_first"] <= TARGET_PASSES for r in eligible),
-                                  len(eligible)),
+        "within_3rd_pass": _share(
+            sum(r["detected"] and r["passes_to_first"] <= TARGET_PASSES for r in eligible), len(eligible)
+        ),
         "time_to_first_median_s": _median(r["time_to_first_s"] for r in detected),
         "time_to_first_max_s": _max(r["time_to_first_s"] for r in detected),
         "passes_to_first_median": _median(r["passes_to_first"] for r in detected),
@@ -175,34 +220,54 @@ def _map_scores(prefix: str, cell_scores: list[dict]) -> dict:
     """Error and coverage of the map's cells of one status (measured: excited evidence or a station; bounded: only
     what calm passes proved)."""
     n = len(cell_scores)
-    return {f"{prefix}_cells": n,
-            f"{prefix}_mae": None if not n else sum(s["error"] for s in cell_scores) / n,
-            f"{prefix}_coverage": _share(sum(s["covered"] for s in cell_scores), n),
-            f"{prefix}_mae_low": None if not n else sum(s["error_low"] for s in cell_scores) / n,
-            f"{prefix}_coverage_low": _share(sum(s["covered_low"] for s in cell_scores), n)}
+    return {
+        f"{prefix}_cells": n,
+        f"{prefix}_mae": None if not n else sum(s["error"] for s in cell_scores) / n,
+        f"{prefix}_coverage": _share(sum(s["covered"] for s in cell_scores), n),
+        f"{prefix}_mae_low": None if not n else sum(s["error_low"] for s in cell_scores) / n,
+        f"{prefix}_coverage_low": _share(sum(s["covered_low"] for s in cell_scores), n),
+    }
 
 
-def summarize_run(patch_rows: list[dict], cell_scores: list[dict], kinds: list[str], dry_km: float,
-                  driven_cells: int, cells_with_evidence: int, cells_measured: int | None = None) -> list[dict]:
+def summarize_run(
+    patch_rows: list[dict],
+    cell_scores: list[dict],
+    kinds: list[str],
+    dry_km: float,
+    driven_cells: int,
+    cells_with_evidence: int,
+    cells_measured: int | None = None,
+) -> list[dict]:
     """Rows per band, for the target's patches (mu <= TARGET_MU), for all slippery patches, and the whole run (false
     warnings per 100 km of dry road, the map over every scored cell, the share of driven cells with evidence of any
     kind and, where given, with a measurement). `kinds`: the class of every warning raised ("on", "beside",
     "false"). Cell scores carry the cell's map status ("measured" or "bounded")."""
     rows = []
     for band, _ in BAND_LIMITS:
-        rows.append(summarize(band, [r for r in patch_rows if r["band"] == band],
-                              [s for s in cell_scores if s["band"] == band]))
-    rows.append(summarize(f"mu<={TARGET_MU}", [r for r in patch_rows if r["mu"] <= TARGET_MU],
-                          [s for s in cell_scores if s["mu_truth"] <= TARGET_MU]))
+        rows.append(
+            summarize(band, [r for r in patch_rows if r["band"] == band], [s for s in cell_scores if s["band"] == band])
+        )
+    rows.append(
+        summarize(
+            f"mu<={TARGET_MU}",
+            [r for r in patch_rows if r["mu"] <= TARGET_MU],
+            [s for s in cell_scores if s["mu_truth"] <= TARGET_MU],
+        )
+    )
     rows.append(summarize("dry", [], [s for s in cell_scores if s["band"] == "dry"]))
     overall = summarize("all", [r for r in patch_rows if r["band"] != "dry"], cell_scores)
     false = kinds.count("false")
     dry_cells = [s for s in cell_scores if s["band"] == "dry" and s["status"] == MEASURED]
-    overall.update(dry_cells_read_slippery=_share(sum(s["mu"] < SLIPPERY_MU for s in dry_cells), len(dry_cells)),
-                   warnings=len(kinds), warnings_on_patch=kinds.count("on"), warnings_beside=kinds.count("beside"),
-                   false_warnings=false, dry_km=dry_km,
-                   false_per_100km=false / (dry_km / 100.0) if dry_km > 0 else math.nan,
-                   evidence_share=_share(cells_with_evidence, driven_cells),
-                   measured_share=None if cells_measured is None else _share(cells_measured, driven_cells))
+    overall.update(
+        dry_cells_read_slippery=_share(sum(s["mu"] < SLIPPERY_MU for s in dry_cells), len(dry_cells)),
+        warnings=len(kinds),
+        warnings_on_patch=kinds.count("on"),
+        warnings_beside=kinds.count("beside"),
+        false_warnings=false,
+        dry_km=dry_km,
+        false_per_100km=false / (dry_km / 100.0) if dry_km > 0 else math.nan,
+        evidence_share=_share(cells_with_evidence, driven_cells),
+        measured_share=None if cells_measured is None else _share(cells_measured, driven_cells),
+    )
     rows.append(overall)
     return rows

@@ -45,31 +45,63 @@ def plot_map_vs_truth(result, path: Path, instants: int = 4) -> Path:
         measured = [c for c in cells if c.status == MEASURED]
         unknown = [c for c in cells if c.status != MEASURED]
         if unknown:
-            ax.add_collection(PolyCollection([_hexagon(c.cell, network.origin) for c in unknown], facecolor="0.9",
-                                             edgecolor="0.8", lw=0.3, zorder=2))
+            ax.add_collection(
+                PolyCollection(
+                    [_hexagon(c.cell, network.origin) for c in unknown],
+                    facecolor="0.9",
+                    edgecolor="0.8",
+                    lw=0.3,
+                    zorder=2,
+                )
+            )
         if measured:
-            ax.add_collection(PolyCollection([_hexagon(c.cell, network.origin) for c in measured],
-                                             array=np.array([c.mu for c in measured]), cmap=CMAP, norm=MU_NORM,
-                                             edgecolor="0.4", lw=0.3, zorder=3))
+            ax.add_collection(
+                PolyCollection(
+                    [_hexagon(c.cell, network.origin) for c in measured],
+                    array=np.array([c.mu for c in measured]),
+                    cmap=CMAP,
+                    norm=MU_NORM,
+                    edgecolor="0.4",
+                    lw=0.3,
+                    zorder=3,
+                )
+            )
         for patch in network.patches:
             there = bool(patch.active(t))
-            ax.add_patch(Circle((patch.east_m, patch.north_m), patch.radius_m, zorder=4, lw=1.2,
-                                facecolor=_colour(patch.mu) if there else "none", alpha=0.9 if there else 1.0,
-                                edgecolor="k" if there else "0.5", ls="-" if there else "--"))
+            ax.add_patch(
+                Circle(
+                    (patch.east_m, patch.north_m),
+                    patch.radius_m,
+                    zorder=4,
+                    lw=1.2,
+                    facecolor=_colour(patch.mu) if there else "none",
+                    alpha=0.9 if there else 1.0,
+                    edgecolor="k" if there else "0.5",
+                    ls="-" if there else "--",
+                )
+            )
         active = [w.cell for w in result.warnings if w.detection_s <= t and (w.end_s is None or w.end_s > t)]
         if active:
-            ax.add_collection(PolyCollection([_hexagon(c, network.origin) for c in active], facecolor="none",
-                                             edgecolor="k", lw=1.6, zorder=5))
+            ax.add_collection(
+                PolyCollection(
+                    [_hexagon(c, network.origin) for c in active], facecolor="none", edgecolor="k", lw=1.6, zorder=5
+                )
+            )
         ax.set_title(f"t = {t / 60:.0f} min: {len(measured)} cells with evidence, {len(active)} warnings", fontsize=9)
         ax.set_aspect("equal")
         ax.set_xlim(-2700, 2900)
         ax.set_ylim(-1600, 900)
         ax.set_xlabel("east (m)")
         ax.set_ylabel("north (m)")
-    fig.colorbar(ScalarMappable(norm=MU_NORM, cmap=CMAP), ax=axes, shrink=0.8, label="mu (cells: the map; discs: the truth)")
-    fig.suptitle(f"Fleet benchmark, seed {result.seed}: the friction map against the true patches\n(black hexagons: "
-                 f"active warnings; dashed discs: patches not there at that instant; grey cells: driven, no excited "
-                 f"evidence)", fontsize=10)
+    fig.colorbar(
+        ScalarMappable(norm=MU_NORM, cmap=CMAP), ax=axes, shrink=0.8, label="mu (cells: the map; discs: the truth)"
+    )
+    fig.suptitle(
+        f"Fleet benchmark, seed {result.seed}: the friction map against the true patches\n(black hexagons: "
+        f"active warnings; dashed discs: patches not there at that instant; grey cells: driven, no excited "
+        f"evidence)",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
     return path
 
@@ -91,10 +123,15 @@ def plot_detection_delay(patch_rows: list[dict], path: Path) -> Path:
         rows = [r for r in patch_rows if r["seed"] == seed]
         hit = [r for r in rows if r["detected"]]
         miss = [r for r in rows if not r["detected"]]
-        ax_t.scatter([r["mu"] for r in hit], [r["time_to_first_s"] / 60 for r in hit], marker=markers[k % 7],
-                     label=f"seed {seed}")
-        ax_p.scatter([r["mu"] for r in hit], [r["passes_to_first"] for r in hit], marker=markers[k % 7],
-                     label=f"seed {seed}")
+        ax_t.scatter(
+            [r["mu"] for r in hit],
+            [r["time_to_first_s"] / 60 for r in hit],
+            marker=markers[k % 7],
+            label=f"seed {seed}",
+        )
+        ax_p.scatter(
+            [r["mu"] for r in hit], [r["passes_to_first"] for r in hit], marker=markers[k % 7], label=f"seed {seed}"
+        )
         ax_t.scatter([r["mu"] for r in miss], [top_t] * len(miss), marker="x", color=f"C{k}")
         ax_p.scatter([r["mu"] for r in miss], [top_p] * len(miss), marker="x", color=f"C{k}")
     for ax, top, label in ((ax_t, top_t, "time to first warning (min)"), (ax_p, top_p, "passes until first warning")):
@@ -124,13 +161,20 @@ def plot_tradeoff(rows: list[dict], chosen: dict | None, path: Path) -> Path:
     points = ax.scatter(x, y + jitter, c=c, cmap="viridis", vmin=0, vmax=1, s=22, alpha=0.8)
     fig.colorbar(points, ax=ax, label="share warned by the 3rd pass")
     product = next((r for r in rows if r["product"]), None)
-    marks = ((product, {"marker": "s", "s": 140, "facecolor": "none", "edgecolor": "r", "lw": 1.8}, "product now"),
-             (chosen, {"marker": "*", "s": 220, "facecolor": "none", "edgecolor": "k", "lw": 1.2}, "the rule's pick"))
+    marks = (
+        (product, {"marker": "s", "s": 140, "facecolor": "none", "edgecolor": "r", "lw": 1.8}, "product now"),
+        (chosen, {"marker": "*", "s": 220, "facecolor": "none", "edgecolor": "k", "lw": 1.2}, "the rule's pick"),
+    )
     for row, style, label in marks:
         if row is not None and row["recall"] is not None:
-            ax.scatter([row["false_per_100km"]], [row["recall"]], label=f"{label}: mu {row['threshold_mu']}, "
-                       f"{row['min_low_passes']} passes, {row['min_excited_per_pass']} excited, "
-                       f"{row['validity_s']:.0f} s", **style)
+            ax.scatter(
+                [row["false_per_100km"]],
+                [row["recall"]],
+                label=f"{label}: mu {row['threshold_mu']}, "
+                f"{row['min_low_passes']} passes, {row['min_excited_per_pass']} excited, "
+                f"{row['validity_s']:.0f} s",
+                **style,
+            )
     ax.axhline(0.95, color="0.6", ls="--", lw=0.8)
     ax.set_xlabel("false warnings per 100 km of dry road (seeds pooled)")
     ax.set_ylabel("recall, patches mu <= 0.3")

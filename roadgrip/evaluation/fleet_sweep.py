@@ -25,13 +25,23 @@ from roadgrip.cloud.settings import Settings
 from roadgrip.evaluation.fleet_metrics import TARGET_MU, Warning, score_warnings, summarize_run
 
 # the engine's parameters swept, each with its Settings field; the others stay at the product's value
-PARAMETERS = {"threshold_mu": "warning_threshold_mu", "min_low_passes": "warning_min_low_passes",
-              "min_excited_per_pass": "warning_min_excited_per_pass", "validity_s": "warning_validity_s"}
-GRID = {"threshold_mu": (0.3, 0.4, 0.5), "min_low_passes": (1, 2, 3), "min_excited_per_pass": (2, 3, 5),
-        "validity_s": (300.0, 600.0)}  # 54 settings: a replay of a seed takes about 2 s
-RULE = ("of the settings with no false warning on any seed, the highest recall of the mu <= 0.3 patches; ties: the "
-        "most of them warned by the 3rd pass, then fewer passes to the first warning (median), then the shorter "
-        "longest linger after drying, then the fewest parameters changed from the product's")
+PARAMETERS = {
+    "threshold_mu": "warning_threshold_mu",
+    "min_low_passes": "warning_min_low_passes",
+    "min_excited_per_pass": "warning_min_excited_per_pass",
+    "validity_s": "warning_validity_s",
+}
+GRID = {
+    "threshold_mu": (0.3, 0.4, 0.5),
+    "min_low_passes": (1, 2, 3),
+    "min_excited_per_pass": (2, 3, 5),
+    "validity_s": (300.0, 600.0),
+}  # 54 settings: a replay of a seed takes about 2 s
+RULE = (
+    "of the settings with no false warning on any seed, the highest recall of the mu <= 0.3 patches; ties: the "
+    "most of them warned by the 3rd pass, then fewer passes to the first warning (median), then the shorter "
+    "longest linger after drying, then the fewest parameters changed from the product's"
+)
 
 
 def product_setting(settings: Settings | None = None) -> dict:
@@ -83,8 +93,14 @@ def as_warnings(latest: dict[str, tuple], start_ms: int) -> list[Warning]:
     out = []
     for cell, detection_ms, status, reason, evidence_ms in latest.values():
         ended = status == CANCELLED
-        out.append(Warning(cell, (detection_ms - start_ms) / 1000.0,
-                           (evidence_ms - start_ms) / 1000.0 if ended else None, reason if ended else None))
+        out.append(
+            Warning(
+                cell,
+                (detection_ms - start_ms) / 1000.0,
+                (evidence_ms - start_ms) / 1000.0 if ended else None,
+                reason if ended else None,
+            )
+        )
     return sorted(out, key=lambda w: (w.detection_s, w.cell))
 
 
@@ -100,8 +116,14 @@ def _replay_seeds(overrides: dict) -> list[list[Warning]]:
     return [as_warnings(replay(rounds, settings, **overrides), start_ms) for rounds, start_ms in seeds]
 
 
-def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings | None = None,
-          progress: Callable[[str, float], None] | None = None, workers: int = 2) -> list[dict]:
+def sweep(
+    results: list,
+    run_end_s: float,
+    grid: dict = GRID,
+    settings: Settings | None = None,
+    progress: Callable[[str, float], None] | None = None,
+    workers: int = 2,
+) -> list[dict]:
     """One row per setting of the grid (and the product's setting, flagged `product`): the pooled scores of the
     target's patches (mu <= 0.3) and of the run over the seeds of `results` (fleet_report.SeedResult), and the false
     warnings per seed. The product's setting is replayed too and compared with the service's own warnings."""
@@ -112,8 +134,10 @@ def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings
         candidates.append(product)
     say = progress or (lambda message, fraction: None)
     global _REPLAYS
-    _REPLAYS = (settings, [(rounds_of(res.run.estimates, res.run.stations), res.start_ms)
-                           for res in results])  # the workers inherit them (fork)
+    _REPLAYS = (
+        settings,
+        [(rounds_of(res.run.estimates, res.run.stations), res.start_ms) for res in results],
+    )  # the workers inherit them (fork)
     try:
         if workers > 1:
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
@@ -135,23 +159,39 @@ def sweep(results: list, run_end_s: float, grid: dict = GRID, settings: Settings
             per_setting[j].append((res, kinds, patch_rows))
     rows = []
     for setting, seeds in zip(candidates, per_setting):
-        runs = summarize_run([r for _, _, rows_ in seeds for r in rows_], [], [k for _, kinds, _ in seeds for k in kinds],
-                             sum(res.dry_km for res, _, _ in seeds), 0, 0)
+        runs = summarize_run(
+            [r for _, _, rows_ in seeds for r in rows_],
+            [],
+            [k for _, kinds, _ in seeds for k in kinds],
+            sum(res.dry_km for res, _, _ in seeds),
+            0,
+            0,
+        )
         target = next(r for r in runs if r["group"] == f"mu<={TARGET_MU}")
         overall = next(r for r in runs if r["group"] == "all")
-        row = {**setting, "product": setting == product, "patches": target["eligible"], "recall": target["recall"],
-               "within_3rd_pass": target["within_3rd_pass"],
-               "passes_to_first_median": target["passes_to_first_median"],
-               "passes_to_first_max": target["passes_to_first_max"],
-               "time_to_first_median_s": target["time_to_first_median_s"],
-               "linger_median_s": target["linger_median_s"], "linger_max_s": target["linger_max_s"],
-               "linger_over_10min": target["linger_over_10min"], "recall_all_slippery": overall["recall"],
-               "warnings": overall["warnings"], "warnings_on_patch": overall["warnings_on_patch"],
-               "warnings_beside": overall["warnings_beside"], "false_warnings": overall["false_warnings"],
-               "false_per_100km": overall["false_per_100km"], "dry_km": overall["dry_km"],
-               "max_false_per_seed": max(kinds.count("false") for _, kinds, _ in seeds),
-               "false_per_seed": " ".join(str(kinds.count("false")) for _, kinds, _ in seeds),
-               "seeds": " ".join(str(res.seed) for res, _, _ in seeds)}
+        row = {
+            **setting,
+            "product": setting == product,
+            "patches": target["eligible"],
+            "recall": target["recall"],
+            "within_3rd_pass": target["within_3rd_pass"],
+            "passes_to_first_median": target["passes_to_first_median"],
+            "passes_to_first_max": target["passes_to_first_max"],
+            "time_to_first_median_s": target["time_to_first_median_s"],
+            "linger_median_s": target["linger_median_s"],
+            "linger_max_s": target["linger_max_s"],
+            "linger_over_10min": target["linger_over_10min"],
+            "recall_all_slippery": overall["recall"],
+            "warnings": overall["warnings"],
+            "warnings_on_patch": overall["warnings_on_patch"],
+            "warnings_beside": overall["warnings_beside"],
+            "false_warnings": overall["false_warnings"],
+            "false_per_100km": overall["false_per_100km"],
+            "dry_km": overall["dry_km"],
+            "max_false_per_seed": max(kinds.count("false") for _, kinds, _ in seeds),
+            "false_per_seed": " ".join(str(kinds.count("false")) for _, kinds, _ in seeds),
+            "seeds": " ".join(str(res.seed) for res, _, _ in seeds),
+        }
         if setting == product:
             row["replay_matches_service"] = matches
         rows.append(row)
@@ -165,9 +205,14 @@ def _key(row: dict, product: dict | None = None) -> tuple:
     def pos(v):
         return v if v is not None else float("inf")
 
-    return (neg(row["recall"]), neg(row["within_3rd_pass"]), pos(row["passes_to_first_median"]),
-            pos(row["linger_max_s"]), sum(row.get(n) != product.get(n) for n in PARAMETERS) if product else 0,
-            not row["product"])
+    return (
+        neg(row["recall"]),
+        neg(row["within_3rd_pass"]),
+        pos(row["passes_to_first_median"]),
+        pos(row["linger_max_s"]),
+        sum(row.get(n) != product.get(n) for n in PARAMETERS) if product else 0,
+        not row["product"],
+    )
 
 
 def choose(rows: Iterable[dict]) -> dict | None:
@@ -189,22 +234,40 @@ def tradeoff_markdown(rows: list[dict], chosen: dict | None, sweep_s: float) -> 
     product = next((r for r in rows if r["product"]), None)
     safe = sorted((r for r in rows if r["max_false_per_seed"] == 0), key=lambda r: _key(r, product))
     unsafe = sorted((r for r in rows if r["max_false_per_seed"] > 0), key=lambda r: _key(r, product))
-    lines = [f"## The warning engine's trade-off (replayed estimates, {len(rows)} settings, {sweep_s:.0f} s)", "",
-             f"Rule: {RULE}. Chosen: " + ("none (every setting raised a false warning)" if chosen is None else
-                                          ", ".join(f"{k} {chosen[k]}" for k in PARAMETERS)) + ".", "",
-             ("| threshold_mu | min_low_passes | min_excited_per_pass | validity_s | product | recall (mu <= 0.3) | "
-              "by 3rd pass | passes to 1st (median / max) | linger (median / max, min) | > 10 min | warnings | "
-              "beside or after a patch | false (per seed) | false per 100 km |"),
-             "| ---: | ---: | ---: | ---: | --- | ---: | ---: | --- | --- | ---: | ---: | ---: | --- | ---: |"]
+    lines = [
+        f"## The warning engine's trade-off (replayed estimates, {len(rows)} settings, {sweep_s:.0f} s)",
+        "",
+        f"Rule: {RULE}. Chosen: "
+        + (
+            "none (every setting raised a false warning)"
+            if chosen is None
+            else ", ".join(f"{k} {chosen[k]}" for k in PARAMETERS)
+        )
+        + ".",
+        "",
+        (
+            "| threshold_mu | min_low_passes | min_excited_per_pass | validity_s | product | recall (mu <= 0.3) | "
+            "by 3rd pass | passes to 1st (median / max) | linger (median / max, min) | > 10 min | warnings | "
+            "beside or after a patch | false (per seed) | false per 100 km |"
+        ),
+        "| ---: | ---: | ---: | ---: | --- | ---: | ---: | --- | --- | ---: | ---: | ---: | --- | ---: |",
+    ]
     for r in safe + unsafe:
         linger = [None if v is None else v / 60 for v in (r["linger_median_s"], r["linger_max_s"])]
-        lines.append(f"| {r['threshold_mu']} | {r['min_low_passes']} | {r['min_excited_per_pass']} | "
-                     f"{r['validity_s']:.0f} | {'yes' if r['product'] else ''} | {_fmt(r['recall'])} | "
-                     f"{_fmt(r['within_3rd_pass'])} | {_fmt(r['passes_to_first_median'], 1)} / "
-                     f"{_fmt(r['passes_to_first_max'], 0)} | {_fmt(linger[0], 1)} / {_fmt(linger[1], 1)} | "
-                     f"{r['linger_over_10min']} | {r['warnings']} | {r['warnings_beside']} | {r['false_per_seed']} | "
-                     f"{_fmt(r['false_per_100km'], 3)} |")
+        lines.append(
+            f"| {r['threshold_mu']} | {r['min_low_passes']} | {r['min_excited_per_pass']} | "
+            f"{r['validity_s']:.0f} | {'yes' if r['product'] else ''} | {_fmt(r['recall'])} | "
+            f"{_fmt(r['within_3rd_pass'])} | {_fmt(r['passes_to_first_median'], 1)} / "
+            f"{_fmt(r['passes_to_first_max'], 0)} | {_fmt(linger[0], 1)} / {_fmt(linger[1], 1)} | "
+            f"{r['linger_over_10min']} | {r['warnings']} | {r['warnings_beside']} | {r['false_per_seed']} | "
+            f"{_fmt(r['false_per_100km'], 3)} |"
+        )
     if product is not None:
-        lines += ["", (f"Replaying the product's setting reproduces the service's warnings: "
-                       f"{'yes' if product.get('replay_matches_service') else 'NO'}.")]
+        lines += [
+            "",
+            (
+                f"Replaying the product's setting reproduces the service's warnings: "
+                f"{'yes' if product.get('replay_matches_service') else 'NO'}."
+            ),
+        ]
     return "\n".join(lines) + "\n"

@@ -44,18 +44,34 @@ def _train_and_test(args) -> list[dict]:
     fitted.interval = calibration_of(fitted, calibration)
     x_test = fitted.scaler.transform(test.windows)
     pred = predict(fitted.model, x_test).astype(np.float64)
-    rows = [{"model": DISPLAY_NAMES[name], "feature_set": feature_set, "pred": pred, "interval": fitted.interval,
-             "fitted": fitted, "seconds": time.perf_counter() - start}]
+    rows = [
+        {
+            "model": DISPLAY_NAMES[name],
+            "feature_set": feature_set,
+            "pred": pred,
+            "interval": fitted.interval,
+            "fitted": fitted,
+            "seconds": time.perf_counter() - start,
+        }
+    ]
     if name == "sa-cnn-lstm":
-        rows.append(rows[0] | {"model": "SA-CNN-LSTM (clipped)", "pred": clip(pred, DEFAULT_ALLOWED_RANGE),
-                               "fitted": None})
+        rows.append(
+            rows[0] | {"model": "SA-CNN-LSTM (clipped)", "pred": clip(pred, DEFAULT_ALLOWED_RANGE), "fitted": None}
+        )
         refined = copy.deepcopy(fitted)
         x_val = refined.scaler.transform(train.windows[val_idx])
         refine_model(refined.model, x_val, train.targets[val_idx], QConfig(seed=seed))
         refined.interval = calibration_of(refined, calibration)
-        rows.append({"model": "SA-CNN-LSTM-Q", "feature_set": feature_set, "interval": refined.interval,
-                     "pred": predict(refined.model, x_test).astype(np.float64), "fitted": refined,
-                     "seconds": time.perf_counter() - start})
+        rows.append(
+            {
+                "model": "SA-CNN-LSTM-Q",
+                "feature_set": feature_set,
+                "interval": refined.interval,
+                "pred": predict(refined.model, x_test).astype(np.float64),
+                "fitted": refined,
+                "seconds": time.perf_counter() - start,
+            }
+        )
     return rows
 
 
@@ -69,22 +85,34 @@ def evaluate_predictions(model: str, feature_set: str, test: PreparedData, pred,
     inner = exc & (test.targets < 0.7)  # the held-out band inside the trained range: interpolation
     upper_band = exc & (test.targets >= 0.7)  # the band above it: extrapolation
     return {
-        "model": model, "feature_set": feature_set,
-        "rmse_excited": rmse(pred[exc], test.targets[exc]), "mae_excited": mae(pred[exc], test.targets[exc]),
+        "model": model,
+        "feature_set": feature_set,
+        "rmse_excited": rmse(pred[exc], test.targets[exc]),
+        "mae_excited": mae(pred[exc], test.targets[exc]),
         "rmse_excited_045_055": rmse(pred[inner], test.targets[inner]) if inner.any() else float("nan"),
         "rmse_excited_085_100": rmse(pred[upper_band], test.targets[upper_band]) if upper_band.any() else float("nan"),
-        "rmse_all": rmse(pred, test.targets), "mae_all": mae(pred, test.targets),
-        "coverage_all": float(inside.mean()), "coverage_excited": float(inside[exc].mean()),
+        "rmse_all": rmse(pred, test.targets),
+        "mae_all": mae(pred, test.targets),
+        "coverage_all": float(inside.mean()),
+        "coverage_excited": float(inside[exc].mean()),
         "coverage_not_excited": float(inside[~exc].mean()),
-        "width_excited": float(width[exc].mean()), "width_not_excited": float(width[~exc].mean()),
-        "judged_excited": float(judged.mean()), "truly_excited": float(exc.mean()),
+        "width_excited": float(width[exc].mean()),
+        "width_not_excited": float(width[~exc].mean()),
+        "judged_excited": float(judged.mean()),
+        "truly_excited": float(exc.mean()),
         "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
-        "n": len(pred), "n_excited": int(exc.sum()),
+        "n": len(pred),
+        "n_excited": int(exc.sum()),
     }
 
 
-def run_generalization_benchmark(seed: int = 0, models=PAPER_MODELS + ("sa-cnn-lstm-bounded",), feature_sets=("physics", "terminal"),
-                                 workers: int = 2, progress: Callable[[str], None] | None = None):
+def run_generalization_benchmark(
+    seed: int = 0,
+    models=PAPER_MODELS + ("sa-cnn-lstm-bounded",),
+    feature_sets=("physics", "terminal"),
+    workers: int = 2,
+    progress: Callable[[str], None] | None = None,
+):
     """(metrics rows, test predictions table, fitted models by (model, feature set), test data by feature set)."""
     say = progress or (lambda message: None)
     train_s, calib_s, test_s = (generalization_scenarios(part, seed) for part in ("train", "calibration", "test"))
@@ -105,8 +133,10 @@ def run_generalization_benchmark(seed: int = 0, models=PAPER_MODELS + ("sa-cnn-l
         test = tests[r["feature_set"]]
         bins = utilization_bin(test.measured[:, 0], test.measured[:, 1], test.measured[:, 2] > 0.5, r["pred"])
         lower, upper = interval(r["pred"], bins, r["interval"])
-        metrics.append(evaluate_predictions(r["model"], r["feature_set"], test, r["pred"], lower, upper)
-                       | {"train_seconds": r["seconds"]})
+        metrics.append(
+            evaluate_predictions(r["model"], r["feature_set"], test, r["pred"], lower, upper)
+            | {"train_seconds": r["seconds"]}
+        )
         if r["fitted"] is not None:
             fitted[(r["model"], r["feature_set"])] = r["fitted"]
         predictions.append(_prediction_table(r["model"], r["feature_set"], test, r["pred"], lower, upper))
@@ -122,6 +152,16 @@ def run_generalization_benchmark(seed: int = 0, models=PAPER_MODELS + ("sa-cnn-l
 
 def _prediction_table(model, feature_set, test: PreparedData, pred, lower, upper) -> pa.Table:
     n = len(test.targets)
-    return pa.table({"model": [model] * n, "feature_set": [feature_set] * n, "run_id": test.runs.tolist(),
-                     "t_s": test.t_s, "mu_true": test.targets.astype(np.float64), "mu_pred": pred, "mu_lower": lower,
-                     "mu_upper": upper, "excited": test.excited})
+    return pa.table(
+        {
+            "model": [model] * n,
+            "feature_set": [feature_set] * n,
+            "run_id": test.runs.tolist(),
+            "t_s": test.t_s,
+            "mu_true": test.targets.astype(np.float64),
+            "mu_pred": pred,
+            "mu_lower": lower,
+            "mu_upper": upper,
+            "excited": test.excited,
+        }
+    )

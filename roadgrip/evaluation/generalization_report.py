@@ -13,15 +13,22 @@ import pyarrow.parquet as pq
 from matplotlib.figure import Figure
 
 COLUMNS = [
-    ("model", "model", "{}"), ("feature_set", "features", "{}"),
-    ("rmse_excited", "RMSE excited", "{:.3f}"), ("mae_excited", "MAE excited", "{:.3f}"),
+    ("model", "model", "{}"),
+    ("feature_set", "features", "{}"),
+    ("rmse_excited", "RMSE excited", "{:.3f}"),
+    ("mae_excited", "MAE excited", "{:.3f}"),
     ("rmse_excited_045_055", "RMSE excited, mu 0.45-0.55", "{:.3f}"),
     ("rmse_excited_085_100", "RMSE excited, mu 0.85-1.0", "{:.3f}"),
-    ("rmse_all", "RMSE all", "{:.3f}"), ("mae_all", "MAE all", "{:.3f}"),
-    ("coverage_excited", "coverage excited", "{:.2f}"), ("coverage_not_excited", "coverage not excited", "{:.2f}"),
-    ("coverage_all", "coverage all", "{:.2f}"), ("width_excited", "width excited", "{:.2f}"),
-    ("width_not_excited", "width not excited", "{:.2f}"), ("judged_excited", "judged excited", "{:.1%}"),
-    ("truly_excited", "truly excited", "{:.1%}"), ("out_of_range", "out of [0, 1.2]", "{}"),
+    ("rmse_all", "RMSE all", "{:.3f}"),
+    ("mae_all", "MAE all", "{:.3f}"),
+    ("coverage_excited", "coverage excited", "{:.2f}"),
+    ("coverage_not_excited", "coverage not excited", "{:.2f}"),
+    ("coverage_all", "coverage all", "{:.2f}"),
+    ("width_excited", "width excited", "{:.2f}"),
+    ("width_not_excited", "width not excited", "{:.2f}"),
+    ("judged_excited", "judged excited", "{:.1%}"),
+    ("truly_excited", "truly excited", "{:.1%}"),
+    ("out_of_range", "out of [0, 1.2]", "{}"),
 ]
 
 
@@ -30,10 +37,12 @@ def generalization_markdown(metrics: list[dict]) -> str:
     lines = [
         "# Generalization benchmark",
         "",
-        ("Test: runs of the held-out compact hatchback on roads whose mu lies only in the held-out bands [0.45, 0.55] and "
-        f"[0.85, 1.0]; {n} test estimates, {n_exc} of them excited (CONTRACTS 4). 'coverage' is the share of true mu "
-        "inside the 90 % interval (target 0.87-0.93), 'width' its mean width; 'judged excited' is the share the "
-        "estimator flagged excited. Sorted by RMSE over excited samples (the target: at most 0.05)."),
+        (
+            "Test: runs of the held-out compact hatchback on roads whose mu lies only in the held-out bands [0.45, 0.55] and "
+            f"[0.85, 1.0]; {n} test estimates, {n_exc} of them excited (CONTRACTS 4). 'coverage' is the share of true mu "
+            "inside the 90 % interval (target 0.87-0.93), 'width' its mean width; 'judged excited' is the share the "
+            "estimator flagged excited. Sorted by RMSE over excited samples (the target: at most 0.05)."
+        ),
         "",
         "| " + " | ".join(label for _, label, _ in COLUMNS) + " |",
         "| " + " | ".join(":---" if key in ("model", "feature_set") else "---:" for key, _, _ in COLUMNS) + " |",
@@ -42,7 +51,9 @@ def generalization_markdown(metrics: list[dict]) -> str:
         cells = []
         for key, _, fmt in COLUMNS:
             value = row.get(key)
-            cells.append("-" if value is None or (isinstance(value, float) and math.isnan(value)) else fmt.format(value))
+            cells.append(
+                "-" if value is None or (isinstance(value, float) and math.isnan(value)) else fmt.format(value)
+            )
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -85,7 +96,15 @@ def write_generalization_report(metrics: list[dict], predictions: pa.Table, out_
         run = predictions.filter(pc.equal(predictions["run_id"], run_id))
         excited_share[run_id] = float(run["excited"].to_numpy().mean())
     run_id = max(excited_share, key=excited_share.get)
-    figure = plot_run(predictions, run_id, [("pmf", "-"), (best["model"], best["feature_set"]), ("EKF", "-")],
-                      out / "estimates_with_intervals.png")
-    return {"metrics_csv": out / "metrics.csv", "tables_md": out / "tables.md",
-            "predictions": out / "predictions.parquet", "figures": [figure]}
+    figure = plot_run(
+        predictions,
+        run_id,
+        [("pmf", "-"), (best["model"], best["feature_set"]), ("EKF", "-")],
+        out / "estimates_with_intervals.png",
+    )
+    return {
+        "metrics_csv": out / "metrics.csv",
+        "tables_md": out / "tables.md",
+        "predictions": out / "predictions.parquet",
+        "figures": [figure],
+    }

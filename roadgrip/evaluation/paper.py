@@ -61,8 +61,13 @@ def _run_job(job: Job) -> dict:
     fitted = fit(job.model_name, job.train, train_idx, val_idx, job.overrides, TrainConfig(seed=job.seed))
     x_test = fitted.scaler.transform(job.test_windows)
     result = {
-        "scope": job.scope, "feature_set": job.feature_set, "model_name": job.model_name, "candidate": job.candidate,
-        "overrides": job.overrides, "val_rmse": fitted.result.best_val_rmse, "best_epoch": fitted.result.best_epoch,
+        "scope": job.scope,
+        "feature_set": job.feature_set,
+        "model_name": job.model_name,
+        "candidate": job.candidate,
+        "overrides": job.overrides,
+        "val_rmse": fitted.result.best_val_rmse,
+        "best_epoch": fitted.result.best_epoch,
         "test_pred": predict(fitted.model, x_test),
     }
     if job.model_name == IMPROVED_BASE:  # the paper's Improved SA-CNN-LSTM: Q-learning on the validation windows
@@ -79,8 +84,14 @@ def _split(table: pa.Table, experiment: int, condition: str | None) -> pa.Table:
     return table.filter(mask)
 
 
-def run_paper_benchmark(table: pa.Table, models=PAPER_MODELS, feature_sets=FEATURE_SETS, seed: int = 0,
-                        workers: int = 2, progress: Callable[[int, int], None] | None = None) -> tuple[list, pa.Table]:
+def run_paper_benchmark(
+    table: pa.Table,
+    models=PAPER_MODELS,
+    feature_sets=FEATURE_SETS,
+    seed: int = 0,
+    workers: int = 2,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[list, pa.Table]:
     """(metrics rows, predictions table) of the paper protocol over a `paper` preset dataset."""
     tests = {(fs, c): prepare(_split(table, 2, c), fs) for fs in feature_sets for c in PAPER_CONDITIONS}
     jobs = []
@@ -123,7 +134,7 @@ def run_paper_benchmark(table: pa.Table, models=PAPER_MODELS, feature_sets=FEATU
     for fs in feature_sets:
         for scope in SCOPES:
             train_mu = _split(table, 1, None if scope == "all" else scope)["mu"].to_numpy()
-            for c in ([scope] if scope != "all" else PAPER_CONDITIONS):
+            for c in [scope] if scope != "all" else PAPER_CONDITIONS:
                 test = tests[(fs, c)]
                 pred = np.full(len(test.targets), train_mu.mean(), dtype=np.float32)
                 metrics.append(_row(c, CONSTANT, fs, scope, pred, test, {}))
@@ -141,18 +152,33 @@ def run_paper_benchmark(table: pa.Table, models=PAPER_MODELS, feature_sets=FEATU
 
 def _row(condition, model, feature_set, scope, pred, test: PreparedData, extra) -> dict:
     true, exc = test.targets, test.excited
-    return {"condition": condition, "model": model, "feature_set": feature_set,
-            "trained_on": "all" if scope == "all" else "condition", "rmse": rmse(pred, true), "mae": mae(pred, true),
-            "n": len(true), "rmse_excited": rmse(pred[exc], true[exc]) if exc.any() else float("nan"),
-            "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
-            "n_excited": int(exc.sum()), **extra}
+    return {
+        "condition": condition,
+        "model": model,
+        "feature_set": feature_set,
+        "trained_on": "all" if scope == "all" else "condition",
+        "rmse": rmse(pred, true),
+        "mae": mae(pred, true),
+        "n": len(true),
+        "rmse_excited": rmse(pred[exc], true[exc]) if exc.any() else float("nan"),
+        "out_of_range": int(((pred < DEFAULT_ALLOWED_RANGE[0]) | (pred > DEFAULT_ALLOWED_RANGE[1])).sum()),
+        "n_excited": int(exc.sum()),
+        **extra,
+    }
 
 
 def _predictions(condition, model, feature_set, scope, test: PreparedData, pred) -> pa.Table:
     n = len(pred)
-    return pa.table({
-        "condition": [condition] * n, "trained_on": ["all" if scope == "all" else "condition"] * n,
-        "model": [model] * n, "feature_set": [feature_set] * n, "run_id": test.runs.tolist(),
-        "road": ["circular" if "circular" in r else "straight" for r in test.runs.tolist()],
-        "t_s": test.t_s, "mu_true": test.targets.astype(np.float64), "mu_pred": np.asarray(pred, dtype=np.float64),
-    })
+    return pa.table(
+        {
+            "condition": [condition] * n,
+            "trained_on": ["all" if scope == "all" else "condition"] * n,
+            "model": [model] * n,
+            "feature_set": [feature_set] * n,
+            "run_id": test.runs.tolist(),
+            "road": ["circular" if "circular" in r else "straight" for r in test.runs.tolist()],
+            "t_s": test.t_s,
+            "mu_true": test.targets.astype(np.float64),
+            "mu_pred": np.asarray(pred, dtype=np.float64),
+        }
+    )

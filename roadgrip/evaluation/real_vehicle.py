@@ -53,8 +53,17 @@ ROAD_LENGTH_M = 10_000.0  # paper 5.2
 POLYLINE_STEP_M = 5.0
 MU_KNOT_SPACING_M = 25.0  # the mu profile is linear between knots; the shortest texture wavelength has 12 per period
 # (share of the length, radius m (0: straight), +1 left / -1 right); radii of 1000 m and more, as for 120 km/h
-ALIGNMENT = ((0.12, 0.0, 0), (0.08, 1500.0, 1), (0.15, 0.0, 0), (0.10, 1200.0, -1), (0.12, 0.0, 0),
-             (0.07, 2000.0, 1), (0.14, 0.0, 0), (0.09, 1000.0, -1), (0.13, 0.0, 0))
+ALIGNMENT = (
+    (0.12, 0.0, 0),
+    (0.08, 1500.0, 1),
+    (0.15, 0.0, 0),
+    (0.10, 1200.0, -1),
+    (0.12, 0.0, 0),
+    (0.07, 2000.0, 1),
+    (0.14, 0.0, 0),
+    (0.09, 1000.0, -1),
+    (0.13, 0.0, 0),
+)
 TEXTURE = ((0.03, 2500.0), (0.02, 900.0), (0.01, 300.0))  # (amplitude, wavelength m) of the texture factor
 DRY_SURFACE, WET_SURFACE = "dry_asphalt", "wet_asphalt"
 GROUPS = ("first_forward", "second_forward", "first_reverse", "second_reverse")  # paper, Table 7
@@ -138,8 +147,10 @@ class Expressway:
     def __post_init__(self):
         length = float(self.mu_dry.stations_m[-1])
         if self.mu_wet.stations_m[-1] != length or abs(self.path.length_m - length) > 1e-6 * length:
-            raise ValueError(f"Expressway path ({self.path.length_m} m), mu_dry ({length} m) and mu_wet "
-                             f"({self.mu_wet.stations_m[-1]} m) must span one length")
+            raise ValueError(
+                f"Expressway path ({self.path.length_m} m), mu_dry ({length} m) and mu_wet "
+                f"({self.mu_wet.stations_m[-1]} m) must span one length"
+            )
         if self.direction not in ("forward", "reverse"):
             raise ValueError(f"Expressway.direction must be 'forward' or 'reverse', got {self.direction!r}")
 
@@ -150,8 +161,12 @@ class Expressway:
 
     def reversed(self) -> Expressway:
         other = "reverse" if self.direction == "forward" else "forward"
-        return Expressway(RoadPath(self.path.points_m[::-1].copy()), reverse_profile(self.mu_dry, self.length_m),
-                          reverse_profile(self.mu_wet, self.length_m), other)
+        return Expressway(
+            RoadPath(self.path.points_m[::-1].copy()),
+            reverse_profile(self.mu_dry, self.length_m),
+            reverse_profile(self.mu_wet, self.length_m),
+            other,
+        )
 
     def route_mean(self, mu: MuProfile) -> float:
         """Mean over the section's length (both tracks) of a linear profile with knots at 0 and length_m: the exact
@@ -172,12 +187,14 @@ class Expressway:
 
     def driven_mu(self, lead_in_m: float) -> MuProfile:
         """The dry profile along the driven path: shifted by the approach, whose mu is the section's first value."""
-        return MuProfile(self.mu_dry.stations_m + lead_in_m, self.mu_dry.mu_left, self.mu_dry.mu_right,
-                         self.mu_dry.mode)
+        return MuProfile(
+            self.mu_dry.stations_m + lead_in_m, self.mu_dry.mu_left, self.mu_dry.mu_right, self.mu_dry.mode
+        )
 
 
-def expressway(length_m: float = ROAD_LENGTH_M, rng: np.random.Generator | None = None,
-               friction_scale: float = 1.0) -> Expressway:
+def expressway(
+    length_m: float = ROAD_LENGTH_M, rng: np.random.Generator | None = None, friction_scale: float = 1.0
+) -> Expressway:
     """The forward test section. Dry: peak of Burckhardt's dry asphalt x texture x friction_scale; wet: the same with
     wet asphalt. friction_scale (1: the tabulated surfaces) moves the whole pavement up or down."""
     if not length_m >= 100.0:
@@ -206,8 +223,12 @@ def test_drive_profile(distance_m: float, rng: np.random.Generator) -> SpeedProf
         top = kmh_to_mps(rng.uniform(*TOP_SPEED_KMH))
         low = kmh_to_mps(rng.uniform(*LOW_SPEED_KMH))
         brake = FULL_BRAKE_MPS2 if rng.random() < FULL_BRAKE_SHARE else rng.uniform(*FIRM_BRAKE_MPS2)
-        steps = ((abs(top - speeds[-1]) / rng.uniform(*ACCEL_MPS2), top), (rng.uniform(*CRUISE_S), top),
-                 ((top - low) / brake, low), (rng.uniform(*HOLD_S), low))
+        steps = (
+            (abs(top - speeds[-1]) / rng.uniform(*ACCEL_MPS2), top),
+            (rng.uniform(*CRUISE_S), top),
+            ((top - low) / brake, low),
+            (rng.uniform(*HOLD_S), low),
+        )
         for dt, target in steps:
             covered += 0.5 * (speeds[-1] + target) * dt
             times.append(times[-1] + dt)
@@ -215,8 +236,9 @@ def test_drive_profile(distance_m: float, rng: np.random.Generator) -> SpeedProf
     return SpeedProfile(times, speeds)
 
 
-def group_seeds(seed: int) -> tuple[np.random.Generator, dict[str, tuple[int, np.random.Generator,
-                                                                          np.random.Generator]]]:
+def group_seeds(
+    seed: int,
+) -> tuple[np.random.Generator, dict[str, tuple[int, np.random.Generator, np.random.Generator]]]:
     """The road's generator, and per group (scenario seed, drive generator, test-wheel generator), from one seed."""
     road, *groups = np.random.SeedSequence(seed).spawn(1 + len(GROUPS))
     out = {}
@@ -228,19 +250,30 @@ def group_seeds(seed: int) -> tuple[np.random.Generator, dict[str, tuple[int, np
 
 def group_scenarios(roads: dict[str, Expressway], seeds: dict) -> list[Scenario]:
     """One run per group, all of one duration (the longest profile's), so that they integrate as one batch."""
-    profiles = {g: test_drive_profile(LEAD_IN_M + roads[_direction(g)].length_m + SECTION_MARGIN_M, seeds[g][1])
-                for g in GROUPS}
+    profiles = {
+        g: test_drive_profile(LEAD_IN_M + roads[_direction(g)].length_m + SECTION_MARGIN_M, seeds[g][1]) for g in GROUPS
+    }
     duration = max(float(p.times_s[-1]) for p in profiles.values())
     scenarios = []
     for g in GROUPS:
         road, profile = roads[_direction(g)], profiles[g]
         run_out = RUN_OUT_M + (duration - profile.times_s[-1]) * profile.speeds_mps[-1]
-        scenarios.append(Scenario(
-            run_id=f"real-vehicle-{g}", path=road.driven_path(LEAD_IN_M, run_out), mu=road.driven_mu(LEAD_IN_M),
-            speed=profile,
-            condition="real-vehicle-dry", road=f"expressway-{road.direction}", vehicle=PAPER_SUV,
-            tire=BurckhardtTire(DRY_SURFACE), duration_s=duration, seed=seeds[g][0],
-            experiment=1 if g.startswith("first") else 2, manoeuvre="accelerate_decelerate"))
+        scenarios.append(
+            Scenario(
+                run_id=f"real-vehicle-{g}",
+                path=road.driven_path(LEAD_IN_M, run_out),
+                mu=road.driven_mu(LEAD_IN_M),
+                speed=profile,
+                condition="real-vehicle-dry",
+                road=f"expressway-{road.direction}",
+                vehicle=PAPER_SUV,
+                tire=BurckhardtTire(DRY_SURFACE),
+                duration_s=duration,
+                seed=seeds[g][0],
+                experiment=1 if g.startswith("first") else 2,
+                manoeuvre="accelerate_decelerate",
+            )
+        )
     return scenarios
 
 
@@ -278,9 +311,14 @@ def _mean(values) -> float:
     return float(values.mean()) if values.size else float("nan")
 
 
-def run_real_vehicle_benchmark(out: str | Path, seed: int = 0, length_m: float | None = None,
-                               estimators=ESTIMATORS, friction_scale: float = 1.0,
-                               progress: Callable[[int, int, str], None] | None = None) -> dict:
+def run_real_vehicle_benchmark(
+    out: str | Path,
+    seed: int = 0,
+    length_m: float | None = None,
+    estimators=ESTIMATORS,
+    friction_scale: float = 1.0,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict:
     """Simulate the four test groups, estimate, survey the wet road, write the outputs to `out`.
 
     length_m: the section's length (default ROAD_LENGTH_M; shorter for tests); estimators: specs for load_estimator
@@ -304,47 +342,74 @@ def run_real_vehicle_benchmark(out: str | Path, seed: int = 0, length_m: float |
     for g, scenario in zip(GROUPS, scenarios):
         road = roads[_direction(g)]
         run = table.filter(pc.equal(table["run_id"], scenario.run_id))
-        col = {c: run[c].to_numpy() for c in ("t_s", "x_m", "y_m", "vx_true_mps", "ax_true_mps2", "ay_true_mps2",
-                                              "abs_active", "mu")}
+        col = {
+            c: run[c].to_numpy()
+            for c in ("t_s", "x_m", "y_m", "vx_true_mps", "ax_true_mps2", "ay_true_mps2", "abs_active", "mu")
+        }
         station = stations_along(scenario.path, col["x_m"], col["y_m"]) - LEAD_IN_M
         on_section = (station >= 0.0) & (station <= road.length_m)
         if station[-1] < road.length_m:
             raise RuntimeError(f"{g}: the car reached only {station[-1]:.0f} m of {road.length_m:.0f} m")
         exc_truth = truth_excited(col["ax_true_mps2"], col["ay_true_mps2"], col["abs_active"], col["mu"])
-        row = {"test_group": g, "direction": road.direction, "experiment": scenario.experiment,
-               "run_seed": scenario.seed, "samples": int(on_section.sum()),
-               "section_time_s": float(np.ptp(col["t_s"][on_section])), "length_m": road.length_m,
-               "mean_speed_kmh": float(mps_to_kmh(col["vx_true_mps"][on_section].mean())),
-               "truly_excited_share": float(exc_truth[on_section].mean()),
-               "abs_share": float(col["abs_active"][on_section].mean())}
+        row = {
+            "test_group": g,
+            "direction": road.direction,
+            "experiment": scenario.experiment,
+            "run_seed": scenario.seed,
+            "samples": int(on_section.sum()),
+            "section_time_s": float(np.ptp(col["t_s"][on_section])),
+            "length_m": road.length_m,
+            "mean_speed_kmh": float(mps_to_kmh(col["vx_true_mps"][on_section].mean())),
+            "truly_excited_share": float(exc_truth[on_section].mean()),
+            "abs_share": float(col["abs_active"][on_section].mean()),
+        }
         for spec, estimator in loaded.items():
             say(done, total, f"{g}: estimating with {estimator.name}")
             e = _estimates_on_section(estimator, run, on_section)
             name = _label(spec)
-            row |= {f"{name}_dry_excited_mean": _mean(e["mu"][e["excited"]]), f"{name}_dry_all_mean": _mean(e["mu"]),
-                    f"{name}_dry_truth_excited_mean": _mean(e["mu"][exc_truth[e["index"]]]),
-                    f"{name}_judged_excited": int(e["excited"].sum()), f"{name}_estimates": int(e["mu"].size)}
-            traces.append(pa.table({"test_group": [g] * e["mu"].size, "estimator": [name] * e["mu"].size,
-                                    "t_s": col["t_s"][e["index"]], "station_m": station[e["index"]],
-                                    "speed_kmh": mps_to_kmh(col["vx_true_mps"][e["index"]]),
-                                    "mu_true": col["mu"][e["index"]], "mu": e["mu"], "excited": e["excited"],
-                                    "truly_excited": exc_truth[e["index"]],
-                                    "abs_active": col["abs_active"][e["index"]]}))
+            row |= {
+                f"{name}_dry_excited_mean": _mean(e["mu"][e["excited"]]),
+                f"{name}_dry_all_mean": _mean(e["mu"]),
+                f"{name}_dry_truth_excited_mean": _mean(e["mu"][exc_truth[e["index"]]]),
+                f"{name}_judged_excited": int(e["excited"].sum()),
+                f"{name}_estimates": int(e["mu"].size),
+            }
+            traces.append(
+                pa.table(
+                    {
+                        "test_group": [g] * e["mu"].size,
+                        "estimator": [name] * e["mu"].size,
+                        "t_s": col["t_s"][e["index"]],
+                        "station_m": station[e["index"]],
+                        "speed_kmh": mps_to_kmh(col["vx_true_mps"][e["index"]]),
+                        "mu_true": col["mu"][e["index"]],
+                        "mu": e["mu"],
+                        "excited": e["excited"],
+                        "truly_excited": exc_truth[e["index"]],
+                        "abs_active": col["abs_active"][e["index"]],
+                    }
+                )
+            )
             done += 1
         say(done, total, f"{g}: sideway-force survey of the wetted road")
         survey = SidewayForceWheel().survey(road.mu_wet, road.length_m, seeds[g][2])
         surveys[g] = survey
-        row |= {"true_dry_mu_route": road.route_mean(road.mu_dry),
-                "true_dry_mu_samples": float(col["mu"][on_section].mean()),
-                "true_wet_mu_route": road.route_mean(road.mu_wet), "sfc_wet": survey.mean_sfc,
-                "sfc_wet_model": float(survey.sfc_model.mean()), "sfc_reports": int(survey.station_m.size),
-                **{f"paper_{k}": v for k, v in PAPER_TABLE7[g].items()}}
+        row |= {
+            "true_dry_mu_route": road.route_mean(road.mu_dry),
+            "true_dry_mu_samples": float(col["mu"][on_section].mean()),
+            "true_wet_mu_route": road.route_mean(road.mu_wet),
+            "sfc_wet": survey.mean_sfc,
+            "sfc_wet_model": float(survey.sfc_model.mean()),
+            "sfc_reports": int(survey.station_m.size),
+            **{f"paper_{k}": v for k, v in PAPER_TABLE7[g].items()},
+        }
         metrics.append(row)
         done += 1
     say(done, total, "writing the tables and the figure")
     ratios = ratio_rows(metrics, [_label(s) for s in estimators])
-    paths = write_real_vehicle_report(metrics, ratios, pa.concat_tables(traces), surveys, out,
-                                      [_label(s) for s in estimators], friction_scale)
+    paths = write_real_vehicle_report(
+        metrics, ratios, pa.concat_tables(traces), surveys, out, [_label(s) for s in estimators], friction_scale
+    )
     say(total, total, "done")
     return {"metrics": metrics, "ratios": ratios, **paths}
 
@@ -358,35 +423,73 @@ def burckhardt_ratios(slip_angle_rad: float | None = None) -> list[dict]:
     dry, wet = SURFACES[DRY_SURFACE], SURFACES[WET_SURFACE]
     s = math.sin(wheel.slip_angle_rad)
     deg = math.degrees(wheel.slip_angle_rad)
-    rows = [("peak mu wet / peak mu dry (the adhesion coefficients; the definition we take for the paper's 0.68)",
-             peak_mu(*dry), peak_mu(*wet)),
-            ("mu at a locked wheel (s = 1), wet / dry", burckhardt_curve(*dry, 1.0), burckhardt_curve(*wet, 1.0)),
-            (f"mu at the test wheel's slip s = sin({deg:g} deg) = {s:.3f}, wet / dry", burckhardt_curve(*dry, s),
-             burckhardt_curve(*wet, s)),
-            (f"SFC of the wet road at {deg:g} deg / peak mu dry (what the truth row measures)", peak_mu(*dry),
-             float(burckhardt_sfc(peak_mu(*wet), wheel.slip_angle_rad, WET_SURFACE)))]
+    rows = [
+        (
+            "peak mu wet / peak mu dry (the adhesion coefficients; the definition we take for the paper's 0.68)",
+            peak_mu(*dry),
+            peak_mu(*wet),
+        ),
+        ("mu at a locked wheel (s = 1), wet / dry", burckhardt_curve(*dry, 1.0), burckhardt_curve(*wet, 1.0)),
+        (
+            f"mu at the test wheel's slip s = sin({deg:g} deg) = {s:.3f}, wet / dry",
+            burckhardt_curve(*dry, s),
+            burckhardt_curve(*wet, s),
+        ),
+        (
+            f"SFC of the wet road at {deg:g} deg / peak mu dry (what the truth row measures)",
+            peak_mu(*dry),
+            float(burckhardt_sfc(peak_mu(*wet), wheel.slip_angle_rad, WET_SURFACE)),
+        ),
+    ]
     return [{"source": "Burckhardt model", "definition": d, "dry": a, "wet": b, "ratio": b / a} for d, a, b in rows]
 
 
 def ratio_rows(metrics: list[dict], estimators: list[str]) -> list[dict]:
     """The ratio wet/dry of the means over the groups: the paper's, ours per estimator (excited and all estimates), the
     truth's, and Burckhardt's."""
+
     def mean(key):
         return float(np.mean([r[key] for r in metrics]))
 
     sfc = mean("sfc_wet")
-    rows = [{"source": "paper Table 7", "definition": "mean SFC / mean vehicle-based estimate",
-             "dry": mean("paper_vehicle_based_estimate_dry"), "wet": mean("paper_single_wheel_sfc_wet")}]
+    rows = [
+        {
+            "source": "paper Table 7",
+            "definition": "mean SFC / mean vehicle-based estimate",
+            "dry": mean("paper_vehicle_based_estimate_dry"),
+            "wet": mean("paper_single_wheel_sfc_wet"),
+        }
+    ]
     for name in estimators:
         shown = DISPLAY_NAMES.get(name, name)
-        rows += [{"source": f"ours, {shown}", "definition": "mean SFC / mean of the excited estimates",
-                  "dry": mean(f"{name}_dry_excited_mean"), "wet": sfc},
-                 {"source": f"ours, {shown}", "definition": "mean SFC / mean of all estimates",
-                  "dry": mean(f"{name}_dry_all_mean"), "wet": sfc}]
-    rows += [{"source": "truth", "definition": "mean SFC / true dry mu (route mean)", "dry": mean("true_dry_mu_route"),
-              "wet": sfc},
-             {"source": "truth", "definition": "true wet mu / true dry mu (route means, peaks)",
-              "dry": mean("true_dry_mu_route"), "wet": mean("true_wet_mu_route")}]
+        rows += [
+            {
+                "source": f"ours, {shown}",
+                "definition": "mean SFC / mean of the excited estimates",
+                "dry": mean(f"{name}_dry_excited_mean"),
+                "wet": sfc,
+            },
+            {
+                "source": f"ours, {shown}",
+                "definition": "mean SFC / mean of all estimates",
+                "dry": mean(f"{name}_dry_all_mean"),
+                "wet": sfc,
+            },
+        ]
+    rows += [
+        {
+            "source": "truth",
+            "definition": "mean SFC / true dry mu (route mean)",
+            "dry": mean("true_dry_mu_route"),
+            "wet": sfc,
+        },
+        {
+            "source": "truth",
+            "definition": "true wet mu / true dry mu (route means, peaks)",
+            "dry": mean("true_dry_mu_route"),
+            "wet": mean("true_wet_mu_route"),
+        },
+    ]
     for r in rows:
         r["ratio"] = r["wet"] / r["dry"] if r["dry"] > 0 else float("nan")
     return rows + burckhardt_ratios()
@@ -403,15 +506,24 @@ def table7_rows(metrics: list[dict], estimators: list[str]) -> list[dict]:
     """The paper's layout: per group (and their mean) the paper's two columns, then ours."""
     rows = []
     for r in metrics:
-        rows.append({"test_group": r["test_group"],
-                     "paper_vehicle_based_estimate_dry": r["paper_vehicle_based_estimate_dry"],
-                     "paper_single_wheel_sfc_wet": r["paper_single_wheel_sfc_wet"],
-                     **{f"ours_{n}_dry": r[f"{n}_dry_excited_mean"] for n in estimators},
-                     "true_dry_mu": r["true_dry_mu_route"], "ours_sfc_wet": r["sfc_wet"]})
+        rows.append(
+            {
+                "test_group": r["test_group"],
+                "paper_vehicle_based_estimate_dry": r["paper_vehicle_based_estimate_dry"],
+                "paper_single_wheel_sfc_wet": r["paper_single_wheel_sfc_wet"],
+                **{f"ours_{n}_dry": r[f"{n}_dry_excited_mean"] for n in estimators},
+                "true_dry_mu": r["true_dry_mu_route"],
+                "ours_sfc_wet": r["sfc_wet"],
+            }
+        )
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "test_group"}
     # ratio wet/dry of the means: each dry column against the SFC of its own source (the paper's, or our test wheel's)
-    ratio = {k: (mean["paper_single_wheel_sfc_wet"] if k.startswith("paper") else mean["ours_sfc_wet"]) / v
-             if "dry" in k else float("nan") for k, v in mean.items()}
+    ratio = {
+        k: (mean["paper_single_wheel_sfc_wet"] if k.startswith("paper") else mean["ours_sfc_wet"]) / v
+        if "dry" in k
+        else float("nan")
+        for k, v in mean.items()
+    }
     return rows + [{"test_group": "mean", **mean}, {"test_group": "ratio_wet_dry", **ratio}]
 
 
@@ -420,36 +532,64 @@ def table7_markdown(metrics: list[dict], ratios: list[dict], estimators: list[st
     m0 = metrics[0]
     scale = "" if friction_scale == 1.0 else f" x {friction_scale:g} (friction_scale)"
     lines = [
-        "# Real-vehicle test (paper Table 7), in simulation", "",
-        (f"Road: {m0['length_m'] / 1000:g} km expressway (radii 1000-2000 m), dry: Burckhardt dry asphalt{scale} with a "
-        f"texture variation of +-6 % (route mean {m0['true_dry_mu_route']:.3f}); wet: Burckhardt wet asphalt{scale}, "
-        f"same texture (route mean {m0['true_wet_mu_route']:.3f}). Vehicle: the paper's SUV on Burckhardt dry-asphalt "
-        "tires, accelerating (2-3 m/s^2) and braking (5.5-8 m/s^2, or the full pedal with ABS in 30 % of the brakings) "
-        "between 55-75 and 100-115 km/h. Our dry columns: mean of each estimator's excited estimates over the section "
-        "(EKF: roadgrip's extended Kalman filter; learned: the shipped default model). "
-        "SFC: a simulated SCRIM-like test wheel (20 deg, 50 km/h, 2 kN, Burckhardt wet asphalt), mean of its 10 m "
-        "values."), "",
+        "# Real-vehicle test (paper Table 7), in simulation",
+        "",
+        (
+            f"Road: {m0['length_m'] / 1000:g} km expressway (radii 1000-2000 m), dry: Burckhardt dry asphalt{scale} with a "
+            f"texture variation of +-6 % (route mean {m0['true_dry_mu_route']:.3f}); wet: Burckhardt wet asphalt{scale}, "
+            f"same texture (route mean {m0['true_wet_mu_route']:.3f}). Vehicle: the paper's SUV on Burckhardt dry-asphalt "
+            "tires, accelerating (2-3 m/s^2) and braking (5.5-8 m/s^2, or the full pedal with ABS in 30 % of the brakings) "
+            "between 55-75 and 100-115 km/h. Our dry columns: mean of each estimator's excited estimates over the section "
+            "(EKF: roadgrip's extended Kalman filter; learned: the shipped default model). "
+            "SFC: a simulated SCRIM-like test wheel (20 deg, 50 km/h, 2 kN, Burckhardt wet asphalt), mean of its 10 m "
+            "values."
+        ),
+        "",
         "| Test group | paper: vehicle-based system (dry) | paper: single-wheel transverse force test vehicle (wet SFC) | "
         + " | ".join(f"ours: {DISPLAY_NAMES.get(n, n)} (dry)" for n in estimators)
         + " | true dry mu (route mean) | ours: simulated SFC (wet) |",
-        "| :--- | ---: | ---: | " + "---: | " * len(estimators) + "---: | ---: |"]
+        "| :--- | ---: | ---: | " + "---: | " * len(estimators) + "---: | ---: |",
+    ]
     for r in t7:
-        name = "Ratio wet/dry of the means" if r["test_group"] == "ratio_wet_dry" else r["test_group"].replace(
-            "_", " ").capitalize()
+        name = (
+            "Ratio wet/dry of the means"
+            if r["test_group"] == "ratio_wet_dry"
+            else r["test_group"].replace("_", " ").capitalize()
+        )
         lines.append(f"| {name} | " + " | ".join(_f(v) for k, v in r.items() if k != "test_group") + " |")
-    lines += ["", "## Ratio wet/dry of the means", "", "| source | definition | dry | wet | ratio wet/dry |",
-              "| :--- | :--- | ---: | ---: | ---: |"]
-    lines += [f"| {r['source']} | {r['definition']} | {_f(r['dry'])} | {_f(r['wet'])} | {_f(r['ratio'], 3)} |"
-              for r in ratios]
-    lines += ["", "## Per group", "", "| group | samples | mean speed km/h | truly excited | ABS | "
-              + " | ".join(f"{n}: excited / all estimates | {n}: mean all | {n}: mean truly excited" for n in estimators)
-              + " | SFC model (noiseless) |", "| :--- | " + "---: | " * (4 + 3 * len(estimators)) + "---: |"]
+    lines += [
+        "",
+        "## Ratio wet/dry of the means",
+        "",
+        "| source | definition | dry | wet | ratio wet/dry |",
+        "| :--- | :--- | ---: | ---: | ---: |",
+    ]
+    lines += [
+        f"| {r['source']} | {r['definition']} | {_f(r['dry'])} | {_f(r['wet'])} | {_f(r['ratio'], 3)} |" for r in ratios
+    ]
+    lines += [
+        "",
+        "## Per group",
+        "",
+        "| group | samples | mean speed km/h | truly excited | ABS | "
+        + " | ".join(f"{n}: excited / all estimates | {n}: mean all | {n}: mean truly excited" for n in estimators)
+        + " | SFC model (noiseless) |",
+        "| :--- | " + "---: | " * (4 + 3 * len(estimators)) + "---: |",
+    ]
     for r in metrics:
-        cells = [r["test_group"], str(r["samples"]), f"{r['mean_speed_kmh']:.0f}", f"{r['truly_excited_share']:.1%}",
-                 f"{r['abs_share']:.1%}"]
+        cells = [
+            r["test_group"],
+            str(r["samples"]),
+            f"{r['mean_speed_kmh']:.0f}",
+            f"{r['truly_excited_share']:.1%}",
+            f"{r['abs_share']:.1%}",
+        ]
         for n in estimators:
-            cells += [f"{r[f'{n}_judged_excited']} / {r[f'{n}_estimates']}", _f(r[f"{n}_dry_all_mean"]),
-                      _f(r[f"{n}_dry_truth_excited_mean"])]
+            cells += [
+                f"{r[f'{n}_judged_excited']} / {r[f'{n}_estimates']}",
+                _f(r[f"{n}_dry_all_mean"]),
+                _f(r[f"{n}_dry_truth_excited_mean"]),
+            ]
         lines.append("| " + " | ".join(cells + [_f(r["sfc_wet_model"])]) + " |")
     return "\n".join(lines) + "\n"
 
@@ -458,8 +598,10 @@ def _write_csv(rows: list[dict], path: Path) -> Path:
     with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
-        writer.writerows({k: (("" if math.isnan(v) else f"{v:.6g}") if isinstance(v, float) else v)
-                          for k, v in r.items()} for r in rows)
+        writer.writerows(
+            {k: (("" if math.isnan(v) else f"{v:.6g}") if isinstance(v, float) else v) for k, v in r.items()}
+            for r in rows
+        )
     return path
 
 
@@ -479,13 +621,13 @@ def plot_group(traces: pa.Table, survey: SfcSurvey, group: str, estimators: list
         ax_dry.plot(x, mu, color=colour, lw=0.6, alpha=0.6, label=f"{name}: all estimates")
         ax_dry.scatter(x[exc], mu[exc], s=7, color=colour, label=f"{name}: excited ({exc.sum()})", zorder=3)
         if exc.any():
-            ax_dry.axhline(mu[exc].mean(), color=colour, ls="--", lw=1.0, label=f"{name}: excited mean "
-                                                                              f"{mu[exc].mean():.3f}")
+            ax_dry.axhline(
+                mu[exc].mean(), color=colour, ls="--", lw=1.0, label=f"{name}: excited mean {mu[exc].mean():.3f}"
+            )
     ax_dry.set_ylabel("dry road: adhesion coefficient mu")
     ax_dry.legend(loc="lower right", fontsize=7, ncol=2)
     ax_wet.plot(survey.station_m / 1000.0, survey.sfc, color="tab:cyan", lw=0.7, label="SFC, 10 m values")
-    ax_wet.plot(survey.station_m / 1000.0, survey.sfc_model, color="tab:purple", lw=1.2,
-                label="SFC model (noiseless)")
+    ax_wet.plot(survey.station_m / 1000.0, survey.sfc_model, color="tab:purple", lw=1.2, label="SFC model (noiseless)")
     ax_wet.axhline(survey.mean_sfc, color="tab:cyan", ls="--", lw=1.0, label=f"SFC mean {survey.mean_sfc:.3f}")
     ax_wet.set_ylabel("wet road: SFC")
     ax_wet.set_xlabel(f"distance along the route, {group.replace('_', ' ')} [km]")
@@ -497,21 +639,45 @@ def plot_group(traces: pa.Table, survey: SfcSurvey, group: str, estimators: list
     return path
 
 
-def write_real_vehicle_report(metrics, ratios, traces: pa.Table, surveys: dict[str, SfcSurvey], out,
-                              estimators: list[str], friction_scale: float = 1.0) -> dict:
+def write_real_vehicle_report(
+    metrics,
+    ratios,
+    traces: pa.Table,
+    surveys: dict[str, SfcSurvey],
+    out,
+    estimators: list[str],
+    friction_scale: float = 1.0,
+) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    paths = {"metrics_csv": _write_csv(metrics, out / "metrics.csv"),
-             "table7_csv": _write_csv(table7_rows(metrics, estimators), out / "table7.csv"),
-             "ratios_csv": _write_csv(ratios, out / "ratios.csv")}
+    paths = {
+        "metrics_csv": _write_csv(metrics, out / "metrics.csv"),
+        "table7_csv": _write_csv(table7_rows(metrics, estimators), out / "table7.csv"),
+        "ratios_csv": _write_csv(ratios, out / "ratios.csv"),
+    }
     paths["table7_md"] = out / "table7.md"
     paths["table7_md"].write_text(table7_markdown(metrics, ratios, estimators, friction_scale))
     pq.write_table(traces, out / "estimates.parquet")
     paths["estimates"] = out / "estimates.parquet"
-    pq.write_table(pa.concat_tables([pa.table({"test_group": [g] * s.station_m.size, "station_m": s.station_m,
-                                               "sfc": s.sfc, "sfc_left": s.sfc_left, "sfc_right": s.sfc_right,
-                                               "sfc_model": s.sfc_model, "fy_n": s.fy_n})
-                                     for g, s in surveys.items()]), out / "sfc.parquet")
+    pq.write_table(
+        pa.concat_tables(
+            [
+                pa.table(
+                    {
+                        "test_group": [g] * s.station_m.size,
+                        "station_m": s.station_m,
+                        "sfc": s.sfc,
+                        "sfc_left": s.sfc_left,
+                        "sfc_right": s.sfc_right,
+                        "sfc_model": s.sfc_model,
+                        "fy_n": s.fy_n,
+                    }
+                )
+                for g, s in surveys.items()
+            ]
+        ),
+        out / "sfc.parquet",
+    )
     paths["sfc"] = out / "sfc.parquet"
     group = GROUPS[0]
     paths["figures"] = [plot_group(traces, surveys[group], group, estimators, out / f"real_vehicle_{group}.png")]

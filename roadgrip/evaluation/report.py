@@ -86,8 +86,10 @@ def load_paper_results() -> list[dict]:
     """The paper's Tables 2-6: [{condition, model, rmse, mae}], 25 rows."""
     text = resources.files("roadgrip.evaluation").joinpath("reference/paper_results.csv").read_text()
     rows = csv.DictReader(line for line in text.splitlines() if line.strip() and not line.startswith("#"))
-    return [{"condition": r["condition"], "model": r["model"], "rmse": float(r["rmse"]), "mae": float(r["mae"])}
-            for r in rows]
+    return [
+        {"condition": r["condition"], "model": r["model"], "rmse": float(r["rmse"]), "mae": float(r["mae"])}
+        for r in rows
+    ]
 
 
 # ------------------------------------------------------------------------------------------------------------- metrics
@@ -141,8 +143,16 @@ def _win_row(source, scope, feature_set, rmse: dict) -> dict:
             wins[baseline] += won
         compared += ours is not None and all(other is not None for other in others)
         wins_all += all(beaten)
-    return {"source": source, "trained_on": scope, "feature_set": feature_set, "wins": wins, "wins_all": wins_all,
-            "compared": compared, "conditions": len(CONDITIONS), "criterion_met": wins_all >= CRITERION_WINS}
+    return {
+        "source": source,
+        "trained_on": scope,
+        "feature_set": feature_set,
+        "wins": wins,
+        "wins_all": wins_all,
+        "compared": compared,
+        "conditions": len(CONDITIONS),
+        "criterion_met": wins_all >= CRITERION_WINS,
+    }
 
 
 def _markdown_table(header: list[str], rows: list[list[str]], n_text=1) -> list[str]:
@@ -167,10 +177,16 @@ def tables_markdown(metrics: list[dict]) -> str:
     """Tables 2-6 (paper's values beside ours) for each training scope, then the SA-CNN-LSTM win summary; markdown."""
     index = _check_metrics(metrics)
     paper = {(r["condition"], r["model"]): r for r in load_paper_results()}
-    lines = ["# Paper benchmark: Tables 2-6", "",
-             ("RMSE and MAE (eq. 14) of the adhesion coefficient on each condition's second experiment. Paper values "
-             "are those of the seed paper's Tables 2-6; n is the number of test estimates; a dash marks a missing "
-             "value."), ""]
+    lines = [
+        "# Paper benchmark: Tables 2-6",
+        "",
+        (
+            "RMSE and MAE (eq. 14) of the adhesion coefficient on each condition's second experiment. Paper values "
+            "are those of the seed paper's Tables 2-6; n is the number of test estimates; a dash marks a missing "
+            "value."
+        ),
+        "",
+    ]
     for scope in _ordered({k[0] for k in index}, SCOPES):
         feature_sets = _ordered({k[1] for k in index if k[0] == scope}, FEATURE_SETS)
         lines += [f"## {SCOPE_TITLES.get(scope, f'Trained on {scope}')}", ""]
@@ -193,20 +209,40 @@ def tables_markdown(metrics: list[dict]) -> str:
                 body.append(cells)
             lines += [f"### Table {TABLE_NUMBER[condition]}: {condition} adhesion coefficient", ""]
             lines += _markdown_table(header, body) + [""]
-    lines += ["## Summary: SA-CNN-LSTM against DNN, CNN and ConvLSTM", "",
-              (f"Conditions (of {len(CONDITIONS)}) on which SA-CNN-LSTM has a lower RMSE than the model named. "
-              f"Acceptance criterion: lower than DNN, CNN and ConvLSTM on at least {CRITERION_WINS} of "
-              f"{len(CONDITIONS)} conditions. "
-              "'compared' counts the conditions where all four models have an RMSE."), ""]
-    header = ["results", "trained", "features", *(f"vs {b}" for b in BASELINES), "vs all three", "compared",
-              f"criterion (>= {CRITERION_WINS} of {len(CONDITIONS)})"]
+    lines += [
+        "## Summary: SA-CNN-LSTM against DNN, CNN and ConvLSTM",
+        "",
+        (
+            f"Conditions (of {len(CONDITIONS)}) on which SA-CNN-LSTM has a lower RMSE than the model named. "
+            f"Acceptance criterion: lower than DNN, CNN and ConvLSTM on at least {CRITERION_WINS} of "
+            f"{len(CONDITIONS)} conditions. "
+            "'compared' counts the conditions where all four models have an RMSE."
+        ),
+        "",
+    ]
+    header = [
+        "results",
+        "trained",
+        "features",
+        *(f"vs {b}" for b in BASELINES),
+        "vs all three",
+        "compared",
+        f"criterion (>= {CRITERION_WINS} of {len(CONDITIONS)})",
+    ]
     body = []
     for row in summary_rows(metrics):
         of = f" of {row['conditions']}"
-        body.append(["paper (Tables 2-6)" if row["source"] == "paper" else "ours",
-                     SCOPE_SHORT.get(row["trained_on"], f"on {row['trained_on']}"), row["feature_set"],
-                     *(f"{row['wins'][b]}{of}" for b in BASELINES), f"{row['wins_all']}{of}", f"{row['compared']}{of}",
-                     "met" if row["criterion_met"] else "not met"])
+        body.append(
+            [
+                "paper (Tables 2-6)" if row["source"] == "paper" else "ours",
+                SCOPE_SHORT.get(row["trained_on"], f"on {row['trained_on']}"),
+                row["feature_set"],
+                *(f"{row['wins'][b]}{of}" for b in BASELINES),
+                f"{row['wins_all']}{of}",
+                f"{row['compared']}{of}",
+                "met" if row["criterion_met"] else "not met",
+            ]
+        )
     lines += _markdown_table(header, body, n_text=3)
     return "\n".join(lines) + "\n"
 
@@ -353,8 +389,17 @@ def _draw_panel(ax, cols, rows, condition, road, styles, rng, n_points, before_s
 
     ax.plot(x, mu_true[picked], color="black", linewidth=1.8, label="true μ", zorder=3)
     for model, values in series.items():
-        ax.plot(x, values[picked], linestyle="-", linewidth=0.7, markersize=4, alpha=0.85, label=model,
-                markerfacecolor="none" if styles[model]["marker"] not in "x+" else None, **styles[model])
+        ax.plot(
+            x,
+            values[picked],
+            linestyle="-",
+            linewidth=0.7,
+            markersize=4,
+            alpha=0.85,
+            label=model,
+            markerfacecolor="none" if styles[model]["marker"] not in "x+" else None,
+            **styles[model],
+        )
     for k, start in enumerate(seg_starts[1:]):
         ax.axvline(start + 0.5, color="0.75", linestyle=":", linewidth=1.0, label="join of windows" if k == 0 else None)
     t_picked = t_s[picked]
@@ -376,8 +421,11 @@ def _condition_figure(cols, rows, condition, feature_set, trained_on, styles, se
         rng = np.random.default_rng([seed, CONDITIONS.index(condition), ROADS.index(road) if road in ROADS else 2 + k])
         _draw_panel(ax, cols, rows[cols["road"][rows] == road], condition, road, styles, rng, **selection)
     scope = SCOPE_SHORT.get(trained_on, f"on {trained_on}")
-    fig.suptitle(f"Figure {FIGURE_NUMBER[condition]}: prediction results under {condition} adhesion coefficient "
-                 f"({feature_set} features, trained {scope})", fontsize=11)
+    fig.suptitle(
+        f"Figure {FIGURE_NUMBER[condition]}: prediction results under {condition} adhesion coefficient "
+        f"({feature_set} features, trained {scope})",
+        fontsize=11,
+    )
     handles = {}
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels()):
@@ -386,8 +434,18 @@ def _condition_figure(cols, rows, condition, feature_set, trained_on, styles, se
     return fig
 
 
-def write_figures(predictions: pa.Table, out_dir, feature_set="terminal", trained_on="condition", seed=0, *,
-                  n_points=50, before_s=3.0, after_s=5.0, max_points_per_change=40) -> list[Path]:
+def write_figures(
+    predictions: pa.Table,
+    out_dir,
+    feature_set="terminal",
+    trained_on="condition",
+    seed=0,
+    *,
+    n_points=50,
+    before_s=3.0,
+    after_s=5.0,
+    max_points_per_change=40,
+) -> list[Path]:
     """Figures 4-8 (figure_4_low.png ... figure_8_decreasing.png) for one feature set and training scope.
 
     One panel per road (straight, then circular) with the truth and every model's prediction on the test run:
@@ -400,8 +458,10 @@ def write_figures(predictions: pa.Table, out_dir, feature_set="terminal", traine
     selected = np.flatnonzero((cols["feature_set"] == feature_set) & (cols["trained_on"] == trained_on))
     if selected.size == 0:
         present = sorted({(str(f), str(t)) for f, t in zip(cols["feature_set"], cols["trained_on"])})
-        raise ValueError(f"predictions have no rows for feature_set={feature_set!r}, trained_on={trained_on!r}; "
-                         f"(feature_set, trained_on) present: {present}")
+        raise ValueError(
+            f"predictions have no rows for feature_set={feature_set!r}, trained_on={trained_on!r}; "
+            f"(feature_set, trained_on) present: {present}"
+        )
     if not (isinstance(n_points, int) and n_points > 0):
         raise ValueError(f"n_points must be a positive int, got {n_points!r}")
     if not (isinstance(max_points_per_change, int) and max_points_per_change > 0):
@@ -415,11 +475,23 @@ def write_figures(predictions: pa.Table, out_dir, feature_set="terminal", traine
     for condition in CONDITIONS:
         rows = selected[cols["condition"][selected] == condition]
         if rows.size == 0:
-            log.info("no predictions for %s (%s features, trained on %s): figure skipped",
-                     condition, feature_set, trained_on)
+            log.info(
+                "no predictions for %s (%s features, trained on %s): figure skipped", condition, feature_set, trained_on
+            )
             continue
-        fig = _condition_figure(cols, rows, condition, feature_set, trained_on, styles, seed, n_points=n_points,
-                                before_s=before_s, after_s=after_s, max_points_per_change=max_points_per_change)
+        fig = _condition_figure(
+            cols,
+            rows,
+            condition,
+            feature_set,
+            trained_on,
+            styles,
+            seed,
+            n_points=n_points,
+            before_s=before_s,
+            after_s=after_s,
+            max_points_per_change=max_points_per_change,
+        )
         path = out_dir / f"figure_{FIGURE_NUMBER[condition]}_{condition}.png"
         fig.savefig(path, dpi=110)
         paths.append(path)

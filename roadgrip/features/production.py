@@ -37,15 +37,41 @@ from roadgrip.units import G_MPS2
 WHEELS = ("fl", "fr", "rl", "rr")
 WHEEL_SPEEDS = tuple(f"wheel_speed_{w}_radps" for w in WHEELS)
 PRODUCTION_FEATURES = (
-    "wheel_speed_mps", "axle_slip", "side_slip_front", "side_slip_rear", "wheel_accel_front_g", "wheel_accel_rear_g",
-    "accel_lon_g", "accel_lat_g", "utilization_g", "yaw_rate_radps", "centripetal_g", "road_wheel_angle_rad",
-    "understeer_g", "front_drive_share", "abs_active", "tcs_active", "esc_active",
+    "wheel_speed_mps",
+    "axle_slip",
+    "side_slip_front",
+    "side_slip_rear",
+    "wheel_accel_front_g",
+    "wheel_accel_rear_g",
+    "accel_lon_g",
+    "accel_lat_g",
+    "utilization_g",
+    "yaw_rate_radps",
+    "centripetal_g",
+    "road_wheel_angle_rad",
+    "understeer_g",
+    "front_drive_share",
+    "abs_active",
+    "tcs_active",
+    "esc_active",
 )
-PRODUCTION_INPUTS = ("timestamp_ms", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad",
-                     "abs_active") + WHEEL_SPEEDS
+PRODUCTION_INPUTS = (
+    "timestamp_ms",
+    "accel_lon_mps2",
+    "accel_lat_mps2",
+    "yaw_rate_radps",
+    "steering_wheel_angle_rad",
+    "abs_active",
+) + WHEEL_SPEEDS
 OPTIONAL_FLAGS = ("tcs_active", "esc_active")  # absent or null: not reported, read as not acting
-PRODUCTION_PROFILE = ("wheel_radius_m", "steering_ratio", "wheelbase_m", "track_front_m", "track_rear_m",
-                      "front_drive_share")
+PRODUCTION_PROFILE = (
+    "wheel_radius_m",
+    "steering_ratio",
+    "wheelbase_m",
+    "track_front_m",
+    "track_rear_m",
+    "front_drive_share",
+)
 # below 2 m/s (7 km/h) the ratios are noise: one CAN step of 0.01 km/h is 0.14 % of it, and wheel-speed sensors lose
 # their lowest speeds; the floor keeps the ratios bounded at standstill
 SPEED_FLOOR_MPS = 2.0
@@ -54,9 +80,14 @@ MAX_STEP_S = 0.5  # a longer step between samples is a gap: no derivative across
 
 def vehicle_profile(vehicle) -> dict:
     """The profile fields the feature sets use, from a VehicleParams."""
-    return {"wheel_radius_m": vehicle.wheel_radius_m, "steering_ratio": vehicle.steering_ratio,
-            "wheelbase_m": vehicle.wheelbase_m, "track_front_m": vehicle.track_front_m,
-            "track_rear_m": vehicle.track_rear_m, "front_drive_share": vehicle.drive_split[0]}
+    return {
+        "wheel_radius_m": vehicle.wheel_radius_m,
+        "steering_ratio": vehicle.steering_ratio,
+        "wheelbase_m": vehicle.wheelbase_m,
+        "track_front_m": vehicle.track_front_m,
+        "track_rear_m": vehicle.track_rear_m,
+        "front_drive_share": vehicle.drive_split[0],
+    }
 
 
 def flag(data: dict, name: str, n: int) -> np.ndarray:
@@ -65,7 +96,12 @@ def flag(data: dict, name: str, n: int) -> np.ndarray:
         return np.zeros(n)
     values = np.asarray(data[name]).reshape(-1)
     if values.dtype == object:
-        return np.array([0.0 if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v)) else float(bool(v)) for v in values])
+        return np.array(
+            [
+                0.0 if v is None or (isinstance(v, (float, np.floating)) and np.isnan(v)) else float(bool(v))
+                for v in values
+            ]
+        )
     return np.nan_to_num(values.astype(np.float64), nan=0.0)
 
 
@@ -99,7 +135,7 @@ def production_features(data: dict, profile: dict, segments=None, previous: dict
         "yaw_rate_radps": yaw,
         "centripetal_g": yaw * v_mean / G_MPS2,
         "road_wheel_angle_rad": delta,
-        "understeer_g": (v_mean ** 2 * delta / p["wheelbase_m"] - yaw * v_mean) / G_MPS2,
+        "understeer_g": (v_mean**2 * delta / p["wheelbase_m"] - yaw * v_mean) / G_MPS2,
         "front_drive_share": p["front_drive_share"],
         "abs_active": flag(data, "abs_active", n),
         "tcs_active": flag(data, "tcs_active", n),

@@ -23,8 +23,14 @@ from roadgrip.validation import check_choice
 from roadgrip.vehicle.dynamics import SLIP_SPEED_FLOOR_MPS
 
 WHEEL_SPEEDS = tuple(f"wheel_speed_{w}_radps" for w in WHEELS)
-TERMINAL_INPUTS = ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad",
-                   "abs_active") + WHEEL_SPEEDS
+TERMINAL_INPUTS = (
+    "speed_mps",
+    "accel_lon_mps2",
+    "accel_lat_mps2",
+    "yaw_rate_radps",
+    "steering_wheel_angle_rad",
+    "abs_active",
+) + WHEEL_SPEEDS
 FEATURE_SETS = {
     # paper 3.3: yaw rate, longitudinal speed, lateral speed and the four wheel angular speeds
     "paper": ("yaw_rate_radps", "speed_mps", "lateral_speed_mps") + WHEEL_SPEEDS,
@@ -59,8 +65,15 @@ def input_columns(feature_set: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return (TERMINAL_INPUTS if needs_vehicle(feature_set) else feature_columns(feature_set)), ()
 
 
-def feature_matrix(table: pa.Table, feature_set: str, wheel_radius_m=None, steering_ratio=None, *,
-                   profile: dict | None = None, segments=None) -> np.ndarray:
+def feature_matrix(
+    table: pa.Table,
+    feature_set: str,
+    wheel_radius_m=None,
+    steering_ratio=None,
+    *,
+    profile: dict | None = None,
+    segments=None,
+) -> np.ndarray:
     """(n_samples, n_features) float32 matrix of a feature set; a missing column is an error naming it.
 
     Feature sets that use the vehicle profile take it as `profile` (`vehicle_profile(vehicle)`: each field one value
@@ -80,8 +93,16 @@ def _column(column) -> np.ndarray:
     return column.to_numpy(zero_copy_only=False).astype(np.float64)
 
 
-def features_from_columns(data: dict, feature_set: str, wheel_radius_m=None, steering_ratio=None, *,
-                          profile: dict | None = None, segments=None, previous: dict | None = None) -> np.ndarray:
+def features_from_columns(
+    data: dict,
+    feature_set: str,
+    wheel_radius_m=None,
+    steering_ratio=None,
+    *,
+    profile: dict | None = None,
+    segments=None,
+    previous: dict | None = None,
+) -> np.ndarray:
     """The feature matrix from column arrays (a table's, or one streamed sample's). `previous`: for a stream fed
     sample by sample, the sample before data's first (None at the stream's start); see feature_matrix for the rest."""
     if not needs_vehicle(feature_set):
@@ -94,8 +115,10 @@ def features_from_columns(data: dict, feature_set: str, wheel_radius_m=None, ste
     if wheel_radius_m is None or steering_ratio is None:
         raise ValueError(f"feature set {feature_set!r} needs the vehicle profile (wheel_radius_m, steering_ratio)")
     speed = np.asarray(data["speed_mps"], dtype=np.float64)
-    derived = {f"slip_ratio_{w}": slip_ratio_array(np.asarray(data[f"wheel_speed_{w}_radps"]) * wheel_radius_m, speed)
-               for w in WHEELS}
+    derived = {
+        f"slip_ratio_{w}": slip_ratio_array(np.asarray(data[f"wheel_speed_{w}_radps"]) * wheel_radius_m, speed)
+        for w in WHEELS
+    }
     derived["accel_lon_g"] = np.asarray(data["accel_lon_mps2"]) / G_MPS2
     derived["accel_lat_g"] = np.asarray(data["accel_lat_mps2"]) / G_MPS2
     derived["centripetal_g"] = np.asarray(data["yaw_rate_radps"]) * speed / G_MPS2

@@ -45,8 +45,7 @@ class LocalCloud:
     def __init__(self, settings: Settings):
         self.service = CloudService(settings)
         self.service.start()
-        config = uvicorn.Config(create_app(self.service), host=settings.host, port=settings.port,
-                                log_level="warning")
+        config = uvicorn.Config(create_app(self.service), host=settings.host, port=settings.port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="roadgrip-http", daemon=True)
         self.thread.start()
@@ -73,24 +72,43 @@ def settle(service: CloudService, timeout_s: float = 30.0) -> None:
     time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
 
 
-def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.0, seed: int = 0,
-             data_dir: Path | None = None, port: int = 0, mqtt: str = "auto", network: Network | None = None,
-             progress=None, on_ready=None) -> tuple[DemoReport, LocalCloud]:
+def run_demo(
+    *,
+    vehicles: int = 12,
+    speed: float = 5.0,
+    duration_s: float = 100.0,
+    seed: int = 0,
+    data_dir: Path | None = None,
+    port: int = 0,
+    mqtt: str = "auto",
+    network: Network | None = None,
+    progress=None,
+    on_ready=None,
+) -> tuple[DemoReport, LocalCloud]:
     """Start the cloud, drive the fleet, return the report and the still running cloud (the caller stops it)."""
     network = network or generated_network()
     data_dir = Path(tempfile.mkdtemp(prefix="roadgrip-demo-")) if data_dir is None else data_dir
     data_dir.mkdir(parents=True, exist_ok=True)
     _log_to(data_dir / "cloud.log")
     # the fleet runs at `speed` times real time, so each vehicle sends `speed` times its 10 Hz: no per-vehicle limit
-    settings = Settings(data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall",
-                        rate_limit_samples_per_s=0)
-    plans = plan_fleet(network, vehicles, duration_s=duration_s, seed=seed, patch_braking_share=0.5,
-                       per_slippery_patch=2, prefix="demo")
+    settings = Settings(
+        data_dir=data_dir, port=port or free_port(), mqtt=mqtt, map_clock="wall", rate_limit_samples_per_s=0
+    )
+    plans = plan_fleet(
+        network,
+        vehicles,
+        duration_s=duration_s,
+        seed=seed,
+        patch_braking_share=0.5,
+        per_slippery_patch=2,
+        prefix="demo",
+    )
     samples = simulate_fleet(plans, network)
     cloud = LocalCloud(settings)
     try:
-        secrets, mqtt_url = register_fleet(cloud.url, cloud.service.admin_secret,
-                                           [(p.vehicle_id, p.vehicle.name) for p in plans])
+        secrets, mqtt_url = register_fleet(
+            cloud.url, cloud.service.admin_secret, [(p.vehicle_id, p.vehicle.name) for p in plans]
+        )
         reader = f"dashboard-{int(time.time())}"
         reader_secret = cloud.service.register_reader(reader)
         dashboard = f"{cloud.url}/dashboard#{reader}:{reader_secret}"
@@ -104,18 +122,36 @@ def run_demo(*, vehicles: int = 12, speed: float = 5.0, duration_s: float = 100.
             sent[0] += len(batch)
             if progress is not None:
                 progress(sent[0], total)
+
         result = replay(timeline(samples, speed, time.time()), send, speed=speed, batch=1 if mqtt_url else 10)
         terminals.close()
         settle(cloud.service)
         storage = cloud.service.storage
         rows = [r for p in plans for r in storage.estimates(p.vehicle_id, limit=100_000)]
         report = DemoReport(
-            url=cloud.url, dashboard_url=dashboard, log_path=str(data_dir / "cloud.log"), transport="mqtt" if mqtt_url else "http", vehicles=len(plans),
-            samples_sent=result.samples, telemetry_stored=storage.counts()["telemetry"], estimates_stored=len(rows),
-            excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)), stream_wall_s=result.wall_s,
+            url=cloud.url,
+            dashboard_url=dashboard,
+            log_path=str(data_dir / "cloud.log"),
+            transport="mqtt" if mqtt_url else "http",
+            vehicles=len(plans),
+            samples_sent=result.samples,
+            telemetry_stored=storage.counts()["telemetry"],
+            estimates_stored=len(rows),
+            excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)),
+            stream_wall_s=result.wall_s,
             warnings=[_where(w["message"]["event"], network) for w in storage.warnings(active_only=False)],
-            patches=[{"name": p.name, "surface": p.surface, "mu": p.mu, "east_m": p.east_m, "north_m": p.north_m,
-                      "radius_m": p.radius_m} for p in network.patches])
+            patches=[
+                {
+                    "name": p.name,
+                    "surface": p.surface,
+                    "mu": p.mu,
+                    "east_m": p.east_m,
+                    "north_m": p.north_m,
+                    "radius_m": p.radius_m,
+                }
+                for p in network.patches
+            ],
+        )
     except BaseException:
         cloud.stop()
         raise

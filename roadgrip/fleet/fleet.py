@@ -47,9 +47,15 @@ class VehiclePlan:
     brakes_at_m: tuple[float, ...]  # stations where braking starts
 
 
-def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: float,
-                   duration_s: float, *, brake_mps2: float = BRAKE_MPS2,
-                   reaccelerate_mps2: float = REACCELERATE_MPS2) -> tuple[SpeedProfile, float]:
+def _speed_profile(
+    cruise_mps: float,
+    brake_stations_m: list[float],
+    length_m: float,
+    duration_s: float,
+    *,
+    brake_mps2: float = BRAKE_MPS2,
+    reaccelerate_mps2: float = REACCELERATE_MPS2,
+) -> tuple[SpeedProfile, float]:
     """Cruise with brakings (at `brake_mps2`, then back up at `reaccelerate_mps2`: the driver's style) starting at the
     given stations; returns the profile and the duration that keeps the vehicle on the road."""
     if not (brake_mps2 > 0 and reaccelerate_mps2 > 0):
@@ -74,9 +80,16 @@ def _speed_profile(cruise_mps: float, brake_stations_m: list[float], length_m: f
     return SpeedProfile(np.array(times), np.array(speeds)), duration
 
 
-def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, seed: int = 0,
-               patch_braking_share: float = 0.5, per_slippery_patch: int = 0,
-               prefix: str = "fleet") -> list[VehiclePlan]:
+def plan_fleet(
+    network: Network,
+    vehicles: int,
+    *,
+    duration_s: float = 120.0,
+    seed: int = 0,
+    patch_braking_share: float = 0.5,
+    per_slippery_patch: int = 0,
+    prefix: str = "fleet",
+) -> list[VehiclePlan]:
     """Plan `vehicles` drives on the network. First `per_slippery_patch` vehicles for each patch whose adhesion is
     below SLIPPERY_MU and that a road reaches within the drive: they take such a road and brake on the patch (a demo
     that must show a warning needs two observations of one patch). The others take any road, roads crossing a
@@ -94,8 +107,12 @@ def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, se
     for patch in network.patches:
         if patch.mu >= SLIPPERY_MU:
             continue
-        reach = [(r, (first, last)) for r in roads for first, last, p in network.patch_stations(r)
-                 if p is patch and first < r.cruise_mps * duration_s * 0.8]
+        reach = [
+            (r, (first, last))
+            for r in roads
+            for first, last, p in network.patch_stations(r)
+            if p is patch and first < r.cruise_mps * duration_s * 0.8
+        ]
         for k in range(per_slippery_patch if reach else 0):
             assigned.append(reach[k % len(reach)])
     while len(assigned) < vehicles:
@@ -118,9 +135,18 @@ def plan_fleet(network: Network, vehicles: int, *, duration_s: float = 120.0, se
         speed, duration = _speed_profile(cruise, brakes, length, duration_s)
         vehicle = kinds[k % len(kinds)]
         vehicle_id = f"{prefix}-{k:03d}"
-        scenario = Scenario(run_id=vehicle_id, path=road.path, mu=network.mu_profile(road), speed=speed,
-                            vehicle=vehicle, duration_s=max(1.0, math.floor(duration * 10) / 10),
-                            seed=int(rng.integers(2**31)), condition="fleet", road=road.name, manoeuvre="cruise-brake")
+        scenario = Scenario(
+            run_id=vehicle_id,
+            path=road.path,
+            mu=network.mu_profile(road),
+            speed=speed,
+            vehicle=vehicle,
+            duration_s=max(1.0, math.floor(duration * 10) / 10),
+            seed=int(rng.integers(2**31)),
+            condition="fleet",
+            road=road.name,
+            manoeuvre="cruise-brake",
+        )
         plans.append(VehiclePlan(vehicle_id, vehicle, road, scenario, tuple(brakes)))
     return plans
 
@@ -138,6 +164,7 @@ def planned_arrival(speed: SpeedProfile, depart_s: float = 0.0, step_s: float = 
         stations_m = np.asarray(stations_m, dtype=np.float64)
         beyond = np.maximum(stations_m - s[-1], 0.0) / v[-1]  # past the profile's end: at its last speed
         return depart_s + np.interp(stations_m, s, t) + beyond
+
     return arrival
 
 
@@ -145,8 +172,10 @@ def simulate_fleet(plans: list[VehiclePlan], network: Network) -> dict[str, list
     """Each vehicle's wire samples (timestamps from 0 ms: `stream` sets the clock)."""
     sensors = SensorModel(origin_lat_deg=network.origin[0], origin_lon_deg=network.origin[1])
     table = simulate([p.scenario for p in plans], sensors=sensors)
-    return {p.vehicle_id: wire_samples(table.filter(pc.equal(table["run_id"], p.vehicle_id)), p.vehicle_id, 0)
-            for p in plans}
+    return {
+        p.vehicle_id: wire_samples(table.filter(pc.equal(table["run_id"], p.vehicle_id)), p.vehicle_id, 0)
+        for p in plans
+    }
 
 
 def timeline(samples: dict[str, list[dict]], speed: float, now_s: float) -> list[dict]:

@@ -88,11 +88,15 @@ class Patch:
         if not self.radius_m > 0:
             raise ValueError(f"patch {self.name!r}: radius_m must be > 0, got {self.radius_m!r}")
         if self.mu_value is not None and not 0.0 < self.mu_value < SURFACE_MU["dry"]:
-            raise ValueError(f"patch {self.name!r}: mu_value must lie in (0, {SURFACE_MU['dry']:.2f}) (below the dry "
-                             f"road), got {self.mu_value!r}")
+            raise ValueError(
+                f"patch {self.name!r}: mu_value must lie in (0, {SURFACE_MU['dry']:.2f}) (below the dry "
+                f"road), got {self.mu_value!r}"
+            )
         if not (math.isfinite(self.appear_s) and self.appear_s < self.dry_s):
-            raise ValueError(f"patch {self.name!r}: appear_s must be finite and before dry_s, got appear_s "
-                             f"{self.appear_s!r}, dry_s {self.dry_s!r}")
+            raise ValueError(
+                f"patch {self.name!r}: appear_s must be finite and before dry_s, got appear_s "
+                f"{self.appear_s!r}, dry_s {self.dry_s!r}"
+            )
 
     @property
     def mu(self) -> float:
@@ -148,8 +152,9 @@ class Network:
 def points_at(path: Path, stations_m: np.ndarray) -> np.ndarray:
     """Points (east, north) of the path at the given stations (linear along each segment)."""
     s = path.stations_m
-    return np.column_stack([np.interp(stations_m, s, path.points_m[:, 0]),
-                            np.interp(stations_m, s, path.points_m[:, 1])])
+    return np.column_stack(
+        [np.interp(stations_m, s, path.points_m[:, 0]), np.interp(stations_m, s, path.points_m[:, 1])]
+    )
 
 
 def _arc(start: np.ndarray, heading_rad: float, radius_m: float, angle_rad: float, step_m: float = 5.0) -> np.ndarray:
@@ -174,8 +179,12 @@ def generated_network(origin: tuple[float, float] = HEBEI_ORIGIN) -> Network:
     last = curve2[-1] + np.outer(np.linspace(25.0, 1200.0, 48), [1.0, 0.0])
     expressway = np.vstack([straight1, curve1, tail, curve2, last])
     # on-ramp: 300 m east, then a quarter circle of 400 m radius up to the expressway at (-1100, 0)
-    ramp = np.vstack([np.column_stack([np.linspace(-1800.0, -1500.0, 13), np.full(13, -400.0)]),
-                      _arc(np.array([-1500.0, -400.0]), 0.0, 400.0, math.pi / 2)[1:]])
+    ramp = np.vstack(
+        [
+            np.column_stack([np.linspace(-1800.0, -1500.0, 13), np.full(13, -400.0)]),
+            _arc(np.array([-1500.0, -400.0]), 0.0, 400.0, math.pi / 2)[1:],
+        ]
+    )
     urban = []
     for k, north in enumerate((-700.0, -1000.0, -1300.0)):
         xs = np.linspace(-2000.0, 0.0, 81)
@@ -184,9 +193,11 @@ def generated_network(origin: tuple[float, float] = HEBEI_ORIGIN) -> Network:
         ys = np.linspace(-600.0, -1400.0, 33)
         urban.append(Road(f"avenue-{k + 1}", "urban", np.column_stack([np.full(ys.size, east), ys])))
     roads = (Road("expressway-east", "expressway", expressway), Road("on-ramp", "ramp", ramp), *urban)
-    patches = (Patch("ice-expressway", "ice", -1000.0, 0.0, 60.0),
-               Patch("snow-ramp", "snow", float(ramp[len(ramp) // 2, 0]), float(ramp[len(ramp) // 2, 1]), 40.0),
-               Patch("wet-town", "wet", -1100.0, -1000.0, 80.0))
+    patches = (
+        Patch("ice-expressway", "ice", -1000.0, 0.0, 60.0),
+        Patch("snow-ramp", "snow", float(ramp[len(ramp) // 2, 0]), float(ramp[len(ramp) // 2, 1]), 40.0),
+        Patch("wet-town", "wet", -1100.0, -1000.0, 80.0),
+    )
     return Network(roads, patches, origin)
 
 
@@ -212,12 +223,27 @@ def network_from_geojson(path: str | FilePath, origin: tuple[float, float] | Non
     roads, patches = [], []
     for k, feature in enumerate(lines):
         props = feature.get("properties") or {}
-        roads.append(Road(str(props.get("name", f"road-{k + 1}")), str(props.get("kind", "urban")),
-                          enu(feature["geometry"]["coordinates"]), props.get("speed_mps")))
+        roads.append(
+            Road(
+                str(props.get("name", f"road-{k + 1}")),
+                str(props.get("kind", "urban")),
+                enu(feature["geometry"]["coordinates"]),
+                props.get("speed_mps"),
+            )
+        )
     for k, feature in enumerate(f for f in features if f.get("geometry", {}).get("type") == "Point"):
         props = feature.get("properties") or {}
         east, north = enu([feature["geometry"]["coordinates"]])[0]
-        patches.append(Patch(str(props.get("name", f"patch-{k + 1}")), str(props.get("surface")), float(east),
-                             float(north), float(props.get("radius_m", 50.0)), props.get("mu"),
-                             float(props.get("appear_s", 0.0)), float(props.get("dry_s", math.inf))))
+        patches.append(
+            Patch(
+                str(props.get("name", f"patch-{k + 1}")),
+                str(props.get("surface")),
+                float(east),
+                float(north),
+                float(props.get("radius_m", 50.0)),
+                props.get("mu"),
+                float(props.get("appear_s", 0.0)),
+                float(props.get("dry_s", math.inf)),
+            )
+        )
     return Network(tuple(roads), tuple(patches), origin)

@@ -42,8 +42,9 @@ class ReplayResult:
     wall_s: float
 
 
-def replay(samples: Sequence[dict], send: Callable[[list[dict]], None], *, speed: float = 1.0, batch: int = 1,
-           clock=time) -> ReplayResult:
+def replay(
+    samples: Sequence[dict], send: Callable[[list[dict]], None], *, speed: float = 1.0, batch: int = 1, clock=time
+) -> ReplayResult:
     """Send `samples` (wire-format dicts with vehicle_id and timestamp_ms) to `send` in time order at `speed` times
     real time (0 or math.inf: as fast as possible), `batch` samples of one vehicle per call; see the module docstring.
     `clock` provides `monotonic()` and `sleep(seconds)` (the `time` module, or a fake one in tests). An exception of
@@ -92,8 +93,14 @@ def replay(samples: Sequence[dict], send: Callable[[list[dict]], None], *, speed
     return ReplayResult(len(order), batches, late, max_delay, clock.monotonic() - start)
 
 
-def replay_file(path: str | Path, importer: str | Importer | None = None, *, vehicle_id: str | None = None,
-                start_ms: int | None = None, **options) -> list[dict]:
+def replay_file(
+    path: str | Path,
+    importer: str | Importer | None = None,
+    *,
+    vehicle_id: str | None = None,
+    start_ms: int | None = None,
+    **options,
+) -> list[dict]:
     """The samples of the log at `path` as wire-format v1 dicts in time order, imported by `importer` (a name, an
     importer, or None: the one that recognises the file). `vehicle_id` and `start_ms` as the importer documents
     (None: its default); other options go to the importer. Optional fields the log lacks are left out of the dicts

@@ -22,8 +22,9 @@ class FleetError(RuntimeError):
     """The cloud refused the fleet (registration, credentials, a rejected message)."""
 
 
-def register_fleet(base_url: str, admin_secret: str,
-                   vehicles: list[tuple[str, str | dict]]) -> tuple[dict[str, str], str | None]:
+def register_fleet(
+    base_url: str, admin_secret: str, vehicles: list[tuple[str, str | dict]]
+) -> tuple[dict[str, str], str | None]:
     """Register (vehicle_id, profile) pairs in one call, a profile being a known vehicle's name or a CONTRACTS 3.2
     mapping; returns {vehicle_id: secret} and the broker's URL (None without one)."""
     body = [{"vehicle_id": vehicle_id, "profile": profile} for vehicle_id, profile in vehicles]
@@ -50,9 +51,15 @@ class HttpTerminals:
 
     def send(self, vehicle_id: str, samples: list[dict]) -> None:
         body = "\n".join(json.dumps(s) for s in samples)
-        self.futures.append(self.pool.submit(
-            self.client.post, "/v1/telemetry", content=body, auth=(vehicle_id, self.secrets[vehicle_id]),
-            headers={"content-type": "application/x-ndjson"}))
+        self.futures.append(
+            self.pool.submit(
+                self.client.post,
+                "/v1/telemetry",
+                content=body,
+                auth=(vehicle_id, self.secrets[vehicle_id]),
+                headers={"content-type": "application/x-ndjson"},
+            )
+        )
 
     def close(self) -> None:
         try:
@@ -78,8 +85,10 @@ class MqttTerminals:
 
     def __init__(self, mqtt_url: str | list[str], secrets: dict[str, str], protocol: str = "5"):
         if len(secrets) > MAX_MQTT_VEHICLES:
-            raise ValueError(f"at most {MAX_MQTT_VEHICLES} MQTT vehicles in one process (paho uses select()), got "
-                             f"{len(secrets)}: use --transport http or several fleet processes")
+            raise ValueError(
+                f"at most {MAX_MQTT_VEHICLES} MQTT vehicles in one process (paho uses select()), got "
+                f"{len(secrets)}: use --transport http or several fleet processes"
+            )
         urls = [mqtt_url] if isinstance(mqtt_url, str) else list(mqtt_url)
         if not urls:
             raise ValueError("mqtt_url must name at least one broker, got an empty list")
@@ -93,8 +102,9 @@ class MqttTerminals:
 
     def send(self, vehicle_id: str, samples: list[dict]) -> None:
         payload = json.dumps(samples[0] if len(samples) == 1 else samples)
-        self.pending.append((len(samples), self.clients[vehicle_id].publish_nowait(telemetry_topic(vehicle_id),
-                                                                                   payload)))
+        self.pending.append(
+            (len(samples), self.clients[vehicle_id].publish_nowait(telemetry_topic(vehicle_id), payload))
+        )
 
     def close(self, timeout_s: float = 60.0) -> None:
         try:
@@ -108,8 +118,9 @@ class MqttTerminals:
                 client.close()
 
 
-def read_back(base_url: str, admin_secret: str, vehicle_ids: list[str], timeout_s: float = 60.0,
-              poll_s: float = 1.0) -> dict:
+def read_back(
+    base_url: str, admin_secret: str, vehicle_ids: list[str], timeout_s: float = 60.0, poll_s: float = 1.0
+) -> dict:
     """What a cloud (any API replica of a cluster) has stored of the fleet: each vehicle's estimates, counted, and the
     cells of the friction map. The telemetry is still on its way through the broker and the workers when the drive
     ends, so this waits until every vehicle has estimates and two polls `poll_s` apart counted the same, or until
@@ -118,6 +129,7 @@ def read_back(base_url: str, admin_secret: str, vehicle_ids: list[str], timeout_
     started = time.monotonic()
     auth = ("admin", admin_secret)
     with httpx.Client(base_url=base_url, auth=auth, timeout=30.0) as client:
+
         def get(path: str, **params) -> dict:
             try:
                 answer = client.get(path, params=params)
@@ -129,8 +141,7 @@ def read_back(base_url: str, admin_secret: str, vehicle_ids: list[str], timeout_
 
         previous = None
         while True:
-            counts = {vid: len(get(f"/v1/vehicles/{vid}/estimates", limit=100_000)["estimates"])
-                      for vid in vehicle_ids}
+            counts = {vid: len(get(f"/v1/vehicles/{vid}/estimates", limit=100_000)["estimates"]) for vid in vehicle_ids}
             settled = counts == previous and all(counts.values())
             if settled or time.monotonic() - started > timeout_s:
                 break

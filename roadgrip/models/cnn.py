@@ -22,12 +22,19 @@ class CNN(nn.Module):
         c1, c2 = config.channels
         pad = config.kernel // 2
         self.conv = nn.Sequential(
-            nn.Conv1d(config.n_features, c1, config.kernel, padding=pad), nn.ReLU(),
-            nn.Conv1d(c1, c2, config.kernel, padding=pad), nn.ReLU(),
+            nn.Conv1d(config.n_features, c1, config.kernel, padding=pad),
+            nn.ReLU(),
+            nn.Conv1d(c1, c2, config.kernel, padding=pad),
+            nn.ReLU(),
             nn.MaxPool1d(2),
         )
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c2 * (config.window // 2), config.hidden), nn.ReLU(),
-                                  nn.Dropout(config.dropout), nn.Linear(config.hidden, 1))
+        self.head = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(c2 * (config.window // 2), config.hidden),
+            nn.ReLU(),
+            nn.Dropout(config.dropout),
+            nn.Linear(config.hidden, 1),
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.conv(x.transpose(1, 2))).squeeze(-1)  # (B, T, F) -> (B, F, T) -> (B,)

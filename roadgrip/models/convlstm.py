@@ -37,8 +37,13 @@ class ConvLSTM(nn.Module):
     def __init__(self, config: ConvLSTMConfig):
         super().__init__()
         self.cell = ConvLSTMCell(1, config.channels, config.kernel)
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(config.channels * config.n_features, config.hidden), nn.ReLU(),
-                                  nn.Dropout(config.dropout), nn.Linear(config.hidden, 1))
+        self.head = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(config.channels * config.n_features, config.hidden),
+            nn.ReLU(),
+            nn.Dropout(config.dropout),
+            nn.Linear(config.hidden, 1),
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         batch, steps, n_features = x.shape

@@ -72,6 +72,7 @@ option of `sa_cnn_lstm.py`. On a head that is accurate but whose noise spills ov
 agent wins (RMSE 0.22 -> 0.05, clipping 0.17). A model with an activation after its last `nn.Linear` cannot be refined
 here (the layer's output is not its prediction); `refine_model` refuses it.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -92,9 +93,12 @@ KEEP = ACTIONS.index("keep")
 
 
 def _check_range(name, allowed_range):
-    if (not isinstance(allowed_range, (tuple, list)) or len(allowed_range) != 2
-            or not all(_is_number(v) and math.isfinite(v) for v in allowed_range)
-            or not allowed_range[0] < allowed_range[1]):
+    if (
+        not isinstance(allowed_range, (tuple, list))
+        or len(allowed_range) != 2
+        or not all(_is_number(v) and math.isfinite(v) for v in allowed_range)
+        or not allowed_range[0] < allowed_range[1]
+    ):
         raise ValueError(f"{name} must be two finite numbers (lo, hi) with lo < hi, got {allowed_range!r}")
 
 
@@ -133,10 +137,15 @@ class QConfig:
         if self.accuracy_weight == self.share_weight == self.excess_weight == 0:
             raise ValueError("QConfig.accuracy_weight, share_weight and excess_weight must not all be 0, got 0, 0, 0")
         edges = self.share_edges
-        if (not isinstance(edges, tuple) or not edges or not all(_is_number(v) and 0 < v <= 1 for v in edges)
-                or any(a >= b for a, b in itertools.pairwise(edges))):
-            raise ValueError(f"QConfig.share_edges must be a non-empty increasing tuple of numbers in (0, 1], "
-                             f"got {edges!r}")
+        if (
+            not isinstance(edges, tuple)
+            or not edges
+            or not all(_is_number(v) and 0 < v <= 1 for v in edges)
+            or any(a >= b for a, b in itertools.pairwise(edges))
+        ):
+            raise ValueError(
+                f"QConfig.share_edges must be a non-empty increasing tuple of numbers in (0, 1], got {edges!r}"
+            )
 
     @property
     def n_states(self) -> int:
@@ -144,8 +153,11 @@ class QConfig:
 
     def objective(self, metrics: RangeMetrics) -> float:
         """J (lower is better): weighted RMSE, share out of range and mean distance out of range."""
-        return (self.accuracy_weight * metrics.rmse + self.share_weight * metrics.share_out_of_range
-                + self.excess_weight * metrics.mean_excess)
+        return (
+            self.accuracy_weight * metrics.rmse
+            + self.share_weight * metrics.share_out_of_range
+            + self.excess_weight * metrics.mean_excess
+        )
 
 
 @dataclass(frozen=True)
@@ -190,8 +202,9 @@ def clip(predictions: np.ndarray, allowed_range: tuple[float, float] = DEFAULT_A
     return np.clip(np.asarray(predictions), *allowed_range)
 
 
-def range_metrics(predictions: np.ndarray, y: np.ndarray,
-                  allowed_range: tuple[float, float] = DEFAULT_ALLOWED_RANGE) -> RangeMetrics:
+def range_metrics(
+    predictions: np.ndarray, y: np.ndarray, allowed_range: tuple[float, float] = DEFAULT_ALLOWED_RANGE
+) -> RangeMetrics:
     _check_range("allowed_range", allowed_range)
     lo, hi = allowed_range
     p, y = np.asarray(predictions, dtype=np.float64), np.asarray(y, dtype=np.float64)
@@ -201,13 +214,26 @@ def range_metrics(predictions: np.ndarray, y: np.ndarray,
         return RangeMetrics(0, 0.0, 0.0, 0, 0, 0.0)
     error = p - y
     below, above = np.maximum(lo - p, 0.0), np.maximum(p - hi, 0.0)
-    return RangeMetrics(n=len(p), rmse=float(np.sqrt(np.mean(error ** 2))), mae=float(np.mean(np.abs(error))),
-                        n_below=int(np.count_nonzero(below)), n_above=int(np.count_nonzero(above)),
-                        mean_excess=float(np.mean(below + above)))
+    return RangeMetrics(
+        n=len(p),
+        rmse=float(np.sqrt(np.mean(error**2))),
+        mae=float(np.mean(np.abs(error))),
+        n_below=int(np.count_nonzero(below)),
+        n_above=int(np.count_nonzero(above)),
+        mean_excess=float(np.mean(below + above)),
+    )
 
 
-def q_update(q: np.ndarray, state: int, action: int, reward: float, next_state: int | None, beta: float, gamma: float,
-             terminal: bool = False) -> float:
+def q_update(
+    q: np.ndarray,
+    state: int,
+    action: int,
+    reward: float,
+    next_state: int | None,
+    beta: float,
+    gamma: float,
+    terminal: bool = False,
+) -> float:
     """Eq. 13 in place; returns the new Q(s, a). A terminal step (the agent stopped) has no next state to bootstrap
     from."""
     future = 0.0 if terminal else gamma * float(np.max(q[next_state]))
@@ -255,19 +281,35 @@ class QRefiner:
                 state, objective, total = next_state, next_objective, total + reward
                 if objective < best[0]:
                     best = (objective, params, tuple(taken), f"episode {episode}")
-            history.append({"episode": episode, "epsilon": epsilon, "steps": len(taken), "return": total,
-                            "objective": objective, "rmse": metrics.rmse,
-                            "share_out_of_range": metrics.share_out_of_range})
+            history.append(
+                {
+                    "episode": episode,
+                    "epsilon": epsilon,
+                    "steps": len(taken),
+                    "return": total,
+                    "objective": objective,
+                    "rmse": metrics.rmse,
+                    "share_out_of_range": metrics.share_out_of_range,
+                }
+            )
         greedy = self._greedy_rollout(q, head, start)
         if greedy[0] < best[0]:
             best = greedy
         _, (k, c), actions, found_in = best
         self.q_table_ = q
         self.result_ = QResult(
-            w=k * w, b=np.array([c]), w_start=w.copy(), b_start=b.copy(), actions=actions, found_in=found_in, q_table=q,
-            history=history, before=range_metrics(h @ w[0] + b[0], y, cfg.allowed_range),
+            w=k * w,
+            b=np.array([c]),
+            w_start=w.copy(),
+            b_start=b.copy(),
+            actions=actions,
+            found_in=found_in,
+            q_table=q,
+            history=history,
+            before=range_metrics(h @ w[0] + b[0], y, cfg.allowed_range),
             after=range_metrics(k * (h @ w[0]) + c, y, cfg.allowed_range),
-            greedy=range_metrics(greedy[1][0] * (h @ w[0]) + greedy[1][1], y, cfg.allowed_range))
+            greedy=range_metrics(greedy[1][0] * (h @ w[0]) + greedy[1][1], y, cfg.allowed_range),
+        )
         return self.result_
 
     def _greedy_rollout(self, q, head, start):
@@ -355,8 +397,14 @@ class _AffineHead:
         excess_below = n_below * (self.lo - c) - k * self.prefix[n_below]  # sum of lo - p over p < lo
         # sum of p - hi over p > hi
         excess_above = k * (self.prefix[n] - self.prefix[first_above]) - n_above * (self.hi - c)
-        return RangeMetrics(n=n, rmse=math.sqrt(max(mse, 0.0)), mae=math.nan, n_below=n_below, n_above=n_above,
-                            mean_excess=max(excess_below + excess_above, 0.0) / n)
+        return RangeMetrics(
+            n=n,
+            rmse=math.sqrt(max(mse, 0.0)),
+            mae=math.nan,
+            n_below=n_below,
+            n_above=n_above,
+            mean_excess=max(excess_below + excess_above, 0.0) / n,
+        )
 
 
 def output_layer(model: nn.Module) -> nn.Linear:
@@ -381,8 +429,10 @@ def refine_model(model: nn.Module, x_val: np.ndarray, y_val: np.ndarray, config:
     after."""
     h, z, predictions = _head_io(model, x_val)
     if not np.allclose(z, predictions, rtol=0.0, atol=1e-6):
-        raise ValueError(f"model {type(model).__name__} transforms the output of its last nn.Linear (a bounded "
-                         "activation?); the Q refiner adjusts a linear output layer only")
+        raise ValueError(
+            f"model {type(model).__name__} transforms the output of its last nn.Linear (a bounded "
+            "activation?); the Q refiner adjusts a linear output layer only"
+        )
     layer = output_layer(model)
     result = QRefiner(config).fit(h, y_val, layer.weight.detach().cpu().numpy(), layer.bias.detach().cpu().numpy())
     with torch.no_grad():
@@ -395,8 +445,10 @@ def _head_io(model: nn.Module, x, batch_size: int = 4096) -> tuple[np.ndarray, n
     """(h (n, d), layer output (n,), model prediction (n,)), float64, from a forward hook on the output layer."""
     layer = output_layer(model)
     if layer.out_features != 1 or layer.bias is None:
-        raise ValueError(f"the output layer of {type(model).__name__} must have 1 output and a bias, got "
-                         f"out_features={layer.out_features}, bias={layer.bias is not None}")
+        raise ValueError(
+            f"the output layer of {type(model).__name__} must have 1 output and a bias, got "
+            f"out_features={layer.out_features}, bias={layer.bias is not None}"
+        )
     inputs, outputs = [], []
 
     def hook(module, args, output):
@@ -417,10 +469,15 @@ def _head_io(model: nn.Module, x, batch_size: int = 4096) -> tuple[np.ndarray, n
         return np.zeros((0, layer.in_features)), np.zeros(0), np.zeros(0)
     h, z = torch.cat(inputs), torch.cat(outputs)
     if h.ndim != 2 or h.shape[0] != len(x):
-        raise ValueError(f"the output layer of {type(model).__name__} must see one vector per window, got inputs of "
-                         f"shape {tuple(h.shape)} for {len(x)} windows")
-    return (h.cpu().numpy().astype(np.float64), z.reshape(-1).cpu().numpy().astype(np.float64),
-            torch.cat(predictions).cpu().numpy().astype(np.float64))
+        raise ValueError(
+            f"the output layer of {type(model).__name__} must see one vector per window, got inputs of "
+            f"shape {tuple(h.shape)} for {len(x)} windows"
+        )
+    return (
+        h.cpu().numpy().astype(np.float64),
+        z.reshape(-1).cpu().numpy().astype(np.float64),
+        torch.cat(predictions).cpu().numpy().astype(np.float64),
+    )
 
 
 def _check_fit_inputs(h, y, w, b):
@@ -440,5 +497,17 @@ def _check_fit_inputs(h, y, w, b):
     return h, y, w, b
 
 
-__all__ = ["ACTIONS", "DEFAULT_ALLOWED_RANGE", "QConfig", "QRefiner", "QResult", "RangeMetrics", "clip", "output_layer",
-           "penultimate", "q_update", "range_metrics", "refine_model"]
+__all__ = [
+    "ACTIONS",
+    "DEFAULT_ALLOWED_RANGE",
+    "QConfig",
+    "QRefiner",
+    "QResult",
+    "RangeMetrics",
+    "clip",
+    "output_layer",
+    "penultimate",
+    "q_update",
+    "range_metrics",
+    "refine_model",
+]

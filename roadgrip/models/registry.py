@@ -22,15 +22,26 @@ MODELS = {
     "sa-cnn-lstm-bounded": (BoundedSACNNLSTMConfig, SACNNLSTM),
 }
 PAPER_MODELS = ("dnn", "cnn", "convlstm", "sa-cnn-lstm")  # the architectures of the paper's tables
-DISPLAY_NAMES = {"dnn": "DNN", "cnn": "CNN", "convlstm": "ConvLSTM", "sa-cnn-lstm": "SA-CNN-LSTM",
-                 "sa-cnn-lstm-bounded": "SA-CNN-LSTM (bounded output)"}
+DISPLAY_NAMES = {
+    "dnn": "DNN",
+    "cnn": "CNN",
+    "convlstm": "ConvLSTM",
+    "sa-cnn-lstm": "SA-CNN-LSTM",
+    "sa-cnn-lstm-bounded": "SA-CNN-LSTM (bounded output)",
+}
 SEARCH_SPACES = {
     "dnn": [{"hidden": (32, 16)}, {"hidden": (64, 32)}, {"hidden": (128, 64)}],
-    "cnn": [{"channels": (16, 16), "hidden": 16}, {"channels": (32, 32), "hidden": 32}, {"channels": (64, 64), "hidden": 64}],
+    "cnn": [
+        {"channels": (16, 16), "hidden": 16},
+        {"channels": (32, 32), "hidden": 32},
+        {"channels": (64, 64), "hidden": 64},
+    ],
     "convlstm": [{"channels": 8, "hidden": 16}, {"channels": 16, "hidden": 32}, {"channels": 32, "hidden": 64}],
-    "sa-cnn-lstm": [{"d_attention": 8, "channels": (16, 16), "lstm_hidden": 16},
-                    {"d_attention": 16, "channels": (32, 32), "lstm_hidden": 32},
-                    {"d_attention": 32, "channels": (64, 64), "lstm_hidden": 64}],
+    "sa-cnn-lstm": [
+        {"d_attention": 8, "channels": (16, 16), "lstm_hidden": 16},
+        {"d_attention": 16, "channels": (32, 32), "lstm_hidden": 32},
+        {"d_attention": 32, "channels": (64, 64), "lstm_hidden": 64},
+    ],
 }
 SEARCH_SPACES["sa-cnn-lstm-bounded"] = SEARCH_SPACES["sa-cnn-lstm"]
 SEARCH_BUDGET = 3

@@ -43,8 +43,10 @@ class SACNNLSTM(nn.Module):
         pad = config.kernel // 2
         self.attention = SelfAttention(config.n_features, config.d_attention)
         self.conv = nn.Sequential(
-            nn.Conv1d(config.n_features + config.d_attention, c1, config.kernel, padding=pad), nn.ReLU(),
-            nn.Conv1d(c1, c2, config.kernel, padding=pad), nn.ReLU(),
+            nn.Conv1d(config.n_features + config.d_attention, c1, config.kernel, padding=pad),
+            nn.ReLU(),
+            nn.Conv1d(c1, c2, config.kernel, padding=pad),
+            nn.ReLU(),
             nn.MaxPool1d(2),
         )
         self.lstm = nn.LSTM(c2, config.lstm_hidden, batch_first=True)

@@ -72,8 +72,24 @@ LOAD_TRANSFER_LAG_S = 0.05  # first-order lag of the accelerations that drive th
 
 # Recorded channels, one row per sample
 CHANNELS = (
-    ["t_s", "x_m", "y_m", "heading_rad", "vx_mps", "vy_mps", "yaw_rate_radps", "roll_rad", "ax_mps2", "ay_mps2",
-     "steer_rad", "station_m", "mu", "abs_active", "acc_active", "v_ref_mps"]
+    [
+        "t_s",
+        "x_m",
+        "y_m",
+        "heading_rad",
+        "vx_mps",
+        "vy_mps",
+        "yaw_rate_radps",
+        "roll_rad",
+        "ax_mps2",
+        "ay_mps2",
+        "steer_rad",
+        "station_m",
+        "mu",
+        "abs_active",
+        "acc_active",
+        "v_ref_mps",
+    ]
     + [f"omega_{w}_radps" for w in ("fl", "fr", "rl", "rr")]
     + [f"mu_{w}" for w in ("fl", "fr", "rl", "rr")]
     + [f"slip_ratio_{w}" for w in ("fl", "fr", "rl", "rr")]
@@ -84,9 +100,35 @@ CHANNELS = (
     + ["grade_rad", "brake_active", "tcs_active", "esc_active"]
 )
 N_CH = len(CHANNELS)
-(C_T, C_X, C_Y, C_PSI, C_VX, C_VY, C_R, C_PHI, C_AX, C_AY, C_STEER, C_STATION, C_MU, C_ABS, C_ACC, C_VREF, C_OMEGA, C_MUW,
- C_SIG, C_ALPHA, C_FZ, C_FX, C_FY, C_GRADE, C_BRAKE, C_TCS, C_ESC) = (
-    list(range(16)) + [16 + 4 * k for k in range(7)] + [44, 45, 46, 47])
+(
+    C_T,
+    C_X,
+    C_Y,
+    C_PSI,
+    C_VX,
+    C_VY,
+    C_R,
+    C_PHI,
+    C_AX,
+    C_AY,
+    C_STEER,
+    C_STATION,
+    C_MU,
+    C_ABS,
+    C_ACC,
+    C_VREF,
+    C_OMEGA,
+    C_MUW,
+    C_SIG,
+    C_ALPHA,
+    C_FZ,
+    C_FX,
+    C_FY,
+    C_GRADE,
+    C_BRAKE,
+    C_TCS,
+    C_ESC,
+) = list(range(16)) + [16 + 4 * k for k in range(7)] + [44, 45, 46, 47]
 # ax_mps2 is the specific force of the tire and drag forces (what a level accelerometer reads; dv_x/dt - r v_y + g sin(grade));
 # brake_active: the driver asked for brake torque at the sample (the brake-light switch); tcs_active / esc_active: during
 # the 100 ms before the sample, traction control cut drive torque that the driver asked for, triggered by a driven
@@ -94,8 +136,25 @@ N_CH = len(CHANNELS)
 
 
 @njit(cache=True)
-def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade, speed, n_speed, steer_row, abs_on,
-                 tcs_on, n_sub, n_samples, out):
+def simulate_one(
+    vp,
+    tp,
+    path,
+    n_path,
+    mu_tab,
+    n_mu,
+    mu_mode,
+    grade_tab,
+    n_grade,
+    speed,
+    n_speed,
+    steer_row,
+    abs_on,
+    tcs_on,
+    n_sub,
+    n_samples,
+    out,
+):
     dt = STEP_S
     x = np.zeros(N_STATE)
     dx = np.zeros(N_STATE)
@@ -135,7 +194,9 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade
                 tx, ty = point_at_station(path, n_path, seg, station + lookahead)
                 delta_cmd = pure_pursuit(x[X], x[Y], x[PSI], tx, ty, wheelbase)
             force = mass * accel_cmd + vp[P_AERO] * x[VX] * abs(x[VX]) + vp[P_FRR] * mass * G_MPS2
-            force += mass * G_MPS2 * math.sin(grade)  # the driver feels the grade: feed-forward of the weight's component
+            force += (
+                mass * G_MPS2 * math.sin(grade)
+            )  # the driver feels the grade: feed-forward of the weight's component
             if force >= 0.0:
                 force = min(force, vp[P_TMAX] / radius, vp[P_PMAX] / max(x[VX], 1.0))
                 for i in range(4):
@@ -153,8 +214,26 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade
             mu_w[i] = mu_at(mu_tab, n_mu, mu_mode, station + xi, 1 if yi > 0 else 2)
         for i in range(4):
             drive_now[i] = drive_t[i] * tcs_factor
-        ax, ay = derivatives(x, delta, drive_now, mu_w, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
-                             wheel_k_secant, hub_speed, grade)
+        ax, ay = derivatives(
+            x,
+            delta,
+            drive_now,
+            mu_w,
+            vp,
+            tp,
+            ax_prev,
+            ay_prev,
+            dx,
+            fz,
+            sigma,
+            alpha,
+            fx,
+            fy,
+            wheel_k,
+            wheel_k_secant,
+            hub_speed,
+            grade,
+        )
         if step % n_sub == 0:
             row = out[step // n_sub]
             row[C_T], row[C_X], row[C_Y], row[C_PSI] = t, x[X], x[Y], x[PSI]
@@ -176,13 +255,18 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade
             if share > 0.0:
                 driven_slip = max(driven_slip, sigma[i])
             abs_mode[i], brake_t[i], intervening = abs_step(
-                abs_mode[i], brake_t[i], brake_demand[i], sigma[i], x[VX], abs_on, brake_rate, dt)
+                abs_mode[i], brake_t[i], brake_demand[i], sigma[i], x[VX], abs_on, brake_rate, dt
+            )
             abs_window = abs_window or intervening
         if abs_on:
             # rear axle select-low, front axle yaw-moment build-up delay, as production ABS does on split mu
             brake_t[2] = brake_t[3] = min(brake_t[2], brake_t[3])
             full_brake = brake_rate * BRAKE_RISE_S
-            yaw_limit = min(yaw_limit + dt * full_brake / YAW_BUILD_UP_S, YAW_MAX_SHARE * full_brake) if brake_demand[0] > 0.0 else 0.0
+            yaw_limit = (
+                min(yaw_limit + dt * full_brake / YAW_BUILD_UP_S, YAW_MAX_SHARE * full_brake)
+                if brake_demand[0] > 0.0
+                else 0.0
+            )
             low = min(brake_t[0], brake_t[1])
             brake_t[0] = min(brake_t[0], low + yaw_limit)
             brake_t[1] = min(brake_t[1], low + yaw_limit)
@@ -221,11 +305,29 @@ def simulate_one(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade_tab, n_grade
 
 
 @njit(parallel=True, cache=True)
-def simulate_batch(vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade, n_grade, speed, n_speed, steer, flags, n_sub,
-                   n_samples, out):
+def simulate_batch(
+    vp, tp, path, n_path, mu_tab, n_mu, mu_mode, grade, n_grade, speed, n_speed, steer, flags, n_sub, n_samples, out
+):
     for k in prange(vp.shape[0]):
-        simulate_one(vp[k], tp[k], path[k], n_path[k], mu_tab[k], n_mu[k], mu_mode[k], grade[k], n_grade[k], speed[k],
-                     n_speed[k], steer[k], flags[k, 0] != 0, flags[k, 1] != 0, n_sub, n_samples, out[k])
+        simulate_one(
+            vp[k],
+            tp[k],
+            path[k],
+            n_path[k],
+            mu_tab[k],
+            n_mu[k],
+            mu_mode[k],
+            grade[k],
+            n_grade[k],
+            speed[k],
+            n_speed[k],
+            steer[k],
+            flags[k, 0] != 0,
+            flags[k, 1] != 0,
+            n_sub,
+            n_samples,
+            out[k],
+        )
     return out
 
 
@@ -233,5 +335,21 @@ def run_batch(packed, n_samples: int, sample_period_s: float) -> np.ndarray:
     """Integrate every run of a packed batch; returns the recorded channels, shape (runs, n_samples, N_CH)."""
     n_sub = round(sample_period_s / STEP_S)
     out = np.zeros((packed.vp.shape[0], n_samples, N_CH))
-    return simulate_batch(packed.vp, packed.tp, packed.path, packed.n_path, packed.mu, packed.n_mu, packed.mu_mode,
-                          packed.grade, packed.n_grade, packed.speed, packed.n_speed, packed.steer, packed.flags, n_sub, n_samples, out)
+    return simulate_batch(
+        packed.vp,
+        packed.tp,
+        packed.path,
+        packed.n_path,
+        packed.mu,
+        packed.n_mu,
+        packed.mu_mode,
+        packed.grade,
+        packed.n_grade,
+        packed.speed,
+        packed.n_speed,
+        packed.steer,
+        packed.flags,
+        n_sub,
+        n_samples,
+        out,
+    )

@@ -36,8 +36,15 @@ PAPER_CONDITIONS = {
     "decreasing": [0.9, 0.6, 0.3, 0.1],
 }
 PAPER_ROADS = ("straight", "circular")
-RANDOM_MANOEUVRES = ("acceleration", "braking_abs", "braking_no_abs", "lane_change", "steady_curve", "sine_steer",
-                     "cruise")
+RANDOM_MANOEUVRES = (
+    "acceleration",
+    "braking_abs",
+    "braking_no_abs",
+    "lane_change",
+    "steady_curve",
+    "sine_steer",
+    "cruise",
+)
 PRESETS = ("paper", "random", "generalization-train", "generalization-calibration", "generalization-test")
 TRAINING_VEHICLES = (PAPER_SUV, MIDSIZE_SEDAN)  # the random preset's vehicles; the compact hatchback is held out
 TYPICAL_WHEELBASE_M = 2.9  # to size steering inputs before the vehicle is drawn
@@ -65,20 +72,22 @@ def paper_scenarios(seed: int = 0) -> list[Scenario]:
     scenarios = []
     for (condition, road, experiment), run_seed in zip(cases, _run_seeds(seed, len(cases))):
         values = PAPER_CONDITIONS[condition]
-        scenarios.append(Scenario(
-            run_id=f"paper-{condition}-{road}-e{experiment}",
-            path=_road(road, 1.5 * distance_m + 300.0),
-            mu=MuProfile.sections(values, PAPER_SECTIONS_SPAN * distance_m / len(values)),
-            speed=speed,
-            condition=condition,
-            road=road,
-            vehicle=PAPER_SUV,
-            tire=DugoffTire(),
-            duration_s=PAPER_DURATION_S,
-            seed=run_seed,
-            experiment=experiment,
-            manoeuvre="accelerate_decelerate",
-        ))
+        scenarios.append(
+            Scenario(
+                run_id=f"paper-{condition}-{road}-e{experiment}",
+                path=_road(road, 1.5 * distance_m + 300.0),
+                mu=MuProfile.sections(values, PAPER_SECTIONS_SPAN * distance_m / len(values)),
+                speed=speed,
+                condition=condition,
+                road=road,
+                vehicle=PAPER_SUV,
+                tire=DugoffTire(),
+                duration_s=PAPER_DURATION_S,
+                seed=run_seed,
+                experiment=experiment,
+                manoeuvre="accelerate_decelerate",
+            )
+        )
     return scenarios
 
 
@@ -120,8 +129,9 @@ def draw_mu(rng: np.random.Generator, bands, n: int) -> np.ndarray:
     return bands[k, 0] + u - (edges[k] - widths[k])
 
 
-def random_mu(rng: np.random.Generator, bands=((0.1, 1.0),), ramps: bool = True) -> tuple[np.ndarray, np.ndarray,
-                                                                                            np.ndarray, str]:
+def random_mu(
+    rng: np.random.Generator, bands=((0.1, 1.0),), ramps: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """1 to 5 sections of mu drawn from the bands, with steps (or ramps), sometimes split between the wheel tracks
     (the other track's mu drawn from the bands too). With ramps the mu between two sections passes through the gaps
     between bands: a benchmark that holds bands out asks for steps only.
@@ -209,9 +219,16 @@ def random_grade(rng: np.random.Generator, grade_max_rad: float, distance_m: flo
     return GradeProfile(stations, rng.uniform(-grade_max_rad, grade_max_rad, n))
 
 
-def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_DURATION_S, mu_bands=((0.1, 1.0),),
-                     vehicles=TRAINING_VEHICLES, prefix: str = "random", ramps: bool = True,
-                     effects: ProductionEffects = RANDOM_EFFECTS) -> list[Scenario]:
+def random_scenarios(
+    runs: int = 100,
+    seed: int = 0,
+    duration_s: float = PAPER_DURATION_S,
+    mu_bands=((0.1, 1.0),),
+    vehicles=TRAINING_VEHICLES,
+    prefix: str = "random",
+    ramps: bool = True,
+    effects: ProductionEffects = RANDOM_EFFECTS,
+) -> list[Scenario]:
     """Randomized vehicles (around `vehicles`), tire models, mu profiles (from `mu_bands`) and manoeuvres (see
     docs/SIMULATOR.md for the ranges), with the production-terminal `effects` (RANDOM_EFFECTS: all on;
     ProductionEffects.off() gives the runs of before they existed). The grade and the tire stiffness factor are drawn
@@ -225,7 +242,8 @@ def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_D
         manoeuvre = RANDOM_MANOEUVRES[int(rng.integers(len(RANDOM_MANOEUVRES)))]
         starts, mu_left, mu_right, mu_mode = random_mu(rng, mu_bands, ramps)
         speed, build_path, steer, abs_enabled = random_manoeuvre(
-            rng, manoeuvre, duration_s, float(min(mu_left.min(), mu_right.min())))
+            rng, manoeuvre, duration_s, float(min(mu_left.min(), mu_right.min()))
+        )
         distance_m = speed.distance_m(duration_s)
         path = build_path(1.3 * distance_m + 300.0)
         vehicle = random_vehicle(rng, f"{prefix}-{k:05d}", vehicles)
@@ -236,23 +254,25 @@ def random_scenarios(runs: int = 100, seed: int = 0, duration_s: float = PAPER_D
         if effects.tire_stiffness_spread:
             spread = effects.tire_stiffness_spread
             tire = dataclasses.replace(tire, stiffness_scale=float(rng.uniform(1.0 - spread, 1.0 + spread)))
-        scenarios.append(Scenario(
-            run_id=f"{prefix}-{k:05d}",
-            path=path,
-            mu=MuProfile(starts * distance_m, mu_left, mu_right, mu_mode),
-            speed=speed,
-            condition="random",
-            road="curve" if manoeuvre == "steady_curve" else "straight",
-            vehicle=vehicle,
-            tire=tire,
-            steer=steer,
-            duration_s=duration_s,
-            abs_enabled=abs_enabled,
-            seed=run_seed,
-            manoeuvre=manoeuvre,
-            grade=grade,
-            effects=effects,
-        ))
+        scenarios.append(
+            Scenario(
+                run_id=f"{prefix}-{k:05d}",
+                path=path,
+                mu=MuProfile(starts * distance_m, mu_left, mu_right, mu_mode),
+                speed=speed,
+                condition="random",
+                road="curve" if manoeuvre == "steady_curve" else "straight",
+                vehicle=vehicle,
+                tire=tire,
+                steer=steer,
+                duration_s=duration_s,
+                abs_enabled=abs_enabled,
+                seed=run_seed,
+                manoeuvre=manoeuvre,
+                grade=grade,
+                effects=effects,
+            )
+        )
     return scenarios
 
 
@@ -261,8 +281,9 @@ GENERALIZATION_TEST_MU_BANDS = ((0.45, 0.55), (0.85, 1.0))
 GENERALIZATION_RUNS = {"train": 160, "calibration": 40, "test": 40}
 
 
-def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None,
-                             effects: ProductionEffects = RANDOM_EFFECTS) -> list[Scenario]:
+def generalization_scenarios(
+    part: str, seed: int = 0, runs: int | None = None, effects: ProductionEffects = RANDOM_EFFECTS
+) -> list[Scenario]:
     """The generalization benchmark's data (CONTRACTS 4): `train` and `calibration` runs on the sedan and the SUV with mu in
     GENERALIZATION_TRAIN_MU_BANDS; `test` runs on the held-out compact hatchback with mu only in the held-out bands.
     Steps only: ramps would pass through the held-out bands."""
@@ -270,17 +291,33 @@ def generalization_scenarios(part: str, seed: int = 0, runs: int | None = None,
     n = GENERALIZATION_RUNS[part] if runs is None else runs
     offset = {"train": 0, "calibration": 1, "test": 2}[part]
     if part == "test":
-        return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TEST_MU_BANDS, vehicles=(COMPACT_HATCHBACK,),
-                                prefix=part, ramps=False, effects=effects)
-    return random_scenarios(n, seed + offset, mu_bands=GENERALIZATION_TRAIN_MU_BANDS, vehicles=TRAINING_VEHICLES,
-                            prefix=part, ramps=False, effects=effects)
+        return random_scenarios(
+            n,
+            seed + offset,
+            mu_bands=GENERALIZATION_TEST_MU_BANDS,
+            vehicles=(COMPACT_HATCHBACK,),
+            prefix=part,
+            ramps=False,
+            effects=effects,
+        )
+    return random_scenarios(
+        n,
+        seed + offset,
+        mu_bands=GENERALIZATION_TRAIN_MU_BANDS,
+        vehicles=TRAINING_VEHICLES,
+        prefix=part,
+        ramps=False,
+        effects=effects,
+    )
 
 
 def preset_scenarios(preset: str, runs: int | None = None, seed: int = 0) -> list[Scenario]:
     check_choice("simulate", "preset", preset, set(PRESETS))
     if preset == "paper":
         if runs is not None and runs != 20:
-            raise ValueError(f"the paper preset has exactly 20 runs (5 conditions x 2 roads x 2 experiments), got runs={runs}")
+            raise ValueError(
+                f"the paper preset has exactly 20 runs (5 conditions x 2 roads x 2 experiments), got runs={runs}"
+            )
         return paper_scenarios(seed)
     if preset.startswith("generalization-"):
         return generalization_scenarios(preset.removeprefix("generalization-"), seed, runs)

@@ -36,9 +36,18 @@ from roadgrip.units import G_MPS2, deg_to_rad, kmh_to_mps
 from roadgrip.validation import bounded, check_bounds
 
 WHEELS = ("fl", "fr", "rl", "rr")
-AWD_ACCELERATING_MPS2 = 0.5  # an AWD car's ECU takes its slowest wheel while the wheels' mean speeds up faster than this
-SENSOR_FIELDS = ("speed_from_wheels", "accel_mount_max_rad", "accel_bias_max_mps2", "pitch_gradient_rad_per_mps2",
-                 "wheel_radius_spread", "wheel_speed_resolution_kmh", "time_offset_max_s")
+AWD_ACCELERATING_MPS2 = (
+    0.5  # an AWD car's ECU takes its slowest wheel while the wheels' mean speeds up faster than this
+)
+SENSOR_FIELDS = (
+    "speed_from_wheels",
+    "accel_mount_max_rad",
+    "accel_bias_max_mps2",
+    "pitch_gradient_rad_per_mps2",
+    "wheel_radius_spread",
+    "wheel_speed_resolution_kmh",
+    "time_offset_max_s",
+)
 
 
 @dataclass(frozen=True)
@@ -69,17 +78,22 @@ class ProductionEffects:
     @classmethod
     def production(cls, **changes) -> ProductionEffects:
         """Every effect on, at the sizes of docs/SIMULATOR.md ("Production-terminal realism")."""
-        return cls(**({
-            "speed_from_wheels": True,
-            "accel_mount_max_rad": deg_to_rad(2.0),
-            "accel_bias_max_mps2": 0.2,
-            "pitch_gradient_rad_per_mps2": deg_to_rad(1.5) / G_MPS2,
-            "wheel_radius_spread": 0.02,
-            "wheel_speed_resolution_kmh": 0.01,
-            "time_offset_max_s": 0.05,
-            "grade_max_rad": 0.04,
-            "tire_stiffness_spread": 0.3,
-        } | changes))
+        return cls(
+            **(
+                {
+                    "speed_from_wheels": True,
+                    "accel_mount_max_rad": deg_to_rad(2.0),
+                    "accel_bias_max_mps2": 0.2,
+                    "pitch_gradient_rad_per_mps2": deg_to_rad(1.5) / G_MPS2,
+                    "wheel_radius_spread": 0.02,
+                    "wheel_speed_resolution_kmh": 0.01,
+                    "time_offset_max_s": 0.05,
+                    "grade_max_rad": 0.04,
+                    "tire_stiffness_spread": 0.3,
+                }
+                | changes
+            )
+        )
 
     @property
     def any_sensor_effect(self) -> bool:
@@ -128,8 +142,14 @@ def quantised(speed_mps: np.ndarray, resolution_kmh: float) -> np.ndarray:
     return np.round(speed_mps / step_mps) * step_mps
 
 
-def ecu_speed(wheel_speed_mps: np.ndarray, braking: np.ndarray, front_drive_share: float, sample_period_s: float,
-              reference_decel_max_mps2: float, accel_lon_mps2: np.ndarray | None = None) -> np.ndarray:
+def ecu_speed(
+    wheel_speed_mps: np.ndarray,
+    braking: np.ndarray,
+    front_drive_share: float,
+    sample_period_s: float,
+    reference_decel_max_mps2: float,
+    accel_lon_mps2: np.ndarray | None = None,
+) -> np.ndarray:
     """Vehicle speed as a production ABS/ESC ECU computes it from its wheel speeds (m/s, shape (n, 4), fl fr rl rr).
 
     Driving (not braking): the mean of the undriven wheels (FWD: the rear ones, RWD: the front ones), which roll freely;
@@ -162,7 +182,9 @@ def ecu_speed(wheel_speed_mps: np.ndarray, braking: np.ndarray, front_drive_shar
     return np.maximum(speed, 0.0)
 
 
-def sensed_truth(truth: dict[str, np.ndarray], effects: ProductionEffects, draw: ProductionDraw) -> dict[str, np.ndarray]:
+def sensed_truth(
+    truth: dict[str, np.ndarray], effects: ProductionEffects, draw: ProductionDraw
+) -> dict[str, np.ndarray]:
     """The true signals as the production sensors see them, before the base model's bias and noise: each group read at
     t + its offset, each wheel spinning as a tire of radius r_nominal (1 + e) does, the accelerometer tilted and biased.
     A signal whose effects are all off is the same array as in `truth`."""
@@ -184,21 +206,35 @@ def sensed_truth(truth: dict[str, np.ndarray], effects: ProductionEffects, draw:
         # the sensor's x axis is tilted nose up by its mounting angle plus the body's pitch (squat when accelerating,
         # dive when braking); it reads the specific force along it, a_x cos(theta) + g cos(grade) sin(theta)
         theta = draw.mount_pitch_rad + effects.pitch_gradient_rad_per_mps2 * ax
-        seen["ax_mps2"] = ax * np.cos(theta) + G_MPS2 * np.cos(seen["grade_rad"]) * np.sin(theta) + draw.accel_bias_mps2[0]
+        seen["ax_mps2"] = (
+            ax * np.cos(theta) + G_MPS2 * np.cos(seen["grade_rad"]) * np.sin(theta) + draw.accel_bias_mps2[0]
+        )
         # the lateral channel reads a_y + g sin(roll) (SensorModel): its roll is the body's plus the mounting angle
         seen["roll_rad"] = seen["roll_rad"] + draw.mount_roll_rad
         seen["ay_mps2"] = seen["ay_mps2"] + draw.accel_bias_mps2[1]
     return seen
 
 
-def ecu_signals(out: dict[str, np.ndarray], truth_seen: dict[str, np.ndarray], effects: ProductionEffects,
-                wheel_radius_m: float, front_drive_share: float, sample_period_s: float) -> None:
+def ecu_signals(
+    out: dict[str, np.ndarray],
+    truth_seen: dict[str, np.ndarray],
+    effects: ProductionEffects,
+    wheel_radius_m: float,
+    front_drive_share: float,
+    sample_period_s: float,
+) -> None:
     """Rewrite the measured speed and wheel speeds in `out` as the ECU sends them: the speed from the (noisy) wheel
     speeds (`ecu_speed`), then both rounded to the CAN resolution (in km/h at the nominal radius)."""
     if effects.speed_from_wheels:
         wheel_mps = np.column_stack([out[f"wheel_speed_{w}_radps"] for w in WHEELS]) * wheel_radius_m
-        out["speed_mps"] = ecu_speed(wheel_mps, truth_seen["brake_active"] > 0.5, front_drive_share, sample_period_s,
-                                     effects.reference_decel_max_mps2, out["accel_lon_mps2"])
+        out["speed_mps"] = ecu_speed(
+            wheel_mps,
+            truth_seen["brake_active"] > 0.5,
+            front_drive_share,
+            sample_period_s,
+            effects.reference_decel_max_mps2,
+            out["accel_lon_mps2"],
+        )
     resolution = effects.wheel_speed_resolution_kmh
     if resolution:
         for w in WHEELS:
@@ -209,6 +245,11 @@ def ecu_signals(out: dict[str, np.ndarray], truth_seen: dict[str, np.ndarray], e
 
 def describe_draw(draw: ProductionDraw) -> dict:
     """A JSON-ready record of one run's draw (for logs and tests)."""
-    return {"radius_error": draw.radius_error.tolist(), "time_offset_s": draw.time_offset_s.tolist(),
-            "mount_pitch_rad": draw.mount_pitch_rad, "mount_roll_rad": draw.mount_roll_rad,
-            "accel_bias_mps2": draw.accel_bias_mps2.tolist(), "mount_pitch_deg": math.degrees(draw.mount_pitch_rad)}
+    return {
+        "radius_error": draw.radius_error.tolist(),
+        "time_offset_s": draw.time_offset_s.tolist(),
+        "mount_pitch_rad": draw.mount_pitch_rad,
+        "mount_roll_rad": draw.mount_roll_rad,
+        "accel_bias_mps2": draw.accel_bias_mps2.tolist(),
+        "mount_pitch_deg": math.degrees(draw.mount_pitch_rad),
+    }

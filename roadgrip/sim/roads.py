@@ -70,7 +70,9 @@ class Path:
         return cls(np.column_stack([radius_m * np.sin(theta), side * radius_m * (1.0 - np.cos(theta))]))
 
     @classmethod
-    def lane_changes(cls, length_m: float, starts_m, offsets_m, transition_m: float = 40.0, step_m: float = 2.0) -> Path:
+    def lane_changes(
+        cls, length_m: float, starts_m, offsets_m, transition_m: float = 40.0, step_m: float = 2.0
+    ) -> Path:
         """A straight road along x with smooth (cosine) lateral moves to offsets_m[k] beginning at starts_m[k]."""
         x = np.arange(0.0, length_m + step_m, step_m)
         y = np.zeros_like(x)
@@ -95,7 +97,9 @@ class MuProfile:
     mode: str = "step"
 
     def __post_init__(self):
-        arrays = [np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (self.stations_m, self.mu_left, self.mu_right)]
+        arrays = [
+            np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (self.stations_m, self.mu_left, self.mu_right)
+        ]
         for name, a in zip(("stations_m", "mu_left", "mu_right"), arrays):
             if a.ndim != 1 or a.size != arrays[0].size:
                 raise ValueError(f"MuProfile.{name} must be 1-D with {arrays[0].size} values, got shape {a.shape}")
@@ -147,15 +151,19 @@ class GradeProfile:
         stations = np.atleast_1d(np.asarray(self.stations_m, dtype=np.float64))
         grade = np.atleast_1d(np.asarray(self.grade_rad, dtype=np.float64))
         if stations.ndim != 1 or grade.shape != stations.shape or stations.size < 1:
-            raise ValueError(f"GradeProfile needs stations_m and grade_rad of one length >= 1, got {stations.shape} and "
-                             f"{grade.shape}")
+            raise ValueError(
+                f"GradeProfile needs stations_m and grade_rad of one length >= 1, got {stations.shape} and "
+                f"{grade.shape}"
+            )
         if not (np.isfinite(stations).all() and np.isfinite(grade).all()):
             raise ValueError("GradeProfile stations_m and grade_rad must be finite")
         if (np.diff(stations) <= 0).any():
             raise ValueError(f"GradeProfile.stations_m must increase strictly, got {stations.tolist()}")
         bad = grade[np.abs(grade) > GRADE_MAX_RAD]
         if bad.size:
-            raise ValueError(f"GradeProfile.grade_rad must lie in [-{GRADE_MAX_RAD}, {GRADE_MAX_RAD}], got {float(bad[0])!r}")
+            raise ValueError(
+                f"GradeProfile.grade_rad must lie in [-{GRADE_MAX_RAD}, {GRADE_MAX_RAD}], got {float(bad[0])!r}"
+            )
         object.__setattr__(self, "stations_m", stations)
         object.__setattr__(self, "grade_rad", grade)
 

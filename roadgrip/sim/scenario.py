@@ -43,8 +43,15 @@ class Scenario:
 
     def __post_init__(self):
         check_bounds(self)
-        for name, cls in (("path", Path), ("mu", MuProfile), ("speed", SpeedProfile), ("vehicle", VehicleParams),
-                          ("tire", TireModel), ("grade", GradeProfile), ("effects", ProductionEffects)):
+        for name, cls in (
+            ("path", Path),
+            ("mu", MuProfile),
+            ("speed", SpeedProfile),
+            ("vehicle", VehicleParams),
+            ("tire", TireModel),
+            ("grade", GradeProfile),
+            ("effects", ProductionEffects),
+        ):
             if not isinstance(getattr(self, name), cls):
                 raise TypeError(f"Scenario.{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
         if self.steer is not None and not isinstance(self.steer, SteerInput):
@@ -76,10 +83,17 @@ class Scenario:
             "abs_enabled": self.abs_enabled,
             "tcs_enabled": self.tcs_enabled,
             "path_length_m": self.path.length_m,
-            "mu_profile": {"mode": self.mu.mode, "stations_m": self.mu.stations_m.tolist(),
-                           "mu_left": self.mu.mu_left.tolist(), "mu_right": self.mu.mu_right.tolist()},
-            "speed_profile": {"times_s": self.speed.times_s.tolist(), "speeds_mps": self.speed.speeds_mps.tolist(),
-                              "acc_active": self.speed.acc_active.tolist()},
+            "mu_profile": {
+                "mode": self.mu.mode,
+                "stations_m": self.mu.stations_m.tolist(),
+                "mu_left": self.mu.mu_left.tolist(),
+                "mu_right": self.mu.mu_right.tolist(),
+            },
+            "speed_profile": {
+                "times_s": self.speed.times_s.tolist(),
+                "speeds_mps": self.speed.speeds_mps.tolist(),
+                "acc_active": self.speed.acc_active.tolist(),
+            },
             "steer": None if self.steer is None else dataclasses.asdict(self.steer),
             "production_effects": self.effects.to_dict(),
             "grade_profile": {"stations_m": self.grade.stations_m.tolist(), "grade_rad": self.grade.grade_rad.tolist()},

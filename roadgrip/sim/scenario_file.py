@@ -39,12 +39,30 @@ from roadgrip.validation import from_mapping
 from roadgrip.vehicle.params import VehicleParams, vehicle_by_name
 from roadgrip.vehicle.tires import tire_model_by_name
 
-RUN_KEYS = {"run_id", "duration_s", "vehicle", "tire", "road", "mu", "speed", "steer", "abs_enabled", "tcs_enabled",
-            "seed", "condition", "manoeuvre", "grade", "effects"}
+RUN_KEYS = {
+    "run_id",
+    "duration_s",
+    "vehicle",
+    "tire",
+    "road",
+    "mu",
+    "speed",
+    "steer",
+    "abs_enabled",
+    "tcs_enabled",
+    "seed",
+    "condition",
+    "manoeuvre",
+    "grade",
+    "effects",
+}
 ROAD_KINDS = {
     "straight": ({"length_m"}, lambda r: Path.straight(r["length_m"], r.get("heading_rad", 0.0)), {"heading_rad"}),
-    "circle": ({"radius_m", "arc_length_m"}, lambda r: Path.circle(r["radius_m"], r["arc_length_m"],
-                                                                   left=r.get("left", True)), {"left"}),
+    "circle": (
+        {"radius_m", "arc_length_m"},
+        lambda r: Path.circle(r["radius_m"], r["arc_length_m"], left=r.get("left", True)),
+        {"left"},
+    ),
     "polyline": ({"points_m"}, lambda r: Path(r["points_m"]), set()),
 }
 
@@ -73,8 +91,9 @@ def _mu(where: str, data) -> MuProfile:
     if isinstance(data, (int, float)) and not isinstance(data, bool):
         return MuProfile.uniform(float(data))
     data = _keys(f"{where}.mu", data, {"stations_m", "mu_left"}, {"mu_right", "mode"})
-    return MuProfile(data["stations_m"], data["mu_left"], data.get("mu_right", data["mu_left"]),
-                     data.get("mode", "step"))
+    return MuProfile(
+        data["stations_m"], data["mu_left"], data.get("mu_right", data["mu_left"]), data.get("mode", "step")
+    )
 
 
 def _grade(where: str, data) -> GradeProfile:
@@ -91,7 +110,9 @@ def _effects(where: str, data) -> ProductionEffects:
         return ProductionEffects.production()
     if isinstance(data, dict):
         return from_mapping(ProductionEffects, data)
-    raise ValueError(f"{where}.effects must be 'off', 'production' or a mapping of ProductionEffects fields, got {data!r}")
+    raise ValueError(
+        f"{where}.effects must be 'off', 'production' or a mapping of ProductionEffects fields, got {data!r}"
+    )
 
 
 def scenario_from_dict(data) -> Scenario:
@@ -103,8 +124,9 @@ def scenario_from_dict(data) -> Scenario:
     tire = dict(data.get("tire", {"model": "dugoff"}))
     speed = _keys(f"{where}.speed", data["speed"], {"times_s", "speeds_mps"}, {"acc_active"})
     steer = data.get("steer")
-    options = {k: data[k] for k in ("duration_s", "abs_enabled", "tcs_enabled", "seed", "condition", "manoeuvre")
-               if k in data}
+    options = {
+        k: data[k] for k in ("duration_s", "abs_enabled", "tcs_enabled", "seed", "condition", "manoeuvre") if k in data
+    }
     return Scenario(
         run_id=str(run_id),
         path=_road(where, data["road"]),

@@ -59,15 +59,34 @@ class SensorModel:
 
     @classmethod
     def noiseless(cls, **changes) -> SensorModel:
-        zero = {f: 0.0 for f in ("speed_scale_bias", "speed_noise_mps", "accel_bias_mps2", "accel_noise_mps2",
-                                  "yaw_rate_bias_radps", "yaw_rate_noise_radps", "steering_bias_rad",
-                                  "steering_noise_rad", "wheel_speed_noise_radps", "lateral_speed_noise_mps",
-                                  "gnss_noise_m")}
+        zero = {
+            f: 0.0
+            for f in (
+                "speed_scale_bias",
+                "speed_noise_mps",
+                "accel_bias_mps2",
+                "accel_noise_mps2",
+                "yaw_rate_bias_radps",
+                "yaw_rate_noise_radps",
+                "steering_bias_rad",
+                "steering_noise_rad",
+                "wheel_speed_noise_radps",
+                "lateral_speed_noise_mps",
+                "gnss_noise_m",
+            )
+        }
         return cls(**(zero | changes))
 
-    def measure(self, truth: dict[str, np.ndarray], steering_ratio: float, sample_period_s: float,
-                rng: np.random.Generator, *, effects: ProductionEffects | None = None,
-                vehicle: VehicleParams | None = None) -> dict[str, np.ndarray]:
+    def measure(
+        self,
+        truth: dict[str, np.ndarray],
+        steering_ratio: float,
+        sample_period_s: float,
+        rng: np.random.Generator,
+        *,
+        effects: ProductionEffects | None = None,
+        vehicle: VehicleParams | None = None,
+    ) -> dict[str, np.ndarray]:
         """Telemetry signals of one run from its true signals (arrays over samples, keys as in integrator.CHANNELS).
 
         With production `effects` (which need the `vehicle`: nominal wheel radius and drive layout), the sensors see
@@ -77,7 +96,9 @@ class SensorModel:
         production = effects is not None and effects.any_sensor_effect
         if production:
             if vehicle is None:
-                raise ValueError("SensorModel.measure: production effects need the vehicle (wheel radius, drive layout)")
+                raise ValueError(
+                    "SensorModel.measure: production effects need the vehicle (wheel radius, drive layout)"
+                )
             truth = sensed_truth(truth, effects, effects.draw(rng.spawn(1)[0]))
         n = truth["t_s"].size
 
@@ -88,11 +109,13 @@ class SensorModel:
             "speed_mps": truth["vx_mps"] * (1.0 + rng.normal(0.0, self.speed_scale_bias))
             + rng.normal(0.0, self.speed_noise_mps, n),
             "accel_lon_mps2": noisy(truth["ax_mps2"], self.accel_bias_mps2, self.accel_noise_mps2),
-            "accel_lat_mps2": noisy(truth["ay_mps2"] + G_MPS2 * np.sin(truth["roll_rad"]), self.accel_bias_mps2,
-                                    self.accel_noise_mps2),
+            "accel_lat_mps2": noisy(
+                truth["ay_mps2"] + G_MPS2 * np.sin(truth["roll_rad"]), self.accel_bias_mps2, self.accel_noise_mps2
+            ),
             "yaw_rate_radps": noisy(truth["yaw_rate_radps"], self.yaw_rate_bias_radps, self.yaw_rate_noise_radps),
-            "steering_wheel_angle_rad": noisy(truth["steer_rad"] * steering_ratio, self.steering_bias_rad,
-                                              self.steering_noise_rad),
+            "steering_wheel_angle_rad": noisy(
+                truth["steer_rad"] * steering_ratio, self.steering_bias_rad, self.steering_noise_rad
+            ),
             "lateral_speed_mps": truth["vy_mps"] + rng.normal(0.0, self.lateral_speed_noise_mps, n),
         }
         for w in ("fl", "fr", "rl", "rr"):

@@ -33,23 +33,34 @@ def simulate_truth(scenarios: Sequence[Scenario], progress: Callable[[int], None
     return results
 
 
-def simulate(scenarios: Sequence[Scenario], sensors: SensorModel = SensorModel(),
-             start_epoch_ms: int = DEFAULT_START_EPOCH_MS,
-             progress: Callable[[int], None] | None = None) -> pa.Table:
+def simulate(
+    scenarios: Sequence[Scenario],
+    sensors: SensorModel = SensorModel(),
+    start_epoch_ms: int = DEFAULT_START_EPOCH_MS,
+    progress: Callable[[int], None] | None = None,
+) -> pa.Table:
     """Simulate the scenarios and measure them with the sensor model (each run's noise seeded by its scenario's seed)."""
     if not scenarios:
         raise ValueError("simulate() needs at least one scenario")
     ids = [s.run_id for s in scenarios]
     if len(set(ids)) != len(ids):
-        raise ValueError(f"scenario run_id values must be unique, got duplicates {sorted({i for i in ids if ids.count(i) > 1})}")
+        raise ValueError(
+            f"scenario run_id values must be unique, got duplicates {sorted({i for i in ids if ids.count(i) > 1})}"
+        )
     truths = simulate_truth(scenarios, progress)
     index = {name: k for k, name in enumerate(CHANNELS)}
     tables = []
     for scenario, truth in zip(scenarios, truths):
         signal = {name: truth[:, k] for name, k in index.items()}
         rng = np.random.default_rng(scenario.seed)
-        measured = sensors.measure(signal, scenario.vehicle.steering_ratio, SAMPLE_PERIOD_S, rng,
-                                   effects=scenario.effects, vehicle=scenario.vehicle)
+        measured = sensors.measure(
+            signal,
+            scenario.vehicle.steering_ratio,
+            SAMPLE_PERIOD_S,
+            rng,
+            effects=scenario.effects,
+            vehicle=scenario.vehicle,
+        )
         n = truth.shape[0]
         columns = {
             "vehicle_id": [f"sim-{scenario.run_id}"] * n,

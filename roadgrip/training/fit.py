@@ -59,17 +59,39 @@ def prepare(table: pa.Table, feature_set: str, window: int = WINDOW, vehicles: d
     blocks = time_blocks(t_s, BLOCK_S)
     windows, ends = make_windows(features, segment_ids(runs, blocks), window)
     mu = table["mu"].to_numpy()
-    exc = excited(table["ax_true_mps2"].to_numpy(), table["ay_true_mps2"].to_numpy(), table["abs_active"].to_numpy(), mu)
-    measured = np.column_stack([table[c].to_numpy(zero_copy_only=False).astype(np.float64)
-                                for c in ("accel_lon_mps2", "accel_lat_mps2", "abs_active")])
-    return PreparedData(windows, mu.astype(np.float32)[ends], runs[ends], blocks[ends], t_s[ends], feature_set,
-                        exc[ends], measured[ends])
+    exc = excited(
+        table["ax_true_mps2"].to_numpy(), table["ay_true_mps2"].to_numpy(), table["abs_active"].to_numpy(), mu
+    )
+    measured = np.column_stack(
+        [
+            table[c].to_numpy(zero_copy_only=False).astype(np.float64)
+            for c in ("accel_lon_mps2", "accel_lat_mps2", "abs_active")
+        ]
+    )
+    return PreparedData(
+        windows,
+        mu.astype(np.float32)[ends],
+        runs[ends],
+        blocks[ends],
+        t_s[ends],
+        feature_set,
+        exc[ends],
+        measured[ends],
+    )
 
 
 def subset(data: PreparedData, idx: np.ndarray) -> PreparedData:
     """The windows idx of a prepared data set."""
-    return replace(data, windows=data.windows[idx], targets=data.targets[idx], runs=data.runs[idx],
-                   blocks=data.blocks[idx], t_s=data.t_s[idx], excited=data.excited[idx], measured=data.measured[idx])
+    return replace(
+        data,
+        windows=data.windows[idx],
+        targets=data.targets[idx],
+        runs=data.runs[idx],
+        blocks=data.blocks[idx],
+        t_s=data.t_s[idx],
+        excited=data.excited[idx],
+        measured=data.measured[idx],
+    )
 
 
 def block_split(data: PreparedData, fold: int = SELECTION_FOLD) -> tuple[np.ndarray, np.ndarray]:
@@ -94,8 +116,14 @@ class FittedModel:
     interval: dict  # conformal calibration by utilization bin (roadgrip/estimators/calibration.py)
 
 
-def fit(model_name: str, data: PreparedData, train_idx: np.ndarray, val_idx: np.ndarray, overrides: dict | None = None,
-        train_config: TrainConfig = TrainConfig()) -> FittedModel:
+def fit(
+    model_name: str,
+    data: PreparedData,
+    train_idx: np.ndarray,
+    val_idx: np.ndarray,
+    overrides: dict | None = None,
+    train_config: TrainConfig = TrainConfig(),
+) -> FittedModel:
     scaler = Scaler().fit(data.windows[train_idx])
     x = scaler.transform(data.windows)
     config = model_config(model_name, data.windows.shape[2], data.windows.shape[1], **(overrides or {}))
@@ -117,11 +145,18 @@ def calibration_of(fitted: FittedModel, data: PreparedData, idx: np.ndarray | No
     return calibrate(pred, data.targets[idx], bins) | {"calibrated_on": len(idx)}
 
 
-def cross_validate(model_name: str, data: PreparedData, n_folds: int, overrides: dict | None = None,
-                   train_config: TrainConfig = TrainConfig()) -> list[float]:
+def cross_validate(
+    model_name: str,
+    data: PreparedData,
+    n_folds: int,
+    overrides: dict | None = None,
+    train_config: TrainConfig = TrainConfig(),
+) -> list[float]:
     """Validation RMSE of each of K folds grouped by run (each fold's model early-stops on its own validation runs)."""
-    return [fit(model_name, data, tr, va, overrides, train_config).result.best_val_rmse
-            for tr, va in run_folds(data, n_folds)]
+    return [
+        fit(model_name, data, tr, va, overrides, train_config).result.best_val_rmse
+        for tr, va in run_folds(data, n_folds)
+    ]
 
 
 def save_fitted(path, fitted: FittedModel, feature_set: str, training: dict):
@@ -137,7 +172,11 @@ def save_fitted(path, fitted: FittedModel, feature_set: str, training: dict):
         "scaler_mean": fitted.scaler.mean_,
         "scaler_scale": fitted.scaler.scale_,
         "interval": fitted.interval,
-        "training": {"best_val_rmse": fitted.result.best_val_rmse, "best_epoch": fitted.result.best_epoch,
-                     "epochs_run": fitted.result.epochs_run, **training},
+        "training": {
+            "best_val_rmse": fitted.result.best_val_rmse,
+            "best_epoch": fitted.result.best_epoch,
+            "epochs_run": fitted.result.epochs_run,
+            **training,
+        },
     }
     return save_checkpoint(path, fitted.model_name, fitted.config, fitted.model, meta)

@@ -12,5 +12,6 @@ def _one_thread():
 
 def training_pool(workers: int) -> cf.ProcessPoolExecutor:
     """`workers` spawned processes, each holding torch to one thread."""
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                  initializer=_one_thread)
+    return cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread
+    )

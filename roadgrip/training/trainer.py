@@ -40,11 +40,14 @@ class Trainer:
     def __init__(self, config: TrainConfig = TrainConfig()):
         self.config = config
 
-    def fit(self, model: nn.Module, x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray,
-            y_val: np.ndarray) -> TrainResult:
+    def fit(
+        self, model: nn.Module, x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_val: np.ndarray
+    ) -> TrainResult:
         cfg = self.config
         if len(x_train) == 0 or len(x_val) == 0:
-            raise ValueError(f"training needs samples on both sides, got {len(x_train)} train and {len(x_val)} validation")
+            raise ValueError(
+                f"training needs samples on both sides, got {len(x_train)} train and {len(x_val)} validation"
+            )
         torch.manual_seed(cfg.seed)
         generator = torch.Generator().manual_seed(cfg.seed)
         xt, yt = torch.as_tensor(x_train, dtype=torch.float32), torch.as_tensor(y_train, dtype=torch.float32)
@@ -79,8 +82,11 @@ def predict(model: nn.Module, x: np.ndarray | torch.Tensor, batch_size: int = 40
     model.eval()
     x = torch.as_tensor(x, dtype=torch.float32)
     with torch.no_grad():
-        return np.concatenate([model(x[i : i + batch_size]).numpy() for i in range(0, len(x), batch_size)]) if len(x) \
+        return (
+            np.concatenate([model(x[i : i + batch_size]).numpy() for i in range(0, len(x), batch_size)])
+            if len(x)
             else np.zeros(0, dtype=np.float32)
+        )
 
 
 def rmse_of(model: nn.Module, x: torch.Tensor, y: torch.Tensor) -> float:

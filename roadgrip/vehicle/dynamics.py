@@ -40,8 +40,30 @@ N_STATE = 12
 
 # Packed vehicle parameter vector
 (
-    P_M, P_MS, P_IZ, P_IX, P_LF, P_LR, P_H, P_TF, P_TR, P_RW, P_JW, P_KF, P_KR, P_CROLL, P_HRF, P_HRR, P_AERO, P_FRR,
-    P_DRIVE_F, P_BRAKE_F, P_TMAX, P_PMAX, P_STEER_MAX, P_STEER_RATIO,
+    P_M,
+    P_MS,
+    P_IZ,
+    P_IX,
+    P_LF,
+    P_LR,
+    P_H,
+    P_TF,
+    P_TR,
+    P_RW,
+    P_JW,
+    P_KF,
+    P_KR,
+    P_CROLL,
+    P_HRF,
+    P_HRR,
+    P_AERO,
+    P_FRR,
+    P_DRIVE_F,
+    P_BRAKE_F,
+    P_TMAX,
+    P_PMAX,
+    P_STEER_MAX,
+    P_STEER_RATIO,
 ) = range(24)
 N_VP = 24
 
@@ -135,8 +157,26 @@ def wheel_loads_on_grade(vp, ax, ay, phi, phid, grade_rad, fz_out):
 
 
 @njit(cache=True)
-def derivatives(x, delta, drive_torque, mu, vp, tp, ax_prev, ay_prev, dx, fz, sigma, alpha, fx, fy, wheel_k,
-                wheel_k_secant, hub_speed, grade_rad=0.0):
+def derivatives(
+    x,
+    delta,
+    drive_torque,
+    mu,
+    vp,
+    tp,
+    ax_prev,
+    ay_prev,
+    dx,
+    fz,
+    sigma,
+    alpha,
+    fx,
+    fy,
+    wheel_k,
+    wheel_k_secant,
+    hub_speed,
+    grade_rad=0.0,
+):
     """dx/dt of the body and the wheels' tire torques. Returns (a_x, a_y): the specific force of the tire and drag forces
     on the body (force / m, body frame), which is the CoG acceleration on a level road and what a level accelerometer reads
     on any road.

@@ -11,6 +11,7 @@ from roadgrip.cloud.transport.amqp import RabbitCluster
 
 pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 
+
 def test_cluster_bench_measures_every_case():
     if not (RabbitCluster.bin_dir / "rabbitmq-server").exists():
         pytest.fail("rabbitmq-server is not installed: run `bash scripts/install_system_deps.sh`", pytrace=False)

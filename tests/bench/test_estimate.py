@@ -23,8 +23,15 @@ def test_bench_reports_throughput_and_latency_and_the_filters_meet_the_target():
     results = bench_estimators(("ekf", "ukf", "default"), 300)
     assert [r["estimator"] for r in results] == ["ekf", "ukf", "default"]
     for r in results:
-        assert set(r) == {"estimator", "updates", "updates_per_s", "latency_median_us", "latency_p99_us",
-                          "batch_rows_per_s", "threads"}
+        assert set(r) == {
+            "estimator",
+            "updates",
+            "updates_per_s",
+            "latency_median_us",
+            "latency_p99_us",
+            "batch_rows_per_s",
+            "threads",
+        }
         assert r["updates"] == 300 and r["threads"] == 1
         assert 0 < r["latency_median_us"] <= r["latency_p99_us"] and r["batch_rows_per_s"] > 0
     for r in results[:2]:

@@ -13,8 +13,9 @@ runner = CliRunner()
 
 def test_simulate_writes_a_dataset_and_is_reproducible(tmp_path):
     for name in ("a", "b"):
-        result = runner.invoke(app, ["simulate", "--preset", "random", "--runs", "3", "--seed", "7",
-                                     "--out", str(tmp_path / name)])
+        result = runner.invoke(
+            app, ["simulate", "--preset", "random", "--runs", "3", "--seed", "7", "--out", str(tmp_path / name)]
+        )
         assert result.exit_code == 0, result.output
     assert read_dataset(tmp_path / "a").equals(read_dataset(tmp_path / "b"))
     manifest = json.loads((tmp_path / "a" / "manifest.json").read_text())
@@ -58,14 +59,30 @@ def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
     benchmark_rmse = rmse(benchmark_pred, test_data.targets)
     save_fitted(tmp_path / "m.pt", fitted, "terminal", {})
     pacsv.write_csv(test.select(list(TELEMETRY_COLUMNS)), tmp_path / "run.csv")
-    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "run.csv"), "--model", str(tmp_path / "m.pt"),
-                                 "--out", str(tmp_path / "est.parquet")])
+    result = runner.invoke(
+        app,
+        [
+            "estimate",
+            "--input",
+            str(tmp_path / "run.csv"),
+            "--model",
+            str(tmp_path / "m.pt"),
+            "--out",
+            str(tmp_path / "est.parquet"),
+        ],
+    )
     assert result.exit_code == 0, result.output
     estimates = read_table(tmp_path / "est.parquet")
-    truth = {(v, t): m for v, t, m in zip(test["vehicle_id"].to_pylist(), test["timestamp_ms"].to_pylist(),
-                                          test["mu"].to_pylist())}
-    by_key = {(v, t): m for v, t, m in zip(estimates["vehicle_id"].to_pylist(), estimates["timestamp_ms"].to_pylist(),
-                                           estimates["mu"].to_pylist())}
+    truth = {
+        (v, t): m
+        for v, t, m in zip(test["vehicle_id"].to_pylist(), test["timestamp_ms"].to_pylist(), test["mu"].to_pylist())
+    }
+    by_key = {
+        (v, t): m
+        for v, t, m in zip(
+            estimates["vehicle_id"].to_pylist(), estimates["timestamp_ms"].to_pylist(), estimates["mu"].to_pylist()
+        )
+    }
     t0 = test["timestamp_ms"].to_numpy()[0] - round(test["t_s"].to_numpy()[0] * 1000)
     keys = [(f"sim-{run}", t0 + round(t * 1000)) for run, t in zip(test_data.runs, test_data.t_s)]
     served = np.array([by_key[k] for k in keys])
@@ -82,7 +99,8 @@ def test_estimate_on_a_simulated_run_gives_the_benchmarks_accuracy(tmp_path):
         rows = np.searchsorted(run["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
         for k, t in enumerate(out["timestamp_ms"].to_pylist()):
             model[(vehicle, t)] = [out[c][k].as_py() for c in ("mu", "mu_lower", "mu_upper", "excited")] + [
-                run[c][int(rows[k])].as_py() for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")]
+                run[c][int(rows[k])].as_py() for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")
+            ]
     mu, lower, upper, excited, ax, ay, speed = (np.array(c) for c in zip(*(model[k] for k in keys)))
     assert mu == pytest.approx(benchmark_pred, abs=1e-5)
     bound = tire_force_bound(PAPER_SUV, ax, ay, speed)
@@ -100,7 +118,9 @@ def test_estimate_reports_bad_input_clearly(tmp_path):
     _, test = _paper_runs("low")
     test = test.select(list(TELEMETRY_COLUMNS))
     pacsv.write_csv(test.drop_columns(["yaw_rate_radps"]), tmp_path / "missing.csv")
-    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o.csv")])
+    result = runner.invoke(
+        app, ["estimate", "--input", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o.csv")]
+    )
     assert result.exit_code == 2 and "yaw_rate_radps" in result.output
     assert not (tmp_path / "o.csv").exists()
     speeds = test["speed_mps"].to_numpy().copy()
@@ -113,8 +133,9 @@ def test_estimate_reports_bad_input_clearly(tmp_path):
     assert result.exit_code == 0, result.output
     report = pacsv.read_csv(tmp_path / "o.rejections.csv")
     assert report.num_rows == 2 and all("speed_mps" in r for r in report["reason"].to_pylist())
-    kmh = test.set_column(test.schema.get_field_index("speed_mps"), "speed_mps",
-                          pa.array(test["speed_mps"].to_numpy() * 3.6))
+    kmh = test.set_column(
+        test.schema.get_field_index("speed_mps"), "speed_mps", pa.array(test["speed_mps"].to_numpy() * 3.6)
+    )
     pacsv.write_csv(kmh, tmp_path / "kmh.csv")
     result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "kmh.csv"), "--out", str(tmp_path / "o2.csv")])
     assert result.exit_code == 2 and "speed_mps" in result.output and "km/h" in result.output
@@ -129,8 +150,10 @@ def test_estimate_keeps_the_inputs_time_column(tmp_path):
     run = test.filter(pc.equal(test["run_id"], "paper-high-straight-e2"))
     columns = [c for c in TELEMETRY_COLUMNS if c != "timestamp_ms"] + ["t_s"]
     pacsv.write_csv(run.select(columns), tmp_path / "relative.csv")
-    result = runner.invoke(app, ["estimate", "--input", str(tmp_path / "relative.csv"), "--model", "ekf",
-                                 "--out", str(tmp_path / "est.csv")])
+    result = runner.invoke(
+        app,
+        ["estimate", "--input", str(tmp_path / "relative.csv"), "--model", "ekf", "--out", str(tmp_path / "est.csv")],
+    )
     assert result.exit_code == 0, result.output
     out = pacsv.read_csv(tmp_path / "est.csv")
     assert "t_s" in out.column_names and "timestamp_ms" not in out.column_names

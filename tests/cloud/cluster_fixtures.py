@@ -53,15 +53,35 @@ class WorkerProcess:
     """`roadgrip worker` in a process of its own, with the brokers in the order given, its rate limit off (the tests'
     vehicles drive faster than real time) and `env` beside it (settings as ROADGRIP_* variables)."""
 
-    def __init__(self, cluster: RabbitCluster, nodes: list[int], database_url: str, log_path: Path, partitions: int,
-                 options: tuple[str, ...] = (), env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        cluster: RabbitCluster,
+        nodes: list[int],
+        database_url: str,
+        log_path: Path,
+        partitions: int,
+        options: tuple[str, ...] = (),
+        env: dict[str, str] | None = None,
+    ):
         self.log_path = log_path
         brokers = [arg for i in nodes for arg in ("--broker", cluster.amqp_url(i))]
         environment = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0", **(env or {})}
         with open(log_path, "wb") as log:
-            self.proc = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url,
-                                          "--partitions", str(partitions), *brokers, *options],
-                                         stdout=log, stderr=subprocess.STDOUT, env=environment)
+            self.proc = subprocess.Popen(
+                [
+                    str(ROADGRIP),
+                    "worker",
+                    "--database",
+                    database_url,
+                    "--partitions",
+                    str(partitions),
+                    *brokers,
+                    *options,
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=environment,
+            )
 
     def log(self) -> str:
         return self.log_path.read_text()

@@ -31,8 +31,15 @@ INSTALL_HINT = "run `bash scripts/install_system_deps.sh`"
 
 
 def dashboard_settings(data_dir: Path, **overrides) -> Settings:
-    return Settings(data_dir=data_dir, mqtt="off", admin_secret=ADMIN[1], flush_interval_s=0.01,
-                    reorder_window_s=0.2, map_clock="data", **overrides)
+    return Settings(
+        data_dir=data_dir,
+        mqtt="off",
+        admin_secret=ADMIN[1],
+        flush_interval_s=0.01,
+        reorder_window_s=0.2,
+        map_clock="data",
+        **overrides,
+    )
 
 
 @contextlib.contextmanager
@@ -65,9 +72,18 @@ def chromium_binary() -> str:
 def run_chromium(url: str, *options: str, budget_ms: int = VIRTUAL_TIME_BUDGET_MS) -> str:
     """Headless Chromium on `url` with a fresh profile and no network but this server's; its stdout."""
     with tempfile.TemporaryDirectory(prefix="roadgrip-chromium-", ignore_cleanup_errors=True) as profile:
-        command = [chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
-                   "--disable-background-networking", "--no-first-run", f"--user-data-dir={profile}",
-                   f"--virtual-time-budget={budget_ms}", *options, url]
+        command = [
+            chromium_binary(),
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--no-first-run",
+            f"--user-data-dir={profile}",
+            f"--virtual-time-budget={budget_ms}",
+            *options,
+            url,
+        ]
         done = subprocess.run(command, check=False, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
     if done.returncode != 0:
         raise RuntimeError(f"chromium exited with {done.returncode}: {done.stderr[-2000:]}")

@@ -24,20 +24,28 @@ DRY_MU = 0.9
 
 
 @functools.cache
-def patch_drive(patch_mu: float, seed: int, vehicle: str = "paper-suv", brake_s: float = 10.5,
-                production: bool = False) -> pa.Table:
+def patch_drive(
+    patch_mu: float, seed: int, vehicle: str = "paper-suv", brake_s: float = 10.5, production: bool = False
+) -> pa.Table:
     """One 30 s run: 20 m/s at the start, 25 m/s from 4 s (90 m), braking to 6 m/s in 3 s from `brake_s` (the default
     10.5 s is 252 m: the patch's first metres; 13 s is 315 m). `production`: every production-terminal effect on
     (speed from the wheels, accelerometer bias and tilt, radius spread, CAN resolution, time offsets) on a road that
     climbs 2 % and falls 2 %."""
     mu = np.array([DRY_MU, patch_mu, DRY_MU])
     scenario = Scenario(
-        run_id=f"patch-{patch_mu}-{seed}-{vehicle}-{brake_s}", path=Path.straight(900.0),
+        run_id=f"patch-{patch_mu}-{seed}-{vehicle}-{brake_s}",
+        path=Path.straight(900.0),
         mu=MuProfile(np.array([0.0, *PATCH_M]), mu, mu, "step"),
         speed=SpeedProfile(np.array([0.0, 4.0, brake_s, brake_s + 3.0, 30.0]), np.array([20.0, 25.0, 25.0, 6.0, 6.0])),
-        vehicle=vehicle_by_name(vehicle), duration_s=30.0, seed=seed,
-        **({"effects": ProductionEffects.production(), "grade": GradeProfile([0.0, 450.0, 900.0], [0.02, -0.02, 0.0])}
-           if production else {}))
+        vehicle=vehicle_by_name(vehicle),
+        duration_s=30.0,
+        seed=seed,
+        **(
+            {"effects": ProductionEffects.production(), "grade": GradeProfile([0.0, 450.0, 900.0], [0.02, -0.02, 0.0])}
+            if production
+            else {}
+        ),
+    )
     return simulate([scenario])
 
 

@@ -94,7 +94,7 @@ class _Paced(threading.Thread):
 
     def __init__(self, name: str, samples: list[dict], per_chunk: int, period_s: float):
         super().__init__(name=name, daemon=True)
-        self.chunks = [samples[k:k + per_chunk] for k in range(0, len(samples), per_chunk)]
+        self.chunks = [samples[k : k + per_chunk] for k in range(0, len(samples), per_chunk)]
         self.period_s = period_s
         self.error: BaseException | None = None
         self.started_at: float | None = None
@@ -124,8 +124,7 @@ class MqttTerminal(_Paced):
     (monotonic time, connected) at every change paho reported (its connect and disconnect callbacks: the sending loop
     may be done before a reconnect it would have seen)."""
 
-    def __init__(self, url: str, vehicle_id: str, secret: str, samples: list[dict], per_message: int,
-                 period_s: float):
+    def __init__(self, url: str, vehicle_id: str, secret: str, samples: list[dict], per_message: int, period_s: float):
         super().__init__(f"mqtt-{vehicle_id}", samples, per_message, period_s)
         self.client = UserClient(url, vehicle_id, secret).connect()
         self.topic = telemetry_topic(vehicle_id)
@@ -141,8 +140,9 @@ class MqttTerminal(_Paced):
             userclient_on_publish(client, userdata, mid, reason_code, properties)
 
         self.client.paho.on_publish = on_publish
-        self.client.paho.on_connect = (lambda client, userdata, flags, reason_code, properties:
-                                       self._log(not reason_code.is_failure))
+        self.client.paho.on_connect = lambda client, userdata, flags, reason_code, properties: self._log(
+            not reason_code.is_failure
+        )
         self.client.paho.on_disconnect = lambda client, userdata, flags, reason_code, properties: self._log(False)
 
     def _log(self, connected: bool) -> None:
@@ -179,8 +179,16 @@ class HttpTerminal(_Paced):
     """A vehicle over HTTP (module docstring). `sent`, `acknowledged`, `duplicates`, and every answer in `answers`:
     (monotonic time, status code or the transport error's name)."""
 
-    def __init__(self, base_url: str, vehicle_id: str, secret: str, samples: list[dict], per_request: int,
-                 period_s: float, retry_s: float = 0.25):
+    def __init__(
+        self,
+        base_url: str,
+        vehicle_id: str,
+        secret: str,
+        samples: list[dict],
+        per_request: int,
+        period_s: float,
+        retry_s: float = 0.25,
+    ):
         super().__init__(f"http-{vehicle_id}", samples, per_request, period_s)
         self.http = httpx.Client(base_url=base_url, auth=(vehicle_id, secret), timeout=10.0)
         self.retry_s = retry_s
@@ -194,8 +202,7 @@ class HttpTerminal(_Paced):
         body = "\n".join(json.dumps(s) for s in chunk)
         while True:
             try:
-                answer = self.http.post("/v1/telemetry", content=body,
-                                        headers={"content-type": "application/x-ndjson"})
+                answer = self.http.post("/v1/telemetry", content=body, headers={"content-type": "application/x-ndjson"})
             except httpx.TransportError as exc:  # refused, cut (the service killed), timed out
                 self.answers.append((time.monotonic(), type(exc).__name__))
                 time.sleep(self.retry_s)
@@ -229,8 +236,13 @@ class ServeProcess:
         self.port = free_port()
         self.admin = admin
         inherited = {k: v for k, v in os.environ.items() if not k.startswith("ROADGRIP_")}  # only the test's settings
-        self.env = {**inherited, **env, "ROADGRIP_DATA_DIR": str(workdir), "ROADGRIP_PORT": str(self.port),
-                    "ROADGRIP_ADMIN_SECRET": admin[1]}
+        self.env = {
+            **inherited,
+            **env,
+            "ROADGRIP_DATA_DIR": str(workdir),
+            "ROADGRIP_PORT": str(self.port),
+            "ROADGRIP_ADMIN_SECRET": admin[1],
+        }
         self.process: subprocess.Popen | None = None
         self.http = httpx.Client(base_url=self.url, auth=admin, timeout=10.0)
 
@@ -241,8 +253,13 @@ class ServeProcess:
     def start(self, timeout_s: float = 60) -> float:
         """Start and return once GET /v1/health answers 200; the seconds that took."""
         with open(self.workdir / "serve.log", "a") as log:
-            self.process = subprocess.Popen([sys.executable, "-m", "roadgrip", "serve"], env=self.env, stdout=log,
-                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "roadgrip", "serve"],
+                env=self.env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+            )
 
         def up() -> bool:
             if self.process.poll() is not None:

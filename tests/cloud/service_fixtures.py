@@ -31,15 +31,32 @@ RECENT_MS = int(time.time() * 1000) - 600_000  # ten minutes ago
 
 @contextlib.contextmanager
 def running_cloud(storage_url, tmp_path, **settings):
-    settings = Settings(**{"data_dir": tmp_path, "database_url": storage_url, "mqtt": "off", "admin_secret": ADMIN[1],
-                           "flush_interval_s": 0.01, "reorder_window_s": 0.2, "map_clock": "data", **settings})
+    settings = Settings(
+        **{
+            "data_dir": tmp_path,
+            "database_url": storage_url,
+            "mqtt": "off",
+            "admin_secret": ADMIN[1],
+            "flush_interval_s": 0.01,
+            "reorder_window_s": 0.2,
+            "map_clock": "data",
+            **settings,
+        }
+    )
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         yield service, client
 
 
 def settings_for(storage_url: str, data_dir: Path, mqtt: str = "off") -> Settings:
-    return Settings(data_dir=data_dir, database_url=storage_url, mqtt=mqtt, admin_secret=ADMIN[1],
-                    flush_interval_s=0.01, reorder_window_s=0.1, map_clock="data")
+    return Settings(
+        data_dir=data_dir,
+        database_url=storage_url,
+        mqtt=mqtt,
+        admin_secret=ADMIN[1],
+        flush_interval_s=0.01,
+        reorder_window_s=0.1,
+        map_clock="data",
+    )
 
 
 def register(client, vehicle_id: str, profile: str = "paper-suv") -> tuple[str, str]:
@@ -67,8 +84,12 @@ def ndjson(samples: list[dict]) -> bytes:
 def post(client, auth, samples, chunk: int = 10):
     answers = []
     for start in range(0, len(samples), chunk):
-        answer = client.post("/v1/telemetry", content=ndjson(samples[start:start + chunk]), auth=auth,
-                             headers={"content-type": "application/x-ndjson"})
+        answer = client.post(
+            "/v1/telemetry",
+            content=ndjson(samples[start : start + chunk]),
+            auth=auth,
+            headers={"content-type": "application/x-ndjson"},
+        )
         assert answer.status_code == 200, answer.text
         answers.append(answer.json())
     return answers

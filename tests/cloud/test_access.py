@@ -51,17 +51,22 @@ def cloud(storage_url, tmp_path):
 @pytest.fixture
 def mqtt_cloud(storage_url, tmp_path):
     assert mosquitto_available(), "mosquitto is not installed: run `bash scripts/install_system_deps.sh`"
-    with CloudService(settings_for(storage_url, tmp_path, mqtt="managed")) as service, \
-            TestClient(create_app(service)) as client:
+    with (
+        CloudService(settings_for(storage_url, tmp_path, mqtt="managed")) as service,
+        TestClient(create_app(service)) as client,
+    ):
         yield service, client
 
 
 def table_snapshot(service: CloudService) -> dict:
-    return {"counts": service.storage.counts(), "credentials": [(c.name, c.role, c.revoked)
-                                                               for c in service.storage.credentials()]}
+    return {
+        "counts": service.storage.counts(),
+        "credentials": [(c.name, c.role, c.revoked) for c in service.storage.credentials()],
+    }
 
 
 # ------------------------------------------------------------------------------------------------ HTTP
+
 
 def test_a_vehicle_can_neither_write_nor_read_as_another(cloud):
     service, client = cloud
@@ -78,14 +83,22 @@ def test_a_vehicle_can_neither_write_nor_read_as_another(cloud):
     settle(service)
     assert [r["vehicle_id"] for r in service.storage.telemetry("car-b")] == ["car-b"] * 2  # only its own two
     assert len(service.storage.telemetry("car-a")) == 3
-    for path in ("/v1/vehicles/car-b", "/v1/vehicles/car-b/estimates", "/v1/vehicles/latest", "/v1/map",
-                 "/v1/map/datex2", "/v1/vehicles/CAR-A/estimates"):
+    for path in (
+        "/v1/vehicles/car-b",
+        "/v1/vehicles/car-b/estimates",
+        "/v1/vehicles/latest",
+        "/v1/map",
+        "/v1/map/datex2",
+        "/v1/vehicles/CAR-A/estimates",
+    ):
         assert client.get(path, auth=a).status_code == 403, path
     own = client.get("/v1/vehicles/car-a/estimates", auth=a).json()["estimates"]
     assert own and {e["vehicle_id"] for e in own} == {"car-a"}
-    for method, path, body in (("post", "/v1/vehicles", {"vehicle_id": "car-c"}),
-                               ("post", "/v1/readers", {"name": "spy"}),
-                               ("delete", "/v1/credentials/car-b", None)):
+    for method, path, body in (
+        ("post", "/v1/vehicles", {"vehicle_id": "car-c"}),
+        ("post", "/v1/readers", {"name": "spy"}),
+        ("delete", "/v1/credentials/car-b", None),
+    ):
         assert client.request(method, path, json=body, auth=a).status_code == 403, path
     assert service.storage.credential("car-b").revoked is False and service.storage.credential("spy") is None
 
@@ -104,7 +117,13 @@ def test_a_reader_reads_but_cannot_write_register_or_revoke(cloud):
     assert client.delete("/v1/credentials/car-r", auth=reader).status_code == 403
     assert client.delete("/v1/credentials/operator", auth=reader).status_code == 403
     assert table_snapshot(service) == before
-    for path in ("/v1/vehicles/car-r", "/v1/vehicles/car-r/estimates", "/v1/map", "/v1/warnings", "/v1/vehicles/latest"):
+    for path in (
+        "/v1/vehicles/car-r",
+        "/v1/vehicles/car-r/estimates",
+        "/v1/map",
+        "/v1/warnings",
+        "/v1/vehicles/latest",
+    ):
         assert client.get(path, auth=reader).status_code == 200, path
 
 
@@ -126,21 +145,29 @@ def test_a_revoked_credential_stops_working_at_once_over_http(cloud):
 
 # ------------------------------------------------------------------------------------------------ MQTT
 
+
 @pytest.mark.slow
 def test_over_mqtt_a_vehicle_can_neither_publish_as_another_nor_read_its_estimates(mqtt_cloud):
     service, client = mqtt_cloud
     (a, a_secret), (b, b_secret) = register(client, "car-a"), register(client, "car-b")
     reader = add_reader(client, "dash")
     url = service.mqtt_url
-    with VehicleClient(url, a, a_secret) as car_a, VehicleClient(url, b, b_secret) as car_b, \
-            UserClient(url, *reader) as dash:
+    with (
+        VehicleClient(url, a, a_secret) as car_a,
+        VehicleClient(url, b, b_secret) as car_b,
+        UserClient(url, *reader) as dash,
+    ):
         for topic in (friction_topic(b), errors_topic(b), FRICTION_SUBSCRIPTION, "roadgrip/v1/vehicles/#", "#"):
             car_a.subscribe(topic)  # granted by Mosquitto: the ACL is checked on each delivery
         car_b.subscribe(friction_topic(b))
         dash.subscribe(FRICTION_SUBSCRIPTION)
-        for topic, payload in ((telemetry_topic(b), json.dumps(samples_of(b, 3))),  # as another vehicle
-                               (friction_topic(a), b"[]"), (friction_topic(b), b"[]"),  # forged estimates
-                               (errors_topic(b), b"{}"), (WARNINGS_TOPIC, b"{}")):  # forged reports, warnings
+        for topic, payload in (
+            (telemetry_topic(b), json.dumps(samples_of(b, 3))),  # as another vehicle
+            (friction_topic(a), b"[]"),
+            (friction_topic(b), b"[]"),  # forged estimates
+            (errors_topic(b), b"{}"),
+            (WARNINGS_TOPIC, b"{}"),
+        ):  # forged reports, warnings
             with pytest.raises(PublishRefused) as refused:
                 car_a.publish(topic, payload)
             assert refused.value.reason_code.value == NOT_AUTHORIZED, topic
@@ -164,8 +191,10 @@ def test_over_mqtt_a_revoked_vehicle_is_disconnected_at_once_and_refused_after(m
     service, client = mqtt_cloud
     vehicle_id, secret = register(client, "car-rv")
     other_id, other_secret = register(client, "car-ok")
-    with VehicleClient(service.mqtt_url, vehicle_id, secret) as live, \
-            VehicleClient(service.mqtt_url, other_id, other_secret) as other:
+    with (
+        VehicleClient(service.mqtt_url, vehicle_id, secret) as live,
+        VehicleClient(service.mqtt_url, other_id, other_secret) as other,
+    ):
         live.publish_telemetry(json.dumps(samples_of(vehicle_id, 2)))
         wait_until(lambda: len(service.storage.telemetry(vehicle_id)) == 2, what="the first samples stored")
         assert client.delete(f"/v1/credentials/{vehicle_id}", auth=ADMIN).status_code == 204
@@ -178,11 +207,16 @@ def test_over_mqtt_a_revoked_vehicle_is_disconnected_at_once_and_refused_after(m
     assert refused.value.reason_code.value == NOT_AUTHORIZED
     settle(service)
     assert len(service.storage.telemetry(vehicle_id)) == 2
-    assert client.post("/v1/telemetry", json=samples_of(vehicle_id, 1, RECENT_MS + 2_000),
-                       auth=(vehicle_id, secret)).status_code == 401
+    assert (
+        client.post(
+            "/v1/telemetry", json=samples_of(vehicle_id, 1, RECENT_MS + 2_000), auth=(vehicle_id, secret)
+        ).status_code
+        == 401
+    )
 
 
 # ------------------------------------------------------------------------------------------------ secrets
+
 
 def database_text(storage_url: str) -> bytes:
     """Every row of every table, as text, and for SQLite also the raw bytes of its files (main, WAL, shared memory)."""
@@ -190,8 +224,9 @@ def database_text(storage_url: str) -> bytes:
     engine = sa.create_engine(url)
     try:
         with engine.connect() as conn:
-            text = "\n".join(repr(row) for table in metadata.sorted_tables
-                             for row in conn.execute(sa.select(table)).all())
+            text = "\n".join(
+                repr(row) for table in metadata.sorted_tables for row in conn.execute(sa.select(table)).all()
+            )
     finally:
         engine.dispose()
     if url.get_backend_name() != "sqlite":
@@ -203,8 +238,10 @@ def database_text(storage_url: str) -> bytes:
 def test_secrets_are_never_stored_or_logged_in_clear(storage_url, tmp_path, caplog):
     caplog.set_level(logging.DEBUG)  # every logger, and SQLAlchemy's statements, parameters and rows (off by default)
     caplog.set_level(logging.DEBUG, logger="sqlalchemy.engine")
-    with CloudService(settings_for(storage_url, tmp_path, mqtt="managed")) as service, \
-            TestClient(create_app(service)) as client:
+    with (
+        CloudService(settings_for(storage_url, tmp_path, mqtt="managed")) as service,
+        TestClient(create_app(service)) as client,
+    ):
         issued = dict([register(client, "car-s1"), register(client, "car-s2"), add_reader(client, "reader-s")])
         answer = client.post("/v1/vehicles", json=[{"vehicle_id": "fleet-1"}, {"vehicle_id": "fleet-2"}], auth=ADMIN)
         issued.update({a["name"]: a["secret"] for a in answer.json()})
@@ -220,8 +257,12 @@ def test_secrets_are_never_stored_or_logged_in_clear(storage_url, tmp_path, capl
             VehicleClient(service.mqtt_url, "car-s2", "a-wrong-guess-at-the-secret").connect(timeout_s=5)
         client.delete("/v1/credentials/fleet-2", auth=ADMIN)
         settle(service)
-        secrets = {**issued, "admin": ADMIN[1], "broker service login": service.broker.service_password,
-                   "wrong guess": "a-wrong-guess-at-the-secret"}
+        secrets = {
+            **issued,
+            "admin": ADMIN[1],
+            "broker service login": service.broker.service_password,
+            "wrong guess": "a-wrong-guess-at-the-secret",
+        }
         stored = database_text(storage_url)
         files = {p.relative_to(tmp_path).as_posix(): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     # the scans see what they should: the hashes, the broker's log and password file, the logins in the log
@@ -246,7 +287,15 @@ INJECTIONS = [
     "Robert'); DROP TABLE vehicles;--",
     "' UNION SELECT secret_hash FROM credentials --",
     "1; UPDATE credentials SET revoked = false",
-    "$1", "?", ":name", "%s", "%_%", "\\", "\x00", "car-a\x00'--", "\ud800",
+    "$1",
+    "?",
+    ":name",
+    "%s",
+    "%_%",
+    "\\",
+    "\x00",
+    "car-a\x00'--",
+    "\ud800",
 ]
 
 
@@ -273,10 +322,12 @@ def test_sql_injection_strings_are_refused_or_stored_as_data_and_the_tables_surv
         for name in ("start_ms", "end_ms", "limit"):
             assert client.get(f"/v1/vehicles/car-i/estimates?{name}={path}", auth=ADMIN).status_code == 422, text
         assert client.get(f"/v1/warnings?active={path}", auth=ADMIN).status_code == 422, text
-        assert post_json(client, "/v1/vehicles", {"vehicle_id": "car-j", "profile": text}, ADMIN) \
-            .status_code == 422  # not a known vehicle
-        assert post_json(client, "/v1/vehicles", {"vehicle_id": "car-j", "profile": {text: 1.0}}, ADMIN) \
-            .status_code == 422  # not a profile field
+        assert (
+            post_json(client, "/v1/vehicles", {"vehicle_id": "car-j", "profile": text}, ADMIN).status_code == 422
+        )  # not a known vehicle
+        assert (
+            post_json(client, "/v1/vehicles", {"vehicle_id": "car-j", "profile": {text: 1.0}}, ADMIN).status_code == 422
+        )  # not a profile field
     assert table_snapshot(service) == before
     # Free text (a profile's name) is stored as it was sent, and read back the same; what a database cannot hold
     # (NUL, a lone surrogate) is refused before anything is written.
@@ -290,8 +341,11 @@ def test_sql_injection_strings_are_refused_or_stored_as_data_and_the_tables_surv
         assert client.get(f"/v1/vehicles/inj-{k}", auth=ADMIN).json()["profile"]["name"] == text
         auth = (f"inj-{k}", answer.json()["secret"])
         assert client.post("/v1/telemetry", json=samples_of(f"inj-{k}", 3), auth=auth).json()["stored"] == 3
-    fleet = client.post("/v1/vehicles", json=[{"vehicle_id": "fleet-ok"},
-                                              {"vehicle_id": "fleet-bad", "profile": {"name": "a\x00b"}}], auth=ADMIN)
+    fleet = client.post(
+        "/v1/vehicles",
+        json=[{"vehicle_id": "fleet-ok"}, {"vehicle_id": "fleet-bad", "profile": {"name": "a\x00b"}}],
+        auth=ADMIN,
+    )
     assert fleet.status_code == 422 and service.storage.credential("fleet-ok") is None  # all or nothing
     settle(service)
     after = table_snapshot(service)
@@ -313,6 +367,7 @@ def post_json(client, path: str, body, auth):
 
 # ------------------------------------------------------------------------------------------------ model files
 
+
 class _RunsCode:
     """A pickle that runs code when loaded (what a crafted model file would do)."""
 
@@ -332,8 +387,9 @@ def test_a_model_file_that_would_run_code_is_refused_and_does_not_run(tmp_path):
     for path in (as_torch, as_pickle):
         with pytest.raises(ValueError, match="not a roadgrip model file that loads safely"):
             load_estimator(path)
-        service = CloudService(Settings(data_dir=tmp_path / "data", mqtt="off", admin_secret=ADMIN[1],
-                                        estimator=str(path)))
+        service = CloudService(
+            Settings(data_dir=tmp_path / "data", mqtt="off", admin_secret=ADMIN[1], estimator=str(path))
+        )
         try:
             with pytest.raises(ValueError, match="loads safely"):  # nor can the service be told to load it
                 service.start()

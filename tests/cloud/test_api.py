@@ -33,8 +33,14 @@ def cloud(storage_url, tmp_path):
 def test_without_credentials_or_with_wrong_ones_everything_is_refused(cloud):
     service, client = cloud
     vehicle = register(client, "car-1")
-    for method, path in (("post", "/v1/telemetry"), ("get", "/v1/map"), ("get", "/v1/warnings"),
-                         ("get", "/v1/health"), ("get", "/v1/vehicles/car-1/estimates"), ("post", "/v1/vehicles")):
+    for method, path in (
+        ("post", "/v1/telemetry"),
+        ("get", "/v1/map"),
+        ("get", "/v1/warnings"),
+        ("get", "/v1/health"),
+        ("get", "/v1/vehicles/car-1/estimates"),
+        ("post", "/v1/vehicles"),
+    ):
         assert client.request(method, path).status_code == 401
         assert client.request(method, path, auth=(vehicle[0], "wrong")).status_code == 401
     assert service.storage.counts()["telemetry"] == 0
@@ -50,15 +56,17 @@ def test_a_run_is_stored_and_estimated_like_the_offline_estimator_does(cloud):
     settle(service)
     assert service.storage.counts()["telemetry"] == len(samples)
     got = client.get("/v1/vehicles/suv-1/estimates", auth=auth).json()["estimates"]
-    offline = load_estimator(Settings().estimator).estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64),
-                                                   vehicle_by_name("paper-suv"))
+    offline = load_estimator(Settings().estimator).estimate_batch(
+        run, np.zeros(run.num_rows, dtype=np.int64), vehicle_by_name("paper-suv")
+    )
     assert len(got) == offline.num_rows
     np.testing.assert_allclose([e["mu"] for e in got], offline["mu"].to_numpy(), atol=1e-9)
     assert [e["excited"] for e in got] == offline["excited"].to_pylist()
     assert {e["estimator"] for e in got} == {Settings().estimator}
     assert all(e["h3_cell"] == h3.latlng_to_cell(e["latitude_deg"], e["longitude_deg"], 10) for e in got)
-    window = client.get("/v1/vehicles/suv-1/estimates", auth=auth,
-                        params={"start_ms": START_MS + 1000, "end_ms": START_MS + 2000}).json()["estimates"]
+    window = client.get(
+        "/v1/vehicles/suv-1/estimates", auth=auth, params={"start_ms": START_MS + 1000, "end_ms": START_MS + 2000}
+    ).json()["estimates"]
     assert [e["timestamp_ms"] for e in window] == list(range(START_MS + 1000, START_MS + 2000, 100))
     pipeline = client.get("/v1/health", auth=auth).json()["pipeline"]  # what a soak reads
     assert pipeline["latency_since_start"]["n"] == pipeline["estimates"] >= len(got)
@@ -110,14 +118,17 @@ def _out_of_order_pairs(service, client):
     samples = wire_samples(run, "car-3", START_MS)[:120]
     shuffled = []
     for start in range(0, len(samples), 2):  # swap each pair: 100 ms late, inside the 200 ms window
-        shuffled += samples[start:start + 2][::-1]
+        shuffled += samples[start : start + 2][::-1]
     post(client, auth, shuffled, chunk=1)
     settle(service)
-    offline = load_estimator(Settings().estimator).estimate_batch(run.slice(0, 120), np.zeros(120, dtype=np.int64),
-                                                   vehicle_by_name("paper-suv"))
+    offline = load_estimator(Settings().estimator).estimate_batch(
+        run.slice(0, 120), np.zeros(120, dtype=np.int64), vehicle_by_name("paper-suv")
+    )
     deadline = time.time() + 10  # a loaded machine may need a round more to release the last reorder window
-    while len(got := client.get("/v1/vehicles/car-3/estimates", auth=auth).json()["estimates"]) < offline.num_rows \
-            and time.time() < deadline:
+    while (
+        len(got := client.get("/v1/vehicles/car-3/estimates", auth=auth).json()["estimates"]) < offline.num_rows
+        and time.time() < deadline
+    ):
         time.sleep(0.05)
     np.testing.assert_allclose([e["mu"] for e in got], offline["mu"].to_numpy(), atol=1e-9)
     assert service.ingest.pipeline.counters.late == 0
@@ -170,22 +181,31 @@ def test_a_revoked_credential_stops_at_once_and_secrets_are_stored_hashed(cloud)
     assert client.delete("/v1/credentials/admin", auth=ADMIN).status_code == 409
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"speed_mps": float("nan")}, "speed_mps"),
-    ({"speed_mps": "fast"}, "speed_mps"),
-    ({"yaw_rate_radps": 40.0}, "yaw_rate_radps"),
-    ({"abs_active": "yes"}, "abs_active"),
-    ({"sped_mps": 3.0}, "sped_mps"),
-    ({"timestamp_ms": START_MS + 10 * 86_400_000}, "timestamp_ms"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"speed_mps": float("nan")}, "speed_mps"),
+        ({"speed_mps": "fast"}, "speed_mps"),
+        ({"yaw_rate_radps": 40.0}, "yaw_rate_radps"),
+        ({"abs_active": "yes"}, "abs_active"),
+        ({"sped_mps": 3.0}, "sped_mps"),
+        ({"timestamp_ms": START_MS + 10 * 86_400_000}, "timestamp_ms"),
+    ],
+)
 def test_a_bad_sample_is_rejected_naming_its_field_and_the_good_ones_are_kept(cloud, change, field):
     _service, client = cloud
     auth = register(client, "car-5")
     samples = wire_samples(patch_drive(0.9, 3), "car-5", START_MS)[:5]
-    body = ndjson(samples[:2]).decode().replace("NaN", "NaN") + "\n" + json.dumps({**samples[2], **change}) + "\n" \
+    body = (
+        ndjson(samples[:2]).decode().replace("NaN", "NaN")
+        + "\n"
+        + json.dumps({**samples[2], **change})
+        + "\n"
         + ndjson(samples[3:]).decode()
-    answer = client.post("/v1/telemetry", content=body.encode(), auth=auth,
-                         headers={"content-type": "application/x-ndjson"})
+    )
+    answer = client.post(
+        "/v1/telemetry", content=body.encode(), auth=auth, headers={"content-type": "application/x-ndjson"}
+    )
     assert answer.status_code == 200, answer.text
     result = answer.json()
     assert (result["received"], result["accepted"], result["stored"]) == (5, 4, 4)
@@ -196,12 +216,15 @@ def test_a_bad_sample_is_rejected_naming_its_field_and_the_good_ones_are_kept(cl
 def test_unusable_bodies_are_refused_with_clear_errors(cloud):
     service, client = cloud
     auth = register(client, "car-6")
-    bad_json = client.post("/v1/telemetry", content=b"[{\"vehicle_id\": ", auth=auth,
-                           headers={"content-type": "application/json"})
+    bad_json = client.post(
+        "/v1/telemetry", content=b'[{"vehicle_id": ', auth=auth, headers={"content-type": "application/json"}
+    )
     assert bad_json.status_code == 400
     huge = b"[" + b" " * (service.settings.max_payload_bytes + 1) + b"]"
-    assert client.post("/v1/telemetry", content=huge, auth=auth,
-                       headers={"content-type": "application/json"}).status_code == 413
+    assert (
+        client.post("/v1/telemetry", content=huge, auth=auth, headers={"content-type": "application/json"}).status_code
+        == 413
+    )
     none_valid = client.post("/v1/telemetry", json=[{"vehicle_id": "car-6"}], auth=auth)
     assert none_valid.status_code == 422 and none_valid.json()["rejected"][0]["field"]
     assert client.get("/v1/health", auth=auth).json()["status"] == "ok"
@@ -212,9 +235,11 @@ def test_a_repeated_query_parameter_is_refused_on_every_route(cloud):
     case, issue 17); an undeclared one is ignored, as FastAPI does."""
     _service, client = cloud
     auth = register(client, "car-q")
-    for path, params in (("/v1/vehicles/car-q/estimates", [("limit", "5"), ("limit", "7")]),
-                         ("/v1/vehicles/car-q/estimates", [("start_ms", "1"), ("end_ms", "2"), ("end_ms", "3")]),
-                         ("/v1/warnings", [("active", "true"), ("active", "false")])):
+    for path, params in (
+        ("/v1/vehicles/car-q/estimates", [("limit", "5"), ("limit", "7")]),
+        ("/v1/vehicles/car-q/estimates", [("start_ms", "1"), ("end_ms", "2"), ("end_ms", "3")]),
+        ("/v1/warnings", [("active", "true"), ("active", "false")]),
+    ):
         answer = client.get(path, params=params, auth=ADMIN if "warnings" in path else auth)
         assert answer.status_code == 422, (path, answer.text)
         repeated = {key for key, _ in params if sum(k == key for k, _ in params) > 1}
@@ -227,14 +252,19 @@ def test_vss_keyed_samples_are_accepted(cloud):
     service, client = cloud
     auth = register(client, "car-7")
     s = wire_samples(patch_drive(0.9, 3), "car-7", START_MS)[0]
-    vss = {"timestamp_ms": s["timestamp_ms"], "Vehicle.VehicleIdentification.VIN": "car-7",
-           "Vehicle.Speed": s["speed_mps"] * 3.6, "Vehicle.Acceleration.Longitudinal": s["accel_lon_mps2"],
-           "Vehicle.Acceleration.Lateral": s["accel_lat_mps2"],
-           "Vehicle.AngularVelocity.Yaw": np.degrees(s["yaw_rate_radps"]),
-           "Vehicle.Chassis.SteeringWheel.Angle": np.degrees(s["steering_wheel_angle_rad"]),
-           "Vehicle.ADAS.ABS.IsEngaged": s["abs_active"], "Vehicle.ADAS.CruiseControl.IsActive": s["acc_active"],
-           "Vehicle.CurrentLocation.Latitude": s["latitude_deg"],
-           "Vehicle.CurrentLocation.Longitude": s["longitude_deg"]}
+    vss = {
+        "timestamp_ms": s["timestamp_ms"],
+        "Vehicle.VehicleIdentification.VIN": "car-7",
+        "Vehicle.Speed": s["speed_mps"] * 3.6,
+        "Vehicle.Acceleration.Longitudinal": s["accel_lon_mps2"],
+        "Vehicle.Acceleration.Lateral": s["accel_lat_mps2"],
+        "Vehicle.AngularVelocity.Yaw": np.degrees(s["yaw_rate_radps"]),
+        "Vehicle.Chassis.SteeringWheel.Angle": np.degrees(s["steering_wheel_angle_rad"]),
+        "Vehicle.ADAS.ABS.IsEngaged": s["abs_active"],
+        "Vehicle.ADAS.CruiseControl.IsActive": s["acc_active"],
+        "Vehicle.CurrentLocation.Latitude": s["latitude_deg"],
+        "Vehicle.CurrentLocation.Longitude": s["longitude_deg"],
+    }
     for row, side in (("Row1", "fl"), ("Row1", "fr"), ("Row2", "rl"), ("Row2", "rr")):
         wheel = "Left" if side[1] == "l" else "Right"
         vss[f"Vehicle.Chassis.Axle.{row}.Wheel.{wheel}.AngularSpeed"] = np.degrees(s[f"wheel_speed_{side}_radps"])
@@ -272,26 +302,36 @@ def test_a_slippery_patch_raises_a_warning_there_only_and_dry_passes_cancel_it(c
         assert "termination" not in w["denm"]["management"]
     geo = client.get("/v1/map", auth=ADMIN).json()
     assert geo["type"] == "FeatureCollection" and geo["features"]
-    measured = {f["properties"]["cell"]: f["properties"] for f in geo["features"]
-                if f["properties"]["status"] == "measured"}
+    measured = {
+        f["properties"]["cell"]: f["properties"] for f in geo["features"] if f["properties"]["status"] == "measured"
+    }
     assert measured and ET.fromstring(client.get("/v1/map/datex2", auth=ADMIN).content) is not None
     # later again, a vehicle brakes on the patch's far half too: the evidence has recovered in every warned cell
     auth = register(client, "suv-d", "paper-suv")
-    post(client, auth, wire_samples(patch_drive(0.9, 3, "paper-suv", brake_s=13.0), "suv-d", later + 120_000),
-         chunk=20)
+    post(client, auth, wire_samples(patch_drive(0.9, 3, "paper-suv", brake_s=13.0), "suv-d", later + 120_000), chunk=20)
     settle(service)
     left = {w["roadgrip"]["cell"] for w in client.get("/v1/warnings", auth=ADMIN).json()["warnings"]}
     assert not left & patch_cells(), "dry passes did not cancel the warnings on the patch"
     assert left <= on_or_beside_the_patch() - patch_cells()  # beside it, where nobody braked again: it will expire
     every = client.get("/v1/warnings", params={"active": False}, auth=ADMIN).json()["warnings"]
     assert {w["roadgrip"]["cell"] for w in every} <= on_or_beside_the_patch()
-    assert all(w["denm"]["management"].get("termination") == "isCancellation" for w in every
-               if w["roadgrip"]["cell"] in patch_cells())
+    assert all(
+        w["denm"]["management"].get("termination") == "isCancellation"
+        for w in every
+        if w["roadgrip"]["cell"] in patch_cells()
+    )
 
 
 def test_a_restarted_service_keeps_its_map_and_active_warnings(storage_url, tmp_path):
-    settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="off", admin_secret=ADMIN[1],
-                        flush_interval_s=0.01, reorder_window_s=0.2, map_clock="data")
+    settings = Settings(
+        data_dir=tmp_path,
+        database_url=storage_url,
+        mqtt="off",
+        admin_secret=ADMIN[1],
+        flush_interval_s=0.01,
+        reorder_window_s=0.2,
+        map_clock="data",
+    )
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         for vehicle_id, profile, seed in (("suv-w", "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):
             auth = register(client, vehicle_id, profile)
@@ -304,7 +344,5 @@ def test_a_restarted_service_keeps_its_map_and_active_warnings(storage_url, tmp_
     assert before
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         assert client.get("/v1/warnings", auth=ADMIN).json()["warnings"] == before
-        assert {w.warning_id for w in service.warning_engine.active()} == {w["roadgrip"]["warning_id"]
-                                                                           for w in before}
-        assert {f["properties"]["cell"] for f in client.get("/v1/map", auth=ADMIN).json()["features"]} == \
-            cells_before
+        assert {w.warning_id for w in service.warning_engine.active()} == {w["roadgrip"]["warning_id"] for w in before}
+        assert {f["properties"]["cell"] for f in client.get("/v1/map", auth=ADMIN).json()["features"]} == cells_before

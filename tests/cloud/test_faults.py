@@ -66,8 +66,12 @@ def register(http: httpx.Client, vehicle_id: str) -> str:
 def wait_stored(url: str, acknowledged: list[dict], timeout_s: float = 60) -> float:
     """Wait until every acknowledged sample is in the telemetry table; the seconds it took."""
     wanted = keys(acknowledged)
-    return wait_for(lambda: wanted <= set(stored_keys(url, "telemetry")), timeout_s,
-                    f"{len(wanted)} acknowledged samples stored", poll_s=0.1)
+    return wait_for(
+        lambda: wanted <= set(stored_keys(url, "telemetry")),
+        timeout_s,
+        f"{len(wanted)} acknowledged samples stored",
+        poll_s=0.1,
+    )
 
 
 def check_stored_once(url: str, sent: list[dict], acknowledged: list[dict]) -> dict:
@@ -82,8 +86,7 @@ def check_stored_once(url: str, sent: list[dict], acknowledged: list[dict]) -> d
     assert not missing, f"{len(missing)} acknowledged samples not stored, e.g. {sorted(missing)[:3]}"
     assert set(telemetry) <= keys(sent), "stored samples that were never sent"
     assert set(estimates) <= set(telemetry), "an estimate without its stored sample"
-    return {"sent": len(sent), "acknowledged": len(acknowledged), "stored": len(telemetry),
-            "estimates": len(estimates)}
+    return {"sent": len(sent), "acknowledged": len(acknowledged), "stored": len(telemetry), "estimates": len(estimates)}
 
 
 def report(name: str, **figures) -> None:
@@ -98,8 +101,15 @@ def test_service_sigkill_mid_stream_loses_no_acknowledged_sample(broker, tmp_pat
     session); the vehicles go on throughout."""
     workdir = tmp_path / "service"
     workdir.mkdir()
-    serve = ServeProcess(workdir, {"ROADGRIP_MQTT": broker.url, "ROADGRIP_MQTT_USERNAME": broker.service_user,
-                                   "ROADGRIP_MQTT_PASSWORD": broker.service_password}, ADMIN)
+    serve = ServeProcess(
+        workdir,
+        {
+            "ROADGRIP_MQTT": broker.url,
+            "ROADGRIP_MQTT_USERNAME": broker.service_user,
+            "ROADGRIP_MQTT_PASSWORD": broker.service_password,
+        },
+        ADMIN,
+    )
     database = f"sqlite:///{workdir / 'roadgrip.sqlite'}"
     car = truck = None
     try:
@@ -139,11 +149,19 @@ def test_service_sigkill_mid_stream_loses_no_acknowledged_sample(broker, tmp_pat
     published_while_down = car.sent_between(killed, up)
     refused_while_down = sum(truck.count(e, killed, up) for e in ("ConnectError", "ReadError", "RemoteProtocolError"))
     assert published_while_down > 0 and refused_while_down > 0, "the kill did not fall mid-stream"
-    report("sigkill", mqtt=mqtt, http=http, stored_before_kill=stored_before,
-           mqtt_published_while_down=published_while_down, http_failed_tries_while_down=refused_while_down,
-           http_already_stored_on_retry=truck.duplicates,
-           down_s=round(up - killed, 2), restart_s=round(start_s, 2), catch_up_s=round(catch_up_s, 2),
-           pipeline_after_restart={k: health["pipeline"][k] for k in ("stored", "duplicates", "late")})
+    report(
+        "sigkill",
+        mqtt=mqtt,
+        http=http,
+        stored_before_kill=stored_before,
+        mqtt_published_while_down=published_while_down,
+        http_failed_tries_while_down=refused_while_down,
+        http_already_stored_on_retry=truck.duplicates,
+        down_s=round(up - killed, 2),
+        restart_s=round(start_s, 2),
+        catch_up_s=round(catch_up_s, 2),
+        pipeline_after_restart={k: health["pipeline"][k] for k in ("stored", "duplicates", "late")},
+    )
 
 
 # ------------------------------------------------------------------------------------------------- 2. broker restart
@@ -153,8 +171,13 @@ def test_broker_restart_mid_stream_everyone_reconnects_and_nothing_acknowledged_
     """The broker stopped (SIGTERM: it saves its sessions) and started again while a vehicle publishes, at once
     (`ManagedBroker.restart`) or after `down_s`; the vehicle's paho client and the service's MqttClient reconnect by
     themselves (paho's backoff: 0.25 s doubling to 10 s)."""
-    settings = Settings(data_dir=tmp_path / "service", mqtt=broker.url, mqtt_username=broker.service_user,
-                        mqtt_password=broker.service_password, admin_secret=ADMIN[1])
+    settings = Settings(
+        data_dir=tmp_path / "service",
+        mqtt=broker.url,
+        mqtt_username=broker.service_user,
+        mqtt_password=broker.service_password,
+        admin_secret=ADMIN[1],
+    )
     database = settings.storage_url
     with CloudService(settings) as service:
         [secret] = service.register_vehicles([("restart-car", vehicle_by_name("paper-suv"))])
@@ -171,8 +194,9 @@ def test_broker_restart_mid_stream_everyone_reconnects_and_nothing_acknowledged_
             else:
                 broker.restart()
             restarted = time.monotonic()
-            service_back_s = wait_for(lambda: service.health()["mqtt"] == "connected", 10,
-                                      "the service's MQTT connection back")
+            service_back_s = wait_for(
+                lambda: service.health()["mqtt"] == "connected", 10, "the service's MQTT connection back"
+            )
             car.finish(30)
             wait_for(car.all_acknowledged, 15, "PUBACKs for every message")
             wait_stored(database, car.acknowledged())
@@ -188,10 +212,14 @@ def test_broker_restart_mid_stream_everyone_reconnects_and_nothing_acknowledged_
     assert back, "the vehicle's client did not reconnect by itself"
     assert health["status"] == "ok" and health["mqtt"] == "connected"
     assert service_back_s < 5.0
-    report(f"broker-{'down' if down_s else 'restart'}", **counts, broker_down_s=round(restarted - stopping, 2),
-           service_reconnected_after_s=round(service_back_s, 2),
-           vehicle_reconnected_after_s=round(back[0] - restarted, 2),
-           vehicle_published_while_disconnected=car.sent_between(drops[0], back[0]))
+    report(
+        f"broker-{'down' if down_s else 'restart'}",
+        **counts,
+        broker_down_s=round(restarted - stopping, 2),
+        service_reconnected_after_s=round(service_back_s, 2),
+        vehicle_reconnected_after_s=round(back[0] - restarted, 2),
+        vehicle_published_while_disconnected=car.sent_between(drops[0], back[0]),
+    )
 
 
 # ------------------------------------------------------------------------------------------------- 3. PostgreSQL down
@@ -205,11 +233,19 @@ def test_postgresql_outage_of_30_s_loses_no_acknowledged_sample(broker, tmp_path
     unacknowledged in the service; started again, the service recovers by itself and stores them."""
     cluster = PostgresCluster()
     try:
-        settings = Settings(data_dir=tmp_path / "service", database_url=cluster.url, mqtt=broker.url,
-                            mqtt_username=broker.service_user, mqtt_password=broker.service_password,
-                            admin_secret=ADMIN[1])
-        with CloudService(settings) as service, serving_http(service) as base_url, \
-                httpx.Client(base_url=base_url, auth=ADMIN, timeout=10) as admin:
+        settings = Settings(
+            data_dir=tmp_path / "service",
+            database_url=cluster.url,
+            mqtt=broker.url,
+            mqtt_username=broker.service_user,
+            mqtt_password=broker.service_password,
+            admin_secret=ADMIN[1],
+        )
+        with (
+            CloudService(settings) as service,
+            serving_http(service) as base_url,
+            httpx.Client(base_url=base_url, auth=ADMIN, timeout=10) as admin,
+        ):
             car_secret = register(admin, "pg-mqtt")
             broker.set_user("pg-mqtt", car_secret, "vehicle", "pg-mqtt")
             truck_secret = register(admin, "pg-http")
@@ -247,8 +283,9 @@ def test_postgresql_outage_of_30_s_loses_no_acknowledged_sample(broker, tmp_path
     finally:
         cluster.close()
     # during the outage: health 503 "unavailable" throughout, no HTTP sample acknowledged, MQTT held
-    assert during and all(code == 503 and body["status"] == "unavailable" for _, code, body in during), \
-        [(code, body["status"]) for _, code, body in during if code != 503 or body["status"] != "unavailable"]
+    assert during and all(code == 503 and body["status"] == "unavailable" for _, code, body in during), [
+        (code, body["status"]) for _, code, body in during if code != 503 or body["status"] != "unavailable"
+    ]
     assert truck.count(200, stopped + 0.5, starting) == 0, "HTTP samples acknowledged while the database was down"
     answered_503 = truck.count(503, stopped, starting)
     assert answered_503 > 0
@@ -260,13 +297,23 @@ def test_postgresql_outage_of_30_s_loses_no_acknowledged_sample(broker, tmp_path
     assert car.refused == 0
     assert mqtt["sent"] == mqtt["acknowledged"] == mqtt["stored"] == 900
     assert http["sent"] == http["acknowledged"] == http["stored"] == 900
-    report("postgresql-outage", mqtt=mqtt, http=http, outage_s=round(starting - stopping, 1),
-           pg_stop_s=round(stopped - stopping, 2), pg_start_s=round(started - starting, 2),
-           health_ok_after_start_s=round(health_back_s, 2), drain_after_stream_s=round(drain_s, 2),
-           health_503_answers=len(during), http_503_answers=answered_503,
-           http_429_answers=truck.count(429), http_already_stored_on_retry=truck.duplicates,
-           mqtt_published_during_outage=published_during,
-           mqtt_held_in_service_max=held_mqtt, sent_total=len(sent))
+    report(
+        "postgresql-outage",
+        mqtt=mqtt,
+        http=http,
+        outage_s=round(starting - stopping, 1),
+        pg_stop_s=round(stopped - stopping, 2),
+        pg_start_s=round(started - starting, 2),
+        health_ok_after_start_s=round(health_back_s, 2),
+        drain_after_stream_s=round(drain_s, 2),
+        health_503_answers=len(during),
+        http_503_answers=answered_503,
+        http_429_answers=truck.count(429),
+        http_already_stored_on_retry=truck.duplicates,
+        mqtt_published_during_outage=published_during,
+        mqtt_held_in_service_max=held_mqtt,
+        sent_total=len(sent),
+    )
 
 
 # ------------------------------------------------------------------------------------------------- 4. SIGTERM
@@ -290,6 +337,7 @@ def test_service_sigterm_stops_cleanly_and_estimates_what_it_held(tmp_path):
         serve.stop()
     counts = check_stored_once(database, samples, samples)
     report("sigterm", **counts, exit_status=serve.process.returncode)
-    assert counts["estimates"] == counts["stored"] == len(samples), \
-        f"{counts['stored'] - counts['estimates']} stored samples left without an estimate: CloudService.stop() " \
+    assert counts["estimates"] == counts["stored"] == len(samples), (
+        f"{counts['stored'] - counts['estimates']} stored samples left without an estimate: CloudService.stop() "
         f"did not run\n{serve.log_tail(1500)}"
+    )

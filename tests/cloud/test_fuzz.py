@@ -62,8 +62,11 @@ JSON_TYPE, NDJSON_TYPE = "application/json", "application/x-ndjson"
 
 
 def fuzz(max_examples: int) -> settings:
-    return settings(max_examples=max_examples, deadline=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
+    return settings(
+        max_examples=max_examples,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much],
+    )
 
 
 def _openapi() -> dict:
@@ -75,8 +78,15 @@ def _openapi() -> dict:
 OPERATIONS = [(method.upper(), path) for path, methods in _openapi()["paths"].items() for method in methods]
 MODES = [schemathesis.GenerationMode.POSITIVE, schemathesis.GenerationMode.NEGATIVE]
 ROLES = ["admin", "vehicle", "reader", "nobody"]
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
-          response_headers_conformance, ignored_auth, negative_data_rejection]
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+    response_headers_conformance,
+    ignored_auth,
+    negative_data_rejection,
+]
 
 
 @dataclass
@@ -105,12 +115,13 @@ def api(tmp_path_factory):
         vehicle = _register(client, VEHICLE)
         samples = wire_samples(patch_drive(0.2, 1), VEHICLE, START_MS)
         for k in range(0, len(samples), 50):
-            assert client.post("/v1/telemetry", json=samples[k:k + 50], auth=vehicle).status_code == 200
+            assert client.post("/v1/telemetry", json=samples[k : k + 50], auth=vehicle).status_code == 200
         reader = client.post("/v1/readers", json={"name": READER}, auth=ADMIN).json()
         _wait_for(lambda: service.storage.counts()["estimates"] == len(samples), "the drive's estimates")
-        yield Api(schemathesis.openapi.from_asgi("/openapi.json", app),
-                  {"admin": ADMIN, "vehicle": vehicle, "reader": (READER, reader["secret"])})
-
+        yield Api(
+            schemathesis.openapi.from_asgi("/openapi.json", app),
+            {"admin": ADMIN, "vehicle": vehicle, "reader": (READER, reader["secret"])},
+        )
 
 
 def _wait_for(predicate, what: str, timeout_s: float = 20.0) -> None:
@@ -146,8 +157,9 @@ HOSTILE_CHARACTERS = ["\x00", "\ud800", "\udfff", "\u2028", "\ufeff", "'", '"', 
 
 def texts(max_size: int) -> st.SearchStrategy[str]:
     # joined lists, not st.text: st.text drops lone surrogates whatever its alphabet
-    return st.lists(st.characters(exclude_categories=()) | st.sampled_from(HOSTILE_CHARACTERS),
-                    max_size=max_size).map("".join)
+    return st.lists(st.characters(exclude_categories=()) | st.sampled_from(HOSTILE_CHARACTERS), max_size=max_size).map(
+        "".join
+    )
 
 
 any_text = texts(20)
@@ -155,7 +167,8 @@ any_bytes = st.binary(max_size=300) | texts(300).map(lambda t: t.encode("utf-8",
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | any_text,
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(any_text, inner, max_size=4),
-    max_leaves=8)
+    max_leaves=8,
+)
 
 
 @st.composite
@@ -179,12 +192,18 @@ def valid_samples(draw) -> dict:
 
 
 mutations = st.tuples(st.sampled_from(TELEMETRY_COLUMNS) | any_text, json_values)
-content_types = st.sampled_from([None, JSON_TYPE, NDJSON_TYPE, "application/json; charset=utf-8", "text/plain"]) \
-    | st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=30)  # what a header can carry
+content_types = st.sampled_from(
+    [None, JSON_TYPE, NDJSON_TYPE, "application/json; charset=utf-8", "text/plain"]
+) | st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=30)  # what a header can carry
 # UTF-8 text (one bad byte would refuse the whole body), JSON's pieces and escapes more often than by chance
-junk_lines = st.lists(st.characters(codec="utf-8", exclude_characters="\n") | st.sampled_from(
-    ["{", "}", "[", "]", ",", ":", '"', "\\ud800", "\\u0000", "NaN", "1e999", '{"vehicle_id": '] + HOSTILE_CHARACTERS[3:8]),
-    max_size=20).map("".join)
+junk_lines = st.lists(
+    st.characters(codec="utf-8", exclude_characters="\n")
+    | st.sampled_from(
+        ["{", "}", "[", "]", ",", ":", '"', "\\ud800", "\\u0000", "NaN", "1e999", '{"vehicle_id": ']
+        + HOSTILE_CHARACTERS[3:8]
+    ),
+    max_size=20,
+).map("".join)
 
 _blocks = itertools.count()
 
@@ -200,8 +219,10 @@ def stamped(vehicle_id: str, samples: list[dict], start_ms: int) -> list[dict]:
 
 def as_stored(sample: dict) -> dict:
     """A valid sample as the database returns it: every column, numbers as floats, absent optional fields null."""
-    return {name: (float(sample[name]) if name in RANGES and sample.get(name) is not None else sample.get(name))
-            for name in TELEMETRY_COLUMNS}
+    return {
+        name: (float(sample[name]) if name in RANGES and sample.get(name) is not None else sample.get(name))
+        for name in TELEMETRY_COLUMNS
+    }
 
 
 def encode(samples: list, fmt: str) -> tuple[bytes, str | None]:
@@ -212,17 +233,23 @@ def encode(samples: list, fmt: str) -> tuple[bytes, str | None]:
 
 def not_in_the_fuzzed_window(key: str, value) -> bool:
     """A mutated timestamp that could land in another example's block would blur that example's count."""
-    return not (key == "timestamp_ms" and type(value) in (int, float) and not math.isnan(value)
-                and value >= START_MS - 1)
+    return not (
+        key == "timestamp_ms" and type(value) in (int, float) and not math.isnan(value) and value >= START_MS - 1
+    )
 
 
 # ------------------------------------------------------------------------------------------------ ingest: HTTP
 
+
 @pytest.fixture(scope="module")
 def ingest(tmp_path_factory):
     """A service with the rate limit off, a vehicle for HTTP ingest and one for MQTT."""
-    with _serve(tmp_path_factory.mktemp("ingest"), flush_interval_s=0.002, reorder_window_s=0.0,
-                rate_limit_samples_per_s=0) as service, TestClient(create_app(service)) as client:
+    with (
+        _serve(
+            tmp_path_factory.mktemp("ingest"), flush_interval_s=0.002, reorder_window_s=0.0, rate_limit_samples_per_s=0
+        ) as service,
+        TestClient(create_app(service)) as client,
+    ):
         auth = _register(client, INGEST_VEHICLE)
         _register(client, MQTT_VEHICLE)
         yield service, client, auth
@@ -241,8 +268,9 @@ def post(ingest, body: bytes, content_type: str | None) -> tuple[set[int] | None
     the database gained)."""
     service, client, auth = ingest
     before = rows(service)
-    answer = client.post("/v1/telemetry", content=body, auth=auth,
-                         headers={} if content_type is None else {"content-type": content_type})
+    answer = client.post(
+        "/v1/telemetry", content=body, auth=auth, headers={} if content_type is None else {"content-type": content_type}
+    )
     gained = rows(service) - before
     assert answer.status_code < 500, answer.text
     result = answer.json()
@@ -272,8 +300,13 @@ def test_http_any_json_gets_clear_rejections_and_stores_only_what_it_says(ingest
 
 
 @fuzz(INGEST_EXAMPLES)
-@given(samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1), bad=valid_samples(), mutation=mutations,
-       data=st.data(), fmt=st.sampled_from(["json", "ndjson", "detect"]))
+@given(
+    samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1),
+    bad=valid_samples(),
+    mutation=mutations,
+    data=st.data(),
+    fmt=st.sampled_from(["json", "ndjson", "detect"]),
+)
 @pytest.mark.slow
 def test_http_one_mutated_field_loses_no_valid_sample(ingest, samples, bad, mutation, data, fmt):
     key, value = mutation
@@ -299,8 +332,13 @@ def test_http_any_bytes_never_give_a_server_error(ingest, body, content_type):
 
 
 @fuzz(INGEST_EXAMPLES)
-@given(lines=st.lists(valid_samples().map(lambda s: ("sample", s)) | junk_lines.map(lambda j: ("junk", j)),
-                      min_size=1, max_size=MAX_SAMPLES))
+@given(
+    lines=st.lists(
+        valid_samples().map(lambda s: ("sample", s)) | junk_lines.map(lambda j: ("junk", j)),
+        min_size=1,
+        max_size=MAX_SAMPLES,
+    )
+)
 @pytest.mark.slow
 def test_http_ndjson_with_junk_lines_keeps_every_valid_line(ingest, lines):
     start_ms = fresh_block()
@@ -320,6 +358,7 @@ def test_http_ndjson_with_junk_lines_keeps_every_valid_line(ingest, lines):
 
 
 # ------------------------------------------------------------------------------------------------ ingest: MQTT
+
 
 class Ack:
     """A fake MQTT acknowledgement: counts its calls and the telemetry rows stored when it was first called."""
@@ -376,7 +415,7 @@ def mqtt_handler(ingest):
             assert ack.calls == 1, "a message without a valid sample must be acknowledged at once"
             assert rows(service) == before
         else:
-            (_, _, future), = submitted
+            ((_, _, future),) = submitted
             finished = threading.Event()
             future.add_done_callback(lambda _: finished.set())  # runs after the service's own callback (the ack)
             assert finished.wait(10) and ack.done.is_set(), "no acknowledgement after storage"
@@ -397,8 +436,13 @@ def test_mqtt_any_json_is_refused_clearly_and_acknowledged_once(mqtt_handler, va
 
 
 @fuzz(MQTT_EXAMPLES)
-@given(samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1), bad=valid_samples(), mutation=mutations,
-       data=st.data(), ndjson=st.booleans())
+@given(
+    samples=st.lists(valid_samples(), max_size=MAX_SAMPLES - 1),
+    bad=valid_samples(),
+    mutation=mutations,
+    data=st.data(),
+    ndjson=st.booleans(),
+)
 @pytest.mark.slow
 def test_mqtt_one_mutated_field_loses_no_valid_sample(ingest, mqtt_handler, samples, bad, mutation, data, ndjson):
     key, value = mutation

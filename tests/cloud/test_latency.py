@@ -25,7 +25,7 @@ def test_percentiles_since_start_lie_within_one_bin_above_the_exact_ones():
 def test_the_whole_run_is_remembered_while_the_window_forgets():
     recorder = LatencyRecorder(window=100, bin_ms=10.0)
     recorder.add(np.full(900, 5_000.0))  # a slow start ...
-    recorder.add(np.full(100, 50.0))     # ... then fast
+    recorder.add(np.full(100, 50.0))  # ... then fast
     assert recorder.recent()["p99_ms"] == 50.0
     assert recorder.since_start()["p50_ms"] == 5_010.0  # the upper edge of the bin holding 5,000 ms
 

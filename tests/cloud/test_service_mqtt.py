@@ -27,8 +27,15 @@ START_MS = int(time.time() * 1000) - 600_000
 @pytest.fixture
 def cloud(storage_url, tmp_path):
     assert mosquitto_available(), "mosquitto is not installed: run `bash scripts/install_system_deps.sh`"
-    settings = Settings(data_dir=tmp_path, database_url=storage_url, mqtt="managed", admin_secret=ADMIN[1],
-                        flush_interval_s=0.02, reorder_window_s=0.2, map_clock="data")
+    settings = Settings(
+        data_dir=tmp_path,
+        database_url=storage_url,
+        mqtt="managed",
+        admin_secret=ADMIN[1],
+        flush_interval_s=0.02,
+        reorder_window_s=0.2,
+        map_clock="data",
+    )
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         yield service, client
 
@@ -40,7 +47,7 @@ def test_a_run_published_over_mqtt_comes_back_as_estimates_everywhere(cloud):
     with UserClient(url, vehicle_id, secret).connect() as car:
         car.subscribe(friction_topic(vehicle_id))
         for k in range(0, len(samples), 2):  # two samples a message: a JSON array
-            car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k:k + 2]))
+            car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k : k + 2]))
         car.publish(telemetry_topic(vehicle_id), json.dumps(samples[:5]))  # a repeated message
         published = collect(car.messages, lambda got: sum(len(json.loads(p)) for _, p in got) >= len(samples))
     estimates = [e for _, payload in published for e in json.loads(payload)]

@@ -25,8 +25,15 @@ def test_the_default_storage_is_sqlite_in_the_data_dir(tmp_path):
     assert load_settings(database_url="postgresql://u@h/db").storage_url == "postgresql://u@h/db"
 
 
-@pytest.mark.parametrize("text, key", [("prt: 1\n", "prt"), ("h3_resolution: 16\n", "h3_resolution"),
-                                       ("mqtt: carrier-pigeon\n", "mqtt"), ("- a list\n", "mapping")])
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("prt: 1\n", "prt"),
+        ("h3_resolution: 16\n", "h3_resolution"),
+        ("mqtt: carrier-pigeon\n", "mqtt"),
+        ("- a list\n", "mapping"),
+    ],
+)
 def test_bad_files_name_the_key(tmp_path, text, key):
     config = tmp_path / "bad.yaml"
     config.write_text(text)

@@ -35,9 +35,16 @@ LAT, LON = 48.1372, 11.5755
 
 
 def report(station_id: str, t_ms: int, state: str = "ice", **fields) -> dict:
-    return {"station_id": station_id, "timestamp_ms": t_ms, "latitude_deg": LAT, "longitude_deg": LON,
-            "surface_state": state, "surface_temperature_c": -3.0 if state == "ice" else 4.0,
-            "water_film_thickness_mm": 0.0, **fields}
+    return {
+        "station_id": station_id,
+        "timestamp_ms": t_ms,
+        "latitude_deg": LAT,
+        "longitude_deg": LON,
+        "surface_state": state,
+        "surface_temperature_c": -3.0 if state == "ice" else 4.0,
+        "water_film_thickness_mm": 0.0,
+        **fields,
+    }
 
 
 def add_station(client, station_id: str) -> tuple[str, str]:
@@ -65,19 +72,33 @@ def test_a_station_reports_over_http_and_readers_see_its_latest_report(cloud):
     service, client = cloud
     station = add_station(client, "rws-a9")
     now = int(time.time() * 1000)
-    answer = client.post("/v1/stations/rws-a9/reports", json=[report("rws-a9", now - 60_000, "wet"),
-                                                             report("rws-a9", now, "ice")], auth=station)
+    answer = client.post(
+        "/v1/stations/rws-a9/reports",
+        json=[report("rws-a9", now - 60_000, "wet"), report("rws-a9", now, "ice")],
+        auth=station,
+    )
     assert answer.status_code == 200, answer.text
-    assert answer.json() == {"received": 2, "stored": 2, "duplicates": 0,
-                             "evidence_cells": 2 * len(covered_cells(LAT, LON, 10))}
+    assert answer.json() == {
+        "received": 2,
+        "stored": 2,
+        "duplicates": 0,
+        "evidence_cells": 2 * len(covered_cells(LAT, LON, 10)),
+    }
     again = client.post("/v1/stations/rws-a9/reports", json=report("rws-a9", now, "ice"), auth=station)
     assert again.json()["duplicates"] == 1 and again.json()["stored"] == 0  # a retry is stored once
-    bad = client.post("/v1/stations/rws-a9/reports", json=[report("rws-a9", now + 1), report("rws-a9", now + 2,
-                                                                                             "slush")], auth=station)
+    bad = client.post(
+        "/v1/stations/rws-a9/reports",
+        json=[report("rws-a9", now + 1), report("rws-a9", now + 2, "slush")],
+        auth=station,
+    )
     assert bad.status_code == 422 and bad.json()["detail"]["index"] == 1
     assert bad.json()["detail"]["field"] == "surface_state"
-    assert client.post("/v1/stations/rws-a9/reports", content=b"{ice", auth=station,
-                       headers={"content-type": "application/json"}).status_code == 400
+    assert (
+        client.post(
+            "/v1/stations/rws-a9/reports", content=b"{ice", auth=station, headers={"content-type": "application/json"}
+        ).status_code
+        == 400
+    )
     reader = add_reader(client, "operator")
     latest = client.get("/v1/stations", auth=reader).json()
     [row] = latest["stations"]
@@ -97,8 +118,14 @@ def test_roles_a_vehicle_cannot_report_for_a_station_nor_a_station_send_telemetr
     as_other = client.post("/v1/stations/rws-2/reports", json=report("rws-1", now), auth=other)
     assert as_other.status_code == 422 and as_other.json()["detail"]["field"] == "station_id"
     assert client.post("/v1/telemetry", json=samples_of("rws-1", 3), auth=station).status_code == 403
-    for path in ("/v1/stations", "/v1/map", "/v1/warnings", "/v1/vehicles/latest", "/v1/vehicles/car-s",
-                 "/v1/vehicles/car-s/estimates"):
+    for path in (
+        "/v1/stations",
+        "/v1/map",
+        "/v1/warnings",
+        "/v1/vehicles/latest",
+        "/v1/vehicles/car-s",
+        "/v1/vehicles/car-s/estimates",
+    ):
         assert client.get(path, auth=station).status_code == 403, path
     assert client.get("/v1/stations", auth=vehicle).status_code == 403
     assert client.post("/v1/stations", json={"station_id": "rws-3"}, auth=station).status_code == 403
@@ -152,17 +179,21 @@ def test_over_mqtt_a_station_publishes_only_its_own_reports(mqtt_cloud):
     (station_id, secret), (other_id, other_secret) = add_station(client, "rws-m"), add_station(client, "rws-n")
     vehicle_id, vehicle_secret = register(client, "car-m")
     url, now = service.mqtt_url, int(time.time() * 1000)
-    with UserClient(url, station_id, secret) as station, UserClient(url, other_id, other_secret) as other, \
-            UserClient(url, vehicle_id, vehicle_secret) as vehicle:
+    with (
+        UserClient(url, station_id, secret) as station,
+        UserClient(url, other_id, other_secret) as other,
+        UserClient(url, vehicle_id, vehicle_secret) as vehicle,
+    ):
         station.subscribe(station_errors_topic(station_id))
         other.subscribe(station_errors_topic(station_id))  # granted; the ACL keeps the deliveries away
         station.publish(station_reports_topic(station_id), json.dumps(report(station_id, now)))
         wait_until(lambda: len(service.storage.station_reports_since(0)) == 1, what="the station's report stored")
         for client_, topic, payload in (
-                (other, station_reports_topic(station_id), report(station_id, now + 1)),  # as another station
-                (vehicle, station_reports_topic(station_id), report(station_id, now + 2)),  # a vehicle as a station
-                (station, telemetry_topic(vehicle_id), samples_of(vehicle_id, 2)),  # a station as a vehicle
-                (station, station_errors_topic(station_id), {})):  # forged error reports
+            (other, station_reports_topic(station_id), report(station_id, now + 1)),  # as another station
+            (vehicle, station_reports_topic(station_id), report(station_id, now + 2)),  # a vehicle as a station
+            (station, telemetry_topic(vehicle_id), samples_of(vehicle_id, 2)),  # a station as a vehicle
+            (station, station_errors_topic(station_id), {}),
+        ):  # forged error reports
             with pytest.raises(PublishRefused) as refused:
                 client_.publish(topic, json.dumps(payload))
             assert refused.value.reason_code.value == NOT_AUTHORIZED, topic
@@ -172,20 +203,24 @@ def test_over_mqtt_a_station_publishes_only_its_own_reports(mqtt_cloud):
         assert json.loads(payload)["rejected"][0]["field"] == "surface_state"
         time.sleep(0.3)
         assert collect(other.messages, lambda got: False, timeout_s=0.3) == []
-    assert [(r["station_id"], r["timestamp_ms"]) for r in service.storage.station_reports_since(0)] == \
-        [(station_id, now)]
+    assert [(r["station_id"], r["timestamp_ms"]) for r in service.storage.station_reports_since(0)] == [
+        (station_id, now)
+    ]
     assert service.storage.telemetry(vehicle_id) == []
 
 
 def test_a_database_from_before_the_station_role_accepts_station_credentials(storage_url):
     engine = sa.create_engine(normalise_url(storage_url))
     with engine.begin() as conn:  # the credentials table as versions before stations created it, with a row
-        conn.execute(sa.text("CREATE TABLE credentials (name VARCHAR NOT NULL PRIMARY KEY, role VARCHAR NOT NULL "
-                             "CONSTRAINT ck_credentials_role CHECK (role IN ('vehicle', 'reader', 'admin')), "
-                             "secret_hash VARCHAR NOT NULL, vehicle_id VARCHAR, revoked BOOLEAN NOT NULL, "
-                             "created_ms BIGINT NOT NULL)"))
-        conn.execute(sa.text("INSERT INTO credentials VALUES ('car-old', 'vehicle', 'sha256$00', 'car-old', "
-                             "false, 1)"))
+        conn.execute(
+            sa.text(
+                "CREATE TABLE credentials (name VARCHAR NOT NULL PRIMARY KEY, role VARCHAR NOT NULL "
+                "CONSTRAINT ck_credentials_role CHECK (role IN ('vehicle', 'reader', 'admin')), "
+                "secret_hash VARCHAR NOT NULL, vehicle_id VARCHAR, revoked BOOLEAN NOT NULL, "
+                "created_ms BIGINT NOT NULL)"
+            )
+        )
+        conn.execute(sa.text("INSERT INTO credentials VALUES ('car-old', 'vehicle', 'sha256$00', 'car-old', false, 1)"))
     engine.dispose()
     storage = open_storage(storage_url)
     try:
@@ -203,8 +238,14 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
     cell = covered_cells(LAT, LON, 10)[0]
 
     def row(t_ms, lo, hi, station="s1"):
-        return {"station_id": station, "cell": cell, "timestamp_ms": t_ms, "mu": (lo + hi) / 2, "mu_lower": lo,
-                "mu_upper": hi}
+        return {
+            "station_id": station,
+            "cell": cell,
+            "timestamp_ms": t_ms,
+            "mu": (lo + hi) / 2,
+            "mu_lower": lo,
+            "mu_upper": hi,
+        }
 
     assert engine.station_evidence([row(0, 0.05, 0.3)], 0) == []  # one low report: not yet
     assert engine.station_evidence([row(10_000, 0.05, 0.3)], 10_000) == []  # within pass_gap_s: the same visit
@@ -223,12 +264,15 @@ def test_the_warning_engine_judges_a_station_report_by_its_interval():
 def test_the_dashboard_draws_the_stations_with_their_latest_report(tmp_path):
     require_chromium()
     now = int(time.time() * 1000)
-    with serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (_service, base_url), \
-            httpx.Client(base_url=base_url, timeout=30) as client:
+    with (
+        serving(dashboard_settings(tmp_path).model_copy(update={"map_clock": "wall"})) as (_service, base_url),
+        httpx.Client(base_url=base_url, timeout=30) as client,
+    ):
         stations = [add_station(client, name) for name in ("rws-icy", "rws-dry")]
         for (name, secret), state in zip(stations, ("ice", "dry")):
-            answer = client.post(f"/v1/stations/{name}/reports", json=report(name, now - 300_000, state),
-                                 auth=(name, secret))
+            answer = client.post(
+                f"/v1/stations/{name}/reports", json=report(name, now - 300_000, state), auth=(name, secret)
+            )
             assert answer.status_code == 200, answer.text
         secret = client.post("/v1/readers", json={"name": "operator"}, auth=ADMIN).json()["secret"]
         dom = run_chromium(f"{base_url}/dashboard#operator:{secret}", "--dump-dom")

@@ -48,6 +48,16 @@ def drive(vehicle, start_ms, slippery=PATCH, reverse=False):
     for i in range(N_SAMPLES):
         lon = LON0_DEG + (N_SAMPLES - 1 - i if reverse else i) * STEP_DEG
         mu, lo, hi, excited = surface(h3.latlng_to_cell(LAT_DEG, lon, 10), slippery)
-        rows.append({"vehicle_id": vehicle, "timestamp_ms": start_ms + 100 * i, "latitude_deg": LAT_DEG,
-                     "longitude_deg": lon, "mu": mu, "mu_lower": lo, "mu_upper": hi, "excited": excited})
+        rows.append(
+            {
+                "vehicle_id": vehicle,
+                "timestamp_ms": start_ms + 100 * i,
+                "latitude_deg": LAT_DEG,
+                "longitude_deg": lon,
+                "mu": mu,
+                "mu_lower": lo,
+                "mu_upper": hi,
+                "excited": excited,
+            }
+        )
     return rows

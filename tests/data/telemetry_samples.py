@@ -14,8 +14,9 @@ RADIUS_M = 0.35
 WHEEL_COLUMNS = [f"wheel_speed_{w}_radps" for w in WHEELS]
 
 
-def drive(n=200, vehicle_id="v1", start_ms=T0_MS, dt_ms=100, seed=0, accel_mps2=1.5, curve_per_m=0.005,
-          v0_mps=8.0) -> dict:
+def drive(
+    n=200, vehicle_id="v1", start_ms=T0_MS, dt_ms=100, seed=0, accel_mps2=1.5, curve_per_m=0.005, v0_mps=8.0
+) -> dict:
     """A consistent synthetic drive in SI units: accelerate then brake (a = dv/dt), straight then on a curve of
     curvature `curve_per_m` (r = v kappa, ay = v r, steering wheel = 16 x 2.9 m x kappa), wheels rolling (v / R)."""
     rng = np.random.default_rng(seed)

@@ -14,6 +14,7 @@ from roadgrip.vehicle.params import PAPER_SUV
 
 # -------------------------------------------------------------------------------------------- columns and rows
 
+
 def test_t_s_becomes_timestamp_ms_and_the_file_stem_names_the_vehicle(tmp_path, clean):
     t_s = np.arange(clean.num_rows) * 0.1 + 0.0004  # round(t_s * 1000) drops the 0.4 ms
     table = clean.drop(["vehicle_id", "timestamp_ms"]).append_column("t_s", pa.array(t_s))
@@ -36,7 +37,8 @@ def test_missing_columns_are_all_named(clean):
 def test_optional_columns_may_be_absent_and_extras_are_ignored_with_one_warning(clean):
     table = clean.drop(["latitude_deg", "longitude_deg", "lateral_speed_mps"])
     table = table.append_column("mu", pa.array(np.full(table.num_rows, 0.8))).append_column(
-        "run_id", pa.array(["r1"] * table.num_rows))
+        "run_id", pa.array(["r1"] * table.num_rows)
+    )
     batch = validate_telemetry(table)
     assert batch.table.column_names == list(TELEMETRY_COLUMNS)
     assert batch.table["latitude_deg"].null_count == table.num_rows
@@ -53,7 +55,8 @@ def test_tcs_and_esc_flags_are_optional_booleans(tmp_path, clean):
     flags = [True, None, False] * (n // 3) + [False] * (n % 3)
     table = clean.drop([c for c in ("tcs_active", "esc_active") if c in clean.column_names])
     table = table.append_column("tcs_active", pa.array(flags, pa.bool_())).append_column(
-        "esc_active", pa.array(["1", "0", ""] * (n // 3) + ["0"] * (n % 3)))
+        "esc_active", pa.array(["1", "0", ""] * (n // 3) + ["0"] * (n % 3))
+    )
     batch = read_telemetry(write(table, tmp_path / "flags.parquet", "parquet"))
     assert batch.rejections == []
     assert batch.table["tcs_active"].to_pylist()[:3] == [True, None, False], "a missing value is absent, not a fault"
@@ -68,11 +71,13 @@ def test_nan_and_infinite_values_reject_their_rows_naming_the_column(clean):
     speed[3], yaw[7], yaw[8] = np.nan, np.inf, -np.inf
     lat = clean["latitude_deg"].to_numpy().copy()
     lat[9] = np.nan  # an optional column: NaN means absent
-    table = with_column(with_column(with_column(clean, "speed_mps", speed), "yaw_rate_radps", yaw),
-                        "latitude_deg", lat)
+    table = with_column(with_column(with_column(clean, "speed_mps", speed), "yaw_rate_radps", yaw), "latitude_deg", lat)
     batch = validate_telemetry(table)
-    assert [(r.row, r.column) for r in batch.rejections] == [(3, "speed_mps"), (7, "yaw_rate_radps"),
-                                                             (8, "yaw_rate_radps")]
+    assert [(r.row, r.column) for r in batch.rejections] == [
+        (3, "speed_mps"),
+        (7, "yaw_rate_radps"),
+        (8, "yaw_rate_radps"),
+    ]
     assert batch.rejections[0].reason == "NaN in speed_mps"
     assert batch.rejections[1].reason == "infinite value in yaw_rate_radps (inf)"
     assert batch.rejections[0].vehicle_id == "v1" and batch.rejections[0].timestamp_ms == T0_MS + 300
@@ -106,8 +111,13 @@ def test_values_outside_physical_ranges_reject_the_row():
     columns["accel_lat_mps2"][15] = 31.0
     batch = validate_telemetry(table_of(columns))
     assert [(r.row, r.column) for r in batch.rejections] == [
-        (10, "speed_mps"), (11, "yaw_rate_radps"), (12, "wheel_speed_fl_radps"), (13, "latitude_deg"),
-        (14, "longitude_deg"), (15, "accel_lat_mps2")]
+        (10, "speed_mps"),
+        (11, "yaw_rate_radps"),
+        (12, "wheel_speed_fl_radps"),
+        (13, "latitude_deg"),
+        (14, "longitude_deg"),
+        (15, "accel_lat_mps2"),
+    ]
     assert batch.rejections[0].reason == "speed_mps 150 outside [-5, 100] m/s"
     assert batch.rejections[1].reason == "yaw_rate_radps -3.5 outside [-3, 3] rad/s"
 
@@ -129,13 +139,15 @@ def test_bad_vehicle_ids_are_rejected():
 
 # ------------------------------------------------------------------------------ order, duplicates, segments
 
+
 def test_duplicates_keep_the_first_and_unsorted_input_is_sorted_with_a_warning(clean):
     rows = rows_of(clean.slice(0, 50))
     dup = dict(rows[10], speed_mps=99.0)  # same vehicle and timestamp as row 10, later in the file
     shuffled = rows[25:] + rows[:25] + [dup]
     batch = validate_telemetry(pa.Table.from_pylist(shuffled, schema=clean.schema))
     assert [(r.row, r.column, r.reason) for r in batch.rejections] == [
-        (50, "timestamp_ms", f"duplicate timestamp {T0_MS + 1000} for vehicle v1 (kept the first)")]
+        (50, "timestamp_ms", f"duplicate timestamp {T0_MS + 1000} for vehicle v1 (kept the first)")
+    ]
     assert batch.table["timestamp_ms"].to_pylist() == [T0_MS + 100 * i for i in range(50)]
     assert batch.table["speed_mps"][10].as_py() == rows[10]["speed_mps"]
     assert any("not sorted by timestamp" in w and "v1" in w for w in batch.warnings)
@@ -178,10 +190,20 @@ def test_rejection_table_has_one_row_per_rejection():
     report = batch.rejection_table()
     assert report.schema.names == ["row", "vehicle_id", "timestamp_ms", "column", "reason"]
     assert report.to_pylist() == [
-        {"row": 2, "vehicle_id": "v1", "timestamp_ms": T0_MS + 200, "column": "speed_mps",
-         "reason": "NaN in speed_mps"},
-        {"row": 5, "vehicle_id": "no spaces", "timestamp_ms": T0_MS + 500, "column": "vehicle_id",
-         "reason": "vehicle_id 'no spaces' does not match ^[A-Za-z0-9_.-]{1,64}$"},
+        {
+            "row": 2,
+            "vehicle_id": "v1",
+            "timestamp_ms": T0_MS + 200,
+            "column": "speed_mps",
+            "reason": "NaN in speed_mps",
+        },
+        {
+            "row": 5,
+            "vehicle_id": "no spaces",
+            "timestamp_ms": T0_MS + 500,
+            "column": "vehicle_id",
+            "reason": "vehicle_id 'no spaces' does not match ^[A-Za-z0-9_.-]{1,64}$",
+        },
     ]
     empty = validate_telemetry(table_of(drive(n=40))).rejection_table()
     assert empty.num_rows == 0 and empty.schema == report.schema
@@ -196,6 +218,7 @@ def test_no_valid_rows_is_an_error():
 
 # ------------------------------------------------------------------------------------------- simulated data
 
+
 @pytest.fixture(scope="module")
 def two_paper_runs():
     return simulate(paper_scenarios()[:2])
@@ -203,9 +226,11 @@ def two_paper_runs():
 
 def test_a_clean_simulated_run_passes_with_no_rejections(two_paper_runs, tmp_path):
     pq.write_table(two_paper_runs, tmp_path / "sim.parquet")
-    for batch in (validate_telemetry(two_paper_runs, wheel_radius_m=PAPER_SUV.wheel_radius_m),
-                  read_telemetry(tmp_path / "sim.parquet", wheel_radius_m=PAPER_SUV.wheel_radius_m),
-                  validate_telemetry(two_paper_runs)):
+    for batch in (
+        validate_telemetry(two_paper_runs, wheel_radius_m=PAPER_SUV.wheel_radius_m),
+        read_telemetry(tmp_path / "sim.parquet", wheel_radius_m=PAPER_SUV.wheel_radius_m),
+        validate_telemetry(two_paper_runs),
+    ):
         assert batch.rejections == []
         assert batch.table.num_rows == two_paper_runs.num_rows
         assert batch.table.schema.names == list(TELEMETRY_COLUMNS)

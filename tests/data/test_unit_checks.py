@@ -33,16 +33,22 @@ def test_speed_in_kmh_without_radius_or_acceleration_is_still_caught():
 
 @pytest.mark.parametrize("radius", [RADIUS_M, None])
 def test_yaw_rate_in_degrees_per_second_is_detected(clean, radius):
-    with pytest.raises(ValueError, match=r"column yaw_rate_radps looks like degrees per second, not rad/s: .*"
-                                         r"99th percentile of \|yaw rate\| \d+.*convert it"):
+    with pytest.raises(
+        ValueError,
+        match=r"column yaw_rate_radps looks like degrees per second, not rad/s: .*"
+        r"99th percentile of \|yaw rate\| \d+.*convert it",
+    ):
         validate_telemetry(scaled(clean, ["yaw_rate_radps"], 180.0 / math.pi), wheel_radius_m=radius)
 
 
 @pytest.mark.parametrize("radius", [RADIUS_M, None])
 @pytest.mark.parametrize(("factor", "unit"), [(60.0 / (2.0 * math.pi), "rpm"), (180.0 / math.pi, "degrees per second")])
 def test_wheel_speeds_in_rpm_or_degrees_are_detected(clean, radius, factor, unit):
-    with pytest.raises(ValueError, match=f"columns wheel_speed_fl_radps, wheel_speed_fr_radps, wheel_speed_rl_radps, "
-                                         f"wheel_speed_rr_radps look like {unit}, not rad/s"):
+    with pytest.raises(
+        ValueError,
+        match=f"columns wheel_speed_fl_radps, wheel_speed_fr_radps, wheel_speed_rl_radps, "
+        f"wheel_speed_rr_radps look like {unit}, not rad/s",
+    ):
         validate_telemetry(scaled(clean, WHEEL_COLUMNS, factor), wheel_radius_m=radius)
 
 
@@ -67,8 +73,11 @@ def test_steering_in_degrees_accel_in_g_and_timestamps_in_seconds_are_detected(c
 def test_a_wheel_radius_that_does_not_fit_is_an_error_or_a_warning(clean):
     with pytest.raises(ValueError, match="no unit of speed .* explains it"):
         validate_telemetry(clean, wheel_radius_m=0.745)  # ratio 0.47
-    with pytest.raises(ValueError, match=r"0\.234 for speed in mph, wheel speeds in rpm\), but the rate of change of "
-                                         r"speed_mps is 1\.\d+ times accel_lon_mps2, which says m/s"):
+    with pytest.raises(
+        ValueError,
+        match=r"0\.234 for speed in mph, wheel speeds in rpm\), but the rate of change of "
+        r"speed_mps is 1\.\d+ times accel_lon_mps2, which says m/s",
+    ):
         validate_telemetry(clean, wheel_radius_m=1.4)  # ratio 0.25, as mph and rpm would give
     batch = validate_telemetry(clean, wheel_radius_m=0.5)  # ratio 0.7: a wrong profile, not a wrong unit
     assert any("check wheel_radius_m=0.5 m" in w for w in batch.warnings)

@@ -45,15 +45,37 @@ class Drive:
 def _scenarios() -> list[Scenario]:
     effects = ProductionEffects.production()
     return [
-        Scenario(run_id="abs-brake", path=Path.straight(400.0), mu=MuProfile.uniform(0.4),
-                 speed=SpeedProfile([0.0, 3.0, 3.3, 8.0], [22.0, 22.0, 0.0, 0.0]), vehicle=PAPER_SUV,
-                 duration_s=8.0, seed=3, effects=effects),
-        Scenario(run_id="corner", path=Path.circle(60.0, 400.0), mu=MuProfile.uniform(0.8),
-                 speed=SpeedProfile([0.0, 12.0], [10.0, 19.0]), vehicle=MIDSIZE_SEDAN, duration_s=12.0, seed=4,
-                 effects=effects),
-        Scenario(run_id="cruise", path=Path.straight(600.0), mu=MuProfile.uniform(0.9),
-                 speed=SpeedProfile([0.0, 5.0, 10.0, 15.0], [20.0, 22.0, 22.0, 18.0]), vehicle=COMPACT_HATCHBACK,
-                 duration_s=15.0, seed=5, effects=effects, grade=GradeProfile.uniform(0.02)),
+        Scenario(
+            run_id="abs-brake",
+            path=Path.straight(400.0),
+            mu=MuProfile.uniform(0.4),
+            speed=SpeedProfile([0.0, 3.0, 3.3, 8.0], [22.0, 22.0, 0.0, 0.0]),
+            vehicle=PAPER_SUV,
+            duration_s=8.0,
+            seed=3,
+            effects=effects,
+        ),
+        Scenario(
+            run_id="corner",
+            path=Path.circle(60.0, 400.0),
+            mu=MuProfile.uniform(0.8),
+            speed=SpeedProfile([0.0, 12.0], [10.0, 19.0]),
+            vehicle=MIDSIZE_SEDAN,
+            duration_s=12.0,
+            seed=4,
+            effects=effects,
+        ),
+        Scenario(
+            run_id="cruise",
+            path=Path.straight(600.0),
+            mu=MuProfile.uniform(0.9),
+            speed=SpeedProfile([0.0, 5.0, 10.0, 15.0], [20.0, 22.0, 22.0, 18.0]),
+            vehicle=COMPACT_HATCHBACK,
+            duration_s=15.0,
+            seed=5,
+            effects=effects,
+            grade=GradeProfile.uniform(0.02),
+        ),
     ]
 
 
@@ -67,7 +89,9 @@ def contract_drives() -> tuple[Drive, ...]:
         samples = wire_samples(table.filter(pc.equal(table["run_id"], scenario.run_id)), scenario.run_id, START_MS)
         batch = validate_telemetry(pa.Table.from_pylist(samples), source=scenario.run_id)
         if batch.rejections or batch.table.num_rows != len(samples) or len(set(batch.segments.tolist())) != 1:
-            raise AssertionError(f"drive {scenario.run_id}: the validator changed the input ({batch.warnings}, "
-                                 f"{len(batch.rejections)} rejections)")
+            raise AssertionError(
+                f"drive {scenario.run_id}: the validator changed the input ({batch.warnings}, "
+                f"{len(batch.rejections)} rejections)"
+            )
         drives.append(Drive(scenario.run_id, scenario.vehicle, tuple(samples), batch.table, batch.segments))
     return tuple(drives)

@@ -92,7 +92,7 @@ def _stream_in_chunks(estimators, drive, size) -> list[dict]:
         estimator = estimators[k % 2]
         if k:
             state = estimator.state_from_dict(_checkpoint(estimators[(k - 1) % 2], state))
-        out += _stream(estimator, drive, drive.samples[start:start + size], state)
+        out += _stream(estimator, drive, drive.samples[start : start + size], state)
     return out
 
 
@@ -102,8 +102,9 @@ def _assert_same(got: list[dict], expected: list[dict], tolerance: float = 0.0) 
         if tolerance == 0.0:
             assert g == e
             continue
-        assert {k: v for k, v in g.items() if k not in FLOAT_FIELDS} == \
-            {k: v for k, v in e.items() if k not in FLOAT_FIELDS}
+        assert {k: v for k, v in g.items() if k not in FLOAT_FIELDS} == {
+            k: v for k, v in e.items() if k not in FLOAT_FIELDS
+        }
         for key in FLOAT_FIELDS:
             assert g[key] == pytest.approx(e[key], abs=tolerance), (key, g["timestamp_ms"])
 
@@ -148,14 +149,22 @@ def test_one_row_per_judged_sample_with_its_vehicle_and_timestamp(batches, strea
         for rows in (batches[drive.vehicle_id], streams[drive.vehicle_id]):
             judged = [r["timestamp_ms"] for r in rows]
             # None only "while the estimator cannot judge yet" (base.py): the learned model's first window, 1 s
-            assert judged == inputs[len(inputs) - len(judged):], "the input's timestamps, in order, from some start"
+            assert judged == inputs[len(inputs) - len(judged) :], "the input's timestamps, in order, from some start"
             assert len(judged) >= len(inputs) - WARM_UP_SAMPLES
             assert {r["vehicle_id"] for r in rows} == {drive.vehicle_id}
 
 
 def test_streamed_estimates_have_the_schema_fields_and_types(streams, estimator):
-    types = {"vehicle_id": str, "timestamp_ms": int, "mu": float, "mu_lower": float, "mu_upper": float,
-             "excited": bool, "estimator": str, "mu_proven": float}
+    types = {
+        "vehicle_id": str,
+        "timestamp_ms": int,
+        "mu": float,
+        "mu_lower": float,
+        "mu_upper": float,
+        "excited": bool,
+        "estimator": str,
+        "mu_proven": float,
+    }
     for rows in streams.values():
         for row in rows:
             assert list(row) == [c.name for c in ESTIMATE[:8]]
@@ -214,12 +223,16 @@ def test_batch_equals_streaming_in_chunks(case, batches, drives, size):
         _assert_same(streamed, batches[drive.vehicle_id], case.batch_tolerance)
 
 
-FLOAT32_ROUNDING = pytest.mark.xfail(strict=True, reason="a float32 network rounds a batch of windows and a single "
-                                     "window differently (6e-8 on these drives): equal within batch_tolerance only")
+FLOAT32_ROUNDING = pytest.mark.xfail(
+    strict=True,
+    reason="a float32 network rounds a batch of windows and a single "
+    "window differently (6e-8 on these drives): equal within batch_tolerance only",
+)
 
 
-@pytest.mark.parametrize("name", [pytest.param(c.name, marks=FLOAT32_ROUNDING) if c.batch_tolerance else c.name
-                                  for c in CASES], ids=IDS)
+@pytest.mark.parametrize(
+    "name", [pytest.param(c.name, marks=FLOAT32_ROUNDING) if c.batch_tolerance else c.name for c in CASES], ids=IDS
+)
 def test_batch_equals_streaming_to_the_last_bit(name, drives):
     estimator = load_estimator(name)
     for drive in drives:

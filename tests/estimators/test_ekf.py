@@ -44,9 +44,18 @@ PRM = pack_model(PAPER_SUV)
 @pytest.fixture(scope="module")
 def rows():
     """ABS braking from 30 to 12 m/s on mu 0.5, then a steady 12 m/s."""
-    run = simulate([Scenario(run_id="brake-cruise", path=Path.straight(1200.0), mu=MuProfile.uniform(0.5),
-                             speed=SpeedProfile([0.0, 2.0, 2.3, 30.0], [30.0, 30.0, 12.0, 12.0]), duration_s=30.0,
-                             seed=3)])
+    run = simulate(
+        [
+            Scenario(
+                run_id="brake-cruise",
+                path=Path.straight(1200.0),
+                mu=MuProfile.uniform(0.5),
+                speed=SpeedProfile([0.0, 2.0, 2.3, 30.0], [30.0, 30.0, 12.0, 12.0]),
+                duration_s=30.0,
+                seed=3,
+            )
+        ]
+    )
     return run.to_pylist()
 
 
@@ -66,11 +75,11 @@ def _textbook_step(mem, row, zero_mu_gain=False):
     smp = np.array([float(row[c]) for c in SAMPLE_COLUMNS])
     u, z = np.empty(N_U), np.empty(N_Z)
     read_sample(PRM, smp, u, z)
-    x, P = mem[M_X:M_X + N_X], mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X)
+    x, P = mem[M_X : M_X + N_X], mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X)
     dt = (smp[0] - mem[M_T]) / 1000.0
     x_prior, F, Q = np.empty(N_X), np.empty((N_X, N_X)), np.empty((N_X, N_X))
-    predict_state(x, mem[M_U:M_U + N_U], u, dt, PRM, x_prior, F)
-    process_noise(PRM, dt, mem[M_U:M_U + N_U], u, P[MU, MU], Q)
+    predict_state(x, mem[M_U : M_U + N_U], u, dt, PRM, x_prior, F)
+    process_noise(PRM, dt, mem[M_U : M_U + N_U], u, P[MU, MU], Q)
     P_prior = F @ P @ F.T + Q
     fz, zp, H, G, Rm = np.empty(4), np.empty(N_Z), np.empty((N_Z, N_X)), np.empty((N_Z, 4)), np.empty((N_Z, N_Z))
     loads_from_accel(PRM, u[5], u[6], fz)
@@ -96,8 +105,8 @@ def test_an_excited_step_is_the_textbook_kalman_step(rows):
     after = _kernel_step(mem, rows[k])
     assert after[M_SNR] >= FilterTuning().excitation_snr
     x, P = _textbook_step(mem, rows[k])
-    np.testing.assert_allclose(after[M_X:M_X + N_X], x, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(after[M_P:M_P + N_X * N_X].reshape(N_X, N_X), P, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(after[M_X : M_X + N_X], x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(after[M_P : M_P + N_X * N_X].reshape(N_X, N_X), P, rtol=1e-6, atol=1e-12)
     assert abs(x[MU] - mem[M_X + MU]) > 1e-4, "mu was updated"
 
 
@@ -107,8 +116,8 @@ def test_a_step_that_does_not_excite_mu_holds_it_with_the_joseph_covariance(rows
     after = _kernel_step(mem, rows[k])
     assert after[M_SNR] < FilterTuning().excitation_snr
     x, P = _textbook_step(mem, rows[k], zero_mu_gain=True)
-    np.testing.assert_allclose(after[M_X:M_X + N_X], x, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(after[M_P:M_P + N_X * N_X].reshape(N_X, N_X), P, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(after[M_X : M_X + N_X], x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(after[M_P : M_P + N_X * N_X].reshape(N_X, N_X), P, rtol=1e-6, atol=1e-12)
     assert after[M_X + MU] == mem[M_X + MU]
 
 
@@ -122,9 +131,9 @@ def test_held_mu_variance_grows_by_the_random_walk_exactly(rows):
         excited.append(estimator.update(state, row).excited)
         variances.append(state.mem[M_P + N_X * MU + MU])
     first = max(np.flatnonzero(excited)) + 1
-    q = tuning.mu_walk_std_per_sqrt_s ** 2 * 0.1
+    q = tuning.mu_walk_std_per_sqrt_s**2 * 0.1
     held = np.asarray(variances[first:])
-    below = held < tuning.mu_std_max ** 2 - q
+    below = held < tuning.mu_std_max**2 - q
     steps = np.diff(held)[below[:-1]]
     assert steps.size > 50
     np.testing.assert_allclose(steps, q, rtol=1e-9)

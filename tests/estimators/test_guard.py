@@ -51,16 +51,18 @@ def test_bound_holds_on_simulated_runs_at_the_limit():
     table = simulate(scenarios)
     for s in scenarios:
         run = table.filter(pc.equal(table["run_id"], s.run_id))
-        bound = tire_force_bound(s.vehicle, run["accel_lon_mps2"].to_numpy(), run["accel_lat_mps2"].to_numpy(),
-                                 run["speed_mps"].to_numpy())
+        bound = tire_force_bound(
+            s.vehicle, run["accel_lon_mps2"].to_numpy(), run["accel_lat_mps2"].to_numpy(), run["speed_mps"].to_numpy()
+        )
         mu_max = np.max([run[f"mu_{w}"].to_numpy() for w in ("fl", "fr", "rl", "rr")], axis=0)
         allowance = 0.02 if s.run_id.startswith("random") else 1e-9
         assert (bound <= mu_max + allowance).all(), s.run_id
 
 
 def test_apply_bound_raises_what_is_below_and_widens_what_is_contradicted():
-    mu, lower, upper, excited = apply_bound([0.3, 0.1, 0.9], [0.2, 0.05, 0.8], [0.6, 0.15, 1.0], [True, True, True],
-                                            [0.4, 0.5, 0.2])
+    mu, lower, upper, excited = apply_bound(
+        [0.3, 0.1, 0.9], [0.2, 0.05, 0.8], [0.6, 0.15, 1.0], [True, True, True], [0.4, 0.5, 0.2]
+    )
     assert mu.tolist() == [0.4, PRIOR_MU, 0.9]  # raised; contradicted: back to the prior, not a low number
     assert lower.tolist() == [0.4, 0.5, 0.8]
     assert upper.tolist() == [0.6, PRIOR_UPPER_MU, 1.0]
@@ -79,19 +81,26 @@ def test_the_streaming_guard_is_the_batch_guard(values, excited):
 
 
 def _random_telemetry(draw, n):
-    rng = np.random.default_rng(draw(st.integers(0, 2 ** 31)))
+    rng = np.random.default_rng(draw(st.integers(0, 2**31)))
     speed = np.abs(np.cumsum(rng.normal(0.0, draw(st.floats(0.0, 3.0)), n))) + draw(st.floats(0.0, 40.0))
     ax = rng.normal(0.0, draw(st.floats(0.0, 12.0)), n)
     ay = rng.normal(0.0, draw(st.floats(0.0, 12.0)), n)
     wheel = speed / PAPER_SUV.wheel_radius_m
     slip = rng.normal(0.0, draw(st.floats(0.0, 0.5)), (4, n))
     cols = {
-        "vehicle_id": ["v"] * n, "timestamp_ms": np.arange(n, dtype=np.int64) * 100 + 1_700_000_000_000,
-        "latitude_deg": np.full(n, 38.0), "longitude_deg": np.full(n, 114.5), "speed_mps": speed,
-        "accel_lon_mps2": ax, "accel_lat_mps2": ay, "yaw_rate_radps": rng.normal(0.0, 0.3, n),
+        "vehicle_id": ["v"] * n,
+        "timestamp_ms": np.arange(n, dtype=np.int64) * 100 + 1_700_000_000_000,
+        "latitude_deg": np.full(n, 38.0),
+        "longitude_deg": np.full(n, 114.5),
+        "speed_mps": speed,
+        "accel_lon_mps2": ax,
+        "accel_lat_mps2": ay,
+        "yaw_rate_radps": rng.normal(0.0, 0.3, n),
         "steering_wheel_angle_rad": rng.normal(0.0, 1.0, n),
-        "abs_active": rng.random(n) < draw(st.floats(0.0, 1.0)), "acc_active": np.zeros(n, dtype=bool),
-        "tcs_active": rng.random(n) < 0.1, "esc_active": rng.random(n) < 0.1,
+        "abs_active": rng.random(n) < draw(st.floats(0.0, 1.0)),
+        "acc_active": np.zeros(n, dtype=bool),
+        "tcs_active": rng.random(n) < 0.1,
+        "esc_active": rng.random(n) < 0.1,
         "lateral_speed_mps": np.zeros(n),
     }
     for k, w in enumerate(("fl", "fr", "rl", "rr")):
@@ -114,8 +123,12 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
     for name, estimator in estimators.items():
         out = estimator.estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), PAPER_SUV)
         idx = np.searchsorted(table["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
-        bound = tire_force_bound(PAPER_SUV, table["accel_lon_mps2"].to_numpy()[idx],
-                                 table["accel_lat_mps2"].to_numpy()[idx], table["speed_mps"].to_numpy()[idx])
+        bound = tire_force_bound(
+            PAPER_SUV,
+            table["accel_lon_mps2"].to_numpy()[idx],
+            table["accel_lat_mps2"].to_numpy()[idx],
+            table["speed_mps"].to_numpy()[idx],
+        )
         mu, lower, upper = (out[c].to_numpy() for c in ("mu", "mu_lower", "mu_upper"))
         assert (lower >= 0.0).all(), name
         assert (lower <= mu).all() and (mu <= upper).all(), name
@@ -126,8 +139,13 @@ def test_every_estimator_is_physical_on_any_telemetry(estimators, data):
         assert all(0.0 <= e.mu_lower <= e.mu <= e.mu_upper for e in streamed), name
         # the streaming guard computes the bound from the profile's constants kept in the state: the same bound
         at = {r["timestamp_ms"]: r for r in rows}
-        stream_bound = tire_force_bound(PAPER_SUV, *(np.array([at[e.timestamp_ms][c] for e in streamed])
-                                                     for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")))
+        stream_bound = tire_force_bound(
+            PAPER_SUV,
+            *(
+                np.array([at[e.timestamp_ms][c] for e in streamed])
+                for c in ("accel_lon_mps2", "accel_lat_mps2", "speed_mps")
+            ),
+        )
         assert all(e.mu_lower >= b - 1e-9 for e, b in zip(streamed, stream_bound)), name
         assert [e.mu_proven for e in streamed] == pytest.approx(list(stream_bound), abs=1e-9), name
 
@@ -176,7 +194,11 @@ def test_rav4_street_drive_reads_as_no_slippery_road(name, estimators):
     out = estimators[name].estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), vehicle)
     assert out.num_rows > 900
     idx = np.searchsorted(table["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
-    bound = tire_force_bound(vehicle, table["accel_lon_mps2"].to_numpy()[idx],
-                             table["accel_lat_mps2"].to_numpy()[idx], table["speed_mps"].to_numpy()[idx])
+    bound = tire_force_bound(
+        vehicle,
+        table["accel_lon_mps2"].to_numpy()[idx],
+        table["accel_lat_mps2"].to_numpy()[idx],
+        table["speed_mps"].to_numpy()[idx],
+    )
     assert (out["mu_lower"].to_numpy() >= bound - 1e-12).all()
     assert out["mu_upper"].to_numpy().min() >= 0.4

@@ -30,17 +30,43 @@ def _runs(table):
 @pytest.fixture(scope="module")
 def runs():
     """Hard braking with ABS from 25 m/s at three mu; a steady cruise after an ABS stop; a curve and a sine steer."""
-    scenarios = [Scenario(run_id=f"brake-{mu}", path=Path.straight(600.0), mu=MuProfile.uniform(mu),
-                          speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]), duration_s=10.0, seed=11)
-                 for mu in BRAKING_MUS]
+    scenarios = [
+        Scenario(
+            run_id=f"brake-{mu}",
+            path=Path.straight(600.0),
+            mu=MuProfile.uniform(mu),
+            speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]),
+            duration_s=10.0,
+            seed=11,
+        )
+        for mu in BRAKING_MUS
+    ]
     scenarios += [
-        Scenario(run_id="cruise", path=Path.straight(1500.0), mu=MuProfile.uniform(0.6),
-                 speed=SpeedProfile([0.0, 2.0, 2.3, 60.0], [30.0, 30.0, 12.0, 12.0]), duration_s=60.0, seed=12),
-        Scenario(run_id="curve", path=Path.circle(80.0, 800.0), mu=MuProfile.uniform(0.8),
-                 speed=SpeedProfile([0.0, 30.0], [8.0, 17.0]), duration_s=30.0, seed=13),
-        Scenario(run_id="sine", path=Path.straight(1500.0), mu=MuProfile.uniform(0.7),
-                 speed=SpeedProfile([0.0, 40.0], [20.0, 20.0]), steer=SteerInput(3.0, 37.0, 0.04, 0.5, 0.0),
-                 duration_s=40.0, seed=14),
+        Scenario(
+            run_id="cruise",
+            path=Path.straight(1500.0),
+            mu=MuProfile.uniform(0.6),
+            speed=SpeedProfile([0.0, 2.0, 2.3, 60.0], [30.0, 30.0, 12.0, 12.0]),
+            duration_s=60.0,
+            seed=12,
+        ),
+        Scenario(
+            run_id="curve",
+            path=Path.circle(80.0, 800.0),
+            mu=MuProfile.uniform(0.8),
+            speed=SpeedProfile([0.0, 30.0], [8.0, 17.0]),
+            duration_s=30.0,
+            seed=13,
+        ),
+        Scenario(
+            run_id="sine",
+            path=Path.straight(1500.0),
+            mu=MuProfile.uniform(0.7),
+            speed=SpeedProfile([0.0, 40.0], [20.0, 20.0]),
+            steer=SteerInput(3.0, 37.0, 0.04, 0.5, 0.0),
+            duration_s=40.0,
+            seed=14,
+        ),
     ]
     return _runs(simulate(scenarios))
 
@@ -128,9 +154,10 @@ def test_no_nan_and_covariance_symmetric_positive_definite_on_the_presets(preset
         state = estimator.start(vehicle)
         for row in run.to_pylist():
             estimate = estimator.update(state, row)
-            P = state.mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X)
-            assert np.isfinite(state.mem).all() and np.isfinite([estimate.mu, estimate.mu_lower,
-                                                                  estimate.mu_upper]).all()
+            P = state.mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X)
+            assert (
+                np.isfinite(state.mem).all() and np.isfinite([estimate.mu, estimate.mu_lower, estimate.mu_upper]).all()
+            )
             assert (P == P.T).all()
             np.linalg.cholesky(P)  # raises unless positive definite
             assert 0.05 <= estimate.mu <= 1.5 and 0.0 <= estimate.mu_lower <= estimate.mu <= estimate.mu_upper <= 1.5
@@ -165,8 +192,7 @@ def test_bad_samples_are_rejected_and_counted_not_propagated(runs, name):
     before = [estimator.update(state, row) for row in rows[:25]][-1]
     nan_row = dict(rows[25], accel_lon_mps2=float("nan"))
     held = estimator.update(state, nan_row)
-    assert (held.mu, held.mu_lower, held.mu_upper, held.excited) == (before.mu, before.mu_lower, before.mu_upper,
-                                                                      False)
+    assert (held.mu, held.mu_lower, held.mu_upper, held.excited) == (before.mu, before.mu_lower, before.mu_upper, False)
     assert held.timestamp_ms == rows[25]["timestamp_ms"]
     assert estimator.update(state, dict(rows[26], speed_mps=None)).mu == before.mu
     assert estimator.update(state, rows[24]).mu == before.mu  # time going backwards

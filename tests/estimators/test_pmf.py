@@ -10,8 +10,17 @@ from roadgrip.vehicle.params import PAPER_SUV
 FWD = PAPER_SUV.replace(drive="fwd", front_drive_share=1.0)
 
 
-def _samples(speed_mps, accel_lon_mps2, *, abs_active=None, accel_bias=0.0, radius_ratio=(1.0, 1.0, 1.0, 1.0),
-             front_slip=None, seed=0, vehicle=FWD):
+def _samples(
+    speed_mps,
+    accel_lon_mps2,
+    *,
+    abs_active=None,
+    accel_bias=0.0,
+    radius_ratio=(1.0, 1.0, 1.0, 1.0),
+    front_slip=None,
+    seed=0,
+    vehicle=FWD,
+):
     """Straight-line telemetry: the wheels roll at the speed (times their radius ratio, plus the front's slip), the
     accelerometer reads the acceleration plus its bias and 0.05 m/s^2 noise."""
     rng = np.random.default_rng(seed)
@@ -22,13 +31,22 @@ def _samples(speed_mps, accel_lon_mps2, *, abs_active=None, accel_bias=0.0, radi
     for k in range(n):
         omega = speed_mps[k] / vehicle.wheel_radius_m
         wheels = [omega * radius_ratio[i] * (1.0 + (front_slip[k] if i < 2 else 0.0)) for i in range(4)]
-        out.append({
-            "vehicle_id": "t", "timestamp_ms": 1_700_000_000_000 + 100 * k, "speed_mps": float(speed_mps[k]),
-            "accel_lon_mps2": float(accel_lon_mps2[k] + accel_bias + rng.normal(0.0, 0.05)),
-            "accel_lat_mps2": float(rng.normal(0.0, 0.05)), "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
-            "wheel_speed_fl_radps": wheels[0], "wheel_speed_fr_radps": wheels[1], "wheel_speed_rl_radps": wheels[2],
-            "wheel_speed_rr_radps": wheels[3], "abs_active": bool(abs_active[k]),
-        })
+        out.append(
+            {
+                "vehicle_id": "t",
+                "timestamp_ms": 1_700_000_000_000 + 100 * k,
+                "speed_mps": float(speed_mps[k]),
+                "accel_lon_mps2": float(accel_lon_mps2[k] + accel_bias + rng.normal(0.0, 0.05)),
+                "accel_lat_mps2": float(rng.normal(0.0, 0.05)),
+                "yaw_rate_radps": 0.0,
+                "steering_wheel_angle_rad": 0.0,
+                "wheel_speed_fl_radps": wheels[0],
+                "wheel_speed_fr_radps": wheels[1],
+                "wheel_speed_rl_radps": wheels[2],
+                "wheel_speed_rr_radps": wheels[3],
+                "abs_active": bool(abs_active[k]),
+            }
+        )
     return out
 
 
@@ -83,7 +101,7 @@ def _pulling_drive(mu: float):
     fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
     f = FWD.mass_kg * road / fz_front  # the front axle's force per load: 0.26 in the pull
     slip = 3 * mu / c * (1 - np.cbrt(1 - np.clip(f / mu, 0.0, 1.0)))
-    return _samples(speed, road - drag_per_mass(FWD) * speed ** 2, front_slip=slip)
+    return _samples(speed, road - drag_per_mass(FWD) * speed**2, front_slip=slip)
 
 
 PULL_START = 800
@@ -116,8 +134,13 @@ def worn_tire_drive(n: int):
     fz_front = FWD.mass_kg * (G_MPS2 * FWD.cg_to_rear_axle_m - road * FWD.cg_height_m) / FWD.wheelbase_m
     c = 0.5 * FWD.tire_front.longitudinal_stiffness_per_load
     slip = 3 * 0.9 / c * (1 - np.cbrt(1 - FWD.mass_kg * road / fz_front / 0.9))
-    samples = _samples(speed, road - drag_per_mass(FWD) * speed ** 2, accel_bias=-0.6,
-                       radius_ratio=(1.02, 1.0, 1.0, 1.0), front_slip=slip)
+    samples = _samples(
+        speed,
+        road - drag_per_mass(FWD) * speed**2,
+        accel_bias=-0.6,
+        radius_ratio=(1.02, 1.0, 1.0, 1.0),
+        front_slip=slip,
+    )
     return samples, c
 
 

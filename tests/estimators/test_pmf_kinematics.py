@@ -61,13 +61,22 @@ def turn_samples(vehicle, radius_m, speed_mps, n, *, left=True, seed=0, abs_acti
     out = []
     for k in range(n):
         wheels = rolling / vehicle.wheel_radius_m
-        out.append({
-            "vehicle_id": "t", "timestamp_ms": START_MS + 100 * k, "speed_mps": speed_mps,
-            "accel_lon_mps2": a_x + rng.normal(0.0, 0.05), "accel_lat_mps2": a_y + rng.normal(0.0, 0.05),
-            "yaw_rate_radps": r, "steering_wheel_angle_rad": steer * vehicle.steering_ratio,
-            "wheel_speed_fl_radps": wheels[0], "wheel_speed_fr_radps": wheels[1],
-            "wheel_speed_rl_radps": wheels[2], "wheel_speed_rr_radps": wheels[3], "abs_active": abs_active,
-        })
+        out.append(
+            {
+                "vehicle_id": "t",
+                "timestamp_ms": START_MS + 100 * k,
+                "speed_mps": speed_mps,
+                "accel_lon_mps2": a_x + rng.normal(0.0, 0.05),
+                "accel_lat_mps2": a_y + rng.normal(0.0, 0.05),
+                "yaw_rate_radps": r,
+                "steering_wheel_angle_rad": steer * vehicle.steering_ratio,
+                "wheel_speed_fl_radps": wheels[0],
+                "wheel_speed_fr_radps": wheels[1],
+                "wheel_speed_rl_radps": wheels[2],
+                "wheel_speed_rr_radps": wheels[3],
+                "abs_active": abs_active,
+            }
+        )
     return out
 
 
@@ -120,18 +129,29 @@ def test_the_radius_calibration_is_not_bent_by_gentle_curves():
     assert calibration["radius_ratio_left_right_rear"] == pytest.approx(0.0, abs=0.001)
 
 
-def _straight(speed_mps, n, *, wheel_scale=(1.0, 1.0, 1.0, 1.0), accel_lon_mps2=0.0, abs_active=False,
-              vehicle=MIDSIZE_SEDAN):
+def _straight(
+    speed_mps, n, *, wheel_scale=(1.0, 1.0, 1.0, 1.0), accel_lon_mps2=0.0, abs_active=False, vehicle=MIDSIZE_SEDAN
+):
     out = []
     for k in range(n):
         v = max(speed_mps + accel_lon_mps2 * 0.1 * k, 0.0)
         wheels = [v * s / vehicle.wheel_radius_m for s in wheel_scale]
-        out.append({
-            "vehicle_id": "t", "timestamp_ms": START_MS + 100 * k, "speed_mps": v, "accel_lon_mps2": accel_lon_mps2,
-            "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
-            "wheel_speed_fl_radps": wheels[0], "wheel_speed_fr_radps": wheels[1],
-            "wheel_speed_rl_radps": wheels[2], "wheel_speed_rr_radps": wheels[3], "abs_active": abs_active,
-        })
+        out.append(
+            {
+                "vehicle_id": "t",
+                "timestamp_ms": START_MS + 100 * k,
+                "speed_mps": v,
+                "accel_lon_mps2": accel_lon_mps2,
+                "accel_lat_mps2": 0.0,
+                "yaw_rate_radps": 0.0,
+                "steering_wheel_angle_rad": 0.0,
+                "wheel_speed_fl_radps": wheels[0],
+                "wheel_speed_fr_radps": wheels[1],
+                "wheel_speed_rl_radps": wheels[2],
+                "wheel_speed_rr_radps": wheels[3],
+                "abs_active": abs_active,
+            }
+        )
     return out
 
 

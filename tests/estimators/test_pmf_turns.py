@@ -60,10 +60,28 @@ def arc(radius_m: float, degrees: float) -> tuple[float, float]:
 
 
 SLALOM = [(30.0, None)] + [arc(10.0 if k % 2 else -10.0, 120.0) for k in range(8)] + [(80.0, None)]
-ROUNDABOUT = [(40.0, None), arc(-15.0, 50.0), arc(12.0, 280.0), arc(-15.0, 50.0), (40.0, None),
-              arc(-15.0, 50.0), arc(12.0, 460.0), arc(-15.0, 50.0), (80.0, None)]
-JUNCTIONS = [(60.0, None), arc(20.0, 90.0), (60.0, None), arc(-22.0, 90.0), (60.0, None), arc(25.0, 90.0),
-             (60.0, None), arc(-20.0, 90.0), (120.0, None)]
+ROUNDABOUT = [
+    (40.0, None),
+    arc(-15.0, 50.0),
+    arc(12.0, 280.0),
+    arc(-15.0, 50.0),
+    (40.0, None),
+    arc(-15.0, 50.0),
+    arc(12.0, 460.0),
+    arc(-15.0, 50.0),
+    (80.0, None),
+]
+JUNCTIONS = [
+    (60.0, None),
+    arc(20.0, 90.0),
+    (60.0, None),
+    arc(-22.0, 90.0),
+    (60.0, None),
+    arc(25.0, 90.0),
+    (60.0, None),
+    arc(-20.0, 90.0),
+    (120.0, None),
+]
 # (name, path, speed profile (times, speeds), duration): the last 6 s brake to a stop at 6 m/s^2
 DRIVES = (
     ("slalom-4", SLALOM, [0.0, 49.0, 49.7, 55.0], [4.0, 4.0, 0.0, 0.0], 55.0),
@@ -75,20 +93,32 @@ DRIVES = (
 
 def _scenario(drive, vehicle, mu: float, seed: int, tcs: bool) -> Scenario:
     name, path, times, speeds, duration = drive
-    return Scenario(run_id=f"{name}-{vehicle.name}-{mu}", path=arcs_path(path), mu=MuProfile.uniform(mu),
-                    speed=SpeedProfile(times, speeds), vehicle=vehicle, duration_s=duration, seed=seed,
-                    tcs_enabled=tcs, effects=ProductionEffects.production())
+    return Scenario(
+        run_id=f"{name}-{vehicle.name}-{mu}",
+        path=arcs_path(path),
+        mu=MuProfile.uniform(mu),
+        speed=SpeedProfile(times, speeds),
+        vehicle=vehicle,
+        duration_s=duration,
+        seed=seed,
+        tcs_enabled=tcs,
+        effects=ProductionEffects.production(),
+    )
 
 
 @functools.cache
 def _estimated(surface: str) -> dict[str, dict[str, np.ndarray]]:
     """Per run: the truth (mu, true speed, ABS) and pmf's estimates."""
     if surface == "dry":
-        scenarios = [_scenario(d, v, 0.9, 100 + 10 * i + j, False) for i, d in enumerate(DRIVES)
-                     for j, v in enumerate(VEHICLES)]
+        scenarios = [
+            _scenario(d, v, 0.9, 100 + 10 * i + j, False) for i, d in enumerate(DRIVES) for j, v in enumerate(VEHICLES)
+        ]
     else:
-        scenarios = [_scenario(d, v, ICE_MU[j], 200 + 10 * i + j, True) for i, d in enumerate(DRIVES)
-                     for j, v in enumerate(ICE_VEHICLES)]
+        scenarios = [
+            _scenario(d, v, ICE_MU[j], 200 + 10 * i + j, True)
+            for i, d in enumerate(DRIVES)
+            for j, v in enumerate(ICE_VEHICLES)
+        ]
     table = simulate(scenarios)
     estimator = PMFEstimator()
     out = {}
@@ -97,9 +127,13 @@ def _estimated(surface: str) -> dict[str, dict[str, np.ndarray]]:
         est = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), scenario.vehicle)
         assert est.num_rows == run.num_rows
         out[scenario.run_id] = {
-            "mu_true": run["mu"].to_numpy(), "v_true": run["vx_true_mps"].to_numpy(),
-            "abs": run["abs_active"].to_numpy(zero_copy_only=False), "yaw": run["yaw_rate_true_radps"].to_numpy(),
-            "mu": est["mu"].to_numpy(), "lower": est["mu_lower"].to_numpy(), "upper": est["mu_upper"].to_numpy(),
+            "mu_true": run["mu"].to_numpy(),
+            "v_true": run["vx_true_mps"].to_numpy(),
+            "abs": run["abs_active"].to_numpy(zero_copy_only=False),
+            "yaw": run["yaw_rate_true_radps"].to_numpy(),
+            "mu": est["mu"].to_numpy(),
+            "lower": est["mu_lower"].to_numpy(),
+            "upper": est["mu_upper"].to_numpy(),
         }
     return out
 

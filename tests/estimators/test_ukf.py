@@ -66,9 +66,18 @@ def test_the_unscented_prior_is_the_extended_one_where_the_process_is_linear():
 
 @pytest.fixture(scope="module")
 def braking_rows():
-    run = simulate([Scenario(run_id="brake", path=Path.straight(600.0), mu=MuProfile.uniform(0.45),
-                             speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]), duration_s=10.0,
-                             seed=21)])
+    run = simulate(
+        [
+            Scenario(
+                run_id="brake",
+                path=Path.straight(600.0),
+                mu=MuProfile.uniform(0.45),
+                speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]),
+                duration_s=10.0,
+                seed=21,
+            )
+        ]
+    )
     return run.to_pylist()
 
 
@@ -81,8 +90,8 @@ def test_one_update_with_a_small_covariance_is_the_ekf_update(braking_rows, k):
     for row in braking_rows[:k]:
         estimator.update(state, row)
     prm = state.prm
-    x = state.mem[M_X:M_X + N_X].copy()
-    P = state.mem[M_P:M_P + N_X * N_X].reshape(N_X, N_X) * 1e-4
+    x = state.mem[M_X : M_X + N_X].copy()
+    P = state.mem[M_P : M_P + N_X * N_X].reshape(N_X, N_X) * 1e-4
     u, z = np.empty(N_U), np.empty(N_Z)
     read_sample(prm, np.array([float(braking_rows[k][c]) for c in SAMPLE_COLUMNS]), u, z)
     x_e, P_e, x_u, P_u = np.empty(N_X), np.empty((N_X, N_X)), np.empty(N_X), np.empty((N_X, N_X))

@@ -49,19 +49,37 @@ def _lambda(sigma, alpha, mu, fz=FZ_N):
     return mu * fz * (1 + sigma) / (2 * np.hypot(cx * sigma, cy * np.tan(alpha)))
 
 
-@pytest.mark.parametrize("sigma, alpha, mu", [
-    (0.002, 0.001, 0.9), (-0.004, 0.01, 0.8), (0.05, 0.02, 0.3), (-0.15, 0.0, 0.6), (-0.1, -0.05, 0.2),
-    (0.0, 0.08, 0.4), (-1.0, 0.1, 0.5), (0.3, -0.3, 1.2), (0.0, 0.0, 0.5),
-])
+@pytest.mark.parametrize(
+    "sigma, alpha, mu",
+    [
+        (0.002, 0.001, 0.9),
+        (-0.004, 0.01, 0.8),
+        (0.05, 0.02, 0.3),
+        (-0.15, 0.0, 0.6),
+        (-0.1, -0.05, 0.2),
+        (0.0, 0.08, 0.4),
+        (-1.0, 0.1, 0.5),
+        (0.3, -0.3, 1.2),
+        (0.0, 0.0, 0.5),
+    ],
+)
 def test_dugoff_partials_give_the_simulators_forces(sigma, alpha, mu):
     out = _partials(sigma, alpha, mu)
     assert (out[0], out[1]) == dugoff_forces(TP, sigma, alpha, FZ_N, mu)
 
 
-@pytest.mark.parametrize("sigma, alpha, mu", [
-    (0.002, 0.001, 0.9), (-0.004, 0.01, 0.8), (0.05, 0.02, 0.3), (-0.15, 0.0, 0.6), (-0.1, -0.05, 0.2),
-    (0.0, 0.08, 0.4), (0.3, -0.3, 1.2),
-])
+@pytest.mark.parametrize(
+    "sigma, alpha, mu",
+    [
+        (0.002, 0.001, 0.9),
+        (-0.004, 0.01, 0.8),
+        (0.05, 0.02, 0.3),
+        (-0.15, 0.0, 0.6),
+        (-0.1, -0.05, 0.2),
+        (0.0, 0.08, 0.4),
+        (0.3, -0.3, 1.2),
+    ],
+)
 def test_dugoff_partials_match_central_differences(sigma, alpha, mu):
     assert abs(_lambda(sigma, alpha, mu) - 1.0) > 0.05, "a case must stay clear of the kink at lambda = 1"
     out = _partials(sigma, alpha, mu)
@@ -157,21 +175,34 @@ def test_loads_carry_the_weight_and_the_roll_gain_is_the_steady_state_one():
     assert fz[0] > fz[2] and fz[0] == pytest.approx(fz[1])  # braking loads the front axle
     # steady state of the simulator's roll equation: (K_f + K_r) phi = m_s e (a_y + g phi), e the roll arm
     v = PAPER_SUV
-    e = v.cg_height_m - (v.roll_center_height_front_m + (v.roll_center_height_rear_m - v.roll_center_height_front_m)
-                         * v.cg_to_front_axle_m / v.wheelbase_m)
+    e = v.cg_height_m - (
+        v.roll_center_height_front_m
+        + (v.roll_center_height_rear_m - v.roll_center_height_front_m) * v.cg_to_front_axle_m / v.wheelbase_m
+    )
     k_phi = roll_per_lateral_accel(v)
     phi = k_phi * 3.0
     assert (v.roll_stiffness_front_nmprad + v.roll_stiffness_rear_nmprad) * phi == pytest.approx(
-        v.sprung_mass_kg * e * (3.0 + G_MPS2 * phi))
+        v.sprung_mass_kg * e * (3.0 + G_MPS2 * phi)
+    )
 
 
 def test_measurement_model_reproduces_the_simulator_on_its_true_state():
     """h at the simulator's true state, with its noiseless telemetry as inputs, is the noiseless telemetry: in a
     steady curve (roll, lateral load transfer, slip angles) and in ABS braking (saturated tires)."""
-    curve = Scenario(run_id="curve", path=Path.circle(80.0, 800.0), mu=MuProfile.uniform(0.8),
-                     speed=SpeedProfile([0.0, 30.0], [8.0, 17.0]), duration_s=30.0)
-    brake = Scenario(run_id="brake", path=Path.straight(600.0), mu=MuProfile.uniform(0.6),
-                     speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]), duration_s=10.0)
+    curve = Scenario(
+        run_id="curve",
+        path=Path.circle(80.0, 800.0),
+        mu=MuProfile.uniform(0.8),
+        speed=SpeedProfile([0.0, 30.0], [8.0, 17.0]),
+        duration_s=30.0,
+    )
+    brake = Scenario(
+        run_id="brake",
+        path=Path.straight(600.0),
+        mu=MuProfile.uniform(0.6),
+        speed=SpeedProfile([0.0, 2.0, 2.3, 10.0], [25.0, 25.0, 0.0, 0.0]),
+        duration_s=10.0,
+    )
     table = simulate([curve, brake], SensorModel.noiseless())
     fz, z, H, G = np.empty(4), np.empty(N_Z), np.empty((N_Z, N_X)), np.empty((N_Z, 4))
     err = {"ax": [], "ay": []}
@@ -179,9 +210,10 @@ def test_measurement_model_reproduces_the_simulator_on_its_true_state():
         if row["t_s"] < 3.0 or row["vx_true_mps"] < 5.0:
             continue
         x = np.array([row["vx_true_mps"], row["vy_true_mps"], row["yaw_rate_true_radps"], 0.0, row["mu"]])
-        u = np.array([row[f"wheel_speed_{w}_radps"] for w in ("fl", "fr", "rl", "rr")]
-                     + [row["steering_wheel_angle_rad"] / PAPER_SUV.steering_ratio, row["accel_lon_mps2"],
-                        row["accel_lat_mps2"]])
+        u = np.array(
+            [row[f"wheel_speed_{w}_radps"] for w in ("fl", "fr", "rl", "rr")]
+            + [row["steering_wheel_angle_rad"] / PAPER_SUV.steering_ratio, row["accel_lon_mps2"], row["accel_lat_mps2"]]
+        )
         loads_from_accel(PRM, u[5], u[6], fz)
         measure(x, u, PRM, fz, z, H, G)
         err["ax"].append(z[Z_AX] - row["accel_lon_mps2"])

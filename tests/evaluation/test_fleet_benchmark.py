@@ -34,8 +34,14 @@ NETWORK = Network((ROAD,), (ICE,))
 
 
 def test_bands():
-    assert [band_of(m) for m in (0.05, 0.2, 0.3, 0.5, 0.6, 1.17)] == ["mu<=0.2", "mu<=0.2", "0.2-0.4", "0.4-0.6",
-                                                                     "dry", "dry"]
+    assert [band_of(m) for m in (0.05, 0.2, 0.3, 0.5, 0.6, 1.17)] == [
+        "mu<=0.2",
+        "mu<=0.2",
+        "0.2-0.4",
+        "0.4-0.6",
+        "dry",
+        "dry",
+    ]
 
 
 def test_a_patch_warned_at_its_second_pass_took_two_passes():
@@ -87,8 +93,12 @@ def test_map_cell_scores_against_the_range_of_true_mu():
 
 
 def test_warning_from_a_storage_row():
-    row = {"cell": "c", "status": "cancelled", "detection_ms": 61_000,
-           "message": {"event": {"evidence_ms": 121_000, "reason": "recovered"}}}
+    row = {
+        "cell": "c",
+        "status": "cancelled",
+        "detection_ms": 61_000,
+        "message": {"event": {"evidence_ms": 121_000, "reason": "recovered"}},
+    }
     assert warning_from_row(row, 1_000) == Warning("c", 60.0, 120.0, "recovered")
     row = {**row, "status": "active"}
     assert warning_from_row(row, 1_000).end_s is None
@@ -102,9 +112,9 @@ def _drive(depart_s: float) -> tuple[Scenario, np.ndarray]:
 
 def test_a_patch_is_under_the_wheels_only_while_it_is_there():
     # the ice is there from 20 s to 60 s; at 15 m/s the car reaches it (station 270 m) 18 s after departing
-    before, _ = _drive(0.0)     # reaches it at 18 s: not there yet
-    during, _ = _drive(10.0)    # at 28 s
-    after, _ = _drive(50.0)     # at 68 s: dried
+    before, _ = _drive(0.0)  # reaches it at 18 s: not there yet
+    during, _ = _drive(10.0)  # at 28 s
+    after, _ = _drive(50.0)  # at 68 s: dried
     assert before.mu.at(300.0)[0] == pytest.approx(SURFACE_MU["dry"])
     assert during.mu.at(300.0)[0] == pytest.approx(ICE.mu)
     assert after.mu.at(300.0)[0] == pytest.approx(SURFACE_MU["dry"])
@@ -134,21 +144,55 @@ def test_patch_times_are_checked():
 def test_the_scenario_is_seeded_and_its_patches_fall_in_their_bands():
     config = FleetConfig(vehicles=3, duration_s=300.0, appear_max_s=60.0, life_s=(100.0, 200.0))
     a, b = make_scenario(5, config), make_scenario(5, config)
-    assert [(t.vehicle_id, t.depart_s, t.scenario.road) for t in a.trips] == \
-           [(t.vehicle_id, t.depart_s, t.scenario.road) for t in b.trips]
+    assert [(t.vehicle_id, t.depart_s, t.scenario.road) for t in a.trips] == [
+        (t.vehicle_id, t.depart_s, t.scenario.road) for t in b.trips
+    ]
     mus = sorted(p.mu for p in a.network.patches)
     assert [band_of(m) for m in mus] == ["mu<=0.2"] * 3 + ["0.2-0.4"] * 3 + ["0.4-0.6"] * 3 + ["dry"] * 2
     assert all(0.0 <= p.appear_s < p.dry_s <= config.duration_s for p in a.network.patches)
     assert all(t.scenario.effects.speed_from_wheels for t in a.trips)  # production-terminal realism on
 
 
-SHARES = ("recall", "recall_all", "within_3rd_pass", "map_coverage", "map_coverage_low", "bounded_coverage",
-          "bounded_coverage_low", "dry_cells_read_slippery", "evidence_share", "measured_share")
-COUNTS = ("patches", "eligible", "warned_and_dried", "lingering", "linger_over_10min", "censored", "map_cells",
-          "bounded_cells", "warnings", "warnings_on_patch", "warnings_beside", "false_warnings")
-NON_NEGATIVE = ("time_to_first_median_s", "time_to_first_max_s", "passes_to_first_median", "passes_to_first_max",
-                "linger_median_s", "linger_max_s", "map_mae", "map_mae_low", "bounded_mae", "bounded_mae_low", "dry_km",
-                "false_per_100km")
+SHARES = (
+    "recall",
+    "recall_all",
+    "within_3rd_pass",
+    "map_coverage",
+    "map_coverage_low",
+    "bounded_coverage",
+    "bounded_coverage_low",
+    "dry_cells_read_slippery",
+    "evidence_share",
+    "measured_share",
+)
+COUNTS = (
+    "patches",
+    "eligible",
+    "warned_and_dried",
+    "lingering",
+    "linger_over_10min",
+    "censored",
+    "map_cells",
+    "bounded_cells",
+    "warnings",
+    "warnings_on_patch",
+    "warnings_beside",
+    "false_warnings",
+)
+NON_NEGATIVE = (
+    "time_to_first_median_s",
+    "time_to_first_max_s",
+    "passes_to_first_median",
+    "passes_to_first_max",
+    "linger_median_s",
+    "linger_max_s",
+    "map_mae",
+    "map_mae_low",
+    "bounded_mae",
+    "bounded_mae_low",
+    "dry_km",
+    "false_per_100km",
+)
 
 
 def overlaps(cell: str, patch: Patch, origin: tuple[float, float]) -> bool:
@@ -167,12 +211,20 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
     figures are finite and in range, the counts agree across metrics.csv, patches.csv and cells.csv and with the
     warnings the service raised, and every warning counted on a patch was raised over that patch while it was there
     (checked on the map's geometry, not by the scorer's cell lists)."""
-    config = FleetConfig(vehicles=3, duration_s=240.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
-                         life_s=(100.0, 150.0), snapshot_every_s=120.0)
+    config = FleetConfig(
+        vehicles=3,
+        duration_s=240.0,
+        patches_per_band=1,
+        control_patches=1,
+        appear_max_s=20.0,
+        life_s=(100.0, 150.0),
+        snapshot_every_s=120.0,
+    )
     seeds = []
     run_seed = fleet_report.run_seed
-    monkeypatch.setattr(fleet_report, "run_seed", lambda *args, **kwargs: seeds.append(run_seed(*args, **kwargs))
-                        or seeds[-1])
+    monkeypatch.setattr(
+        fleet_report, "run_seed", lambda *args, **kwargs: seeds.append(run_seed(*args, **kwargs)) or seeds[-1]
+    )
     result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config)
     (seed,) = seeds
     rows = pacsv.read_csv(tmp_path / "metrics.csv").to_pylist()
@@ -192,8 +244,11 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
 
     kinds = seed.kinds
     assert overall["warnings"] == len(seed.warnings) == len(kinds) >= 1
-    assert (overall["warnings_on_patch"], overall["warnings_beside"], overall["false_warnings"]) == \
-        (kinds.count("on"), kinds.count("beside"), kinds.count("false"))
+    assert (overall["warnings_on_patch"], overall["warnings_beside"], overall["false_warnings"]) == (
+        kinds.count("on"),
+        kinds.count("beside"),
+        kinds.count("false"),
+    )
     assert overall["false_per_100km"] == pytest.approx(overall["false_warnings"] / (overall["dry_km"] / 100.0))
 
     patches = pacsv.read_csv(tmp_path / "patches.csv").to_pylist()
@@ -221,7 +276,8 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
     on_patch = [w for w, kind in zip(seed.warnings, kinds) if kind == "on"]
     assert on_patch, "the tiny run raised no warning on a patch: nothing to check"
     for warning in on_patch:
-        assert any(overlaps(warning.cell, p, network.origin) and p.appear_s <= warning.detection_s < p.dry_s
-                   for p in slippery), warning
+        assert any(
+            overlaps(warning.cell, p, network.origin) and p.appear_s <= warning.detection_s < p.dry_s for p in slippery
+        ), warning
     for name in ("fleet.md", "map_vs_truth.png", "detection_delay.png"):
         assert (tmp_path / name).stat().st_size > 0

@@ -28,8 +28,14 @@ CONFIG = FleetConfig(vehicles=2, duration_s=3600.0)
 
 def test_state_of_reads_the_bands_of_the_benchmark():
     rng = np.random.default_rng(0)
-    assert [state_of(mu, rng)[0] for mu in (0.05, 0.2, 0.3, 0.5, 0.8, 1.17)] == ["ice", "ice", "snow", "wet", "wet",
-                                                                                   "dry"]
+    assert [state_of(mu, rng)[0] for mu in (0.05, 0.2, 0.3, 0.5, 0.8, 1.17)] == [
+        "ice",
+        "ice",
+        "snow",
+        "wet",
+        "wet",
+        "dry",
+    ]
     assert state_of(0.5, rng)[1] > state_of(0.8, rng)[1]  # a slippery wet patch holds more water
 
 
@@ -42,8 +48,10 @@ def test_stations_are_seeded_placed_and_report_in_format_v1_with_failures():
     patches = {p.name: p for p in scenario.network.patches}
     for station in stations:
         if station.patch is None:
-            assert all(math.hypot(station.east_m - p.east_m, station.north_m - p.north_m) > p.radius_m +
-                       STATION_CLEARANCE_M for p in patches.values())
+            assert all(
+                math.hypot(station.east_m - p.east_m, station.north_m - p.north_m) > p.radius_m + STATION_CLEARANCE_M
+                for p in patches.values()
+            )
         else:
             assert patches[station.patch].mu < 0.65
     for _, report in reports:  # every report passes the service's own validation
@@ -56,16 +64,28 @@ def test_stations_are_seeded_placed_and_report_in_format_v1_with_failures():
     at_patch = [s for s in stations if s.patch is not None]
     for station in at_patch:  # while its patch is there the station mostly reads it slippery
         patch = patches[station.patch]
-        states = [r["surface_state"] for t, r in reports
-                  if r["station_id"] == station.station_id and patch.appear_s <= t < patch.dry_s]
+        states = [
+            r["surface_state"]
+            for t, r in reports
+            if r["station_id"] == station.station_id and patch.appear_s <= t < patch.dry_s
+        ]
         if len(states) >= 10 and patch.mu <= 0.4:
             assert sum(s in ("ice", "snow") for s in states) >= 0.6 * len(states)
 
 
 @pytest.mark.slow
 def test_a_tiny_run_reports_detection_with_and_without_stations(tmp_path):
-    config = FleetConfig(vehicles=3, duration_s=300.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
-                         life_s=(200.0, 250.0), snapshot_every_s=150.0, stations_at_patches=2, stations_on_dry_road=1)
+    config = FleetConfig(
+        vehicles=3,
+        duration_s=300.0,
+        patches_per_band=1,
+        control_patches=1,
+        appear_max_s=20.0,
+        life_s=(200.0, 250.0),
+        snapshot_every_s=150.0,
+        stations_at_patches=2,
+        stations_on_dry_road=1,
+    )
     result = run_fleet_benchmark(tmp_path, seed=2, seeds=1, config=config)
     rows = pacsv.read_csv(tmp_path / "stations.csv").to_pylist()
     assert {r["seed"] for r in rows} == {"2", "pooled"}

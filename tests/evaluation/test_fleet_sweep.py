@@ -35,7 +35,7 @@ def _rounds():
     rows.sort(key=lambda r: r["timestamp_ms"])
     rounds, start = [], 0
     for size in (7, 300, 1, 900, 2000, 50):
-        batch = rows[start:start + size]
+        batch = rows[start : start + size]
         if batch:
             rounds.append((batch, max(r["timestamp_ms"] for r in batch)))
         start += size
@@ -64,14 +64,26 @@ def test_other_settings_change_the_replay():
 
 
 def _row(recall, false, within=0.0, passes=5.0, linger=300.0, product=False, **setting):
-    return {"recall": recall, "max_false_per_seed": false, "within_3rd_pass": within,
-            "passes_to_first_median": passes, "linger_max_s": linger, "product": product, **setting}
+    return {
+        "recall": recall,
+        "max_false_per_seed": false,
+        "within_3rd_pass": within,
+        "passes_to_first_median": passes,
+        "linger_max_s": linger,
+        "product": product,
+        **setting,
+    }
 
 
 def test_the_rule_takes_the_best_recall_without_false_warnings_then_breaks_ties():
-    rows = [_row(1.0, 1, name="unsafe"), _row(0.8, 0, name="a"), _row(0.8, 0, within=0.2, name="b"),
-            _row(0.8, 0, within=0.2, passes=4.0, name="c"), _row(0.8, 0, within=0.2, passes=4.0, linger=200.0,
-                                                                name="d"), _row(0.5, 0, name="low")]
+    rows = [
+        _row(1.0, 1, name="unsafe"),
+        _row(0.8, 0, name="a"),
+        _row(0.8, 0, within=0.2, name="b"),
+        _row(0.8, 0, within=0.2, passes=4.0, name="c"),
+        _row(0.8, 0, within=0.2, passes=4.0, linger=200.0, name="d"),
+        _row(0.5, 0, name="low"),
+    ]
     assert choose(rows)["name"] == "d"
     assert choose([_row(0.8, 0, product=True, name="now"), _row(0.8, 0, name="other")])["name"] == "now"
     assert choose([_row(1.0, 2)]) is None
@@ -85,10 +97,16 @@ def test_unknown_grid_parameters_are_errors():
 
 @pytest.mark.slow
 def test_the_benchmark_keeps_the_engine_s_estimates_and_writes_the_curve(tmp_path):
-    config = FleetConfig(vehicles=3, duration_s=240.0, patches_per_band=1, control_patches=1, appear_max_s=20.0,
-                         life_s=(100.0, 150.0), snapshot_every_s=120.0)
-    grid = {"threshold_mu": (0.4, 0.5), "min_low_passes": (1, 2), "min_excited_per_pass": (3,),
-            "validity_s": (600.0,)}
+    config = FleetConfig(
+        vehicles=3,
+        duration_s=240.0,
+        patches_per_band=1,
+        control_patches=1,
+        appear_max_s=20.0,
+        life_s=(100.0, 150.0),
+        snapshot_every_s=120.0,
+    )
+    grid = {"threshold_mu": (0.4, 0.5), "min_low_passes": (1, 2), "min_excited_per_pass": (3,), "validity_s": (600.0,)}
     result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config, sweep=grid)
     estimates = pq.read_table(tmp_path / "estimates_seed1.parquet")
     assert estimates.num_rows > 0 and {"round", "now_ms", "mu_upper", "excited"} <= set(estimates.column_names)
@@ -103,9 +121,11 @@ def test_the_fleet_modules_import_each_other_without_a_circle():
     folder = Path(__file__).parents[2] / "roadgrip" / "evaluation"
     imports = {}
     for path in folder.glob("fleet_*.py"):
-        imports[path.stem] = {node.module.rsplit(".", 1)[1] for node in ast.walk(ast.parse(path.read_text()))
-                              if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
-                                  "roadgrip.evaluation.fleet_")}
+        imports[path.stem] = {
+            node.module.rsplit(".", 1)[1]
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("roadgrip.evaluation.fleet_")
+        }
     assert "fleet_sweep" in imports["fleet_report"] and "fleet_report" not in imports["fleet_sweep"]
 
     def circle(path: list[str]) -> list[str] | None:
@@ -114,4 +134,5 @@ def test_the_fleet_modules_import_each_other_without_a_circle():
             if found:
                 return found
         return None
+
     assert [circle([m]) for m in sorted(imports)] == [None] * len(imports)

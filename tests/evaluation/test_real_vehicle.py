@@ -106,8 +106,9 @@ def test_group_value_is_the_mean_of_the_excited_estimates_on_the_section(short_r
     estimates = pq.read_table(out / "estimates.parquet")
     for row in result["metrics"]:
         for name in ("ekf", "learned"):
-            own = estimates.filter(pc.and_(pc.equal(estimates["test_group"], row["test_group"]),
-                                           pc.equal(estimates["estimator"], name)))
+            own = estimates.filter(
+                pc.and_(pc.equal(estimates["test_group"], row["test_group"]), pc.equal(estimates["estimator"], name))
+            )
             mu, exc = own["mu"].to_numpy(), own["excited"].to_numpy()
             assert row[f"{name}_dry_excited_mean"] == pytest.approx(mu[exc].mean())
             assert row[f"{name}_dry_all_mean"] == pytest.approx(mu.mean())

@@ -31,8 +31,17 @@ def make_metrics(sa_wins=frozenset(CONDITIONS), feature_sets=("paper", "terminal
                     rmse = {"DNN": 0.04, "CNN": 0.02, "ConvLSTM": 0.03, "Constant (training mean)": 0.2}.get(model)
                     if model == "SA-CNN-LSTM":
                         rmse = 0.01 if condition in sa_wins else 0.05
-                    rows.append({"condition": condition, "model": model, "feature_set": fs, "trained_on": scope,
-                                 "rmse": rmse, "mae": 0.8 * rmse, "n": 400})
+                    rows.append(
+                        {
+                            "condition": condition,
+                            "model": model,
+                            "feature_set": fs,
+                            "trained_on": scope,
+                            "rmse": rmse,
+                            "mae": 0.8 * rmse,
+                            "n": 400,
+                        }
+                    )
     return rows
 
 
@@ -40,8 +49,10 @@ def make_predictions(seed=0, scopes=(("terminal", "condition"), ("paper", "all")
     """Per condition and road, a 40 s test run at 10 Hz: sine-like truth on fixed roads, four mu steps on the others."""
     rng = np.random.default_rng(seed)
     t_s = np.arange(400) / 10.0
-    columns = {c: [] for c in ("condition", "trained_on", "model", "feature_set", "run_id", "road", "t_s", "mu_true",
-                               "mu_pred")}
+    columns = {
+        c: []
+        for c in ("condition", "trained_on", "model", "feature_set", "run_id", "road", "t_s", "mu_true", "mu_pred")
+    }
     for fs, scope in scopes:
         for condition in CONDITIONS:
             if condition in FIXED:
@@ -83,8 +94,10 @@ def test_tables_have_every_condition_with_paper_values_beside_ours():
     for number, condition in zip(range(2, 7), CONDITIONS):
         assert f"### Table {number}: {condition} adhesion coefficient" in text
     assert text.index("Trained per condition") < text.index("One model trained on all")
-    header = ("| model | paper RMSE | paper MAE | ours, paper features RMSE | ours, paper features MAE | "
-              "ours, terminal features RMSE | ours, terminal features MAE | n |")
+    header = (
+        "| model | paper RMSE | paper MAE | ours, paper features RMSE | ours, paper features MAE | "
+        "ours, terminal features RMSE | ours, terminal features MAE | n |"
+    )
     assert header in text
     assert "| SA-CNN-LSTM | 0.012 | 0.010 | 0.012 | 0.010 | 0.010 | 0.008 | 400 |" in text
     # the reference row has no paper value; the paper's improved model has none of ours
@@ -97,8 +110,17 @@ def test_tables_have_every_condition_with_paper_values_beside_ours():
 
 def test_tables_show_other_models_after_the_papers():
     metrics = make_metrics(feature_sets=("terminal",), scopes=("condition",))
-    metrics.append({"condition": "high", "model": "EKF", "feature_set": "terminal", "trained_on": "condition",
-                    "rmse": float("nan"), "mae": None, "n": 12})
+    metrics.append(
+        {
+            "condition": "high",
+            "model": "EKF",
+            "feature_set": "terminal",
+            "trained_on": "condition",
+            "rmse": float("nan"),
+            "mae": None,
+            "n": 12,
+        }
+    )
     text = tables_markdown(metrics)
     assert "ours, paper features" not in text and "One model trained on all" not in text
     assert "| EKF | - | - | - | - | 12 |" in text
@@ -112,7 +134,11 @@ def test_summary_counts_wins():
     paper, ours = rows[0], rows[1:]
     assert paper["source"] == "paper" and paper["wins_all"] == 5 and paper["criterion_met"]
     assert [(r["trained_on"], r["feature_set"]) for r in ours] == [
-        ("condition", "paper"), ("condition", "terminal"), ("all", "paper"), ("all", "terminal")]
+        ("condition", "paper"),
+        ("condition", "terminal"),
+        ("all", "paper"),
+        ("all", "terminal"),
+    ]
     for row in ours:
         assert row["wins"] == {"DNN": 3, "CNN": 3, "ConvLSTM": 3}
         assert row["wins_all"] == 3 and row["compared"] == 5 and not row["criterion_met"]
@@ -138,8 +164,14 @@ def test_summary_counts_each_baseline_apart_and_missing_values_never_win():
 
 
 def test_bad_metrics_are_refused():
-    row = {"condition": "low", "model": "CNN", "feature_set": "paper", "trained_on": "condition", "rmse": 0.1,
-           "mae": 0.1}
+    row = {
+        "condition": "low",
+        "model": "CNN",
+        "feature_set": "paper",
+        "trained_on": "condition",
+        "rmse": 0.1,
+        "mae": 0.1,
+    }
     with pytest.raises(ValueError, match="condition must be one of"):
         tables_markdown([{**row, "condition": "icy"}])
     with pytest.raises(ValueError, match="lacks key"):
@@ -172,8 +204,13 @@ def test_change_times_of_steps_and_ramps():
 def test_figures_are_written_for_every_condition(tmp_path):
     predictions = make_predictions()
     paths = write_figures(predictions, tmp_path)
-    assert [p.name for p in paths] == ["figure_4_low.png", "figure_5_medium.png", "figure_6_high.png",
-                                       "figure_7_increasing.png", "figure_8_decreasing.png"]
+    assert [p.name for p in paths] == [
+        "figure_4_low.png",
+        "figure_5_medium.png",
+        "figure_6_high.png",
+        "figure_7_increasing.png",
+        "figure_8_decreasing.png",
+    ]
     for path in paths:
         data = path.read_bytes()
         assert len(data) > 10_000 and data[:8] == b"\x89PNG\r\n\x1a\n"
@@ -200,4 +237,5 @@ def test_all_figures_and_report(tmp_path):
     assert sorted({p.parent.name for p in out["figures"]}) == ["paper-all", "terminal-condition"]
     assert len(out["figures"]) == 10 and all(p.stat().st_size > 0 for p in out["figures"])
     assert write_all_figures(predictions, tmp_path / "again") == [
-        tmp_path / "again" / p.relative_to(tmp_path) for p in out["figures"]]
+        tmp_path / "again" / p.relative_to(tmp_path) for p in out["figures"]
+    ]

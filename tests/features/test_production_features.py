@@ -21,9 +21,14 @@ def telemetry(v_fl, v_fr, v_rl, v_rr, ax=0.0, ay=0.0, yaw=0.0, steer=0.0, dt_s=0
     """A table of wheel rolling speeds (m/s, arrays or numbers) and body signals, sampled every dt_s."""
     n = max(np.size(x) for x in (v_fl, v_fr, v_rl, v_rr, ax, ay, yaw, steer))
     full = lambda x: np.broadcast_to(np.asarray(x, dtype=np.float64), (n,)).copy()
-    cols = {"timestamp_ms": (np.arange(n) * dt_s * 1000).astype(np.int64), "accel_lon_mps2": full(ax),
-            "accel_lat_mps2": full(ay), "yaw_rate_radps": full(yaw), "steering_wheel_angle_rad": full(steer),
-            "abs_active": np.zeros(n, dtype=bool)}
+    cols = {
+        "timestamp_ms": (np.arange(n) * dt_s * 1000).astype(np.int64),
+        "accel_lon_mps2": full(ax),
+        "accel_lat_mps2": full(ay),
+        "yaw_rate_radps": full(yaw),
+        "steering_wheel_angle_rad": full(steer),
+        "abs_active": np.zeros(n, dtype=bool),
+    }
     for w, v in zip(("fl", "fr", "rl", "rr"), (v_fl, v_fr, v_rl, v_rr)):
         cols[f"wheel_speed_{w}_radps"] = full(v) / R
     return pa.table(cols | extra)
@@ -50,8 +55,15 @@ def test_a_kinematic_turn_reads_no_slip():
     v, r = 20.0, 0.2  # 0.41 g of centripetal acceleration
     a, tf, tr = PAPER_SUV.wheelbase_m, PAPER_SUV.track_front_m, PAPER_SUV.track_rear_m
     speed = lambda x, y: np.hypot(v - r * y, r * x)
-    table = telemetry(speed(a, tf / 2), speed(a, -tf / 2), speed(0, tr / 2), speed(0, -tr / 2), ay=r * v, yaw=r,
-                      steer=PAPER_SUV.steering_ratio * np.arctan(a * r / v))
+    table = telemetry(
+        speed(a, tf / 2),
+        speed(a, -tf / 2),
+        speed(0, tr / 2),
+        speed(0, -tr / 2),
+        ay=r * v,
+        yaw=r,
+        steer=PAPER_SUV.steering_ratio * np.arctan(a * r / v),
+    )
     f = features(table)
     for name in ("axle_slip", "side_slip_front", "side_slip_rear"):
         assert f[name] == pytest.approx(0.0, abs=2e-4), name
@@ -85,8 +97,9 @@ def test_the_reported_speed_is_not_read_and_absent_or_null_flags_read_zero():
     assert "speed_mps" not in table.column_names  # the set needs no speed signal at all
     f = features(table)
     assert (f["tcs_active"] == 0).all() and (f["esc_active"] == 0).all()
-    flagged = telemetry(20.0, 20.1, 20.2, 20.3, tcs_active=pa.array([None], pa.bool_()),
-                        esc_active=pa.array([True], pa.bool_()))
+    flagged = telemetry(
+        20.0, 20.1, 20.2, 20.3, tcs_active=pa.array([None], pa.bool_()), esc_active=pa.array([True], pa.bool_())
+    )
     g = features(flagged)
     assert g["tcs_active"][0] == 0.0 and g["esc_active"][0] == 1.0
     with pytest.raises(ValueError, match="needs column"):

@@ -77,8 +77,10 @@ TINY_MAPPING = {
         "accel_lon_mps2": {"message": 100, "signal": "ACC_X", "unit": "m/s^2"},
         "accel_lat_mps2": {"message": "CHASSIS", "signal": "ACC_Y", "unit": "m/s^2", "sign": -1},
         "steering_wheel_angle_rad": {"message": "STEER", "signal": ["ANGLE", "FRACTION"], "unit": "deg"},
-        **{f"wheel_speed_{w}_radps": {"message": "WHEELS", "signal": f"WHEEL_{w.upper()}", "unit": "km/h"}
-           for w in WHEELS},
+        **{
+            f"wheel_speed_{w}_radps": {"message": "WHEELS", "signal": f"WHEEL_{w.upper()}", "unit": "km/h"}
+            for w in WHEELS
+        },
         "acc_active": {"message": "STEER", "signal": "CRUISE", "max_age_s": 1.0},
         "abs_active": False,
     },
@@ -104,8 +106,9 @@ def tiny_frames() -> list[tuple[float, int, int, str]]:
     0.02 s; STEER every 100 ms from 0.03 s with frames 4-7 (0.43-0.73 s) lost; a CHASSIS frame on bus 1 (ignored)."""
     frames = [(0.01 + 0.05 * k, 0, 100, chassis(k)) for k in range(21)]
     frames += [(0.02 + 0.05 * k, 0, 200, wheels(36.0)) for k in range(21)]
-    frames += [(0.03 + 0.1 * k, 0, 300, steer(2 if k < 5 else -2, 3, int(k >= 2))) for k in range(11)
-               if k not in (4, 5, 6, 7)]
+    frames += [
+        (0.03 + 0.1 * k, 0, 300, steer(2 if k < 5 else -2, 3, int(k >= 2))) for k in range(11) if k not in (4, 5, 6, 7)
+    ]
     frames.append((0.26, 1, 100, chassis(100)))
     return sorted(frames)
 
@@ -113,8 +116,10 @@ def tiny_frames() -> list[tuple[float, int, int, str]]:
 def write_log(folder: Path, frames=None, mapping=TINY_MAPPING, dbc=TINY_DBC) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     lines = ["Time,Bus,MessageID,Message,MessageLength"]
-    lines += [f"{T0 + t:.6f},{bus},{fid},{payload},{len(payload) // 2}" for t, bus, fid, payload in
-              (frames if frames is not None else tiny_frames())]
+    lines += [
+        f"{T0 + t:.6f},{bus},{fid},{payload},{len(payload) // 2}"
+        for t, bus, fid, payload in (frames if frames is not None else tiny_frames())
+    ]
     (folder / "can.csv").write_text("\n".join(lines) + "\n")
     (folder / "tiny.dbc").write_text(dbc)
     if mapping is not None:
@@ -128,6 +133,7 @@ def tiny(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- the tiny log
+
 
 def test_tiny_log_decodes_scales_converts_and_flips(tiny):
     table = CanDbcImporter().load(tiny)
@@ -215,6 +221,7 @@ def test_unit_spellings_of_dbc_files_convert_to_si():
 
 # ---------------------------------------------------------------------------------------------- detection
 
+
 def test_detects_a_can_folder_and_its_csv(tiny, tmp_path):
     importer = CanDbcImporter()
     assert importer.detect(tiny) and importer.detect(tiny / "can.csv")
@@ -240,6 +247,7 @@ def test_mapping_passed_explicitly_and_missing(tmp_path):
 
 # ------------------------------------------------------------------------------------------- bad mappings
 
+
 def bad_mapping(tmp_path, **field_changes) -> Path:
     mapping = yaml.safe_load(yaml.safe_dump(TINY_MAPPING))
     for field, change in field_changes.items():
@@ -250,8 +258,11 @@ def bad_mapping(tmp_path, **field_changes) -> Path:
 
 def test_unknown_signal_is_named(tmp_path):
     folder = bad_mapping(tmp_path, speed_mps={"signal": "VEHICLE_SPEED"})
-    with pytest.raises(ValueError, match=r"field speed_mps: signal 'VEHICLE_SPEED' is not in message CHASSIS of "
-                                         r"tiny.dbc; its signals: \['SPEED', 'YAW', 'ACC_X', 'ACC_Y'\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"field speed_mps: signal 'VEHICLE_SPEED' is not in message CHASSIS of "
+        r"tiny.dbc; its signals: \['SPEED', 'YAW', 'ACC_X', 'ACC_Y'\]",
+    ):
         CanDbcImporter().load(folder)
 
 
@@ -263,24 +274,33 @@ def test_unknown_message_is_named(tmp_path):
 
 def test_wrong_unit_is_named(tmp_path):
     folder = bad_mapping(tmp_path, speed_mps={"unit": "mph"})
-    with pytest.raises(ValueError, match=r"field speed_mps: signal CHASSIS.SPEED has unit 'kph' in tiny.dbc, but the "
-                                         r"mapping expects 'mph'"):
+    with pytest.raises(
+        ValueError,
+        match=r"field speed_mps: signal CHASSIS.SPEED has unit 'kph' in tiny.dbc, but the "
+        r"mapping expects 'mph'",
+    ):
         CanDbcImporter().load(folder)
     folder = bad_mapping(tmp_path, yaw_rate_radps={"unit": "rad/s"})
     with pytest.raises(ValueError, match="signal CHASSIS.YAW has unit 'deg/s'"):
         CanDbcImporter().load(folder)
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"yaw_rate_radps": {"unit": "km/h"}}, "field yaw_rate_radps: unit 'km/h' does not convert to the field's rad/s"),
-    ({"speed_mps": {"unit": "furlong/fortnight"}}, "field speed_mps: unknown unit 'furlong/fortnight'"),
-    ({"speed_mps": {"sign": 2}}, "field speed_mps: sign must be 1 or -1, got 2"),
-    ({"speed_mps": {"scale": 2}}, r"field speed_mps: unknown key\(s\) \['scale'\]"),
-    ({"speed_mps": False}, "only the flags .* may be a constant"),
-    ({"speed_mps": {"unit": None}}, "field speed_mps needs `unit`"),
-    ({"acc_active": {"unit": "km/h"}}, "field acc_active is a flag"),
-    ({"speed_kmh": {"message": "CHASSIS", "signal": "SPEED", "unit": "km/h"}}, "'speed_kmh' is not a field"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            {"yaw_rate_radps": {"unit": "km/h"}},
+            "field yaw_rate_radps: unit 'km/h' does not convert to the field's rad/s",
+        ),
+        ({"speed_mps": {"unit": "furlong/fortnight"}}, "field speed_mps: unknown unit 'furlong/fortnight'"),
+        ({"speed_mps": {"sign": 2}}, "field speed_mps: sign must be 1 or -1, got 2"),
+        ({"speed_mps": {"scale": 2}}, r"field speed_mps: unknown key\(s\) \['scale'\]"),
+        ({"speed_mps": False}, "only the flags .* may be a constant"),
+        ({"speed_mps": {"unit": None}}, "field speed_mps needs `unit`"),
+        ({"acc_active": {"unit": "km/h"}}, "field acc_active is a flag"),
+        ({"speed_kmh": {"message": "CHASSIS", "signal": "SPEED", "unit": "km/h"}}, "'speed_kmh' is not a field"),
+    ],
+)
 def test_bad_mapping_entries_are_named(tmp_path, change, message):
     with pytest.raises(ValueError, match=message):
         CanDbcImporter().load(bad_mapping(tmp_path, **change))
@@ -304,6 +324,7 @@ def test_flag_signal_with_a_unit_in_the_dbc_is_refused(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- the real RAV4
+
 
 @pytest.fixture(scope="module")
 def rav4():
@@ -344,8 +365,9 @@ def test_rav4_speed_is_the_mean_wheel_speed_times_the_radius(rav4):
 def test_rav4_signs_agree_with_each_other(rav4):
     """ISO 8855 signs as measured (docs/FLEET.md): steering with path curvature, lateral acceleration with v r."""
     _, table = rav4
-    v, r, ay, sw = (np.asarray(table[c]) for c in ("speed_mps", "yaw_rate_radps", "accel_lat_mps2",
-                                                    "steering_wheel_angle_rad"))
+    v, r, ay, sw = (
+        np.asarray(table[c]) for c in ("speed_mps", "yaw_rate_radps", "accel_lat_mps2", "steering_wheel_angle_rad")
+    )
     moving = v > 3.0
     assert np.corrcoef(sw[moving], r[moving] / v[moving])[0, 1] > 0.7
     slope = np.polyfit(v[moving] * r[moving], ay[moving], 1)[0]
@@ -390,15 +412,29 @@ def test_import_log_cli_round_trip_and_estimate(tmp_path):
     batch = read_telemetry(out, wheel_radius_m=0.355)
     assert batch.table.num_rows == 1031 and not batch.rejections
     explicit = tmp_path / "rav4.parquet"
-    result = runner.invoke(app, ["import-log", str(RAV4), "--importer", "can-dbc", "--out", str(explicit),
-                                 "--vehicle-id", "rav4-a", "--start-ms", "0"])
+    result = runner.invoke(
+        app,
+        [
+            "import-log",
+            str(RAV4),
+            "--importer",
+            "can-dbc",
+            "--out",
+            str(explicit),
+            "--vehicle-id",
+            "rav4-a",
+            "--start-ms",
+            "0",
+        ],
+    )
     assert result.exit_code == 0, result.output
     table = pq.read_table(explicit)
     assert table["timestamp_ms"][0].as_py() == 0 and table["vehicle_id"][0].as_py() == "rav4-a"
 
     estimates = tmp_path / "e.csv"
     profile = ROOT / "roadgrip" / "fleet" / "importers" / "toyota_rav4_2019_profile.yaml"
-    result = runner.invoke(app, ["estimate", "--input", str(out), "--model", "ekf", "--out", str(estimates),
-                                 "--vehicle", str(profile)])
+    result = runner.invoke(
+        app, ["estimate", "--input", str(out), "--model", "ekf", "--out", str(estimates), "--vehicle", str(profile)]
+    )
     assert result.exit_code == 0, result.output
     assert "wrote 1031 estimates" in " ".join(result.output.split())

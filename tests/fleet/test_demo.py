@@ -12,17 +12,37 @@ import pytest
 
 
 def mosquitto_pids() -> set[int]:
-    return {int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
-            and (p / "comm").exists() and (p / "comm").read_text().strip() == "mosquitto"}
+    return {
+        int(p.name)
+        for p in Path("/proc").iterdir()
+        if p.name.isdigit() and (p / "comm").exists() and (p / "comm").read_text().strip() == "mosquitto"
+    }
 
 
 @pytest.mark.slow
 def test_the_demo_runs_end_to_end_and_leaves_nothing_behind(tmp_path):
     before = mosquitto_pids()
-    result = subprocess.run([sys.executable, "-m", "roadgrip", "demo", "--vehicles", "8", "--speed", "20",
-                             "--duration", "80", "--data-dir", str(tmp_path)],
-                            check=False, capture_output=True, text=True, timeout=600,
-                            env={**os.environ, "COLUMNS": "200"})
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "roadgrip",
+            "demo",
+            "--vehicles",
+            "8",
+            "--speed",
+            "20",
+            "--duration",
+            "80",
+            "--data-dir",
+            str(tmp_path),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     out = " ".join(result.stdout.split())  # rich wraps titles to the table's width
     assert "roadgrip demo: 8 vehicles over MQTT" in out

@@ -23,8 +23,9 @@ def test_plans_cycle_vehicle_kinds_and_brake_on_patches():
         if patches:
             assert any(first <= b <= last for b in plan.brakes_at_m for first, last, _ in patches)
         assert plan.scenario.duration_s <= 100.0
-    assert plan_fleet(network, 9, duration_s=100.0, seed=3, patch_braking_share=1.0)[4].brakes_at_m == \
-        plans[4].brakes_at_m
+    assert (
+        plan_fleet(network, 9, duration_s=100.0, seed=3, patch_braking_share=1.0)[4].brakes_at_m == plans[4].brakes_at_m
+    )
     with pytest.raises(ValueError, match="vehicles"):
         plan_fleet(network, 0)
 
@@ -35,6 +36,7 @@ def test_simulated_fleet_telemetry_is_valid_wire_format():
     samples = simulate_fleet(plans, network)
     assert set(samples) == {p.vehicle_id for p in plans}
     import pyarrow as pa
+
     rows = [s for run in samples.values() for s in run]
     batch = validate_telemetry(pa.Table.from_pylist(rows))
     assert not batch.rejections
@@ -44,8 +46,10 @@ def test_simulated_fleet_telemetry_is_valid_wire_format():
 
 @pytest.mark.parametrize("speed", [1.0, 4.0, math.inf])
 def test_the_timeline_keeps_10_hz_and_never_runs_ahead_of_the_sending_clock(speed):
-    runs = {"a": [{"vehicle_id": "a", "timestamp_ms": 100 * k} for k in range(30)],
-            "b": [{"vehicle_id": "b", "timestamp_ms": 100 * k} for k in range(20)]}
+    runs = {
+        "a": [{"vehicle_id": "a", "timestamp_ms": 100 * k} for k in range(30)],
+        "b": [{"vehicle_id": "b", "timestamp_ms": 100 * k} for k in range(20)],
+    }
     now_s = 1_800_000_000.0
     samples = timeline(runs, speed, now_s)
     a = [s["timestamp_ms"] for s in samples if s["vehicle_id"] == "a"]

@@ -20,8 +20,11 @@ runner = CliRunner()
 @pytest.fixture
 def cloud(tmp_path, monkeypatch):
     monkeypatch.setenv("ROADGRIP_ADMIN_SECRET", ADMIN_SECRET)
-    local = LocalCloud(Settings(data_dir=tmp_path, port=free_port(), mqtt="auto", admin_secret=ADMIN_SECRET,
-                                rate_limit_samples_per_s=0))  # vehicles at 50x real time
+    local = LocalCloud(
+        Settings(
+            data_dir=tmp_path, port=free_port(), mqtt="auto", admin_secret=ADMIN_SECRET, rate_limit_samples_per_s=0
+        )
+    )  # vehicles at 50x real time
     yield local
     local.stop()
 
@@ -29,8 +32,24 @@ def cloud(tmp_path, monkeypatch):
 @pytest.mark.parametrize("transport", ["mqtt", "http"])
 @pytest.mark.slow
 def test_simulated_vehicles_drive_against_the_cloud(cloud, transport):
-    result = runner.invoke(app, ["fleet", "--url", cloud.url, "--vehicles", "3", "--speed", "50", "--duration", "20",
-                                 "--transport", transport, "--prefix", f"cli-{transport}"])
+    result = runner.invoke(
+        app,
+        [
+            "fleet",
+            "--url",
+            cloud.url,
+            "--vehicles",
+            "3",
+            "--speed",
+            "50",
+            "--duration",
+            "20",
+            "--transport",
+            transport,
+            "--prefix",
+            f"cli-{transport}",
+        ],
+    )
     assert result.exit_code == 0, result.output
     settle(cloud.service)
     counts = cloud.service.storage.counts()
@@ -43,9 +62,30 @@ def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read
     """The options a cluster needs (--mqtt for each node, --mqtt-protocol 3.1.1, --read-url for another replica),
     here against serve's own broker and API."""
     mqtt_url = cloud.service.mqtt_url
-    result = runner.invoke(app, ["fleet", "--url", cloud.url, "--vehicles", "2", "--speed", "50", "--duration", "20",
-                                 "--mqtt", mqtt_url, "--mqtt", mqtt_url, "--mqtt-protocol", "3.1.1",
-                                 "--read-url", cloud.url, "--prefix", "spread"])
+    result = runner.invoke(
+        app,
+        [
+            "fleet",
+            "--url",
+            cloud.url,
+            "--vehicles",
+            "2",
+            "--speed",
+            "50",
+            "--duration",
+            "20",
+            "--mqtt",
+            mqtt_url,
+            "--mqtt",
+            mqtt_url,
+            "--mqtt-protocol",
+            "3.1.1",
+            "--read-url",
+            cloud.url,
+            "--prefix",
+            "spread",
+        ],
+    )
     assert result.exit_code == 0, result.output
     said = " ".join(result.output.split())  # rich wraps long lines
     assert "over MQTT 3.1.1 to 2 broker(s)" in said
@@ -56,8 +96,10 @@ def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read
 
 
 def test_the_real_log_is_replayed_as_its_own_vehicle(cloud):
-    result = runner.invoke(app, ["fleet", "--url", cloud.url, "--replay", str(LOG), "--speed", "50",
-                                 "--transport", "http", "--prefix", "m8"])
+    result = runner.invoke(
+        app,
+        ["fleet", "--url", cloud.url, "--replay", str(LOG), "--speed", "50", "--transport", "http", "--prefix", "m8"],
+    )
     assert result.exit_code == 0, result.output
     settle(cloud.service)
     assert cloud.service.storage.counts()["telemetry"] == 96  # 9.6 s at 10 Hz

@@ -52,11 +52,11 @@ def m8():
 
 # --------------------------------------------------------------------------------------------------- registry
 
+
 @pytest.fixture
 def fresh_registry(monkeypatch):
     """The registry as after import (built-ins only), restored after the test."""
-    monkeypatch.setattr(registry, "_REGISTRY", {k: v for k, v in registry._REGISTRY.items()
-                                                if k in ("wire", "bmw-m8")})
+    monkeypatch.setattr(registry, "_REGISTRY", {k: v for k, v in registry._REGISTRY.items() if k in ("wire", "bmw-m8")})
     monkeypatch.setattr(registry, "_FAILED", {})
     monkeypatch.setattr(registry, "_entry_points_loaded", False)
     monkeypatch.setattr(registry, "entry_points", lambda group: [])
@@ -75,12 +75,20 @@ class TextLogImporter:
         rows = [line.split() for line in Path(path).read_text().splitlines() if line.strip()]
         n = len(rows)
         speed = [float(r[1]) for r in rows]
-        return pa.table({
-            "vehicle_id": [vehicle_id] * n, "timestamp_ms": [start_ms + round(float(r[0]) * 1000) for r in rows],
-            "speed_mps": speed, "accel_lon_mps2": [0.0] * n, "accel_lat_mps2": [0.0] * n,
-            "yaw_rate_radps": [0.0] * n, "steering_wheel_angle_rad": [0.0] * n,
-            **{c: [v / 0.3 for v in speed] for c in WHEEL_COLUMNS}, "abs_active": [False] * n,
-            "acc_active": [False] * n})
+        return pa.table(
+            {
+                "vehicle_id": [vehicle_id] * n,
+                "timestamp_ms": [start_ms + round(float(r[0]) * 1000) for r in rows],
+                "speed_mps": speed,
+                "accel_lon_mps2": [0.0] * n,
+                "accel_lat_mps2": [0.0] * n,
+                "yaw_rate_radps": [0.0] * n,
+                "steering_wheel_angle_rad": [0.0] * n,
+                **{c: [v / 0.3 for v in speed] for c in WHEEL_COLUMNS},
+                "abs_active": [False] * n,
+                "acc_active": [False] * n,
+            }
+        )
 
 
 def test_builtin_importers_are_registered(fresh_registry):
@@ -139,7 +147,7 @@ def test_detection_picks_the_importer_of_the_file(fresh_registry, tmp_path):
         detect_importer(tmp_path / "missing.csv")
 
 
-PLUGIN = '''
+PLUGIN = """
 from pathlib import Path
 
 
@@ -156,7 +164,7 @@ class TextLogImporter:
 instance = TextLogImporter()
 misnamed = TextLogImporter()
 misnamed.name = "other"
-'''
+"""
 
 
 def _entry_points(tmp_path, monkeypatch, specs):
@@ -183,9 +191,15 @@ def test_an_entry_point_registers_a_third_party_importer(fresh_registry, tmp_pat
 
 
 def test_a_broken_entry_point_is_skipped_and_explained(fresh_registry, tmp_path, monkeypatch, caplog):
-    _entry_points(tmp_path, monkeypatch, [("gone", "roadgrip_no_such_module:Importer"),
-                                          ("other2", "roadgrip_fake_plugin:misnamed"),
-                                          ("txtlog", "roadgrip_fake_plugin:instance")])
+    _entry_points(
+        tmp_path,
+        monkeypatch,
+        [
+            ("gone", "roadgrip_no_such_module:Importer"),
+            ("other2", "roadgrip_fake_plugin:misnamed"),
+            ("txtlog", "roadgrip_fake_plugin:instance"),
+        ],
+    )
     with caplog.at_level(logging.WARNING, logger="roadgrip.fleet.importers"):
         names = list(importers())
     assert names == ["wire", "bmw-m8", "txtlog"]
@@ -202,6 +216,7 @@ def test_entry_points_cannot_replace_a_builtin(fresh_registry, tmp_path, monkeyp
 
 
 # ------------------------------------------------------------------------------------------------ wire importer
+
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet", ".ndjson", ".jsonl"])
 def test_wire_importer_reads_back_what_was_written(m8, tmp_path, suffix):
@@ -243,8 +258,10 @@ def test_wire_detection_needs_wire_columns(tmp_path):
 
 # ------------------------------------------------------------------------------------ synthetic BMW-style logs
 
-def _synthetic_log(folder: Path, *, offset_s: float, seed: int = 0, vibration_hz: float = 0.0,
-                   radius_m: float = 0.345) -> dict:
+
+def _synthetic_log(
+    folder: Path, *, offset_s: float, seed: int = 0, vibration_hz: float = 0.0, radius_m: float = 0.345
+) -> dict:
     """A log folder in the BMW M8 layout with a known truth: accelerate at 4 m/s^2 for 4 s, coast, brake at
     9 m/s^2 to a stop, each change of acceleration a 0.2 s ramp (as brake pressure and engine torque build up), at
     940 Hz (fast) and 94 Hz (slow), speed quantised to 5 mm/s like the real one; the slow clock runs `offset_s`
@@ -265,18 +282,32 @@ def _synthetic_log(folder: Path, *, offset_s: float, seed: int = 0, vibration_hz
     t_fast = np.arange(0.0, 10.0, 1 / 940)
     v = np.round(speed(t_fast) / 0.005) * 0.005
     wheel = speed(t_fast) / radius_m + 0.3 * np.sin(2 * np.pi * vibration_hz * t_fast + 0.7)
-    fast = {"time": t_fast, "steering": np.full(t_fast.size, 0.001), "throttle": np.zeros(t_fast.size),
-            "brake": np.zeros(t_fast.size), "Velocity_X": v, "Velocity_Y": np.zeros(t_fast.size),
-            **{f"v_wheel_{w}": wheel + rng.normal(0, 0.05, t_fast.size) for w in WHEELS}}
+    fast = {
+        "time": t_fast,
+        "steering": np.full(t_fast.size, 0.001),
+        "throttle": np.zeros(t_fast.size),
+        "brake": np.zeros(t_fast.size),
+        "Velocity_X": v,
+        "Velocity_Y": np.zeros(t_fast.size),
+        **{f"v_wheel_{w}": wheel + rng.normal(0, 0.05, t_fast.size) for w in WHEELS},
+    }
     t_slow = np.arange(-3.0, 14.0, 1 / 94)  # car_time
     on_fast = t_slow + offset_s
     s = np.cumsum(speed(on_fast)) / 94
-    slow = {"car_time": t_slow, "Acceleration_X": accel(on_fast) + rng.normal(0, 0.1, t_slow.size),
-            "Acceleration_Y": rng.normal(0, 0.05, t_slow.size), "Acceleration_Z": np.zeros(t_slow.size),
-            "Yaw_Velocity": rng.normal(0, 0.001, t_slow.size), "Roll_Velocity": np.zeros(t_slow.size),
-            "Pitch_Velocity": np.zeros(t_slow.size), "Roll": np.zeros(t_slow.size), "Pitch": np.zeros(t_slow.size),
-            "Yaw": np.full(t_slow.size, math.pi / 4), "Rel_pos_x": s * math.cos(math.pi / 4),
-            "Rel_pos_y": s * math.sin(math.pi / 4)}
+    slow = {
+        "car_time": t_slow,
+        "Acceleration_X": accel(on_fast) + rng.normal(0, 0.1, t_slow.size),
+        "Acceleration_Y": rng.normal(0, 0.05, t_slow.size),
+        "Acceleration_Z": np.zeros(t_slow.size),
+        "Yaw_Velocity": rng.normal(0, 0.001, t_slow.size),
+        "Roll_Velocity": np.zeros(t_slow.size),
+        "Pitch_Velocity": np.zeros(t_slow.size),
+        "Roll": np.zeros(t_slow.size),
+        "Pitch": np.zeros(t_slow.size),
+        "Yaw": np.full(t_slow.size, math.pi / 4),
+        "Rel_pos_x": s * math.cos(math.pi / 4),
+        "Rel_pos_y": s * math.sin(math.pi / 4),
+    }
     pacsv.write_csv(pa.table(fast), folder / FAST_FILE)
     pacsv.write_csv(pa.table(slow), folder / SLOW_FILE)
     return {"speed": speed, "accel": accel}
@@ -287,8 +318,12 @@ def test_clock_alignment_recovers_a_known_offset(tmp_path, offset_s):
     _synthetic_log(tmp_path, offset_s=offset_s)
     fast = pacsv.read_csv(tmp_path / FAST_FILE)
     slow = pacsv.read_csv(tmp_path / SLOW_FILE)
-    found, corr = estimate_clock_offset(fast["time"].to_numpy(), fast["Velocity_X"].to_numpy(),
-                                        slow["car_time"].to_numpy(), slow["Acceleration_X"].to_numpy())
+    found, corr = estimate_clock_offset(
+        fast["time"].to_numpy(),
+        fast["Velocity_X"].to_numpy(),
+        slow["car_time"].to_numpy(),
+        slow["Acceleration_X"].to_numpy(),
+    )
     assert found == pytest.approx(offset_s, abs=0.002)  # the grid is 5 ms, the slow log's period 10.6 ms
     assert corr > 0.9
     table = BmwM8Importer().load(tmp_path)
@@ -344,8 +379,15 @@ def test_resampling_averages_instead_of_picking(tmp_path):
 
 def test_import_options_and_errors(tmp_path):
     _synthetic_log(tmp_path / "log", offset_s=0.0)
-    table = BmwM8Importer().load(tmp_path / "log", vehicle_id="m8-2", start_ms=1_000, origin_lat_deg=57.7,
-                                 origin_lon_deg=11.97, clock_offset_s=0.0, steering_full_scale_rad=10.0)
+    table = BmwM8Importer().load(
+        tmp_path / "log",
+        vehicle_id="m8-2",
+        start_ms=1_000,
+        origin_lat_deg=57.7,
+        origin_lon_deg=11.97,
+        clock_offset_s=0.0,
+        steering_full_scale_rad=10.0,
+    )
     assert set(table["vehicle_id"].to_pylist()) == {"m8-2"} and table["timestamp_ms"][0].as_py() == 1_000
     assert table["latitude_deg"][0].as_py() == pytest.approx(57.7, abs=1e-3)
     assert table["steering_wheel_angle_rad"].to_numpy() == pytest.approx(0.01)
@@ -365,6 +407,7 @@ def test_import_options_and_errors(tmp_path):
 
 
 # -------------------------------------------------------------------------------------------------- the real log
+
 
 def test_m8_profile_loads_with_the_recordings_values():
     p = m8_profile()
@@ -470,8 +513,9 @@ def test_ekf_runs_on_the_real_log(m8):
 
 def test_cli_import_log_writes_a_wire_file(tmp_path):
     out = tmp_path / "m8.csv"
-    result = runner.invoke(app, ["import-log", str(LOG), "--out", str(out), "--vehicle-id", "m8-cli",
-                                 "--start-ms", "1700000000000"])
+    result = runner.invoke(
+        app, ["import-log", str(LOG), "--out", str(out), "--vehicle-id", "m8-cli", "--start-ms", "1700000000000"]
+    )
     assert result.exit_code == 0, result.output
     assert "bmw-m8" in result.output and "clock_offset_s" in result.output
     batch = read_telemetry(out, wheel_radius_m=m8_profile().wheel_radius_m)

@@ -22,7 +22,7 @@ def test_a_patch_replaces_the_dry_road_exactly_where_the_road_crosses_it():
     half_chord = np.sqrt(50.0**2 - 30.0**2)  # 40 m either side of x = 500
     mu = profile.at(np.array([400.0, 500.0 - half_chord + 3, 500.0, 500.0 + half_chord - 3, 600.0]))
     np.testing.assert_allclose(mu, [SURFACE_MU["dry"], 0.05, 0.05, 0.05, SURFACE_MU["dry"]])
-    (first, last, patch), = network.patch_stations(road)
+    ((first, last, patch),) = network.patch_stations(road)
     assert patch.name == "p" and first == pytest.approx(460.0, abs=2.0) and last == pytest.approx(540.0, abs=2.0)
 
 
@@ -33,8 +33,9 @@ def test_the_generated_network_has_every_kind_of_road_and_a_patch_on_each_slippe
     assert on_road == {p.name for p in network.patches}
     for road in network.roads:
         assert road.path.length_m > 500
-        assert [p.name for _, _, p in network.patch_stations(road.reversed())] == \
-            [p.name for _, _, p in network.patch_stations(road)]
+        assert [p.name for _, _, p in network.patch_stations(road.reversed())] == [
+            p.name for _, _, p in network.patch_stations(road)
+        ]
 
 
 def test_bad_roads_and_patches_are_refused():
@@ -48,11 +49,21 @@ def test_bad_roads_and_patches_are_refused():
 
 def test_a_geojson_network_round_trips_positions(tmp_path):
     origin = (38.0428, 114.5149)
-    collection = {"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {"name": "main", "kind": "expressway"},
-         "geometry": {"type": "LineString", "coordinates": [[114.5149, 38.0428], [114.5263, 38.0428]]}},
-        {"type": "Feature", "properties": {"surface": "snow", "radius_m": 30},
-         "geometry": {"type": "Point", "coordinates": [114.5200, 38.0428]}}]}
+    collection = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"name": "main", "kind": "expressway"},
+                "geometry": {"type": "LineString", "coordinates": [[114.5149, 38.0428], [114.5263, 38.0428]]},
+            },
+            {
+                "type": "Feature",
+                "properties": {"surface": "snow", "radius_m": 30},
+                "geometry": {"type": "Point", "coordinates": [114.5200, 38.0428]},
+            },
+        ],
+    }
     path = tmp_path / "net.geojson"
     path.write_text(json.dumps(collection))
     network = network_from_geojson(path)

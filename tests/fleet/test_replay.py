@@ -94,7 +94,8 @@ def test_samples_are_sent_in_time_order_and_unchanged():
 
 def test_equal_timestamps_keep_their_order():
     data = [{"vehicle_id": "v1", "timestamp_ms": 5, "n": i} for i in range(3)] + [
-        {"vehicle_id": "v1", "timestamp_ms": 1, "n": 9}]
+        {"vehicle_id": "v1", "timestamp_ms": 1, "n": 9}
+    ]
     clock = FakeClock()
     sent = Recorder(clock)
     replay(data, sent, speed=0, clock=clock)
@@ -153,10 +154,17 @@ def test_an_exception_of_send_propagates():
         replay(samples(3), broken, clock=FakeClock())
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"speed": -1.0}, "speed"), ({"speed": float("nan")}, "speed"), ({"speed": "fast"}, "speed"),
-    ({"batch": 0}, "batch"), ({"batch": 2.5}, "batch"), ({"batch": True}, "batch"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"speed": -1.0}, "speed"),
+        ({"speed": float("nan")}, "speed"),
+        ({"speed": "fast"}, "speed"),
+        ({"batch": 0}, "batch"),
+        ({"batch": 2.5}, "batch"),
+        ({"batch": True}, "batch"),
+    ],
+)
 def test_bad_arguments_are_errors(kwargs, message):
     with pytest.raises(ValueError, match=message):
         replay(samples(3), lambda b: None, clock=FakeClock(), **kwargs)
@@ -172,6 +180,7 @@ def test_a_sample_without_an_integer_timestamp_is_an_error():
 
 
 # ------------------------------------------------------------------------------------------------- replay_file
+
 
 def test_replay_file_detects_the_bmw_log_and_returns_wire_samples():
     out = replay_file(LOG)
@@ -206,10 +215,21 @@ def test_replay_of_an_imported_log_delivers_it_whole(tmp_path):
 
 
 def test_replay_file_leaves_absent_optional_fields_out(tmp_path):
-    rows = [{"vehicle_id": "v1", "t_s": 0.1 * i, "speed_mps": 10.0, "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0,
-             "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
-             **{f"wheel_speed_{w}_radps": 30.0 for w in ("fl", "fr", "rl", "rr")},
-             "abs_active": False, "acc_active": False} for i in range(30)]
+    rows = [
+        {
+            "vehicle_id": "v1",
+            "t_s": 0.1 * i,
+            "speed_mps": 10.0,
+            "accel_lon_mps2": 0.0,
+            "accel_lat_mps2": 0.0,
+            "yaw_rate_radps": 0.0,
+            "steering_wheel_angle_rad": 0.0,
+            **{f"wheel_speed_{w}_radps": 30.0 for w in ("fl", "fr", "rl", "rr")},
+            "abs_active": False,
+            "acc_active": False,
+        }
+        for i in range(30)
+    ]
     path = write_table(pa.Table.from_pylist(rows), tmp_path / "drive.csv")
     out = replay_file(path, start_ms=1_700_000_000_000)
     assert len(out) == 30 and "latitude_deg" not in out[0] and "lateral_speed_mps" not in out[0]

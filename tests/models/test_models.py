@@ -21,7 +21,8 @@ def test_a_model_overfits_a_tiny_batch(name):
     y = torch.rand(16)
     model = build_model(name, model_config(name, n_features=7, window=10, dropout=0.0))
     Trainer(TrainConfig(max_epochs=400, batch_size=16, learning_rate=5e-3, weight_decay=0.0, patience=400)).fit(
-        model, x.numpy(), y.numpy(), x.numpy(), y.numpy())
+        model, x.numpy(), y.numpy(), x.numpy(), y.numpy()
+    )
     assert float(torch.sqrt(torch.mean((torch.as_tensor(predict(model, x)) - y) ** 2))) < 0.02
 
 

@@ -184,11 +184,26 @@ def test_clip_bounds_predictions():
         clip(np.zeros(3), (1.0, 0.0))
 
 
-@pytest.mark.parametrize("field, value", [
-    ("beta", 0.0), ("beta", 1.5), ("gamma", -0.1), ("epsilon", 2.0), ("epsilon_decay", 0.0), ("episodes", 0),
-    ("steps", 0), ("bias_step", 0.0), ("scale_step", 0.6), ("share_weight", -1.0), ("excess_weight", float("nan")),
-    ("allowed_range", (1.2, 0.0)), ("allowed_range", (0.0,)), ("share_edges", (0.1, 0.01)), ("share_edges", (0.0, 0.1)),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("beta", 0.0),
+        ("beta", 1.5),
+        ("gamma", -0.1),
+        ("epsilon", 2.0),
+        ("epsilon_decay", 0.0),
+        ("episodes", 0),
+        ("steps", 0),
+        ("bias_step", 0.0),
+        ("scale_step", 0.6),
+        ("share_weight", -1.0),
+        ("excess_weight", float("nan")),
+        ("allowed_range", (1.2, 0.0)),
+        ("allowed_range", (0.0,)),
+        ("share_edges", (0.1, 0.01)),
+        ("share_edges", (0.0, 0.1)),
+    ],
+)
 def test_bad_config_values_name_the_field_and_value(field, value):
     with pytest.raises(ValueError, match=rf"QConfig\.{field} must .*got {re.escape(repr(value))}"):
         QConfig(**{field: value})

@@ -19,16 +19,34 @@ CH = {name: i for i, name in enumerate(CHANNELS)}
 GRADE_RAD = 0.06
 RUNS = [
     # no tire force (mu 0): the car coasts down a 6 % slope
-    Scenario("downhill-ice", Path.straight(800.0), MuProfile.uniform(0.0), SpeedProfile([0.0], [10.0]),
-             grade=GradeProfile.uniform(-GRADE_RAD), duration_s=6.0),
+    Scenario(
+        "downhill-ice",
+        Path.straight(800.0),
+        MuProfile.uniform(0.0),
+        SpeedProfile([0.0], [10.0]),
+        grade=GradeProfile.uniform(-GRADE_RAD),
+        duration_s=6.0,
+    ),
     # steady 15 m/s up a 6 % slope on a dry road: the tires push m g sin(grade) + drag
-    Scenario("uphill-steady", Path.straight(800.0), MuProfile.uniform(0.9), SpeedProfile([0.0], [15.0]),
-             grade=GradeProfile.uniform(GRADE_RAD), duration_s=8.0),
+    Scenario(
+        "uphill-steady",
+        Path.straight(800.0),
+        MuProfile.uniform(0.9),
+        SpeedProfile([0.0], [15.0]),
+        grade=GradeProfile.uniform(GRADE_RAD),
+        duration_s=8.0,
+    ),
     # the same on a level road
     Scenario("level-steady", Path.straight(800.0), MuProfile.uniform(0.9), SpeedProfile([0.0], [15.0]), duration_s=8.0),
     # a hard start on ice: the driven wheels spin and traction control cuts the torque
-    Scenario("ice-start", Path.straight(800.0), MuProfile.uniform(0.1), SpeedProfile([0.0, 10.0], [0.0, 20.0]),
-             vehicle=MIDSIZE_SEDAN, duration_s=6.0),
+    Scenario(
+        "ice-start",
+        Path.straight(800.0),
+        MuProfile.uniform(0.1),
+        SpeedProfile([0.0, 10.0], [0.0, 20.0]),
+        vehicle=MIDSIZE_SEDAN,
+        duration_s=6.0,
+    ),
 ]
 
 
@@ -61,7 +79,8 @@ def test_steady_climb_needs_the_weights_component_and_the_accelerometer_reads_it
     fx_level = level[-20:, [CH[f"fx_{w}_n"] for w in ("fl", "fr", "rl", "rr")]].sum(axis=1)
     assert (fx_up - fx_level).mean() == pytest.approx(PAPER_SUV.mass_kg * G_MPS2 * math.sin(GRADE_RAD), rel=0.02)
     assert (up[-20:, CH["ax_mps2"]] - level[-20:, CH["ax_mps2"]]).mean() == pytest.approx(
-        G_MPS2 * math.sin(GRADE_RAD), rel=0.02)
+        G_MPS2 * math.sin(GRADE_RAD), rel=0.02
+    )
 
 
 def test_a_level_road_is_a_flat_grade_profile():

@@ -54,9 +54,18 @@ def yaw_rate_gain(v, speed_mps):
 
 CRUISE_SPEEDS_MPS = (10.0, 30.0)
 CRUISE = [
-    Scenario(f"cruise-{v.name}-{t.name}-{speed:.0f}", Path.straight(500.0), MuProfile.uniform(0.8),
-             SpeedProfile([0.0], [speed]), vehicle=v, tire=t, duration_s=6.0)
-    for v in VEHICLES for t in TIRES for speed in CRUISE_SPEEDS_MPS
+    Scenario(
+        f"cruise-{v.name}-{t.name}-{speed:.0f}",
+        Path.straight(500.0),
+        MuProfile.uniform(0.8),
+        SpeedProfile([0.0], [speed]),
+        vehicle=v,
+        tire=t,
+        duration_s=6.0,
+    )
+    for v in VEHICLES
+    for t in TIRES
+    for speed in CRUISE_SPEEDS_MPS
 ]
 
 
@@ -91,10 +100,18 @@ def corner_steer_rad(v):
 
 
 CORNERING = [
-    Scenario(f"corner-{v.name}-{t.name}", Path.straight(1000.0), MuProfile.uniform(0.9),
-             SpeedProfile([0.0], [CORNER_SPEED_MPS]), vehicle=v, tire=t,
-             steer=SteerInput.constant(corner_steer_rad(v)), duration_s=15.0)
-    for v in VEHICLES for t in (DugoffTire(), MagicFormulaTire())
+    Scenario(
+        f"corner-{v.name}-{t.name}",
+        Path.straight(1000.0),
+        MuProfile.uniform(0.9),
+        SpeedProfile([0.0], [CORNER_SPEED_MPS]),
+        vehicle=v,
+        tire=t,
+        steer=SteerInput.constant(corner_steer_rad(v)),
+        duration_s=15.0,
+    )
+    for v in VEHICLES
+    for t in (DugoffTire(), MagicFormulaTire())
 ]
 
 
@@ -146,9 +163,16 @@ BRAKE_MUS = (0.3, 0.6, 0.9)
 # 25 m/s to 0 in 0.3 s (8.5 g): the driver floors the brake pedal (a 1.2 g demand), far beyond mu g
 HARD_STOP = SpeedProfile([0.0, 1.0, 1.3, 10.0], [25.0, 25.0, 0.0, 0.0])
 BRAKING = [
-    Scenario(f"brake-mu{mu}-{'abs' if abs_on else 'no-abs'}", Path.straight(500.0), MuProfile.uniform(mu), HARD_STOP,
-             abs_enabled=abs_on, duration_s=12.0)
-    for mu in BRAKE_MUS for abs_on in (True, False)
+    Scenario(
+        f"brake-mu{mu}-{'abs' if abs_on else 'no-abs'}",
+        Path.straight(500.0),
+        MuProfile.uniform(mu),
+        HARD_STOP,
+        abs_enabled=abs_on,
+        duration_s=12.0,
+    )
+    for mu in BRAKE_MUS
+    for abs_on in (True, False)
 ]
 
 
@@ -207,12 +231,24 @@ def test_braking_stops_the_car(braking_runs, mu):
 
 TOP_SPEED_MPS = kmh_to_mps(120.0)
 LIMIT = [
-    Scenario(f"limit-accel-{t.name}", Path.straight(2000.0), MuProfile.uniform(0.1),
-             SpeedProfile.accelerate_decelerate(TOP_SPEED_MPS, 20.0, 40.0), tire=t, duration_s=40.0)
+    Scenario(
+        f"limit-accel-{t.name}",
+        Path.straight(2000.0),
+        MuProfile.uniform(0.1),
+        SpeedProfile.accelerate_decelerate(TOP_SPEED_MPS, 20.0, 40.0),
+        tire=t,
+        duration_s=40.0,
+    )
     for t in TIRES
 ] + [
-    Scenario(f"limit-circle-{t.name}", Path.circle(100.0, 1500.0), MuProfile.uniform(0.8), SpeedProfile([0.0], [35.0]),
-             tire=t, duration_s=20.0)
+    Scenario(
+        f"limit-circle-{t.name}",
+        Path.circle(100.0, 1500.0),
+        MuProfile.uniform(0.8),
+        SpeedProfile([0.0], [35.0]),
+        tire=t,
+        duration_s=20.0,
+    )
     for t in TIRES
 ]
 
@@ -250,8 +286,13 @@ STEP_MUS = (0.9, 0.5, 0.2)
 SECTION_M = 100.0
 SPLIT = MuProfile([0.0, 150.0], [0.9, 0.3], [0.6, 0.3])
 MU_ROADS = [
-    Scenario("mu-sections", Path.straight(1000.0), MuProfile.sections(STEP_MUS, SECTION_M), SpeedProfile([0.0], [20.0]),
-             duration_s=16.0),
+    Scenario(
+        "mu-sections",
+        Path.straight(1000.0),
+        MuProfile.sections(STEP_MUS, SECTION_M),
+        SpeedProfile([0.0], [20.0]),
+        duration_s=16.0,
+    ),
     Scenario("mu-split", Path.straight(1000.0), SPLIT, SpeedProfile([0.0], [20.0]), duration_s=16.0),
 ]
 

@@ -25,8 +25,13 @@ def test_paper_preset_is_the_papers_design():
         assert s.speed.speeds_mps.max() == pytest.approx(kmh_to_mps(120.0))
         assert s.speed.speeds_mps[0] == 0.0 and s.speed.speeds_mps[-1] == 0.0
     values = {s.condition: s.mu.mu_left.tolist() for s in scenarios}
-    assert values == {"low": [0.2], "medium": [0.5], "high": [0.8], "increasing": [0.1, 0.3, 0.6, 0.9],
-                      "decreasing": [0.9, 0.6, 0.3, 0.1]}
+    assert values == {
+        "low": [0.2],
+        "medium": [0.5],
+        "high": [0.8],
+        "increasing": [0.1, 0.3, 0.6, 0.9],
+        "decreasing": [0.9, 0.6, 0.3, 0.1],
+    }
     seeds = [s.seed for s in scenarios]
     assert len(set(seeds)) == 20, "each experiment has its own seed"
 
@@ -105,11 +110,15 @@ def test_generalization_presets_hold_out_mu_bands_and_a_vehicle():
     def in_bands(mu, bands):
         return any(lo <= mu <= hi for lo, hi in bands)
 
-    train = generalization_scenarios("train", seed=0, runs=60) + generalization_scenarios("calibration", seed=0, runs=20)
+    train = generalization_scenarios("train", seed=0, runs=60) + generalization_scenarios(
+        "calibration", seed=0, runs=20
+    )
     test = generalization_scenarios("test", seed=0, runs=20)
     for s in train:
         assert s.mu.mode == "step"
-        assert not any(lo < m < hi for lo, hi in GENERALIZATION_TEST_MU_BANDS for m in np.r_[s.mu.mu_left, s.mu.mu_right])
+        assert not any(
+            lo < m < hi for lo, hi in GENERALIZATION_TEST_MU_BANDS for m in np.r_[s.mu.mu_left, s.mu.mu_right]
+        )
         assert not s.vehicle.name.startswith("test")
     for s in test:
         assert s.mu.mode == "step"

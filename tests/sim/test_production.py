@@ -18,12 +18,25 @@ from roadgrip.vehicle.params import MIDSIZE_SEDAN, PAPER_SUV
 
 WHEELS = ("fl", "fr", "rl", "rr")
 ALL_ON = ProductionEffects.production()
-SIGNALS = ("speed_mps", "accel_lon_mps2", "accel_lat_mps2", "yaw_rate_radps", "steering_wheel_angle_rad",
-           *(f"wheel_speed_{w}_radps" for w in WHEELS))
+SIGNALS = (
+    "speed_mps",
+    "accel_lon_mps2",
+    "accel_lat_mps2",
+    "yaw_rate_radps",
+    "steering_wheel_angle_rad",
+    *(f"wheel_speed_{w}_radps" for w in WHEELS),
+)
 # a FWD sedan: accelerates, cruises through a lane change, brakes hard without ABS (the wheels lock)
-DRIVE = Scenario("drive", Path.lane_changes(900.0, [200.0], [3.5], 40.0), MuProfile.uniform(0.8),
-                 SpeedProfile([0.0, 8.0, 14.0, 17.0, 20.0], [5.0, 25.0, 25.0, 0.0, 0.0]), vehicle=MIDSIZE_SEDAN,
-                 duration_s=20.0, abs_enabled=False, seed=7)
+DRIVE = Scenario(
+    "drive",
+    Path.lane_changes(900.0, [200.0], [3.5], 40.0),
+    MuProfile.uniform(0.8),
+    SpeedProfile([0.0, 8.0, 14.0, 17.0, 20.0], [5.0, 25.0, 25.0, 0.0, 0.0]),
+    vehicle=MIDSIZE_SEDAN,
+    duration_s=20.0,
+    abs_enabled=False,
+    seed=7,
+)
 
 
 def run(scenario, sensors=SensorModel.noiseless()):
@@ -56,10 +69,15 @@ def test_each_effect_changes_only_its_own_signals(clean, field):
     out = run(DRIVE.replace(effects=on), SensorModel())
     base = run(DRIVE, SensorModel())
     speeds = {"speed_mps", *(f"wheel_speed_{w}_radps" for w in WHEELS)}
-    own = {"speed_from_wheels": {"speed_mps"}, "wheel_radius_spread": speeds - {"speed_mps"}, "wheel_speed_resolution_kmh": speeds,
-           "time_offset_max_s": set(SIGNALS), "accel_mount_max_rad": {"accel_lon_mps2", "accel_lat_mps2"},
-           "accel_bias_max_mps2": {"accel_lon_mps2", "accel_lat_mps2"},
-           "pitch_gradient_rad_per_mps2": {"accel_lon_mps2"}}[field]
+    own = {
+        "speed_from_wheels": {"speed_mps"},
+        "wheel_radius_spread": speeds - {"speed_mps"},
+        "wheel_speed_resolution_kmh": speeds,
+        "time_offset_max_s": set(SIGNALS),
+        "accel_mount_max_rad": {"accel_lon_mps2", "accel_lat_mps2"},
+        "accel_bias_max_mps2": {"accel_lon_mps2", "accel_lat_mps2"},
+        "pitch_gradient_rad_per_mps2": {"accel_lon_mps2"},
+    }[field]
     changed = {name for name in SIGNALS if not np.array_equal(out[name], base[name])}
     assert changed == own
     assert np.array_equal(out["latitude_deg"], base["latitude_deg"]) and np.array_equal(out["mu"], base["mu"])
@@ -108,10 +126,18 @@ def test_ecu_speed_for_each_layout():
 def test_accelerometer_reads_mounting_pitch_bias_and_grade_in_closed_form():
     t = np.arange(0.0, 2.0, 0.1)
     ax = np.linspace(-3.0, 3.0, t.size)
-    truth = {"t_s": t, "ax_mps2": ax, "ay_mps2": np.full(t.size, 1.0), "roll_rad": np.full(t.size, 0.01),
-             "grade_rad": np.full(t.size, 0.05), "yaw_rate_radps": np.zeros(t.size), "steer_rad": np.zeros(t.size),
-             "vx_mps": np.full(t.size, 10.0), "brake_active": np.zeros(t.size),
-             **{f"omega_{w}_radps": np.full(t.size, 30.0) for w in WHEELS}}
+    truth = {
+        "t_s": t,
+        "ax_mps2": ax,
+        "ay_mps2": np.full(t.size, 1.0),
+        "roll_rad": np.full(t.size, 0.01),
+        "grade_rad": np.full(t.size, 0.05),
+        "yaw_rate_radps": np.zeros(t.size),
+        "steer_rad": np.zeros(t.size),
+        "vx_mps": np.full(t.size, 10.0),
+        "brake_active": np.zeros(t.size),
+        **{f"omega_{w}_radps": np.full(t.size, 30.0) for w in WHEELS},
+    }
     draw = ProductionDraw(np.zeros(4), np.zeros(3), math.radians(1.0), math.radians(-0.5), np.array([0.1, -0.2]))
     effects = ProductionEffects(accel_mount_max_rad=0.1, accel_bias_max_mps2=0.2, pitch_gradient_rad_per_mps2=0.003)
     seen = sensed_truth(truth, effects, draw)
@@ -122,10 +148,18 @@ def test_accelerometer_reads_mounting_pitch_bias_and_grade_in_closed_form():
 
 def test_accelerometer_offset_against_dspeed_dt_has_the_configured_size():
     """Cruising on a level road: accel_lon - d(speed)/dt is the run's g sin(mounting) + bias, within the ranges."""
-    effects = ProductionEffects(accel_mount_max_rad=ALL_ON.accel_mount_max_rad, accel_bias_max_mps2=0.2,
-                                speed_from_wheels=True)
-    cruise = Scenario("cruise", Path.straight(600.0), MuProfile.uniform(0.8), SpeedProfile([0.0], [20.0]),
-                      vehicle=MIDSIZE_SEDAN, duration_s=4.0, effects=effects)
+    effects = ProductionEffects(
+        accel_mount_max_rad=ALL_ON.accel_mount_max_rad, accel_bias_max_mps2=0.2, speed_from_wheels=True
+    )
+    cruise = Scenario(
+        "cruise",
+        Path.straight(600.0),
+        MuProfile.uniform(0.8),
+        SpeedProfile([0.0], [20.0]),
+        vehicle=MIDSIZE_SEDAN,
+        duration_s=4.0,
+        effects=effects,
+    )
     table = simulate([cruise.replace(run_id=f"c{k}", seed=k) for k in range(24)], SensorModel.noiseless())
     offsets = []
     for k in range(24):
@@ -140,8 +174,16 @@ def test_accelerometer_offset_against_dspeed_dt_has_the_configured_size():
 
 def test_rolling_radius_spread_shows_as_per_wheel_ratios_at_free_rolling():
     effects = ProductionEffects(wheel_radius_spread=0.02)
-    cruise = Scenario("cruise", Path.straight(600.0), MuProfile.uniform(0.8), SpeedProfile([0.0], [20.0]),
-                      vehicle=PAPER_SUV, duration_s=4.0, effects=effects, seed=3)
+    cruise = Scenario(
+        "cruise",
+        Path.straight(600.0),
+        MuProfile.uniform(0.8),
+        SpeedProfile([0.0], [20.0]),
+        vehicle=PAPER_SUV,
+        duration_s=4.0,
+        effects=effects,
+        seed=3,
+    )
     p = run(cruise)
     nominal = p["vx_true_mps"][10:] / PAPER_SUV.wheel_radius_m
     ratios = np.array([(p[f"wheel_speed_{w}_radps"][10:] / nominal) for w in WHEELS])
@@ -164,8 +206,18 @@ def test_wheel_speeds_and_speed_are_quantised_to_the_can_resolution(production):
 def test_time_offsets_shift_a_step_signal():
     t = np.arange(0.0, 3.0, 0.1)
     step = (t >= 1.0).astype(float)
-    truth = {"t_s": t, "ax_mps2": step, "ay_mps2": step, "roll_rad": 0 * t, "grade_rad": 0 * t, "yaw_rate_radps": step,
-             "steer_rad": step, "vx_mps": step, "brake_active": 0 * t, **{f"omega_{w}_radps": step for w in WHEELS}}
+    truth = {
+        "t_s": t,
+        "ax_mps2": step,
+        "ay_mps2": step,
+        "roll_rad": 0 * t,
+        "grade_rad": 0 * t,
+        "yaw_rate_radps": step,
+        "steer_rad": step,
+        "vx_mps": step,
+        "brake_active": 0 * t,
+        **{f"omega_{w}_radps": step for w in WHEELS},
+    }
     draw = ProductionDraw(np.zeros(4), np.array([0.05, -0.05, 0.1]), 0.0, 0.0, np.zeros(2))
     seen = sensed_truth(truth, ProductionEffects(time_offset_max_s=0.1), draw)
     k = int(np.flatnonzero(t >= 1.0)[0])

@@ -45,19 +45,22 @@ def test_the_example_file_loads():
     assert [s.run_id for s in scenarios] == ["wet-patch-braking-suv", "split-mu-braking-sedan"]
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"colour": "red"}, r"run 'r1': unknown key\(s\) \['colour'\]"),
-    ({"road": {"kind": "circle", "radius_m": -5.0, "arc_length_m": 100.0}}, "radius_m must be > 0, got -5.0"),
-    ({"road": {"kind": "spiral"}}, "road.kind must be one of .* got 'spiral'"),
-    ({"mu": 1.7}, r"mu_left must lie in \[0, 1.5\], got 1.7"),
-    ({"mu": {"stations_m": [0], "mu_left": [0.5], "slope": 1}}, r"unknown key\(s\) \['slope'\]"),
-    ({"vehicle": {"mass_kg": -10.0}}, "mass_kg must be in .* got -10.0"),
-    ({"vehicle": {"mass": 1500.0}}, r"unknown VehicleParams key\(s\) \['mass'\]"),
-    ({"speed": {"times_s": [0, 10]}}, r"missing key\(s\) \['speeds_mps'\]"),
-    ({"grade": 0.5}, r"grade_rad must lie in \[-0.3, 0.3\], got 0.5"),
-    ({"effects": "some"}, "effects must be 'off', 'production' or a mapping"),
-    ({"effects": {"radius_spread": 0.01}}, r"unknown ProductionEffects key\(s\) \['radius_spread'\]"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"colour": "red"}, r"run 'r1': unknown key\(s\) \['colour'\]"),
+        ({"road": {"kind": "circle", "radius_m": -5.0, "arc_length_m": 100.0}}, "radius_m must be > 0, got -5.0"),
+        ({"road": {"kind": "spiral"}}, "road.kind must be one of .* got 'spiral'"),
+        ({"mu": 1.7}, r"mu_left must lie in \[0, 1.5\], got 1.7"),
+        ({"mu": {"stations_m": [0], "mu_left": [0.5], "slope": 1}}, r"unknown key\(s\) \['slope'\]"),
+        ({"vehicle": {"mass_kg": -10.0}}, "mass_kg must be in .* got -10.0"),
+        ({"vehicle": {"mass": 1500.0}}, r"unknown VehicleParams key\(s\) \['mass'\]"),
+        ({"speed": {"times_s": [0, 10]}}, r"missing key\(s\) \['speeds_mps'\]"),
+        ({"grade": 0.5}, r"grade_rad must lie in \[-0.3, 0.3\], got 0.5"),
+        ({"effects": "some"}, "effects must be 'off', 'production' or a mapping"),
+        ({"effects": {"radius_spread": 0.01}}, r"unknown ProductionEffects key\(s\) \['radius_spread'\]"),
+    ],
+)
 def test_bad_runs_name_the_key_and_value(change, message):
     with pytest.raises((ValueError, TypeError), match=message):
         scenario_from_dict(RUN | change)

@@ -187,8 +187,10 @@ def test_slip_ratio_stays_in_minus_one_one_and_finite_near_standstill():
 def test_slip_ratio_per_spin_is_its_derivative(wheel_speed_mps, hub_speed_mps):
     radius = 0.383
     h = 1e-6  # rad/s
-    numeric = (slip_ratio(wheel_speed_mps + radius * h, hub_speed_mps) - slip_ratio(wheel_speed_mps - radius * h,
-                                                                                    hub_speed_mps)) / (2 * h)
+    numeric = (
+        slip_ratio(wheel_speed_mps + radius * h, hub_speed_mps)
+        - slip_ratio(wheel_speed_mps - radius * h, hub_speed_mps)
+    ) / (2 * h)
     assert slip_ratio_per_spin(wheel_speed_mps, hub_speed_mps, radius) == pytest.approx(numeric, rel=1e-6)
 
 
@@ -201,9 +203,25 @@ def _derivatives_at(vehicle, x, delta=0.0, drive_torque=None, mu=0.9, ax_prev=0.
     out = {k: np.zeros(4) for k in ("fz", "sigma", "alpha", "fx", "fy", "wheel_k", "wheel_k_secant", "hub_speed")}
     dx = np.zeros(N_STATE)
     torque = np.zeros(4) if drive_torque is None else np.asarray(drive_torque, dtype=float)
-    ax, ay = derivatives(x, delta, torque, np.full(4, mu), pack_vehicle(vehicle), tp, ax_prev, ay_prev, dx,
-                         out["fz"], out["sigma"], out["alpha"], out["fx"], out["fy"], out["wheel_k"],
-                         out["wheel_k_secant"], out["hub_speed"])
+    ax, ay = derivatives(
+        x,
+        delta,
+        torque,
+        np.full(4, mu),
+        pack_vehicle(vehicle),
+        tp,
+        ax_prev,
+        ay_prev,
+        dx,
+        out["fz"],
+        out["sigma"],
+        out["alpha"],
+        out["fx"],
+        out["fy"],
+        out["wheel_k"],
+        out["wheel_k_secant"],
+        out["hub_speed"],
+    )
     return dx, ax, ay, out
 
 
@@ -222,13 +240,13 @@ def test_free_rolling_straight_only_feels_the_air(heading_rad):
     v, speed = PAPER_SUV, 25.0
     x = np.zeros(N_STATE)
     x[PSI], x[VX] = heading_rad, speed
-    x[W0:W0 + 4] = speed / v.wheel_radius_m
+    x[W0 : W0 + 4] = speed / v.wheel_radius_m
     dx, ax, ay, out = _derivatives_at(v, x)
     assert np.all(out["fx"] == 0.0) and np.all(out["fy"] == 0.0)
     drag = 0.5 * 1.225 * v.drag_coefficient * v.frontal_area_m2 * speed**2
     assert ax == pytest.approx(-drag / v.mass_kg, rel=1e-12)
     assert ay == 0.0 and dx[R] == 0.0 and dx[VY] == 0.0
-    assert np.all(dx[W0:W0 + 4] == 0.0)
+    assert np.all(dx[W0 : W0 + 4] == 0.0)
     assert (dx[X], dx[Y]) == pytest.approx((speed * math.cos(heading_rad), speed * math.sin(heading_rad)), rel=1e-12)
 
 
@@ -236,7 +254,7 @@ def test_positive_steer_turns_left():
     v = PAPER_SUV
     x = np.zeros(N_STATE)
     x[VX] = 20.0
-    x[W0:W0 + 4] = 20.0 / v.wheel_radius_m
+    x[W0 : W0 + 4] = 20.0 / v.wheel_radius_m
     dx, _ax, ay, out = _derivatives_at(v, x, delta=0.02)
     assert out["alpha"][0] == pytest.approx(0.02) and out["alpha"][2] == 0.0  # eq. 8 at the front, zero at the rear
     assert out["fy"][0] > 0 and out["fy"][1] > 0

@@ -33,9 +33,7 @@ def test_shipped_vehicles_are_consistent(vehicle):
     assert VEHICLES[vehicle.name] is vehicle
 
 
-@pytest.mark.parametrize(
-    ("drive", "split"), [("fwd", (1.0, 0.0)), ("rwd", (0.0, 1.0)), ("awd", (0.4, 0.6))]
-)
+@pytest.mark.parametrize(("drive", "split"), [("fwd", (1.0, 0.0)), ("rwd", (0.0, 1.0)), ("awd", (0.4, 0.6))])
 def test_drive_split_follows_the_layout(drive, split):
     assert PAPER_SUV.replace(drive=drive, front_drive_share=0.4).drive_split == pytest.approx(split)
 

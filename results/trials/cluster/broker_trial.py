@@ -74,27 +74,36 @@ class NatsCluster:
 
     def config(self, i: int) -> str:
         users = [{"user": SERVICE_USER, "password": self.secret}] + [
-            {"user": v, "password": self.secret,
-             "permissions": {"publish": {"allow": [f"{NATS_PARTITION_PREFIX}.*.roadgrip.v1.vehicles.{v}.telemetry"]},
-                             "subscribe": {"deny": [">"]}}}
-            for v in self.vehicles]
-        mapping = {"roadgrip.v1.vehicles.*.telemetry":
-                   f"{NATS_PARTITION_PREFIX}.{{{{partition({self.partitions},1)}}}}.roadgrip.v1.vehicles."
-                   "{{wildcard(1)}}.telemetry"}
+            {
+                "user": v,
+                "password": self.secret,
+                "permissions": {
+                    "publish": {"allow": [f"{NATS_PARTITION_PREFIX}.*.roadgrip.v1.vehicles.{v}.telemetry"]},
+                    "subscribe": {"deny": [">"]},
+                },
+            }
+            for v in self.vehicles
+        ]
+        mapping = {
+            "roadgrip.v1.vehicles.*.telemetry": f"{NATS_PARTITION_PREFIX}.{{{{partition({self.partitions},1)}}}}.roadgrip.v1.vehicles."
+            "{{wildcard(1)}}.telemetry"
+        }
         routes = ", ".join(f"nats-route://{HOST}:{p}" for p in self.route_ports)
-        return "\n".join([
-            f"server_name: {self.node_name(i)}",
-            f"listen: {HOST}:{self.client_ports[i]}",
-            f"http: {HOST}:{self.http_ports[i]}",
-            f'jetstream {{ store_dir: "{self.root / f"js{i}"}" }}',
-            f"cluster {{ name: rg, listen: {HOST}:{self.route_ports[i]}, routes: [{routes}] }}",
-            f"mqtt {{ listen: {HOST}:{self.mqtt_ports[i]} }}",
-            "accounts {",
-            f"  RG: {{ jetstream: enabled, users: {json.dumps(users)}, mappings: {json.dumps(mapping)} }}",
-            f'  SYS: {{ users: [{{user: sys, password: "{self.secret}"}}] }}',
-            "}",
-            "system_account: SYS",
-        ])
+        return "\n".join(
+            [
+                f"server_name: {self.node_name(i)}",
+                f"listen: {HOST}:{self.client_ports[i]}",
+                f"http: {HOST}:{self.http_ports[i]}",
+                f'jetstream {{ store_dir: "{self.root / f"js{i}"}" }}',
+                f"cluster {{ name: rg, listen: {HOST}:{self.route_ports[i]}, routes: [{routes}] }}",
+                f"mqtt {{ listen: {HOST}:{self.mqtt_ports[i]} }}",
+                "accounts {",
+                f"  RG: {{ jetstream: enabled, users: {json.dumps(users)}, mappings: {json.dumps(mapping)} }}",
+                f'  SYS: {{ users: [{{user: sys, password: "{self.secret}"}}] }}',
+                "}",
+                "system_account: SYS",
+            ]
+        )
 
     def start_node(self, i: int) -> None:
         conf = self.root / f"n{i}.conf"
@@ -115,8 +124,15 @@ class NatsCluster:
 
     async def _connect(self):
         import nats
-        return await nats.connect(servers=self.servers, user=SERVICE_USER, password=self.secret,
-                                  max_reconnect_attempts=-1, reconnect_time_wait=0.2, connect_timeout=2)
+
+        return await nats.connect(
+            servers=self.servers,
+            user=SERVICE_USER,
+            password=self.secret,
+            max_reconnect_attempts=-1,
+            reconnect_time_wait=0.2,
+            connect_timeout=2,
+        )
 
     def setup(self) -> None:
         """Creates one durable pull consumer per partition on the server's own `$MQTT_msgs` stream (which the first
@@ -133,6 +149,7 @@ class NatsCluster:
 
     async def _setup(self) -> None:
         from nats.js.api import AckPolicy, ConsumerConfig, StreamConfig
+
         nc = await self._connect()
         js = nc.jetstream()
         deadline = time.monotonic() + 30
@@ -145,21 +162,31 @@ class NatsCluster:
                     raise
                 await asyncio.sleep(0.2)
         if self.stream == NATS_OWN_STREAM:
-            await js.add_stream(StreamConfig(name=NATS_OWN_STREAM, subjects=[f"{NATS_PARTITION_PREFIX}.>"],
-                                             num_replicas=3))
+            await js.add_stream(
+                StreamConfig(name=NATS_OWN_STREAM, subjects=[f"{NATS_PARTITION_PREFIX}.>"], num_replicas=3)
+            )
         for p in range(self.partitions):
-            await js.add_consumer(self.stream, ConsumerConfig(
-                durable_name=f"p{p}", filter_subject=f"{self.filter_prefix}{NATS_PARTITION_PREFIX}.{p}.>",
-                ack_policy=AckPolicy.EXPLICIT, ack_wait=5.0, max_ack_pending=10000))
+            await js.add_consumer(
+                self.stream,
+                ConsumerConfig(
+                    durable_name=f"p{p}",
+                    filter_subject=f"{self.filter_prefix}{NATS_PARTITION_PREFIX}.{p}.>",
+                    ack_policy=AckPolicy.EXPLICIT,
+                    ack_wait=5.0,
+                    max_ack_pending=10000,
+                ),
+            )
         await nc.close()
 
     def leader_of_partition(self, partition: int) -> int:
         """The node leading the stream (every partition lives in that one stream, so one leader for all)."""
+
         async def leader() -> str:
             nc = await self._connect()
             info = await nc.jetstream().stream_info(self.stream)
             await nc.close()
             return info.cluster.leader
+
         name = asyncio.run(leader())
         return [self.node_name(i) for i in range(3)].index(name)
 
@@ -168,8 +195,14 @@ class NatsCluster:
             nc = await self._connect()
             si = await nc.jetstream().stream_info(self.stream)
             await nc.close()
-            return {"stream": self.stream, "replicas": si.config.num_replicas, "retention": si.config.retention,
-                    "leader": si.cluster.leader, "followers": [r.name for r in si.cluster.replicas]}
+            return {
+                "stream": self.stream,
+                "replicas": si.config.num_replicas,
+                "retention": si.config.retention,
+                "leader": si.cluster.leader,
+                "followers": [r.name for r in si.cluster.replicas],
+            }
+
         return asyncio.run(info())
 
     def kill(self, i: int) -> None:
@@ -190,8 +223,12 @@ class NatsCluster:
 
 
 def mqtt_client(client_id: str, user: str, secret: str, protocol=paho.MQTTv311) -> paho.Client:
-    client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id, protocol=protocol,
-                         **({"clean_session": True} if protocol != paho.MQTTv5 else {}))
+    client = paho.Client(
+        CallbackAPIVersion.VERSION2,
+        client_id=client_id,
+        protocol=protocol,
+        **({"clean_session": True} if protocol != paho.MQTTv5 else {}),
+    )
     client.username_pw_set(user, secret)
     return client
 
@@ -230,14 +267,29 @@ def probe_foreign_publish(port: int, user: str, other: str, secret: str) -> dict
 
 
 def payload(vehicle: str, seq: int) -> str:
-    samples = [{"timestamp": round(seq + k / 10, 1), "speed": 22.5, "ax": 0.12, "ay": -0.03, "yaw_rate": 0.01,
-                "steering_angle": 0.02, "wheel_speed_fl": 22.4, "wheel_speed_fr": 22.5, "wheel_speed_rl": 22.5,
-                "wheel_speed_rr": 22.6, "lat": 48.1, "lon": 11.5} for k in range(10)]
+    samples = [
+        {
+            "timestamp": round(seq + k / 10, 1),
+            "speed": 22.5,
+            "ax": 0.12,
+            "ay": -0.03,
+            "yaw_rate": 0.01,
+            "steering_angle": 0.02,
+            "wheel_speed_fl": 22.4,
+            "wheel_speed_fr": 22.5,
+            "wheel_speed_rl": 22.5,
+            "wheel_speed_rr": 22.6,
+            "lat": 48.1,
+            "lon": 11.5,
+        }
+        for k in range(10)
+    ]
     return json.dumps({"vehicle_id": vehicle, "seq": seq, "samples": samples})
 
 
-def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: float, rate: float, out: str,
-                 publishing: mp.Event) -> None:
+def run_vehicles(
+    ports: list[int], vehicles: list[str], secret: str, seconds: float, rate: float, out: str, publishing: mp.Event
+) -> None:
     """One paho client per vehicle, spread over the nodes' MQTT ports; on a lost connection a vehicle reconnects
     to the next node. A PUBACK is matched to its message by packet id (fewer than 65,536 messages per vehicle). Publishes for `seconds` (`rate` messages/s in all, 0 = as fast as the PUBACKs come, at most
     MAX_INFLIGHT unacknowledged per vehicle), then waits up to 30 s for the last PUBACKs."""
@@ -291,13 +343,17 @@ def run_vehicles(ports: list[int], vehicles: list[str], secret: str, seconds: fl
         clients[v].disconnect()
         clients[v].loop_stop()
         acked_mids = {mid for mid, _ in acks[v]}
-        result["vehicles"][v] = {"sent": sent[v], "acked": [seq for seq, mid in infos[v] if mid in acked_mids],
-                                 "ack_times": [t for _, t in acks[v]]}
+        result["vehicles"][v] = {
+            "sent": sent[v],
+            "acked": [seq for seq, mid in infos[v] if mid in acked_mids],
+            "ack_times": [t for _, t in acks[v]],
+        }
     Path(out).write_text(json.dumps(result))
 
 
 async def nats_consume(cluster: NatsCluster, partition: int, store: Path, stop: threading.Event) -> None:
     import nats.errors
+
     nc = await cluster._connect()
     js = nc.jetstream()
     sub = None
@@ -316,8 +372,10 @@ async def nats_consume(cluster: NatsCluster, partition: int, store: Path, stop: 
             now = time.time()
             for m in msgs:
                 body = json.loads(m.data)
-                f.write(f"{now:.4f} {body['vehicle_id']} {body['seq']} 0 {m.metadata.sequence.stream} "
-                        f"{m.metadata.num_delivered}\n")
+                f.write(
+                    f"{now:.4f} {body['vehicle_id']} {body['seq']} 0 {m.metadata.sequence.stream} "
+                    f"{m.metadata.num_delivered}\n"
+                )
             f.flush()
             os.fsync(f.fileno())
             for m in msgs:
@@ -331,20 +389,30 @@ async def nats_consume(cluster: NatsCluster, partition: int, store: Path, stop: 
 def nats_consumers(cluster: NatsCluster, stores: list[Path], stop: threading.Event) -> None:
     async def main():
         await asyncio.gather(*(nats_consume(cluster, p, s, stop) for p, s in enumerate(stores)))
+
     asyncio.run(main())
 
 
 def rabbit_consume(cluster: RabbitCluster, partition: int, instance: int, store: Path, stop: threading.Event) -> None:
     """One consumer of partition `partition`'s queue (single-active-consumer: of several, one gets messages)."""
     import pika
+
     node = instance % 3
     credentials = pika.PlainCredentials(SERVICE_USER, cluster.secret)
     with open(store, "a") as f:
         while not stop.is_set():
             try:
-                conn = pika.BlockingConnection(pika.ConnectionParameters(
-                    HOST, cluster.amqp_ports[node], credentials=credentials, heartbeat=5, blocked_connection_timeout=5,
-                    connection_attempts=1, socket_timeout=2))
+                conn = pika.BlockingConnection(
+                    pika.ConnectionParameters(
+                        HOST,
+                        cluster.amqp_ports[node],
+                        credentials=credentials,
+                        heartbeat=5,
+                        blocked_connection_timeout=5,
+                        connection_attempts=1,
+                        socket_timeout=2,
+                    )
+                )
                 ch = conn.channel()
                 ch.basic_qos(prefetch_count=500)
                 batch = []
@@ -367,8 +435,11 @@ def rabbit_consume(cluster: RabbitCluster, partition: int, instance: int, store:
 
 
 def rabbit_consumers(cluster: RabbitCluster, stores: list[Path], stop: threading.Event) -> None:
-    threads = [threading.Thread(target=rabbit_consume, args=(cluster, p, inst, s, stop))
-               for p, s in enumerate(stores) for inst in (0, 1)]
+    threads = [
+        threading.Thread(target=rabbit_consume, args=(cluster, p, inst, s, stop))
+        for p, s in enumerate(stores)
+        for inst in (0, 1)
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -408,11 +479,19 @@ def analyse(vehicles_result: dict, stored: list[list[tuple]], kill_time: float |
             max_seq[v] = max(seq, max_seq.get(v, -1))
     lost = acked - seen
     all_times = sorted(t for rows in stored for t, *_ in rows)
-    result = {"sent": sent, "acked": len(acked), "stored_unique": len(seen), "duplicates": dups,
-              "lost_acked": len(lost), "lost_examples": sorted(lost)[:10], "out_of_order": disorder,
-              "foreign_stored": foreign, "partition_mismatch": partition_mismatch,
-              "vehicles_served_by_two_consumers": sum(len(i) > 1 for i in instances.values()),
-              "ack_rate_per_s": len(acked) / vehicles_result["publish_s"]}
+    result = {
+        "sent": sent,
+        "acked": len(acked),
+        "stored_unique": len(seen),
+        "duplicates": dups,
+        "lost_acked": len(lost),
+        "lost_examples": sorted(lost)[:10],
+        "out_of_order": disorder,
+        "foreign_stored": foreign,
+        "partition_mismatch": partition_mismatch,
+        "vehicles_served_by_two_consumers": sum(len(i) > 1 for i in instances.values()),
+        "ack_rate_per_s": len(acked) / vehicles_result["publish_s"],
+    }
     if all_times:
         result["store_span_s"] = all_times[-1] - all_times[0]
     if kill_time is not None:
@@ -444,8 +523,16 @@ def trial(args) -> dict:
         cluster = NatsCluster(root, vehicles, args.partitions, secret, own_stream=args.nats_stream == "own")
     else:
         cluster = RabbitCluster(root, vehicles, args.partitions, secret)
-    report = {"broker": args.broker, "nats_stream": args.nats_stream, "vehicles": args.vehicles, "partitions": args.partitions,
-              "seconds": args.seconds, "rate": args.rate, "kill": args.kill, "cpus": os.cpu_count()}
+    report = {
+        "broker": args.broker,
+        "nats_stream": args.nats_stream,
+        "vehicles": args.vehicles,
+        "partitions": args.partitions,
+        "seconds": args.seconds,
+        "rate": args.rate,
+        "kill": args.kill,
+        "cpus": os.cpu_count(),
+    }
     stop = threading.Event()
     consumer = None
     try:
@@ -454,8 +541,13 @@ def trial(args) -> dict:
         cluster.setup()
         report["cluster_start_s"] = round(time.monotonic() - t0, 1)
         report["version"] = subprocess.run(
-            ["nats-server", "--version"] if args.broker == "nats" else
-            ["dpkg-query", "-W", "-f=${Version}", "rabbitmq-server"], capture_output=True, text=True, check=False).stdout.strip()
+            ["nats-server", "--version"]
+            if args.broker == "nats"
+            else ["dpkg-query", "-W", "-f=${Version}", "rabbitmq-server"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
         report["cluster"] = cluster.describe()
         report["mqtt5_connect"] = probe_mqtt5(cluster.mqtt_ports[0], vehicles[0], secret)
         stores = [root / f"store-p{p}.log" for p in range(args.partitions)]
@@ -469,8 +561,10 @@ def trial(args) -> dict:
         ctx = mp.get_context("spawn")
         publishing = ctx.Event()
         out = root / "vehicles.json"
-        pub = ctx.Process(target=run_vehicles, args=(
-            cluster.mqtt_ports, vehicles, secret, args.seconds, args.rate, str(out), publishing))
+        pub = ctx.Process(
+            target=run_vehicles,
+            args=(cluster.mqtt_ports, vehicles, secret, args.seconds, args.rate, str(out), publishing),
+        )
         pub.start()
         publishing.wait(60)
         kill_time = None
@@ -491,7 +585,7 @@ def trial(args) -> dict:
         time.sleep(1)
         stop.set()
         consumer.join(30)
-        partitions_of = ({v: fnv1a_32(v) % args.partitions for v in vehicles} if args.broker == "nats" else {})
+        partitions_of = {v: fnv1a_32(v) % args.partitions for v in vehicles} if args.broker == "nats" else {}
         report.update(analyse(result, read_stores(stores), kill_time, partitions_of))
         if args.broker == "rabbitmq":
             counts = {}
@@ -517,10 +611,18 @@ def main() -> None:
     parser.add_argument("--partitions", type=int, default=4)
     parser.add_argument("--seconds", type=float, default=20)
     parser.add_argument("--rate", type=float, default=0, help="messages/s in all; 0: as fast as PUBACKs come")
-    parser.add_argument("--kill", choices=["none", "leader"], default="none",
-                        help="leader: kill -9 the node leading partition 0 halfway through")
-    parser.add_argument("--nats-stream", choices=["mqtt", "own"], default="mqtt",
-                        help="nats: consume the server's $MQTT_msgs stream, or a stream of ours capturing rgp.>")
+    parser.add_argument(
+        "--kill",
+        choices=["none", "leader"],
+        default="none",
+        help="leader: kill -9 the node leading partition 0 halfway through",
+    )
+    parser.add_argument(
+        "--nats-stream",
+        choices=["mqtt", "own"],
+        default="mqtt",
+        help="nats: consume the server's $MQTT_msgs stream, or a stream of ours capturing rgp.>",
+    )
     parser.add_argument("--drain-s", type=float, default=60)
     parser.add_argument("--keep", action="store_true", help="keep the servers' directory and logs")
     parser.add_argument("--out", type=Path)

@@ -36,24 +36,35 @@ def score(scenarios, group_of, estimators, skip: int) -> dict:
     for scenario in scenarios:
         run = table.filter(run_ids == scenario.run_id)
         truth = run["mu"].to_numpy()
-        true_excited = excited(run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy(),
-                               run["abs_active"].to_numpy(zero_copy_only=False), truth)
+        true_excited = excited(
+            run["ax_true_mps2"].to_numpy(),
+            run["ay_true_mps2"].to_numpy(),
+            run["abs_active"].to_numpy(zero_copy_only=False),
+            truth,
+        )
         ts = run["timestamp_ms"].to_numpy()
         for name, estimator in estimators.items():
             out = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), scenario.vehicle)
             index = np.searchsorted(ts, out["timestamp_ms"].to_numpy())
             keep = index >= skip
-            rows[name].setdefault(group_of(scenario), []).append({
-                "mu": out["mu"].to_numpy()[keep], "lower": out["mu_lower"].to_numpy()[keep],
-                "upper": out["mu_upper"].to_numpy()[keep], "excited": out["excited"].to_numpy()[keep],
-                "truth": truth[index[keep]], "true_excited": true_excited[index[keep]],
-            })
+            rows[name].setdefault(group_of(scenario), []).append(
+                {
+                    "mu": out["mu"].to_numpy()[keep],
+                    "lower": out["mu_lower"].to_numpy()[keep],
+                    "upper": out["mu_upper"].to_numpy()[keep],
+                    "excited": out["excited"].to_numpy()[keep],
+                    "truth": truth[index[keep]],
+                    "true_excited": true_excited[index[keep]],
+                }
+            )
     return rows
 
 
 def print_table(rows: dict, groups: list[str], label: str) -> None:
-    print(f"| estimator | {label} | RMSE all | MAE all | RMSE excited | MAE excited | excited (truth) | "
-          "judged excited | agreement | 90 % coverage |")
+    print(
+        f"| estimator | {label} | RMSE all | MAE all | RMSE excited | MAE excited | excited (truth) | "
+        "judged excited | agreement | 90 % coverage |"
+    )
     print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for name, by_group in rows.items():
         for group in [*groups, "all"]:
@@ -61,11 +72,16 @@ def print_table(rows: dict, groups: list[str], label: str) -> None:
             cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
             ex = cat["true_excited"]
             covered = (cat["lower"] <= cat["truth"]) & (cat["truth"] <= cat["upper"])
-            ex_cells = (f"{rmse(cat['mu'][ex], cat['truth'][ex]):.3f} | {mae(cat['mu'][ex], cat['truth'][ex]):.3f}"
-                        if ex.any() else "- | -")
-            print(f"| {name} | {group} | {rmse(cat['mu'], cat['truth']):.3f} | {mae(cat['mu'], cat['truth']):.3f} "
-                  f"| {ex_cells} | {ex.mean():.2f} | {cat['excited'].mean():.2f} | "
-                  f"{(cat['excited'] == ex).mean():.2f} | {covered.mean():.2f} |")
+            ex_cells = (
+                f"{rmse(cat['mu'][ex], cat['truth'][ex]):.3f} | {mae(cat['mu'][ex], cat['truth'][ex]):.3f}"
+                if ex.any()
+                else "- | -"
+            )
+            print(
+                f"| {name} | {group} | {rmse(cat['mu'], cat['truth']):.3f} | {mae(cat['mu'], cat['truth']):.3f} "
+                f"| {ex_cells} | {ex.mean():.2f} | {cat['excited'].mean():.2f} | "
+                f"{(cat['excited'] == ex).mean():.2f} | {covered.mean():.2f} |"
+            )
     print()
 
 
@@ -77,12 +93,17 @@ def main():
     args = parser.parse_args()
     torch.set_num_threads(1)  # sample-by-sample windows: threads only contend
     learned = load_estimator("default")
-    estimators = {"ekf": physics_estimator("ekf"), "ukf": physics_estimator("ukf"), "learned": learned,
-                  "fusion (ekf + learned)": FusionEstimator(physics_estimator("ekf"), learned)}
+    estimators = {
+        "ekf": physics_estimator("ekf"),
+        "ukf": physics_estimator("ukf"),
+        "learned": learned,
+        "fusion (ekf + learned)": FusionEstimator(physics_estimator("ekf"), learned),
+    }
     paper = [s for s in paper_scenarios(args.seed) if s.experiment == 2]
     print(f"paper preset, seed {args.seed}, experiment 2 (verification), vehicle {paper[0].vehicle.name}\n")
-    print_table(score(paper, lambda s: s.condition, estimators, learned.window - 1), list(PAPER_CONDITIONS),
-                "condition")
+    print_table(
+        score(paper, lambda s: s.condition, estimators, learned.window - 1), list(PAPER_CONDITIONS), "condition"
+    )
     if args.random:
         runs = random_scenarios(args.random, seed=args.random_seed)
         manoeuvres = list(dict.fromkeys(sorted(s.manoeuvre for s in runs)))

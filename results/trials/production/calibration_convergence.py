@@ -23,6 +23,8 @@ for k, sample in enumerate(samples):
     km += sample["speed_mps"] * 0.1 / 1000
     if (k + 1) % 600 == 0:
         cal = estimator.calibration(state)
-        print(f"| {(k + 1) / 600:.0f} min | {km:.1f} | {cal['accel_bias_mps2'] + 0.6:+.3f} | "
-              f"{cal['radius_ratio_left_right_front'] - 0.02:+.4f} | {cal['slip_offset_front_rear'] - 0.01:+.4f} | "
-              f"{1 / cal['slip_slope'] / c - 1:+.1%} |")
+        print(
+            f"| {(k + 1) / 600:.0f} min | {km:.1f} | {cal['accel_bias_mps2'] + 0.6:+.3f} | "
+            f"{cal['radius_ratio_left_right_front'] - 0.02:+.4f} | {cal['slip_offset_front_rear'] - 0.01:+.4f} | "
+            f"{1 / cal['slip_slope'] / c - 1:+.1%} |"
+        )

@@ -1,8 +1,8 @@
 """Every estimator by true utilization bin on simulated runs with the production-terminal effects on.
 
-    python results/trials/production/estimator_bins.py                       # the generalization benchmark's held-out test runs, seed 0
-    python results/trials/production/estimator_bins.py --random 40 --seed 11  # 40 runs of the random preset (vehicles around the sedan
-                                                            # and the SUV, stiffer tires), seed 11
+python results/trials/production/estimator_bins.py                       # the generalization benchmark's held-out test runs, seed 0
+python results/trials/production/estimator_bins.py --random 40 --seed 11  # 40 runs of the random preset (vehicles around the sedan
+                                                        # and the SUV, stiffer tires), seed 11
 """
 
 from __future__ import annotations
@@ -34,8 +34,11 @@ def main() -> None:
         scenarios = random_scenarios(args.random, args.seed)
         table = simulate(scenarios)
         vehicles = {s.run_id: s.vehicle for s in scenarios}
-        rows = [{"estimator": name} | row for name in names
-                for row in estimator_bins(estimates_on_runs(load_estimator(name), table, vehicles))]
+        rows = [
+            {"estimator": name} | row
+            for name in names
+            for row in estimator_bins(estimates_on_runs(load_estimator(name), table, vehicles))
+        ]
     else:
         rows = run_bins_benchmark(args.seed, names)
     print(bins_markdown(rows))

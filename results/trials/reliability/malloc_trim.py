@@ -18,6 +18,7 @@ def main():
 
     def samples(n: int) -> list[dict]:
         return [orjson.loads(_message("car", 100 * i, run[i % len(run)])) for i in range(n)]
+
     held = samples(20_000)
     print(f"20,000 samples held: RSS {rss_mb():.0f} MB")
     for _ in range(3):
@@ -28,8 +29,10 @@ def main():
         started = time.perf_counter()
         release_free_memory()
         took_ms = 1e3 * (time.perf_counter() - started)
-        print(f"100,000 more: {peak:.0f} MB; freed: {freed:.0f} MB; after malloc_trim: {rss_mb():.0f} MB "
-              f"({took_ms:.1f} ms)")
+        print(
+            f"100,000 more: {peak:.0f} MB; freed: {freed:.0f} MB; after malloc_trim: {rss_mb():.0f} MB "
+            f"({took_ms:.1f} ms)"
+        )
     assert len(held) == 20_000
 
 

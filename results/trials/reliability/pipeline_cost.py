@@ -40,12 +40,15 @@ def main():
 
         def ack():
             acked[0] += 1
+
         wall, cpu = time.perf_counter(), time.process_time()
         for second in range(args.seconds):
             for i, vehicle in enumerate(ids):
                 run = bodies[i % len(bodies)]
-                lines = [_message(vehicle, base_ms + (10 * second + j) * 100, run[(10 * second + j) % len(run)])
-                         for j in range(10)]
+                lines = [
+                    _message(vehicle, base_ms + (10 * second + j) * 100, run[(10 * second + j) % len(run)])
+                    for j in range(10)
+                ]
                 service.ingest.mqtt_message(vehicle, ("[" + ",".join(lines) + "]").encode(), ack)
                 sent += 1
             while acked[0] < sent - 2 * args.vehicles:  # at most two seconds of telemetry in flight
@@ -53,9 +56,12 @@ def main():
             if (second + 1) % REPORT_EVERY_S == 0:
                 samples = REPORT_EVERY_S * args.vehicles * 10
                 now_wall, now_cpu = time.perf_counter(), time.process_time()
-                print(f"{second + 1:5d} s of telemetry: {samples / (now_wall - wall):7,.0f} samples/s, "
-                      f"{1e6 * (now_cpu - cpu) / samples:5.1f} us CPU a sample, RSS {rss_mb():,.0f} MB, "
-                      f"{service.ingest.pipeline.counters.estimates:,} estimates", flush=True)
+                print(
+                    f"{second + 1:5d} s of telemetry: {samples / (now_wall - wall):7,.0f} samples/s, "
+                    f"{1e6 * (now_cpu - cpu) / samples:5.1f} us CPU a sample, RSS {rss_mb():,.0f} MB, "
+                    f"{service.ingest.pipeline.counters.estimates:,} estimates",
+                    flush=True,
+                )
                 wall, cpu = now_wall, now_cpu
         service.stop()
 

@@ -39,7 +39,7 @@ def rows_per_s(samples: list[dict], returning: bool, busy: bool) -> float:
         for k in range(0, len(samples), 2 * STATEMENT_ROWS):
             with storage._engine.begin() as conn:
                 for first in (k, k + STATEMENT_ROWS):
-                    values = tuple(row[c] for row in samples[first:first + STATEMENT_ROWS] for c in columns)
+                    values = tuple(row[c] for row in samples[first : first + STATEMENT_ROWS] for c in columns)
                     result = conn.exec_driver_sql(sql, values)
                     if returning:
                         result.all()
@@ -56,12 +56,23 @@ def main():
     parser.add_argument("--rows", type=int, default=50_000, help="a multiple of 1,000")
     args = parser.parse_args()
     bodies = sample_bodies(2)
-    samples = [json.loads(_message(f"gil-{k % 1000:04d}", 1_700_000_000_000 + (k // 1000) * 100,
-                                   bodies[k % 2][(k // 1000) % len(bodies[k % 2])])) for k in range(args.rows)]
+    samples = [
+        json.loads(
+            _message(
+                f"gil-{k % 1000:04d}",
+                1_700_000_000_000 + (k // 1000) * 100,
+                bodies[k % 2][(k // 1000) % len(bodies[k % 2])],
+            )
+        )
+        for k in range(args.rows)
+    ]
     for busy in (False, True):
         for returning in (True, False):
-            print(f"other thread {'busy' if busy else 'idle'}, {'RETURNING' if returning else 'rowcount '}: "
-                  f"{rows_per_s(samples, returning, busy):9,.0f} rows/s", flush=True)
+            print(
+                f"other thread {'busy' if busy else 'idle'}, {'RETURNING' if returning else 'rowcount '}: "
+                f"{rows_per_s(samples, returning, busy):9,.0f} rows/s",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -20,8 +20,16 @@ from roadgrip.cloud.storage.database import open_storage
 
 VEHICLES = 1000
 SAMPLE_MS = 100
-ESTIMATE = {"mu": 0.5, "mu_lower": 0.1, "mu_upper": 0.9, "excited": False, "estimator": "ekf",
-            "latitude_deg": 38.0, "longitude_deg": 114.5, "h3_cell": "8a319c910307fff"}
+ESTIMATE = {
+    "mu": 0.5,
+    "mu_lower": 0.1,
+    "mu_upper": 0.9,
+    "excited": False,
+    "estimator": "ekf",
+    "latitude_deg": 38.0,
+    "longitude_deg": 114.5,
+    "h3_cell": "8a319c910307fff",
+}
 
 
 def written_bytes() -> int:
@@ -39,10 +47,14 @@ def measure(rounds: int, rounds_per_commit: int, bodies) -> tuple[float, float]:
         storage = open_storage(f"sqlite:///{tmp}/volume.sqlite")
         before, started = written_bytes(), time.perf_counter()
         for first in range(0, rounds, rounds_per_commit):
-            rows = [{**s, "timestamp_ms": base_ms + (first + k) * SAMPLE_MS}
-                    for k in range(rounds_per_commit) for s in samples]
-            storage.write_batch(rows, [{"vehicle_id": r["vehicle_id"], "timestamp_ms": r["timestamp_ms"], **ESTIMATE}
-                                       for r in rows])
+            rows = [
+                {**s, "timestamp_ms": base_ms + (first + k) * SAMPLE_MS}
+                for k in range(rounds_per_commit)
+                for s in samples
+            ]
+            storage.write_batch(
+                rows, [{"vehicle_id": r["vehicle_id"], "timestamp_ms": r["timestamp_ms"], **ESTIMATE} for r in rows]
+            )
         elapsed, written = time.perf_counter() - started, written_bytes() - before
         storage.close()
     return written / rounds / 1e6, rounds * VEHICLES / elapsed

@@ -34,8 +34,9 @@ def main() -> None:
         scenario = make_scenario(seed, FleetConfig())
         table = pq.read_table(path)
         if args.without_proven:
-            table = table.set_column(table.schema.get_field_index("mu_proven"), "mu_proven",
-                                     pa.nulls(table.num_rows, pa.float64()))
+            table = table.set_column(
+                table.schema.get_field_index("mu_proven"), "mu_proven", pa.nulls(table.num_rows, pa.float64())
+            )
         start_ms = int(table["timestamp_ms"].to_numpy().min()) // 1000 * 1000
         patches = []
         for patch in scenario.network.patches:
@@ -49,8 +50,10 @@ def main() -> None:
                     on_patch += 1
                     if reason == "recovered" and ended_s < patch.dry_s:
                         early += 1
-                        print(f"seed {seed}: patch mu {patch.mu:.2f}, warned at {raised_s / 60:.1f} min, cancelled at "
-                              f"{ended_s / 60:.1f} min, the patch dried at {patch.dry_s / 60:.1f} min")
+                        print(
+                            f"seed {seed}: patch mu {patch.mu:.2f}, warned at {raised_s / 60:.1f} min, cancelled at "
+                            f"{ended_s / 60:.1f} min, the patch dried at {patch.dry_s / 60:.1f} min"
+                        )
     print(f"{on_patch} warnings raised on a patch, {early} cancelled by a dry pass while it was still there")
 
 

@@ -57,23 +57,33 @@ def replay_seed(run: Path, seed: int, config: FleetConfig, settings: dict) -> li
 
 def _snapshot(fmap: FrictionMap, scenario, start_ms: int, instant: float) -> list[dict]:
     truth = truth_by_cell(scenario.network, instant)
-    return [{"status": c.status, **score_cell(c.mu, c.mu_lower, c.mu_upper, truth[c.cell])}
-            for c in fmap.cells(start_ms + int(instant * 1000)) if c.status in (MEASURED, BOUNDED) and c.cell in truth]
+    return [
+        {"status": c.status, **score_cell(c.mu, c.mu_lower, c.mu_upper, truth[c.cell])}
+        for c in fmap.cells(start_ms + int(instant * 1000))
+        if c.status in (MEASURED, BOUNDED) and c.cell in truth
+    ]
 
 
 def table(scores: list[dict]) -> str:
     groups = collections.defaultdict(list)
     for s in scores:
         groups[(s["band"], s["status"])].append(s)
-    lines = [("| band | status | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
-              "90 % coverage (lowest mu) |"), "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [
+        (
+            "| band | status | cells scored | MAE (range) | 90 % coverage (range) | MAE (lowest mu) | "
+            "90 % coverage (lowest mu) |"
+        ),
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for band in BANDS:
         for status in (MEASURED, BOUNDED):
             g = groups.get((band, status))
             if g:
-                lines.append(f"| {band} | {status} | {len(g)} | {np.mean([s['error'] for s in g]):.3f} | "
-                             f"{np.mean([s['covered'] for s in g]):.2f} | {np.mean([s['error_low'] for s in g]):.3f} | "
-                             f"{np.mean([s['covered_low'] for s in g]):.2f} |")
+                lines.append(
+                    f"| {band} | {status} | {len(g)} | {np.mean([s['error'] for s in g]):.3f} | "
+                    f"{np.mean([s['covered'] for s in g]):.2f} | {np.mean([s['error_low'] for s in g]):.3f} | "
+                    f"{np.mean([s['covered_low'] for s in g]):.2f} |"
+                )
     return "\n".join(lines)
 
 
@@ -81,15 +91,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="the --out folder of a fleet benchmark run")
     parser.add_argument("--seeds", default=None, help="comma-separated; default: every estimates_seed*.parquet there")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="a FrictionMap argument (e.g. grip_locality=0.2); repeat for several")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a FrictionMap argument (e.g. grip_locality=0.2); repeat for several",
+    )
     args = parser.parse_args()
     settings = {}
     for item in args.set:
         name, _, value = item.partition("=")
         settings[name] = ast.literal_eval(value)
-    seeds = ([int(s) for s in args.seeds.split(",")] if args.seeds else
-             sorted(int(p.stem.removeprefix("estimates_seed")) for p in args.run.glob("estimates_seed*.parquet")))
+    seeds = (
+        [int(s) for s in args.seeds.split(",")]
+        if args.seeds
+        else sorted(int(p.stem.removeprefix("estimates_seed")) for p in args.run.glob("estimates_seed*.parquet"))
+    )
     if not seeds:
         raise SystemExit(f"no estimates_seed*.parquet in {args.run}: run roadgrip evaluate --benchmark fleet first")
     scores = [s for seed in seeds for s in replay_seed(args.run, seed, FleetConfig(), settings)]

@@ -24,13 +24,18 @@ def main(n_seeds: int = 3):
             rmses[(row["trained_on"], row["feature_set"], row["condition"], row["model"])].append(row["rmse"])
         for s in summary_rows(metrics):
             if s["source"] == "ours":
-                print(f"seed {seed}: trained on {s['trained_on']:9s} {s['feature_set']:8s} SA-CNN-LSTM beats all three "
-                      f"on {s['wins_all']} of {s['compared']}", flush=True)
+                print(
+                    f"seed {seed}: trained on {s['trained_on']:9s} {s['feature_set']:8s} SA-CNN-LSTM beats all three "
+                    f"on {s['wins_all']} of {s['compared']}",
+                    flush=True,
+                )
     print("\n| trained on | features | condition | model | RMSE mean | RMSE min | RMSE max |")
     print("| --- | --- | --- | --- | ---: | ---: | ---: |")
     for (scope, fs, condition, model), values in sorted(rmses.items()):
-        print(f"| {scope} | {fs} | {condition} | {model} | {np.mean(values):.3f} | {np.min(values):.3f} | "
-              f"{np.max(values):.3f} |")
+        print(
+            f"| {scope} | {fs} | {condition} | {model} | {np.mean(values):.3f} | {np.min(values):.3f} | "
+            f"{np.max(values):.3f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -19,9 +19,17 @@ CH = {name: k for k, name in enumerate(CHANNELS)}
 def main():
     cases = [(v, t) for v in (PAPER_SUV, MIDSIZE_SEDAN) for t in (DugoffTire(), MagicFormulaTire(), BurckhardtTire())]
     scenarios = [
-        Scenario(run_id=f"{v.name}-{t.name}-{mu}", path=Path.straight(500.0), mu=MuProfile.uniform(mu),
-                 speed=SpeedProfile([0.0, 1.0, 1.3, 10.0], [25.0, 25.0, 0.0, 0.0]), vehicle=v, tire=t, duration_s=10.0)
-        for v, t in cases for mu in MUS
+        Scenario(
+            run_id=f"{v.name}-{t.name}-{mu}",
+            path=Path.straight(500.0),
+            mu=MuProfile.uniform(mu),
+            speed=SpeedProfile([0.0, 1.0, 1.3, 10.0], [25.0, 25.0, 0.0, 0.0]),
+            vehicle=v,
+            tire=t,
+            duration_s=10.0,
+        )
+        for v, t in cases
+        for mu in MUS
     ]
     outs = iter(simulate_truth(scenarios))
     print("| vehicle, tire | " + " | ".join(f"mu {mu}" for mu in MUS) + " |")

@@ -63,15 +63,26 @@ from roadgrip.cloud.api.routes import map as map_routes
 from roadgrip.cloud.metrics import registry_with
 
 # dashboard first: its GET /v1/vehicles/latest before GET /v1/vehicles/{vehicle_id}
-ROUTERS = (dashboard.router, vehicles.router, credentials.router, stations.router, telemetry.router,
-           map_routes.router, warnings.router, health.router)
+ROUTERS = (
+    dashboard.router,
+    vehicles.router,
+    credentials.router,
+    stations.router,
+    telemetry.router,
+    map_routes.router,
+    warnings.router,
+    health.router,
+)
 
 
 def create_app(backend: ApiBackend) -> FastAPI:
-    app = FastAPI(title="roadgrip cloud", version="1",
-                  description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
-                  responses=errors.errors(401, 403, 503),  # every route authenticates and reads storage
-                  dependencies=[Depends(single_query_values)])
+    app = FastAPI(
+        title="roadgrip cloud",
+        version="1",
+        description="Tire-road friction from connected-vehicle telemetry: ingest, estimates, map, warnings.",
+        responses=errors.errors(401, 403, 503),  # every route authenticates and reads storage
+        dependencies=[Depends(single_query_values)],
+    )
     app.state.backend = backend
     app.state.metrics_registry = registry_with(backend.metrics_collector())
     errors.install(app)

@@ -54,7 +54,7 @@ def tile_source(tiles_url: str | None) -> str | None:
     parts = urlsplit(tiles_url)
     host = parts.netloc
     if host.startswith("{s}."):
-        host = "*." + host[len("{s}."):]
+        host = "*." + host[len("{s}.") :]
     if "{" in host or "}" in host:
         return f"{parts.scheme}:"
     return f"{parts.scheme}://{host}"
@@ -75,18 +75,28 @@ def content_security_policy(tiles_url: str | None) -> str:
     submission (the login form is handled by the script, so that a secret never ends up in a URL)."""
     images = " ".join(s for s in ("'self'", "data:", tile_source(tiles_url)) if s)  # data: Leaflet's blank tile
     # 'unsafe-inline' styles: Leaflet writes style attributes in markup (its popups: Leaflet issue #9168)
-    return ("default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
-            f"img-src {images}; connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+    return (
+        "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+        f"img-src {images}; connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+    )
 
 
 def page_headers(settings: Settings) -> dict[str, str]:
     """The headers of the page: its Content-Security-Policy, no MIME sniffing, revalidated on every load."""
-    return {"Content-Security-Policy": content_security_policy(settings.map_tiles_url),
-            "X-Content-Type-Options": "nosniff", "Cache-Control": "no-cache"}
+    return {
+        "Content-Security-Policy": content_security_policy(settings.map_tiles_url),
+        "X-Content-Type-Options": "nosniff",
+        "Cache-Control": "no-cache",
+    }
 
 
 def page_config(settings: Settings) -> dict:
     """GET /dashboard/config.json: what the page needs to draw, no secrets."""
-    return {"map_tiles_url": settings.map_tiles_url, "map_tiles_attribution": tile_attribution(settings.map_tiles_url),
-            "h3_resolution": settings.h3_resolution, "refresh_interval_s": REFRESH_INTERVAL_S,
-            "chart_window_s": CHART_WINDOW_S, "warning_threshold_mu": settings.warning_threshold_mu}
+    return {
+        "map_tiles_url": settings.map_tiles_url,
+        "map_tiles_attribution": tile_attribution(settings.map_tiles_url),
+        "h3_resolution": settings.h3_resolution,
+        "refresh_interval_s": REFRESH_INTERVAL_S,
+        "chart_window_s": CHART_WINDOW_S,
+        "warning_threshold_mu": settings.warning_threshold_mu,
+    }

@@ -52,8 +52,10 @@ async def get_metrics_registry(request: Request) -> CollectorRegistry:
 MetricsRegistry = Annotated[CollectorRegistry, Depends(get_metrics_registry)]
 
 
-def get_caller(auth: Annotated[HTTPBasicCredentials, Depends(basic)],
-               authenticator: Annotated[Authenticator, Depends(get_authenticator)]) -> Credential:
+def get_caller(
+    auth: Annotated[HTTPBasicCredentials, Depends(basic)],
+    authenticator: Annotated[Authenticator, Depends(get_authenticator)],
+) -> Credential:
     """The credential of the request (401 for none, an unknown one, a wrong secret or a revoked credential); a plain
     function: the authenticator may read storage, so FastAPI runs it in its thread pool."""
     if not VEHICLE_ID_RE.fullmatch(auth.username):  # no credential has such a name (PostgreSQL: a NUL was a 500)
@@ -101,6 +103,14 @@ def single_query_values(request: Request) -> None:
     declared = {param.alias for param in dependant.query_params} if dependant is not None else set()
     repeated = sorted(k for k in declared if len(request.query_params.getlist(k)) > 1)
     if repeated:
-        raise RequestValidationError([{"type": "repeated_query_parameter", "loc": ("query", k),
-                                       "msg": "a single value is expected, got several",
-                                       "input": request.query_params.getlist(k)} for k in repeated])
+        raise RequestValidationError(
+            [
+                {
+                    "type": "repeated_query_parameter",
+                    "loc": ("query", k),
+                    "msg": "a single value is expected, got several",
+                    "input": request.query_params.getlist(k),
+                }
+                for k in repeated
+            ]
+        )

@@ -49,6 +49,7 @@ class Fault(BaseModel):
 
 class ReportFault(BaseModel):
     """A refused payload of station reports: the report (array index), the field and why; nothing was stored."""
+
     index: int | None
     field: str | None
     reason: str
@@ -58,6 +59,7 @@ class ErrorAnswer(BaseModel):
     """Every error: a sentence; for a telemetry body that cannot be read, the part at fault and why; for a station
     report refused, the report, field and why; for a request that does not match this schema, FastAPI's list of
     problems."""
+
     detail: str | Fault | ReportFault | list[dict]
 
 
@@ -68,12 +70,12 @@ ERRORS = {
     404: "no such vehicle or credential",
     409: "the name is taken, or the credential cannot be revoked (the admin's)",
     413: "the body is over max_payload_bytes or max_samples_per_payload, or holds more samples than the vehicle's "
-         "whole rate-limit burst",
+    "whole rate-limit burst",
     415: "a content type other than JSON or NDJSON",
     422: "the request does not match this schema",
     503: "storage unavailable: nothing was stored, retry; in the cluster also: the broker did not confirm the "
-         "telemetry, or no broker node took a registration (nothing stored) or a revocation's user deletion (the "
-         "credential is revoked; revoke again to delete the broker user)",
+    "telemetry, or no broker node took a registration (nothing stored) or a revocation's user deletion (the "
+    "credential is revoked; revoke again to delete the broker user)",
 }
 
 

@@ -51,7 +51,9 @@ from roadgrip.vehicle.params import VehicleParams
 
 log = logging.getLogger(__name__)
 
-MAP_CACHE_S = 1.0  # a replica reads the stored map at most this often (the region owners save a cell about once a second)
+MAP_CACHE_S = (
+    1.0  # a replica reads the stored map at most this often (the region owners save a cell about once a second)
+)
 
 
 def management_login(management_urls: list[str], brokers: list[str]) -> tuple[list[str], str, str]:
@@ -69,8 +71,10 @@ def management_login(management_urls: list[str], brokers: list[str]) -> tuple[li
     if login is None:
         parts = urlsplit(brokers[0])
         if not parts.username:
-            raise ValueError("no login for the management API: give it in --management (http://user:password@...) "
-                             f"or in the first --broker, got {brokers[0]!r}")
+            raise ValueError(
+                "no login for the management API: give it in --management (http://user:password@...) "
+                f"or in the first --broker, got {brokers[0]!r}"
+            )
         login = (unquote(parts.username), unquote(parts.password or ""))
     return urls, *login
 
@@ -78,14 +82,23 @@ def management_login(management_urls: list[str], brokers: list[str]) -> tuple[li
 class ClusterBackend:
     """`roadgrip api`'s backend: `start()`, then `create_app(backend)`, then `stop()`."""
 
-    def __init__(self, settings: Settings, brokers: list[str], management: list[str],
-                 publisher_connections: int = DEFAULT_CONNECTIONS):
+    def __init__(
+        self,
+        settings: Settings,
+        brokers: list[str],
+        management: list[str],
+        publisher_connections: int = DEFAULT_CONNECTIONS,
+    ):
         if not (settings.database_url or "").startswith(("postgresql://", "postgresql+psycopg://")):
-            raise ValueError("the cluster's API replicas share one PostgreSQL database: database_url must be "
-                             f"postgresql://..., got {settings.database_url!r}")
+            raise ValueError(
+                "the cluster's API replicas share one PostgreSQL database: database_url must be "
+                f"postgresql://..., got {settings.database_url!r}"
+            )
         if settings.admin_secret is None:
-            raise ValueError("the cluster's API replicas share the admin secret: set admin_secret "
-                             "(ROADGRIP_ADMIN_SECRET or the settings file)")
+            raise ValueError(
+                "the cluster's API replicas share the admin secret: set admin_secret "
+                "(ROADGRIP_ADMIN_SECRET or the settings file)"
+            )
         if not brokers:
             raise ValueError("at least one broker URL (amqp://user:password@host:port/%2F) is needed")
         if not management:
@@ -119,8 +132,12 @@ class ClusterBackend:
             self.auth.ensure_admin(self.settings.admin_secret)
         self.users = RabbitUsers(self.management_urls, self._management_user, self._management_password)
         self.publisher.start()
-        log.info("cluster API backend started: storage %s, brokers %d, management %s", self.storage,
-                 len(self.brokers), ", ".join(self.management_urls))
+        log.info(
+            "cluster API backend started: storage %s, brokers %d, management %s",
+            self.storage,
+            len(self.brokers),
+            ", ".join(self.management_urls),
+        )
 
     def stop(self) -> None:
         self.publisher.stop()
@@ -142,20 +159,26 @@ class ClusterBackend:
         subscribers under another topic."""
         dotted = [vehicle_id for vehicle_id, _ in vehicles if "." in vehicle_id]
         if dotted:
-            raise VehicleIdRefused(f"vehicle_id {dotted[0]!r}: a '.' cannot be carried in cluster mode (RabbitMQ's "
-                                   "MQTT plugin maps topic levels to '.'-separated words); use A-Za-z0-9_-")
+            raise VehicleIdRefused(
+                f"vehicle_id {dotted[0]!r}: a '.' cannot be carried in cluster mode (RabbitMQ's "
+                "MQTT plugin maps topic levels to '.'-separated words); use A-Za-z0-9_-"
+            )
         secrets_ = [new_secret() for _ in vehicles]
         logins = [(vehicle_id, secret, "vehicle") for (vehicle_id, _), secret in zip(vehicles, secrets_)]
-        rows = [(vehicle_id, profile.to_dict(), hash_token(secret))
-                for (vehicle_id, profile), secret in zip(vehicles, secrets_)]
+        rows = [
+            (vehicle_id, profile.to_dict(), hash_token(secret))
+            for (vehicle_id, profile), secret in zip(vehicles, secrets_)
+        ]
         self._with_logins(logins, lambda put: self.storage.register_vehicles(rows, before_commit=put))
         self.registered += len(vehicles)
         return secrets_
 
     def register_reader(self, name: str) -> str:
         secret = new_secret()
-        self._with_logins([(name, secret, "reader")], lambda put: self.storage.add_credential(
-            name, "reader", hash_token(secret), before_commit=put))
+        self._with_logins(
+            [(name, secret, "reader")],
+            lambda put: self.storage.add_credential(name, "reader", hash_token(secret), before_commit=put),
+        )
         return secret
 
     def register_station(self, station_id: str) -> str:
@@ -249,15 +272,21 @@ class ClusterBackend:
         rows, evidence_of = stored_rows(reports, self.settings.h3_resolution)
         new = self.storage.put_station_reports(rows)
         fresh = [row for key in sorted(new, key=lambda k: k[1]) for row in evidence_of[key]]
-        repeated = [row for stored in self.storage.station_reports_of(evidence_of.keys() - new)
-                    for row in stored_evidence_rows(stored)]
+        repeated = [
+            row
+            for stored in self.storage.station_reports_of(evidence_of.keys() - new)
+            for row in stored_evidence_rows(stored)
+        ]
         if fresh or repeated:
             try:
-                publish_station_evidence(self.region_publisher, fresh + repeated, self.region_resolution,
-                                         PUBLISH_DEADLINE_S)
+                publish_station_evidence(
+                    self.region_publisher, fresh + repeated, self.region_resolution, PUBLISH_DEADLINE_S
+                )
             except TimeoutError as exc:
-                raise BrokerUnavailable(f"{len(new)} new report(s) of {len(reports)} stored, but their evidence was "
-                                        f"not handed to the map ({exc}); send them again") from exc
+                raise BrokerUnavailable(
+                    f"{len(new)} new report(s) of {len(reports)} stored, but their evidence was "
+                    f"not handed to the map ({exc}); send them again"
+                ) from exc
         return StationIngest(len(reports), len(new), len(reports) - len(new), len(fresh))
 
     # ------------------------------------------------------------------------------------------------- reads
@@ -284,8 +313,11 @@ class ClusterBackend:
             self.storage.ping()
         except StorageUnavailable as exc:
             status.update(status="unavailable", storage=str(exc))
-        broker = {"management": "ok", "publisher_connections": self.publisher.connections_up,
-                  "publisher_failed_messages": self.publisher.failed_messages}
+        broker = {
+            "management": "ok",
+            "publisher_connections": self.publisher.connections_up,
+            "publisher_failed_messages": self.publisher.failed_messages,
+        }
         try:
             self.users.ping()
         except BrokerUnavailable as exc:
@@ -308,25 +340,47 @@ class ApiCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         b, p = self.backend, self.backend.publisher
-        yield counter("roadgrip_samples_received", "Samples received in readable payloads (valid or not)",
-                      [(["api", "http"], b.received)], ["process", "transport"])
-        yield counter("roadgrip_samples_rejected", "Samples refused: invalid (validation) or rate_limited (this "
-                      "replica's limit)", [(["api", "http", "invalid"], b.invalid),
-                                           (["api", "http", "rate_limited"], b.rate_limited)],
-                      ["process", "transport", "reason"])
-        yield counter("roadgrip_payloads_rejected", "HTTP requests refused whole before any sample was read",
-                      [(["api", "http"], b.http_payloads_rejected)], ["process", "transport"])
-        yield counter("roadgrip_api_messages_published", "Telemetry messages the broker confirmed",
-                      [([], p.published_messages)])
-        yield counter("roadgrip_api_messages_failed", "Telemetry messages the broker did not confirm on any node "
-                      "(the request answered 503)", [([], p.failed_messages)])
-        yield counter("roadgrip_api_publish_retries", "Publishes tried again (a nack, a lost connection)",
-                      [([], p.retries)])
-        yield histogram("roadgrip_api_publish_seconds", "From a request's first publish to the broker's confirm of "
-                        "its last", PUBLISH_BUCKETS_S, [([], p.confirm_seconds.state())])
-        yield gauge("roadgrip_api_broker_connections", "Open AMQP connections of the telemetry publisher",
-                    [([], p.connections_up)])
-        yield counter("roadgrip_api_vehicles_registered", "Vehicles registered through this replica",
-                      [([], b.registered)])
-        yield counter("roadgrip_api_credentials_revoked", "Credentials revoked through this replica",
-                      [([], b.revoked)])
+        yield counter(
+            "roadgrip_samples_received",
+            "Samples received in readable payloads (valid or not)",
+            [(["api", "http"], b.received)],
+            ["process", "transport"],
+        )
+        yield counter(
+            "roadgrip_samples_rejected",
+            "Samples refused: invalid (validation) or rate_limited (this replica's limit)",
+            [(["api", "http", "invalid"], b.invalid), (["api", "http", "rate_limited"], b.rate_limited)],
+            ["process", "transport", "reason"],
+        )
+        yield counter(
+            "roadgrip_payloads_rejected",
+            "HTTP requests refused whole before any sample was read",
+            [(["api", "http"], b.http_payloads_rejected)],
+            ["process", "transport"],
+        )
+        yield counter(
+            "roadgrip_api_messages_published", "Telemetry messages the broker confirmed", [([], p.published_messages)]
+        )
+        yield counter(
+            "roadgrip_api_messages_failed",
+            "Telemetry messages the broker did not confirm on any node (the request answered 503)",
+            [([], p.failed_messages)],
+        )
+        yield counter(
+            "roadgrip_api_publish_retries", "Publishes tried again (a nack, a lost connection)", [([], p.retries)]
+        )
+        yield histogram(
+            "roadgrip_api_publish_seconds",
+            "From a request's first publish to the broker's confirm of its last",
+            PUBLISH_BUCKETS_S,
+            [([], p.confirm_seconds.state())],
+        )
+        yield gauge(
+            "roadgrip_api_broker_connections",
+            "Open AMQP connections of the telemetry publisher",
+            [([], p.connections_up)],
+        )
+        yield counter(
+            "roadgrip_api_vehicles_registered", "Vehicles registered through this replica", [([], b.registered)]
+        )
+        yield counter("roadgrip_api_credentials_revoked", "Credentials revoked through this replica", [([], b.revoked)])

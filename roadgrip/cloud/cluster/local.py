@@ -73,9 +73,14 @@ class Child:
 
     def start(self) -> None:
         with open(self.log_path, "ab") as out:
-            self.proc = subprocess.Popen([sys.executable, "-m", "roadgrip", *self.args], stdout=out,
-                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "roadgrip", *self.args],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=self.env,
+                start_new_session=True,
+            )
 
     @property
     def pid(self) -> int | None:
@@ -117,10 +122,25 @@ class LocalCluster:
     the next ones on the following ports (0: free ports). `config`: a settings file given to every worker and API
     replica (`--config`); their environment (ROADGRIP_*) is this process's. `data_dir` must be empty or absent."""
 
-    def __init__(self, data_dir: Path, *, nodes: int = 3, workers: int = 2, apis: int = 2, partitions: int = 4,
-                 api_port: int = 0, config: Path | None = None, ready_timeout_s: float = 180.0):
-        for name, value, low in (("nodes", nodes, 1), ("workers", workers, 0), ("apis", apis, 0),
-                                 ("partitions", partitions, 1), ("api_port", api_port, 0)):
+    def __init__(
+        self,
+        data_dir: Path,
+        *,
+        nodes: int = 3,
+        workers: int = 2,
+        apis: int = 2,
+        partitions: int = 4,
+        api_port: int = 0,
+        config: Path | None = None,
+        ready_timeout_s: float = 180.0,
+    ):
+        for name, value, low in (
+            ("nodes", nodes, 1),
+            ("workers", workers, 0),
+            ("apis", apis, 0),
+            ("partitions", partitions, 1),
+            ("api_port", api_port, 0),
+        ):
             if not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         if api_port and api_port + apis - 1 > 65535:
@@ -230,14 +250,18 @@ class LocalCluster:
 
     def _make_data_dir(self) -> None:
         if self.data_dir.exists() and any(self.data_dir.iterdir()):
-            raise FileExistsError(f"data directory {self.data_dir} is not empty: give a new or empty one (a local "
-                                  "cluster is started once in its directory)")
+            raise FileExistsError(
+                f"data directory {self.data_dir} is not empty: give a new or empty one (a local "
+                "cluster is started once in its directory)"
+            )
         self.data_dir.mkdir(parents=True, exist_ok=True)
         if os.geteuid() == 0:  # PostgreSQL runs as the user postgres, which must reach postgres/ through it
             self.data_dir.chmod(self.data_dir.stat().st_mode | 0o011)
         self.logs_dir.mkdir()
-        for path, secret in ((self.admin_secret_file, self.admin_secret),
-                             (self.data_dir / "broker-secret", self.broker_secret)):
+        for path, secret in (
+            (self.admin_secret_file, self.admin_secret),
+            (self.data_dir / "broker-secret", self.broker_secret),
+        ):
             path.touch(mode=0o600)
             path.write_text(secret + "\n")
 
@@ -264,25 +288,45 @@ class LocalCluster:
 
     def _start_workers(self) -> None:
         for k in range(self.workers_wanted):
-            brokers = self.amqp_urls[k % self.nodes:] + self.amqp_urls[:k % self.nodes]  # spread their connections
+            brokers = self.amqp_urls[k % self.nodes :] + self.amqp_urls[: k % self.nodes]  # spread their connections
             port = free_port()
-            args = ["worker", "--database", self.database_url, "--partitions", str(self.partitions),
-                    *[arg for url in brokers for arg in ("--broker", url)], "--metrics-port", str(port),
-                    *self._common_args()]
-            child = Child(f"worker {k}", args, self.logs_dir / f"worker-{k}.log", self._child_env(),
-                          url=f"http://{HOST}:{port}/metrics")
+            args = [
+                "worker",
+                "--database",
+                self.database_url,
+                "--partitions",
+                str(self.partitions),
+                *[arg for url in brokers for arg in ("--broker", url)],
+                "--metrics-port",
+                str(port),
+                *self._common_args(),
+            ]
+            child = Child(
+                f"worker {k}",
+                args,
+                self.logs_dir / f"worker-{k}.log",
+                self._child_env(),
+                url=f"http://{HOST}:{port}/metrics",
+            )
             self.workers.append(child)
             child.start()
-        self._wait("the workers' consumers on every partition", self.workers,
-                   lambda: self._workers_registered() and all(self._answers(c.url) for c in self.workers))
+        self._wait(
+            "the workers' consumers on every partition",
+            self.workers,
+            lambda: self._workers_registered() and all(self._answers(c.url) for c in self.workers),
+        )
 
     def _workers_registered(self) -> bool:
         """Every partition queue counts a consumer of each worker, the active one and the waiting ones (the
         management API's count: AMQP's passive declare counts the single active consumer only)."""
         auth = (SERVICE_USER, self.broker_secret)
         try:
-            counts = [httpx.get(f"{self.management_urls[0]}/api/queues/%2F/{partition_queue(p)}", auth=auth,
-                                timeout=5.0).json().get("consumers", 0) for p in range(self.partitions)]
+            counts = [
+                httpx.get(f"{self.management_urls[0]}/api/queues/%2F/{partition_queue(p)}", auth=auth, timeout=5.0)
+                .json()
+                .get("consumers", 0)
+                for p in range(self.partitions)
+            ]
         except (httpx.HTTPError, ValueError):
             return False
         return min(counts) >= len(self.workers)
@@ -290,16 +334,28 @@ class LocalCluster:
     def _start_apis(self) -> None:
         for k in range(self.apis_wanted):
             port = self.api_port + k if self.api_port else free_port()
-            args = ["api", "--host", HOST, "--port", str(port), "--database", self.database_url,
-                    *[arg for url in self.amqp_urls for arg in ("--broker", url)],
-                    *[arg for url in self.management_urls for arg in ("--management", url)],
-                    "--mqtt", self.mqtt_urls[k % self.nodes], *self._common_args()]
-            child = Child(f"api {k}", args, self.logs_dir / f"api-{k}.log", self._child_env(),
-                          url=f"http://{HOST}:{port}")
+            args = [
+                "api",
+                "--host",
+                HOST,
+                "--port",
+                str(port),
+                "--database",
+                self.database_url,
+                *[arg for url in self.amqp_urls for arg in ("--broker", url)],
+                *[arg for url in self.management_urls for arg in ("--management", url)],
+                "--mqtt",
+                self.mqtt_urls[k % self.nodes],
+                *self._common_args(),
+            ]
+            child = Child(
+                f"api {k}", args, self.logs_dir / f"api-{k}.log", self._child_env(), url=f"http://{HOST}:{port}"
+            )
             self.apis.append(child)
             child.start()
-        self._wait("the API replicas' health", self.apis,
-                   lambda: all(self._answers(f"{c.url}/v1/health") for c in self.apis))
+        self._wait(
+            "the API replicas' health", self.apis, lambda: all(self._answers(f"{c.url}/v1/health") for c in self.apis)
+        )
 
     def _answers(self, url: str) -> bool:
         """`url` answers 200 to the admin."""
@@ -313,8 +369,10 @@ class LocalCluster:
         while True:
             for child in children:
                 if child.returncode is not None:
-                    raise ClusterError(f"{child.name} exited with status {child.returncode} while starting; its log "
-                                       f"({child.log_path}) ends:\n{child.log_tail()}")
+                    raise ClusterError(
+                        f"{child.name} exited with status {child.returncode} while starting; its log "
+                        f"({child.log_path}) ends:\n{child.log_tail()}"
+                    )
             if healthy():
                 return
             if time.monotonic() > deadline:
@@ -330,14 +388,23 @@ class LocalCluster:
             "admin_secret_file": str(self.admin_secret_file),
             "broker_secret_file": str(self.data_dir / "broker-secret"),
             "partitions": self.partitions,
-            "postgres": {"url": self.database_url, "pid": self.postgres_pid(),
-                         "log": str(self.postgres.root / "server.log")},
-            "rabbitmq": [{"node": self.rabbit.node_name(i), "pid": self.rabbit.pid(i),
-                          "amqp": f"amqp://{SERVICE_USER}@{HOST}:{self.rabbit.amqp_ports[i]}/%2F",
-                          "mqtt": self.mqtt_urls[i], "management": self.management_urls[i],
-                          "log": str(rabbit_root / f"rg{i}" / "log")} for i in range(self.nodes)],
-            "workers": [{"name": c.name, "pid": c.pid, "metrics": c.url, "log": str(c.log_path)}
-                        for c in self.workers],
+            "postgres": {
+                "url": self.database_url,
+                "pid": self.postgres_pid(),
+                "log": str(self.postgres.root / "server.log"),
+            },
+            "rabbitmq": [
+                {
+                    "node": self.rabbit.node_name(i),
+                    "pid": self.rabbit.pid(i),
+                    "amqp": f"amqp://{SERVICE_USER}@{HOST}:{self.rabbit.amqp_ports[i]}/%2F",
+                    "mqtt": self.mqtt_urls[i],
+                    "management": self.management_urls[i],
+                    "log": str(rabbit_root / f"rg{i}" / "log"),
+                }
+                for i in range(self.nodes)
+            ],
+            "workers": [{"name": c.name, "pid": c.pid, "metrics": c.url, "log": str(c.log_path)} for c in self.workers],
             "apis": [{"name": c.name, "pid": c.pid, "url": c.url, "log": str(c.log_path)} for c in self.apis],
             "fleet_command": self.fleet_command(),
         }
@@ -353,5 +420,7 @@ class LocalCluster:
         if not self.apis:
             return None
         nodes = " ".join(f"--mqtt {url}" for url in self.mqtt_urls)
-        return (f"roadgrip fleet --url {self.api_urls[0]} --admin-secret-file {self.admin_secret_file} "
-                f"--vehicles {vehicles} {nodes} --mqtt-protocol 3.1.1 --read-url {self.api_urls[-1]}")
+        return (
+            f"roadgrip fleet --url {self.api_urls[0]} --admin-secret-file {self.admin_secret_file} "
+            f"--vehicles {vehicles} {nodes} --mqtt-protocol 3.1.1 --read-url {self.api_urls[-1]}"
+        )

@@ -25,8 +25,10 @@ from roadgrip.cloud.storage.database import Storage
 
 def cell_rows(fmap: FrictionMap, cells: Iterable[str], region_resolution: int) -> list[dict]:
     """Rows of the map_cells table (cell, region, last_ms, state) for those of `cells` the map holds."""
-    return [{"cell": cell, "region": region_of(cell, region_resolution), "last_ms": state["last_ms"], "state": state}
-            for cell, state in fmap.cell_states(cells).items()]
+    return [
+        {"cell": cell, "region": region_of(cell, region_resolution), "last_ms": state["last_ms"], "state": state}
+        for cell, state in fmap.cell_states(cells).items()
+    ]
 
 
 def stored_friction_map(storage: Storage, settings: Settings, now_ms: int | None = None) -> FrictionMap:

@@ -56,7 +56,7 @@ class TelemetryPublisher:
         self._publishers = [ConfirmedPublisher(brokers, k, f"publisher {k}") for k in range(connections)]
         self._queues = [queue.Queue() for _ in range(connections)]
         self._threads: list[threading.Thread] = []
-        self.failed_messages = 0     # given up (every node tried, or unroutable)
+        self.failed_messages = 0  # given up (every node tried, or unroutable)
         self.confirm_seconds = BatchHistogram(PUBLISH_BUCKETS_S)
 
     @property
@@ -109,13 +109,23 @@ class TelemetryPublisher:
                 continue
             routing_key, bodies, future = item
             try:
-                seconds = publisher.publish(MQTT_EXCHANGE, routing_key, bodies, PERSISTENT, mandatory=True,
-                                            deadline_s=PUBLISH_DEADLINE_S, what=f"telemetry with key {routing_key}")
+                seconds = publisher.publish(
+                    MQTT_EXCHANGE,
+                    routing_key,
+                    bodies,
+                    PERSISTENT,
+                    mandatory=True,
+                    deadline_s=PUBLISH_DEADLINE_S,
+                    what=f"telemetry with key {routing_key}",
+                )
             except pika.exceptions.UnroutableError:
                 self.failed_messages += len(bodies)
-                future.set_exception(IngestUnavailable(
-                    f"the broker did not confirm the telemetry: no queue is bound for {routing_key!r} (the partition "
-                    "topology is not declared, or the vehicle id has a '.': docs/CLUSTER.md)"))
+                future.set_exception(
+                    IngestUnavailable(
+                        f"the broker did not confirm the telemetry: no queue is bound for {routing_key!r} (the partition "
+                        "topology is not declared, or the vehicle id has a '.': docs/CLUSTER.md)"
+                    )
+                )
             except TimeoutError as exc:
                 self.failed_messages += len(bodies)
                 future.set_exception(IngestUnavailable(f"the broker did not confirm the telemetry: {exc}"))

@@ -89,8 +89,10 @@ JSON = pika.BasicProperties(content_type="application/json", delivery_mode=2)
 def check_region_resolution(settings: Settings) -> int:
     """The region resolution, which must be at most the map's (a region is a parent of map cells)."""
     if settings.region_resolution > settings.h3_resolution:
-        raise ValueError(f"region_resolution must be at most h3_resolution ({settings.h3_resolution}), got "
-                         f"{settings.region_resolution}")
+        raise ValueError(
+            f"region_resolution must be at most h3_resolution ({settings.h3_resolution}), got "
+            f"{settings.region_resolution}"
+        )
     return settings.region_resolution
 
 
@@ -106,8 +108,9 @@ class RegionPublisher(ConfirmedPublisher):
         """Publish one message to rg.estimates keyed by `region` and wait for its confirm, through the next broker
         after a failure, until confirmed, or with `deadline_s` until then (TimeoutError; `ConfirmedPublisher.publish`
         says how the deadline is counted). RuntimeError once `close` was called and it is still not confirmed."""
-        self.publish(ESTIMATES_EXCHANGE, region, [body], JSON, deadline_s=deadline_s,
-                     what=f"region message for {region}")
+        self.publish(
+            ESTIMATES_EXCHANGE, region, [body], JSON, deadline_s=deadline_s, what=f"region message for {region}"
+        )
 
     def publish_mqtt(self, topic: str, payload: bytes) -> None:
         """Publish on an MQTT topic through amq.topic, without a confirm: at most once (a vehicle's estimates, as
@@ -115,8 +118,9 @@ class RegionPublisher(ConfirmedPublisher):
         self.publish_unconfirmed(MQTT_EXCHANGE, mqtt_routing_key(topic), payload)
 
 
-def publish_station_evidence(publisher: RegionPublisher, rows: list[dict], region_resolution: int,
-                             deadline_s: float | None = None) -> int:
+def publish_station_evidence(
+    publisher: RegionPublisher, rows: list[dict], region_resolution: int, deadline_s: float | None = None
+) -> int:
     """Hand the evidence of stored roadside station reports (roadgrip/cloud/domain/stations.py `evidence_rows`:
     station_id, cell, timestamp_ms, mu, mu_lower, mu_upper; one row per covered cell) to the owners of their cells'
     regions: one confirmed message per region, all of them within `deadline_s` of the call (TimeoutError, as
@@ -185,8 +189,9 @@ class WorkerFanout:
 
     def estimates(self, rows: list[dict], newest_data_ms: int) -> None:
         """The RegionSink of `vehicles`: one confirmed message per region of the round's estimates with a cell."""
-        messages = region_messages([row for row in rows if self.owns(row["vehicle_id"])], newest_data_ms,
-                                   self.region_resolution)
+        messages = region_messages(
+            [row for row in rows if self.owns(row["vehicle_id"])], newest_data_ms, self.region_resolution
+        )
         for region, message in messages.items():
             self.publisher.publish_region(region, orjson.dumps(message))
         self.region_messages += len(messages)
@@ -203,8 +208,11 @@ class WorkerFanout:
         self.publisher.close()
 
     def stats(self) -> dict:
-        return {"region_messages_published": self.region_messages, "region_publish_failures": self.publisher.failures,
-                "region_publish_window_s_max": round(self.window_s_max, 4)}
+        return {
+            "region_messages_published": self.region_messages,
+            "region_publish_failures": self.publisher.failures,
+            "region_publish_window_s_max": round(self.window_s_max, 4),
+        }
 
 
 class _FencedWrites:
@@ -245,8 +253,11 @@ class Regions:
         fmap = new_friction_map(self.settings)
         cells = restore_region(fmap, self.storage, region)
         engine = new_warning_engine(self.settings, self.storage.next_action_sequence_number)
-        active = [WarningEvent(**row["message"]["event"]) for row in self.storage.warnings(active_only=True)
-                  if region_of(row["cell"], self.region_resolution) == region]
+        active = [
+            WarningEvent(**row["message"]["event"])
+            for row in self.storage.warnings(active_only=True)
+            if region_of(row["cell"], self.region_resolution) == region
+        ]
         engine.restore(active)
         newest: dict[str, int] = {}
         for cell in fmap.cells_by_id_.values():
@@ -283,8 +294,12 @@ class Regions:
     def save(self) -> int:
         """Store the cells changed since the last save (one transaction, fenced); every CLEANUP_S also delete the
         held regions' cells whose evidence is older than map_max_age_s. How many cells were stored."""
-        rows = [row for region, cells in self._dirty.items() if cells
-                for row in cell_rows(self.held[region].friction_map, cells, self.region_resolution)]
+        rows = [
+            row
+            for region, cells in self._dirty.items()
+            if cells
+            for row in cell_rows(self.held[region].friction_map, cells, self.region_resolution)
+        ]
         self.storage.put_region_output([], rows, self.writes.fence)
         for cells in self._dirty.values():
             cells.clear()
@@ -325,8 +340,14 @@ class _QueueState:
 class RegionOwners:
     """Every worker's consumers of the region queues (module docstring). `owner`: its name in region_owners."""
 
-    def __init__(self, brokers: list[str], settings: Settings, storage: Storage, owner: str,
-                 live_workers: Callable[[], int | None] | None = None):
+    def __init__(
+        self,
+        brokers: list[str],
+        settings: Settings,
+        storage: Storage,
+        owner: str,
+        live_workers: Callable[[], int | None] | None = None,
+    ):
         self.brokers = check_brokers(brokers)
         check_region_resolution(settings)
         self.settings = settings
@@ -379,9 +400,15 @@ class RegionOwners:
             for regions in held.values():
                 for change, n in regions.warning_changes().items():
                     changes[change] += n
-        return {"region_queues_held": list(held), "regions_held": sum(len(r.held) for r in held.values()),
-                "region_messages_applied": list(self.messages), "region_connections_lost": self.lost,
-                "region_queue_moves": self.spread.moves, "map_cells_saved": self.cells_saved, "warning_changes": changes}
+        return {
+            "region_queues_held": list(held),
+            "regions_held": sum(len(r.held) for r in held.values()),
+            "region_messages_applied": list(self.messages),
+            "region_connections_lost": self.lost,
+            "region_queue_moves": self.spread.moves,
+            "map_cells_saved": self.cells_saved,
+            "warning_changes": changes,
+        }
 
     # ----------------------------------------------------------------------------------------- spreading queues
 
@@ -405,8 +432,14 @@ class RegionOwners:
     def _consume(self, q: int) -> None:
         """A region queue's consumer, through broker q mod the brokers first (roadgrip/cloud/transport/amqp_client.py
         `consume`), until the stop."""
-        consume(self.brokers, q, self._closing, functools.partial(_QueueState, self, q), f"region queue {q}",
-                (StorageUnavailable, Fenced))
+        consume(
+            self.brokers,
+            q,
+            self._closing,
+            functools.partial(_QueueState, self, q),
+            f"region queue {q}",
+            (StorageUnavailable, Fenced),
+        )
 
     def _serve(self, q: int, state: _QueueState, connection: pika.BlockingConnection) -> None:
         """Register on the queue; apply what is delivered, save and acknowledge every SAVE_S, until the stop or a
@@ -436,8 +469,13 @@ class RegionOwners:
                     self._release[q].clear()
             elif not self._closing.is_set():
                 self.lost += 1
-                log.warning("region queue %d: given up through broker %d (%r); forgetting its %d regions", q,
-                            broker, exc, regions)
+                log.warning(
+                    "region queue %d: given up through broker %d (%r); forgetting its %d regions",
+                    q,
+                    broker,
+                    exc,
+                    regions,
+                )
         finally:
             with self._held_lock:
                 if self.held[q] is not None:
@@ -455,8 +493,9 @@ class RegionOwners:
         try:
             state.regions.apply(method.routing_key, orjson.loads(body))
         except (ValueError, KeyError, TypeError):  # never valid: acknowledged with the others, not redelivered
-            log.exception("region queue %d: a message for region %r could not be applied; dropped", q,
-                          method.routing_key)
+            log.exception(
+                "region queue %d: a message for region %r could not be applied; dropped", q, method.routing_key
+            )
         state.applied = method.delivery_tag
         self.messages[q] += 1
 
@@ -473,4 +512,3 @@ class RegionOwners:
     @staticmethod
     def _publish(channel, topic: str, payload: bytes) -> None:
         channel.basic_publish(MQTT_EXCHANGE, mqtt_routing_key(topic), payload)
-

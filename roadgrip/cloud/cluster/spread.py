@@ -39,8 +39,9 @@ class Spread:
         self._workers_since = 0.0  # ... since then (monotonic s)
         self._next_move_at = 0.0
 
-    def release(self, now: float, workers: int | None, held: Mapping[int, float],
-                owners: Callable[[], Mapping[int, str]]) -> int | None:
+    def release(
+        self, now: float, workers: int | None, held: Mapping[int, float], owners: Callable[[], Mapping[int, str]]
+    ) -> int | None:
         """The queue to release now, or None. `now`: monotonic s; `workers`: the live workers (None: not known);
         `held`: the queues this worker holds, each with when it took it (monotonic s); `owners`: reads every queue's
         owner (the database's owners table, read only when the second rule needs it; it may raise)."""
@@ -52,14 +53,19 @@ class Spread:
         high, low = -(-self.queues // workers), self.queues // workers
         reason = None
         if len(held) > high:
-            reason = (f"holds {len(held)} of {self.queues} {self.kind}s, more than ceil({self.queues} / {workers} live "
-                      f"workers) = {high}")
+            reason = (
+                f"holds {len(held)} of {self.queues} {self.kind}s, more than ceil({self.queues} / {workers} live "
+                f"workers) = {high}"
+            )
         elif low >= 1 and len(held) > low:
             counts = collections.Counter(owners().values())
             idle = workers - len(counts)  # live workers holding none (fewer where a dead owner is still named)
             most = max(counts.values(), default=0)
-            if (idle > 0 and counts.get(self.owner) == most == len(held)
-                    and min(o for o, n in counts.items() if n == most) == self.owner):
+            if (
+                idle > 0
+                and counts.get(self.owner) == most == len(held)
+                and min(o for o, n in counts.items() if n == most) == self.owner
+            ):
                 reason = f"holds {len(held)}, the most, while {idle} of {workers} live workers hold none"
         if reason is None:
             return None

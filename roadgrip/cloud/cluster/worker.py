@@ -197,10 +197,12 @@ class _FencedStorage:
         """Write what this worker still owns; the rows of partitions taken from it are left out, and their telemetry
         counted as stored before (their submitters' acknowledgements go to a fenced channel, which sends none)."""
         partition_of = self._worker.partition_of
-        written, stale = self._owned(lambda fences, t, e: self._storage.write_batch(t, e, fences=fences),
-                                     telemetry, estimates)
-        dropped = frozenset((row["vehicle_id"], row["timestamp_ms"]) for row in telemetry
-                            if partition_of[row["vehicle_id"]] in stale)
+        written, stale = self._owned(
+            lambda fences, t, e: self._storage.write_batch(t, e, fences=fences), telemetry, estimates
+        )
+        dropped = frozenset(
+            (row["vehicle_id"], row["timestamp_ms"]) for row in telemetry if partition_of[row["vehicle_id"]] in stale
+        )
         if written is None:
             return Written(0, 0, dropped)
         return Written(written.telemetry, written.estimates, written.already_stored | dropped)
@@ -218,8 +220,10 @@ class _FencedStorage:
         partition_of = self._worker.partition_of
         stale_all: set[int] = set()
         while True:
-            acks = {p: self._worker.channel_acks(p) for p in {partition_of[row["vehicle_id"]]
-                                                               for row in itertools.chain(*tables)}}
+            acks = {
+                p: self._worker.channel_acks(p)
+                for p in {partition_of[row["vehicle_id"]] for row in itertools.chain(*tables)}
+            }
             stale = {p for p, a in acks.items() if a is None or a.fenced or a.epoch is None}
             if not stale:
                 try:
@@ -279,8 +283,13 @@ class Worker:
         estimator = load_estimator(s.estimator)
         warm_up(estimator)
         self.fanout = WorkerFanout(self.brokers, s, self.owns)  # friction topics; estimates to their regions
-        pipeline = Pipeline(_FencedStorage(self.storage, self), s, estimator,
-                            _Timed(self.latency_histogram, self.fanout), skip_estimated=True)
+        pipeline = Pipeline(
+            _FencedStorage(self.storage, self),
+            s,
+            estimator,
+            _Timed(self.latency_histogram, self.fanout),
+            skip_estimated=True,
+        )
         self.ingest = Ingest(s, pipeline, reject=self._reject)
         self._declare()
         self.ingest.start()
@@ -292,16 +301,27 @@ class Worker:
         deadline = time.monotonic() + ready_timeout_s
         for event in self._registered:
             if not event.wait(max(0.0, deadline - time.monotonic())):
-                raise TimeoutError(f"not every partition consumer registered within {ready_timeout_s} s: "
-                                   f"{self.connected}")
+                raise TimeoutError(
+                    f"not every partition consumer registered within {ready_timeout_s} s: {self.connected}"
+                )
         watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
         watcher.start()
         self._threads.append(watcher)
-        self.regions = RegionOwners(self.brokers, s, self.storage, self.owner,  # the map and warnings by region
-                                    live_workers=lambda: self.live_workers)
+        self.regions = RegionOwners(
+            self.brokers,
+            s,
+            self.storage,
+            self.owner,  # the map and warnings by region
+            live_workers=lambda: self.live_workers,
+        )
         self.regions.start(max(1.0, deadline - time.monotonic()))
-        log.info("worker consuming %d partitions through %d broker(s), estimator %s, storage %s", self.partitions,
-                 len(self.brokers), s.estimator, self.storage)
+        log.info(
+            "worker consuming %d partitions through %d broker(s), estimator %s, storage %s",
+            self.partitions,
+            len(self.brokers),
+            s.estimator,
+            self.storage,
+        )
 
     def _declare(self) -> None:
         """Declare the topology through the first broker of the list that answers."""
@@ -333,12 +353,19 @@ class Worker:
             self.storage = None
 
     def stats(self) -> dict:
-        return {"partitions_connected": sum(self.connected), "partitions_held": self.held_partitions(),
-                "live_workers": self.live_workers, "moves": self.spread.moves, "deliveries": list(self.deliveries),
-                "connections_lost": self.lost, "fenced": self.fenced, "rejected": self.rejected,
-                **(self.fanout.stats() if self.fanout is not None else {}),
-                **(self.regions.stats() if self.regions is not None else {}),
-                **(self.ingest.stats() if self.ingest is not None else {})}
+        return {
+            "partitions_connected": sum(self.connected),
+            "partitions_held": self.held_partitions(),
+            "live_workers": self.live_workers,
+            "moves": self.spread.moves,
+            "deliveries": list(self.deliveries),
+            "connections_lost": self.lost,
+            "fenced": self.fenced,
+            "rejected": self.rejected,
+            **(self.fanout.stats() if self.fanout is not None else {}),
+            **(self.regions.stats() if self.regions is not None else {}),
+            **(self.ingest.stats() if self.ingest is not None else {}),
+        }
 
     def channel_acks(self, partition: int) -> _Acks | None:
         return self._acks[partition]
@@ -355,14 +382,19 @@ class Worker:
 
     def held_partitions(self) -> list[int]:
         """The partitions this worker is the active consumer of (it took them: a delivery came), not being released."""
-        return [p for p, a in enumerate(self._acks) if a is not None and a.epoch is not None and not a.fenced
-                and not a.releasing and self.connected[p]]
+        return [
+            p
+            for p, a in enumerate(self._acks)
+            if a is not None and a.epoch is not None and not a.fenced and not a.releasing and self.connected[p]
+        ]
 
     def fence(self, partitions: set[int]) -> None:
         """Partitions taken by another worker: their channels acknowledge nothing more and are given up."""
         self.fenced += 1
-        log.warning("partitions %s were taken by another worker: their rows are dropped, their channels given up",
-                    sorted(partitions))
+        log.warning(
+            "partitions %s were taken by another worker: their rows are dropped, their channels given up",
+            sorted(partitions),
+        )
         for p in partitions:
             acks = self._acks[p]
             if acks is not None:
@@ -373,8 +405,14 @@ class Worker:
         """A partition's consumer, through broker `partition` mod the brokers first (roadgrip/cloud/transport/
         amqp_client.py `consume`): connect, register, hand deliveries over and acknowledge until the stop; after a
         failure forget the partition's vehicles and register again through the next broker."""
-        consume(self.brokers, partition, self._closing, functools.partial(_PartitionHold, self, partition),
-                f"partition {partition}", (StorageUnavailable, _PartitionLost))
+        consume(
+            self.brokers,
+            partition,
+            self._closing,
+            functools.partial(_PartitionHold, self, partition),
+            f"partition {partition}",
+            (StorageUnavailable, _PartitionLost),
+        )
 
     def _serve(self, hold: _PartitionHold, connection: pika.BlockingConnection) -> None:
         """Register on the partition queue and serve it until the stop or a release (then the caller closes the
@@ -386,8 +424,9 @@ class Worker:
             self._release[partition].clear()
             self._acks[partition] = acks
             self._channel.channel = channel
-            channel.basic_consume(partition_queue(partition), functools.partial(
-                self._on_message, partition, acks, hold.vehicles))
+            channel.basic_consume(
+                partition_queue(partition), functools.partial(self._on_message, partition, acks, hold.vehicles)
+            )
             self.connected[partition] = True
             self._registered[partition].set()
             while not self._closing.is_set():
@@ -413,15 +452,21 @@ class Worker:
             if self._closing.is_set():
                 return
             self.lost += 1
-            log.warning("partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
-                        hold.partition, broker, exc, len(hold.vehicles))
+            log.warning(
+                "partition %d: connection through broker %d lost (%r); forgetting its %d vehicles",
+                hold.partition,
+                broker,
+                exc,
+                len(hold.vehicles),
+            )
             for vehicle_id in hold.vehicles:  # another worker may own them meanwhile: restore them if they come back
                 self.ingest.forget_vehicle(vehicle_id, drop_queued=True)
         finally:
             self.connected[hold.partition] = False
 
-    def _on_message(self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties,
-                    body: bytes) -> None:
+    def _on_message(
+        self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties, body: bytes
+    ) -> None:
         acks.delivered = method.delivery_tag
         if not self._taking.is_set() or acks.fenced or acks.releasing:
             return  # stopping, given up or handed over: left unacknowledged, it goes back to the queue at the close
@@ -433,8 +478,9 @@ class Worker:
         self.deliveries[partition] += 1
         vehicle_id = vehicle_of_topic(mqtt_routing_key(method.routing_key))
         if vehicle_id is None:
-            log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition,
-                        method.routing_key)
+            log.warning(
+                "partition %d: a message with routing key %r names no vehicle; dropped", partition, method.routing_key
+            )
             acks.done(method.delivery_tag)
             return
         vehicles.add(vehicle_id)
@@ -462,8 +508,13 @@ class Worker:
             if time.monotonic() - started > HANDOVER_TIMEOUT_S:
                 raise _PartitionLost("hand-over: the vehicles' states were not stored")
             connection.process_data_events(time_limit=FLUSH_S)
-        log.info("partition %d released: %d deliveries stored and acknowledged, the states of %d vehicles stored, "
-                 "in %.2f s", partition, acks.acknowledged, states.result(), time.monotonic() - started)
+        log.info(
+            "partition %d released: %d deliveries stored and acknowledged, the states of %d vehicles stored, in %.2f s",
+            partition,
+            acks.acknowledged,
+            states.result(),
+            time.monotonic() - started,
+        )
 
     # ------------------------------------------------------------------------------------------------- spreading
     def _watch(self) -> None:
@@ -502,13 +553,22 @@ class Worker:
         published on the vehicle's errors topic."""
         self.rejected += len(errors)
         log.warning("rejected %d sample(s) from vehicle %s: %s", len(errors), vehicle_id, errors[0]["reason"])
-        self._channel.channel.basic_publish(MQTT_EXCHANGE, mqtt_routing_key(errors_topic(vehicle_id)),
-                                            json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
+        self._channel.channel.basic_publish(
+            MQTT_EXCHANGE,
+            mqtt_routing_key(errors_topic(vehicle_id)),
+            json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode(),
+        )
 
 
-def run_worker(brokers: list[str], settings: Settings, partitions: int, prefetch: int = DEFAULT_PREFETCH,
-               stop: threading.Event | None = None, metrics_port: int | None = None,
-               metrics_host: str = "127.0.0.1") -> None:
+def run_worker(
+    brokers: list[str],
+    settings: Settings,
+    partitions: int,
+    prefetch: int = DEFAULT_PREFETCH,
+    stop: threading.Event | None = None,
+    metrics_port: int | None = None,
+    metrics_host: str = "127.0.0.1",
+) -> None:
     """Run a worker until `stop` is set (the command sets it on SIGTERM or SIGINT), logging its counters every
     STATS_S; with `metrics_port`, its Prometheus metrics at http://metrics_host:metrics_port/metrics
     (roadgrip/cloud/cluster/worker_metrics.py)."""

@@ -61,24 +61,47 @@ class WorkerCollector(Collector):
         yield estimate_latency(worker.latency_histogram)
         partitions = range(worker.partitions)
         held = set(worker.held_partitions())
-        yield gauge("roadgrip_partition_active", "1 while this worker is the active consumer of the partition queue "
-                    "(it took the partition at its first delivery and has not released it), else 0",
-                    [([str(p)], float(p in held)) for p in partitions], ["partition"])
-        yield gauge("roadgrip_partition_messages_ready", "Messages in the partition queue waiting to be delivered "
-                    "(the broker's count, read every few seconds)",
-                    [([str(p)], n) for p, n in zip(partitions, worker.messages_ready) if n is not None], ["partition"])
-        yield gauge("roadgrip_partition_messages_unacknowledged", "Messages of the partition queue delivered to this "
-                    "worker and not yet acknowledged (being stored, or left for the next owner)",
-                    [([str(p)], worker.unacknowledged(p)) for p in partitions], ["partition"])
+        yield gauge(
+            "roadgrip_partition_active",
+            "1 while this worker is the active consumer of the partition queue "
+            "(it took the partition at its first delivery and has not released it), else 0",
+            [([str(p)], float(p in held)) for p in partitions],
+            ["partition"],
+        )
+        yield gauge(
+            "roadgrip_partition_messages_ready",
+            "Messages in the partition queue waiting to be delivered (the broker's count, read every few seconds)",
+            [([str(p)], n) for p, n in zip(partitions, worker.messages_ready) if n is not None],
+            ["partition"],
+        )
+        yield gauge(
+            "roadgrip_partition_messages_unacknowledged",
+            "Messages of the partition queue delivered to this "
+            "worker and not yet acknowledged (being stored, or left for the next owner)",
+            [([str(p)], worker.unacknowledged(p)) for p in partitions],
+            ["partition"],
+        )
         if worker.live_workers is not None:
-            yield gauge("roadgrip_workers_live", "Workers consuming the partitions, as the broker counts them",
-                        [([], worker.live_workers)])
-        yield counter("roadgrip_partition_moves", "Partitions this worker released to spread them over the workers",
-                      [([], worker.spread.moves)])
-        yield counter("roadgrip_partition_fenced_writes", "Writes that found a partition taken by another worker",
-                      [([], worker.fenced)])
-        yield counter("roadgrip_partition_connections_lost", "Partition connections lost (a broker node, the "
-                      "network)", [([], worker.lost)])
+            yield gauge(
+                "roadgrip_workers_live",
+                "Workers consuming the partitions, as the broker counts them",
+                [([], worker.live_workers)],
+            )
+        yield counter(
+            "roadgrip_partition_moves",
+            "Partitions this worker released to spread them over the workers",
+            [([], worker.spread.moves)],
+        )
+        yield counter(
+            "roadgrip_partition_fenced_writes",
+            "Writes that found a partition taken by another worker",
+            [([], worker.fenced)],
+        )
+        yield counter(
+            "roadgrip_partition_connections_lost",
+            "Partition connections lost (a broker node, the network)",
+            [([], worker.lost)],
+        )
         yield from region_metrics(worker)
 
 
@@ -87,33 +110,63 @@ def region_metrics(worker: WorkerView) -> Iterator[Metric]:
     (`RegionOwners.stats`), once started."""
     if worker.fanout is not None:
         fanout = worker.fanout.stats()
-        yield counter("roadgrip_region_messages_published", "Region messages (a round's estimates of one region) "
-                      "this worker published and the broker confirmed", [([], fanout["region_messages_published"])])
-        yield counter("roadgrip_region_publish_failures", "Region publishes not confirmed (a nack, a lost "
-                      "connection) and tried again through the next broker", [([], fanout["region_publish_failures"])])
-        yield gauge("roadgrip_region_publish_window_max_seconds", "Longest time from a round's commit to its region "
-                    "messages' last confirm since the worker started (the crash window)",
-                    [([], fanout["region_publish_window_s_max"])])
+        yield counter(
+            "roadgrip_region_messages_published",
+            "Region messages (a round's estimates of one region) this worker published and the broker confirmed",
+            [([], fanout["region_messages_published"])],
+        )
+        yield counter(
+            "roadgrip_region_publish_failures",
+            "Region publishes not confirmed (a nack, a lost connection) and tried again through the next broker",
+            [([], fanout["region_publish_failures"])],
+        )
+        yield gauge(
+            "roadgrip_region_publish_window_max_seconds",
+            "Longest time from a round's commit to its region "
+            "messages' last confirm since the worker started (the crash window)",
+            [([], fanout["region_publish_window_s_max"])],
+        )
     if worker.regions is not None:
         regions = worker.regions.stats()
         held = set(regions["region_queues_held"])
         queues = range(len(regions["region_messages_applied"]))
-        yield gauge("roadgrip_region_queue_active", "1 while this worker is the active consumer of the region queue "
-                    "(it took the queue at its first delivery and has not given it up), else 0",
-                    [([str(q)], float(q in held)) for q in queues], ["region_queue"])
-        yield gauge("roadgrip_regions_held", "Regions whose map and warnings this worker keeps",
-                    [([], regions["regions_held"])])
-        yield counter("roadgrip_region_messages_applied", "Region messages (estimates, station evidence) this worker "
-                      "applied to its regions' map and warnings",
-                      [([str(q)], n) for q, n in zip(queues, regions["region_messages_applied"])], ["region_queue"])
-        yield counter("roadgrip_map_cells_saved", "Map cells this worker's regions stored (each changed cell about "
-                      "once a second)", [([], regions["map_cells_saved"])])
-        yield counter("roadgrip_warnings", "Warning changes of this worker's regions: raised, refreshed, cancelled, "
-                      "expired", [([change], n) for change, n in regions["warning_changes"].items()], ["change"])
-        yield counter("roadgrip_region_queue_moves", "Region queues this worker released to spread them over the "
-                      "workers", [([], regions["region_queue_moves"])])
-        yield counter("roadgrip_region_queue_connections_lost", "Region queue connections lost or given up (a broker "
-                      "node, the network, a fenced write)", [([], regions["region_connections_lost"])])
+        yield gauge(
+            "roadgrip_region_queue_active",
+            "1 while this worker is the active consumer of the region queue "
+            "(it took the queue at its first delivery and has not given it up), else 0",
+            [([str(q)], float(q in held)) for q in queues],
+            ["region_queue"],
+        )
+        yield gauge(
+            "roadgrip_regions_held", "Regions whose map and warnings this worker keeps", [([], regions["regions_held"])]
+        )
+        yield counter(
+            "roadgrip_region_messages_applied",
+            "Region messages (estimates, station evidence) this worker applied to its regions' map and warnings",
+            [([str(q)], n) for q, n in zip(queues, regions["region_messages_applied"])],
+            ["region_queue"],
+        )
+        yield counter(
+            "roadgrip_map_cells_saved",
+            "Map cells this worker's regions stored (each changed cell about once a second)",
+            [([], regions["map_cells_saved"])],
+        )
+        yield counter(
+            "roadgrip_warnings",
+            "Warning changes of this worker's regions: raised, refreshed, cancelled, expired",
+            [([change], n) for change, n in regions["warning_changes"].items()],
+            ["change"],
+        )
+        yield counter(
+            "roadgrip_region_queue_moves",
+            "Region queues this worker released to spread them over the workers",
+            [([], regions["region_queue_moves"])],
+        )
+        yield counter(
+            "roadgrip_region_queue_connections_lost",
+            "Region queue connections lost or given up (a broker node, the network, a fenced write)",
+            [([], regions["region_connections_lost"])],
+        )
 
 
 def serve_metrics(worker: WorkerView, port: int, host: str) -> WSGIServer:

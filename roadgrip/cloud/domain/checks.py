@@ -64,8 +64,9 @@ def interval(what: str, lower, upper, mu=None) -> None:
     values = (lower, upper) if mu is None else (mu, lower, upper)
     if not all(math.isfinite(v) for v in values) or lower > upper:
         given = "" if mu is None else f"mu {mu!r}, "
-        raise ValueError(f"{what}: {given}mu_lower {lower!r}, mu_upper {upper!r} must be finite with "
-                         f"mu_lower <= mu_upper")
+        raise ValueError(
+            f"{what}: {given}mu_lower {lower!r}, mu_upper {upper!r} must be finite with mu_lower <= mu_upper"
+        )
 
 
 def finite_bounds(what: str, lower, upper) -> None:

@@ -187,8 +187,9 @@ def posterior_quantiles(log_posterior: np.ndarray, quantiles=QUANTILES) -> np.nd
     log_posterior = np.atleast_2d(log_posterior)
     density = np.exp(log_posterior - log_posterior.max(axis=1, keepdims=True))
     step = MU_GRID[1] - MU_GRID[0]
-    cdf = np.concatenate([np.zeros((len(density), 1)),
-                          np.cumsum(0.5 * (density[:, 1:] + density[:, :-1]) * step, axis=1)], axis=1)
+    cdf = np.concatenate(
+        [np.zeros((len(density), 1)), np.cumsum(0.5 * (density[:, 1:] + density[:, :-1]) * step, axis=1)], axis=1
+    )
     cdf /= cdf[:, -1:]
     return np.array([np.interp(quantiles, row, MU_GRID) for row in cdf])
 
@@ -196,10 +197,19 @@ def posterior_quantiles(log_posterior: np.ndarray, quantiles=QUANTILES) -> np.nd
 class FrictionMap:
     """Per-H3-cell friction posteriors from estimate rows and station reports; see the module docstring."""
 
-    def __init__(self, resolution: int = 10, half_life_s: float = 600.0, max_age_s: float = 3600.0,
-                 min_interval_width: float = 0.1, outlier_rate: float = 0.005, proven_sigma: float = 0.02,
-                 min_proven_mu: float = 0.1, pass_gap_s: float = 30.0, max_independent: float = 3.0,
-                 grip_locality: float = 0.5):
+    def __init__(
+        self,
+        resolution: int = 10,
+        half_life_s: float = 600.0,
+        max_age_s: float = 3600.0,
+        min_interval_width: float = 0.1,
+        outlier_rate: float = 0.005,
+        proven_sigma: float = 0.02,
+        min_proven_mu: float = 0.1,
+        pass_gap_s: float = 30.0,
+        max_independent: float = 3.0,
+        grip_locality: float = 0.5,
+    ):
         self.resolution = validate_resolution(resolution)
         self.half_life_s = checks.positive_finite("half_life_s", half_life_s)
         self.max_age_s = checks.positive_finite("max_age_s", max_age_s)
@@ -264,10 +274,14 @@ class FrictionMap:
         rows = in_pass_order(estimates)
         excited = [r for r in rows if r["excited"]]
         for r in excited:
-            checks.interval(f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu_lower"],
-                            r["mu_upper"], r["mu"])
-        lls = (self.interval_log_likelihood([r["mu_lower"] for r in excited], [r["mu_upper"] for r in excited])
-               if excited else None)
+            checks.interval(
+                f"estimate of vehicle {r['vehicle_id']!r} at {r['timestamp_ms']}", r["mu_lower"], r["mu_upper"], r["mu"]
+            )
+        lls = (
+            self.interval_log_likelihood([r["mu_lower"] for r in excited], [r["mu_upper"] for r in excited])
+            if excited
+            else None
+        )
         k = 0
         touched: set[str] = set()
         cells = self.cells_by_id_
@@ -315,10 +329,12 @@ class FrictionMap:
         for report in reports:
             station, cell_id, t = str(report["station_id"]), report["cell"], int(report["timestamp_ms"])
             if h3.get_resolution(cell_id) != self.resolution:
-                raise ValueError(f"station {station!r}: cell {cell_id!r} is not at the map's resolution "
-                                 f"{self.resolution}")
-            checks.interval(f"report of station {station!r} at {t}", report["mu_lower"], report["mu_upper"],
-                            report["mu"])
+                raise ValueError(
+                    f"station {station!r}: cell {cell_id!r} is not at the map's resolution {self.resolution}"
+                )
+            checks.interval(
+                f"report of station {station!r} at {t}", report["mu_lower"], report["mu_upper"], report["mu"]
+            )
             cell = self.cells_by_id_.get(cell_id)
             if cell is None:
                 cell = self.cells_by_id_[cell_id] = _Cell(cell_id)
@@ -461,8 +477,9 @@ class FrictionMap:
                 status = BOUNDED
             else:
                 status = NO_RECENT_EXCITED
-            rows.append((cell_id, cell, w, n, n_excited, n_vehicles, last_excited, status, n_passes, n_stations,
-                         proven))
+            rows.append(
+                (cell_id, cell, w, n, n_excited, n_vehicles, last_excited, status, n_passes, n_stations, proven)
+            )
             if ll is not None:
                 logps.append(ll * min(1.0, self.max_independent / w))
         quantiles = iter(posterior_quantiles(np.array(logps)) if logps else ())
@@ -471,11 +488,26 @@ class FrictionMap:
             lower = mu = upper = None
             if status != NO_RECENT_EXCITED:
                 lower, mu, upper = (float(q) for q in next(quantiles))
-            out.append(CellSummary(
-                cell=cell_id, latitude_deg=cell.latitude_deg, longitude_deg=cell.longitude_deg,
-                mu=mu, mu_lower=lower, mu_upper=upper, weight=w, n_estimates=n, n_excited=n_excited,
-                n_vehicles=n_vehicles, last_ms=cell.last_ms, last_excited_ms=last_excited, status=status,
-                n_passes=n_passes, n_stations=n_stations, mu_proven=proven if proven > 0.0 else None))
+            out.append(
+                CellSummary(
+                    cell=cell_id,
+                    latitude_deg=cell.latitude_deg,
+                    longitude_deg=cell.longitude_deg,
+                    mu=mu,
+                    mu_lower=lower,
+                    mu_upper=upper,
+                    weight=w,
+                    n_estimates=n,
+                    n_excited=n_excited,
+                    n_vehicles=n_vehicles,
+                    last_ms=cell.last_ms,
+                    last_excited_ms=last_excited,
+                    status=status,
+                    n_passes=n_passes,
+                    n_stations=n_stations,
+                    mu_proven=proven if proven > 0.0 else None,
+                )
+            )
         return out
 
     # -------------------------------------------------------------------------------------------- cell states
@@ -496,9 +528,11 @@ class FrictionMap:
                 continue
             states[cell_id] = {
                 "last_ms": cell.last_ms,
-                "buckets": [[key, *b[:_LL], _pack(b[_LL]), *b[_LL + 1:]] for key, b in sorted(cell.buckets.items())],
-                "open": [[p.vehicle_id, p.first_ms, p.last_ms, _pack(p.ll), p.n, p.n_exc, p.last_exc_ms, p.proven]
-                         for p in sorted(open_by_cell.get(cell_id, ()), key=operator.attrgetter("vehicle_id"))],
+                "buckets": [[key, *b[:_LL], _pack(b[_LL]), *b[_LL + 1 :]] for key, b in sorted(cell.buckets.items())],
+                "open": [
+                    [p.vehicle_id, p.first_ms, p.last_ms, _pack(p.ll), p.n, p.n_exc, p.last_exc_ms, p.proven]
+                    for p in sorted(open_by_cell.get(cell_id, ()), key=operator.attrgetter("vehicle_id"))
+                ],
                 "stations": [[station, t, _pack(ll)] for station, (t, ll) in sorted(cell.stations.items())],
                 "vehicles": dict(sorted(cell.vehicles.items())),
             }

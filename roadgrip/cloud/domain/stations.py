@@ -151,8 +151,9 @@ def _field_error(index: int, exc: ValidationError) -> ReportError:
     return ReportError(reason, index=index, field=field)
 
 
-def parse_reports(body: bytes, *, station_id: str, now_ms: int, max_future_ms: int = 60_000,
-                  max_bytes: int = 65_536) -> list[StationReport]:
+def parse_reports(
+    body: bytes, *, station_id: str, now_ms: int, max_future_ms: int = 60_000, max_bytes: int = 65_536
+) -> list[StationReport]:
     """The reports of an HTTP body or MQTT message (a JSON object, or an array of 1..MAX_REPORTS_PER_PAYLOAD), each
     checked (module docstring) and of `station_id`; ReportError for the first fault, nothing taken then."""
     if len(body) > max_bytes:
@@ -179,23 +180,33 @@ def parse_reports(body: bytes, *, station_id: str, now_ms: int, max_future_ms: i
         except ValidationError as exc:
             raise _field_error(index, exc) from None
         if report.station_id != station_id:
-            raise ReportError(f"must be the station of the credentials, {station_id!r}, got {report.station_id!r}",
-                              index=index, field="station_id")
+            raise ReportError(
+                f"must be the station of the credentials, {station_id!r}, got {report.station_id!r}",
+                index=index,
+                field="station_id",
+            )
         if report.timestamp_ms > now_ms + max_future_ms:
-            raise ReportError(f"{report.timestamp_ms} is more than {max_future_ms / 1000:g} s ahead of the server's "
-                              f"clock ({now_ms})", index=index, field="timestamp_ms")
+            raise ReportError(
+                f"{report.timestamp_ms} is more than {max_future_ms / 1000:g} s ahead of the server's clock ({now_ms})",
+                index=index,
+                field="timestamp_ms",
+            )
         reports.append(report)
     return reports
 
 
-def covered_cells(latitude_deg: float, longitude_deg: float, resolution: int,
-                  radius_m: float = COVERAGE_RADIUS_M) -> list[str]:
+def covered_cells(
+    latitude_deg: float, longitude_deg: float, resolution: int, radius_m: float = COVERAGE_RADIUS_M
+) -> list[str]:
     """The station's cell and every cell whose centre lies within radius_m of it, sorted."""
     own = cell_of(latitude_deg, longitude_deg, resolution)
     spacing_m = math.sqrt(3.0) * h3.average_hexagon_edge_length(resolution, "m")  # centre to centre
     k = max(1, math.ceil(radius_m / spacing_m) + 1)
-    near = {c for c in h3.grid_disk(own, k)
-            if h3.great_circle_distance((latitude_deg, longitude_deg), h3.cell_to_latlng(c), "m") <= radius_m}
+    near = {
+        c
+        for c in h3.grid_disk(own, k)
+        if h3.great_circle_distance((latitude_deg, longitude_deg), h3.cell_to_latlng(c), "m") <= radius_m
+    }
     return sorted(near | {own})
 
 
@@ -213,8 +224,15 @@ def evidence(report: StationReport) -> Evidence | None:
         return None
     if state == "wet":
         film = report.water_film_thickness_mm
-        state = ("wet_unknown" if film is None else "wet_thin" if film <= THIN_FILM_MM
-                 else "wet" if film <= THICK_FILM_MM else "wet_thick")
+        state = (
+            "wet_unknown"
+            if film is None
+            else "wet_thin"
+            if film <= THIN_FILM_MM
+            else "wet"
+            if film <= THICK_FILM_MM
+            else "wet_thick"
+        )
     found = SURFACE_EVIDENCE[state]
     freezing = report.surface_temperature_c is not None and report.surface_temperature_c <= FREEZING_C
     if freezing and report.surface_state in ("moist", "wet"):
@@ -229,9 +247,17 @@ def evidence_rows(report: StationReport, resolution: int, radius_m: float = COVE
     found = evidence(report)
     if found is None:
         return []
-    return [{"station_id": report.station_id, "cell": cell, "timestamp_ms": report.timestamp_ms, "mu": found.mu,
-             "mu_lower": found.mu_lower, "mu_upper": found.mu_upper}
-            for cell in covered_cells(report.latitude_deg, report.longitude_deg, resolution, radius_m)]
+    return [
+        {
+            "station_id": report.station_id,
+            "cell": cell,
+            "timestamp_ms": report.timestamp_ms,
+            "mu": found.mu,
+            "mu_lower": found.mu_lower,
+            "mu_upper": found.mu_upper,
+        }
+        for cell in covered_cells(report.latitude_deg, report.longitude_deg, resolution, radius_m)
+    ]
 
 
 def stored_evidence_rows(stored: dict) -> list[dict]:
@@ -239,9 +265,17 @@ def stored_evidence_rows(stored: dict) -> list[dict]:
     null for none, and its covered cells)."""
     if stored["mu"] is None:
         return []
-    return [{"station_id": stored["station_id"], "cell": cell, "timestamp_ms": stored["timestamp_ms"],
-             "mu": stored["mu"], "mu_lower": stored["mu_lower"], "mu_upper": stored["mu_upper"]}
-            for cell in stored["cells"]]
+    return [
+        {
+            "station_id": stored["station_id"],
+            "cell": cell,
+            "timestamp_ms": stored["timestamp_ms"],
+            "mu": stored["mu"],
+            "mu_lower": stored["mu_lower"],
+            "mu_upper": stored["mu_upper"],
+        }
+        for cell in stored["cells"]
+    ]
 
 
 def stored_rows(reports: list[StationReport], resolution: int) -> tuple[list[dict], dict[tuple[str, int], list[dict]]]:
@@ -252,8 +286,13 @@ def stored_rows(reports: list[StationReport], resolution: int) -> tuple[list[dic
     for report in reports:
         found = evidence(report)
         evidence_of[(report.station_id, report.timestamp_ms)] = evidence_rows(report, resolution)
-        rows.append({**report.model_dump(), "mu": None if found is None else found.mu,
-                     "mu_lower": None if found is None else found.mu_lower,
-                     "mu_upper": None if found is None else found.mu_upper,
-                     "cells": covered_cells(report.latitude_deg, report.longitude_deg, resolution)})
+        rows.append(
+            {
+                **report.model_dump(),
+                "mu": None if found is None else found.mu,
+                "mu_lower": None if found is None else found.mu_lower,
+                "mu_upper": None if found is None else found.mu_upper,
+                "cells": covered_cells(report.latitude_deg, report.longitude_deg, resolution),
+            }
+        )
     return rows, evidence_of

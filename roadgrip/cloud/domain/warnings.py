@@ -233,10 +233,18 @@ class _CellState:
 class WarningEngine:
     """Slippery-road warnings from low-friction passes; see the module docstring for the rules."""
 
-    def __init__(self, resolution: int = 10, threshold_mu: float = THRESHOLD_MU,
-                 min_low_passes: int = MIN_LOW_PASSES, min_dry_passes: int = MIN_DRY_PASSES,
-                 pass_gap_s: float = PASS_GAP_S, min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
-                 validity_s: float = VALIDITY_S, station_id: int = 1, action_sequence=None):
+    def __init__(
+        self,
+        resolution: int = 10,
+        threshold_mu: float = THRESHOLD_MU,
+        min_low_passes: int = MIN_LOW_PASSES,
+        min_dry_passes: int = MIN_DRY_PASSES,
+        pass_gap_s: float = PASS_GAP_S,
+        min_excited_per_pass: int = MIN_EXCITED_PER_PASS,
+        validity_s: float = VALIDITY_S,
+        station_id: int = 1,
+        action_sequence=None,
+    ):
         self.resolution = validate_resolution(resolution)
         self.threshold_mu = checks.positive_at_most("threshold_mu", threshold_mu)
         self.min_low_passes = checks.count("min_low_passes", min_low_passes)
@@ -335,8 +343,9 @@ class WarningEngine:
             state = self._cell(event.cell)
             if state.warning is not None and state.warning.last_event.updated_ms >= event.updated_ms:
                 continue
-            warning = _Warning(event.warning_id, event.detection_ms, event.action_sequence_number,
-                               event.sequence_number)
+            warning = _Warning(
+                event.warning_id, event.detection_ms, event.action_sequence_number, event.sequence_number
+            )
             warning.evidence_ms = event.evidence_ms
             warning.last_event = event
             state.warning = warning
@@ -345,8 +354,9 @@ class WarningEngine:
             for k in range(max(1, event.n_passes)):
                 state.low_passes.add(_LowPass(event.evidence_ms, f"restored-{k % n_vehicles}", event.mu_upper))
             self.active_cells_.add(event.cell)
-            self.next_action_sequence_number_ = max(self.next_action_sequence_number_,
-                                                    (event.action_sequence_number + 1) % 65536)
+            self.next_action_sequence_number_ = max(
+                self.next_action_sequence_number_, (event.action_sequence_number + 1) % 65536
+            )
 
     # ----------------------------------------------------------------------------------------------------- passes
 
@@ -412,17 +422,29 @@ class WarningEngine:
             mu_upper, n_passes, n_vehicles = previous.mu_upper, previous.n_passes, previous.n_vehicles
         latitude_deg, longitude_deg = h3.cell_to_latlng(cell)
         event = WarningEvent(
-            warning_id=warning.warning_id, cell=cell, status=status, reason=reason,
-            detection_ms=warning.detection_ms, updated_ms=max(now_ms, warning.evidence_ms),
-            latitude_deg=latitude_deg, longitude_deg=longitude_deg, mu_upper=mu_upper, n_passes=n_passes,
-            n_vehicles=n_vehicles, sequence_number=warning.sequence_number, validity_s=self.validity_s,
-            evidence_ms=warning.evidence_ms, action_sequence_number=warning.action_sequence_number,
-            station_id=self.station_id)
+            warning_id=warning.warning_id,
+            cell=cell,
+            status=status,
+            reason=reason,
+            detection_ms=warning.detection_ms,
+            updated_ms=max(now_ms, warning.evidence_ms),
+            latitude_deg=latitude_deg,
+            longitude_deg=longitude_deg,
+            mu_upper=mu_upper,
+            n_passes=n_passes,
+            n_vehicles=n_vehicles,
+            sequence_number=warning.sequence_number,
+            validity_s=self.validity_s,
+            evidence_ms=warning.evidence_ms,
+            action_sequence_number=warning.action_sequence_number,
+            station_id=self.station_id,
+        )
         warning.last_event = event
         return event
 
-    def _end(self, cell: str, state: _CellState, reason: str, evidence_ms: int, now_ms: int,
-             events: list[WarningEvent]) -> None:
+    def _end(
+        self, cell: str, state: _CellState, reason: str, evidence_ms: int, now_ms: int, events: list[WarningEvent]
+    ) -> None:
         warning = state.warning
         warning.sequence_number += 1
         warning.evidence_ms = max(warning.evidence_ms, evidence_ms)

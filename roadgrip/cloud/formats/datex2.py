@@ -43,11 +43,11 @@ NS = {
 for _prefix, _uri in NS.items():
     ET.register_namespace(_prefix, _uri)
 
+
 def iso_utc(unix_ms: int) -> str:
     """ISO 8601 UTC with milliseconds and a Z, e.g. 2026-01-15T08:00:00.000Z."""
     moment = datetime.fromtimestamp(int(unix_ms) / 1000.0, tz=UTC)
     return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
-
 
 
 def _el(parent: ET.Element, prefix: str, name: str, text: str | None = None, **attrib: str) -> ET.Element:
@@ -61,11 +61,13 @@ def _xsi_type(value: str) -> dict:
     return {f"{{{NS['xsi']}}}type": value}
 
 
-def datex2_xml(cells: list[CellSummary], publication_time_ms: int, supplier: str = "roadgrip",
-               country: str = "other") -> str:
+def datex2_xml(
+    cells: list[CellSummary], publication_time_ms: int, supplier: str = "roadgrip", country: str = "other"
+) -> str:
     """DATEX II v3 MeasuredDataPublication of the measured cells' friction (see the module docstring), as XML text."""
-    root = ET.Element(f"{{{NS['d2']}}}payload",
-                      {**_xsi_type("roa:MeasuredDataPublication"), "lang": "en", "modelBaseVersion": "3"})
+    root = ET.Element(
+        f"{{{NS['d2']}}}payload", {**_xsi_type("roa:MeasuredDataPublication"), "lang": "en", "modelBaseVersion": "3"}
+    )
     _el(root, "com", "publicationTime", iso_utc(publication_time_ms))
     creator = _el(root, "com", "publicationCreator")
     _el(creator, "com", "country", country)
@@ -73,8 +75,7 @@ def datex2_xml(cells: list[CellSummary], publication_time_ms: int, supplier: str
     measured = [c for c in cells if c.status == "measured" and c.mu is not None]
     resolutions = sorted({h3.get_resolution(c.cell) for c in measured})
     table_id = f"{supplier}-h3-r{'-'.join(str(r) for r in resolutions) or 'none'}"
-    _el(root, "roa", "measurementSiteTableReference", targetClass="roa:MeasurementSiteTable", id=table_id,
-        version="1")
+    _el(root, "roa", "measurementSiteTableReference", targetClass="roa:MeasurementSiteTable", id=table_id, version="1")
     header = _el(root, "roa", "headerInformation")
     _el(header, "com", "confidentiality", "noRestriction")
     _el(header, "com", "informationStatus", "real")

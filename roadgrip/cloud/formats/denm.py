@@ -52,8 +52,15 @@ LATITUDE_UNAVAILABLE = 900_000_001
 ALTITUDE_UNAVAILABLE = 800_001
 SEMI_AXIS_OUT_OF_RANGE = 4094  # SemiAxisLength: cm, 4094 outOfRange
 # RelevanceDistance: (upper bound in m, identifier); beyond the last: over10km
-RELEVANCE_DISTANCES = ((50.0, "lessThan50m"), (100.0, "lessThan100m"), (200.0, "lessThan200m"), (500.0, "lessThan500m"),
-                       (1000.0, "lessThan1000m"), (5000.0, "lessThan5km"), (10000.0, "lessThan10km"))
+RELEVANCE_DISTANCES = (
+    (50.0, "lessThan50m"),
+    (100.0, "lessThan100m"),
+    (200.0, "lessThan200m"),
+    (500.0, "lessThan500m"),
+    (1000.0, "lessThan1000m"),
+    (5000.0, "lessThan5km"),
+    (10000.0, "lessThan10km"),
+)
 
 
 def timestamp_its_ms(unix_ms: int) -> int:
@@ -63,7 +70,6 @@ def timestamp_its_ms(unix_ms: int) -> int:
         raise ValueError(f"unix_ms must be at or after 2004-01-01T00:00:00Z ({ITS_EPOCH_UNIX_MS}), got {unix_ms}")
     leap_seconds = bisect.bisect_right(LEAP_SECONDS_UNIX_S, unix_ms // 1000)
     return unix_ms - ITS_EPOCH_UNIX_MS + 1000 * leap_seconds
-
 
 
 def cell_radius_m(cell: str) -> float:
@@ -100,19 +106,24 @@ def denm(event: WarningEvent, station_id: int | None = None) -> dict:
     }
     if event.status == "cancelled":
         management["termination"] = "isCancellation"
-    management.update({
-        "eventPosition": {
-            "latitude": round(event.latitude_deg * 1e7),  # Latitude: 0.1 microdegree
-            "longitude": round(event.longitude_deg * 1e7),
-            "positionConfidenceEllipse": {"semiMajorConfidence": semi_axis_cm, "semiMinorConfidence": semi_axis_cm,
-                                          "semiMajorOrientation": 0},  # a circle: orientation wgs84North
-            "altitude": {"altitudeValue": ALTITUDE_UNAVAILABLE, "altitudeConfidence": "unavailable"},
-        },
-        "relevanceDistance": relevance_distance(radius_m),
-        "relevanceTrafficDirection": "allTrafficDirections",
-        "validityDuration": validity,
-        "stationType": STATION_TYPE_ROAD_SIDE_UNIT,
-    })
+    management.update(
+        {
+            "eventPosition": {
+                "latitude": round(event.latitude_deg * 1e7),  # Latitude: 0.1 microdegree
+                "longitude": round(event.longitude_deg * 1e7),
+                "positionConfidenceEllipse": {
+                    "semiMajorConfidence": semi_axis_cm,
+                    "semiMinorConfidence": semi_axis_cm,
+                    "semiMajorOrientation": 0,
+                },  # a circle: orientation wgs84North
+                "altitude": {"altitudeValue": ALTITUDE_UNAVAILABLE, "altitudeConfidence": "unavailable"},
+            },
+            "relevanceDistance": relevance_distance(radius_m),
+            "relevanceTrafficDirection": "allTrafficDirections",
+            "validityDuration": validity,
+            "stationType": STATION_TYPE_ROAD_SIDE_UNIT,
+        }
+    )
     return {
         "header": {"protocolVersion": DENM_PROTOCOL_VERSION, "messageID": DENM_MESSAGE_ID, "stationID": station},
         "denm": {
@@ -122,7 +133,14 @@ def denm(event: WarningEvent, station_id: int | None = None) -> dict:
                 "eventType": {"causeCode": CAUSE_ADVERSE_WEATHER_ADHESION, "subCauseCode": SUB_CAUSE_UNAVAILABLE},
             },
         },
-        "roadgrip": {"cell": event.cell, "warning_id": event.warning_id, "status": event.status,
-                     "reason": event.reason, "mu_upper": event.mu_upper, "n_passes": event.n_passes,
-                     "n_vehicles": event.n_vehicles, "update": event.sequence_number},
+        "roadgrip": {
+            "cell": event.cell,
+            "warning_id": event.warning_id,
+            "status": event.status,
+            "reason": event.reason,
+            "mu_upper": event.mu_upper,
+            "n_passes": event.n_passes,
+            "n_vehicles": event.n_vehicles,
+            "update": event.sequence_number,
+        },
     }

@@ -20,7 +20,12 @@ def geojson(cells: Iterable[CellSummary]) -> dict:
     for summary in cells:
         ring = [[lng, lat] for lat, lng in h3.cell_to_boundary(summary.cell)]
         ring.append(ring[0])
-        features.append({"type": "Feature", "id": summary.cell,
-                         "geometry": {"type": "Polygon", "coordinates": [ring]},
-                         "properties": asdict(summary)})
+        features.append(
+            {
+                "type": "Feature",
+                "id": summary.cell,
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+                "properties": asdict(summary),
+            }
+        )
     return {"type": "FeatureCollection", "features": features}

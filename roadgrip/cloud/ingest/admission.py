@@ -66,8 +66,9 @@ class Ingest:
         """Samples submitted and not yet taken by a round."""
         return self.pipeline.backlog
 
-    def submit(self, vehicle_id: str, samples: list[dict], received: int, *, retry: bool = False,
-               transport: str = "http") -> Future:
+    def submit(
+        self, vehicle_id: str, samples: list[dict], received: int, *, retry: bool = False, transport: str = "http"
+    ) -> Future:
         """Valid samples of one vehicle, out of `received` (rejected ones included: all count against the rate
         limit), arrived over `transport` (http or mqtt: counted for the metrics). The future resolves to a
         SubmitResult once they are stored (at once when there are none), or fails with RateLimited, or with
@@ -95,9 +96,14 @@ class Ingest:
         a whole (unreadable, over the rate limit) is acknowledged at once: the broker must not deliver it again."""
         s = self.settings
         try:
-            samples, errors = parse_payload(payload, now_ms=int(time.time() * 1000), vehicle_id=vehicle_id,
-                                            max_bytes=s.max_payload_bytes, max_samples=s.max_samples_per_payload,
-                                            max_future_ms=int(s.max_future_s * 1000))
+            samples, errors = parse_payload(
+                payload,
+                now_ms=int(time.time() * 1000),
+                vehicle_id=vehicle_id,
+                max_bytes=s.max_payload_bytes,
+                max_samples=s.max_samples_per_payload,
+                max_future_ms=int(s.max_future_s * 1000),
+            )
         except PayloadError as exc:
             self.counters.unreadable_mqtt += 1
             self.reject(vehicle_id, [{"index": None, "field": exc.field, "reason": str(exc)}])
@@ -119,8 +125,11 @@ class Ingest:
 
     def stats(self) -> dict:
         """The pipeline's counters, its backlog and whether its writes fail (health: `pipeline`)."""
-        return {**self.pipeline.counters.to_dict(), "backlog": self.pipeline.backlog,
-                "storage_down": self.pipeline.storage_down}
+        return {
+            **self.pipeline.counters.to_dict(),
+            "backlog": self.pipeline.backlog,
+            "storage_down": self.pipeline.storage_down,
+        }
 
     def metrics(self) -> dict:
         """What the metrics need beside `stats` (roadgrip/cloud/metrics.py): the admission counters and the

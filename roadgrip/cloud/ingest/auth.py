@@ -50,8 +50,16 @@ def hash_secret(secret: str, *, salt: bytes | None = None) -> str:
     """'scrypt$n$r$p$salt$hash' with base64 salt and hash, for secrets a person may have chosen."""
     salt = secrets.token_bytes(16) if salt is None else salt
     digest = hashlib.scrypt(secret.encode(), salt=salt, n=_SCRYPT_N, r=_SCRYPT_R, p=_SCRYPT_P, dklen=32)
-    return "$".join(("scrypt", str(_SCRYPT_N), str(_SCRYPT_R), str(_SCRYPT_P), base64.b64encode(salt).decode(),
-                     base64.b64encode(digest).decode()))
+    return "$".join(
+        (
+            "scrypt",
+            str(_SCRYPT_N),
+            str(_SCRYPT_R),
+            str(_SCRYPT_P),
+            base64.b64encode(salt).decode(),
+            base64.b64encode(digest).decode(),
+        )
+    )
 
 
 def verify_secret(secret: str, stored: str) -> bool:
@@ -62,8 +70,9 @@ def verify_secret(secret: str, stored: str) -> bool:
         if scheme != "scrypt":
             return False
         expected = base64.b64decode(digest)
-        got = hashlib.scrypt(secret.encode(), salt=base64.b64decode(salt), n=int(n), r=int(r), p=int(p),
-                             dklen=len(expected))
+        got = hashlib.scrypt(
+            secret.encode(), salt=base64.b64decode(salt), n=int(n), r=int(r), p=int(p), dklen=len(expected)
+        )
     except (ValueError, TypeError):
         return False
     return hmac.compare_digest(got, expected)
@@ -88,8 +97,11 @@ class Authenticator:
         credential = self.storage.credential(name)
         if credential is None or credential.revoked:
             raise AuthError("invalid credentials")
-        if (cached is not None and cached[0].secret_hash == credential.secret_hash
-                and hmac.compare_digest(cached[1], fingerprint)):
+        if (
+            cached is not None
+            and cached[0].secret_hash == credential.secret_hash
+            and hmac.compare_digest(cached[1], fingerprint)
+        ):
             return credential
         if not verify_secret(secret, credential.secret_hash):
             raise AuthError("invalid credentials")

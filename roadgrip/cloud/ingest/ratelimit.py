@@ -55,11 +55,19 @@ class RateLimiter:
     (`time.monotonic()` in the service, a fake one in tests)."""
 
     def __init__(self, samples_per_s: float = 50.0, burst_s: float = 10.0):
-        if not (isinstance(samples_per_s, (int, float)) and not isinstance(samples_per_s, bool)
-                and math.isfinite(samples_per_s) and samples_per_s >= 0):
+        if not (
+            isinstance(samples_per_s, (int, float))
+            and not isinstance(samples_per_s, bool)
+            and math.isfinite(samples_per_s)
+            and samples_per_s >= 0
+        ):
             raise ValueError(f"samples_per_s must be a finite number >= 0 (0: no limit), got {samples_per_s!r}")
-        if not (isinstance(burst_s, (int, float)) and not isinstance(burst_s, bool) and math.isfinite(burst_s)
-                and burst_s > 0):
+        if not (
+            isinstance(burst_s, (int, float))
+            and not isinstance(burst_s, bool)
+            and math.isfinite(burst_s)
+            and burst_s > 0
+        ):
             raise ValueError(f"burst_s must be a finite number > 0, got {burst_s!r}")
         self.samples_per_s = float(samples_per_s)
         self.burst_s = float(burst_s)
@@ -104,14 +112,22 @@ class RateLimiter:
                 return ALLOWED
             tokens = bucket.tokens
         if n > burst:
-            return Decision(False, math.inf, f"{n} samples in one message exceed vehicle {vehicle_id}'s burst of "
-                                             f"{burst:g} samples (rate limit {self.samples_per_s:g} samples/s, "
-                                             f"{self.burst_s:g} s of burst): send at most {math.floor(burst)} a "
-                                             "message")
+            return Decision(
+                False,
+                math.inf,
+                f"{n} samples in one message exceed vehicle {vehicle_id}'s burst of "
+                f"{burst:g} samples (rate limit {self.samples_per_s:g} samples/s, "
+                f"{self.burst_s:g} s of burst): send at most {math.floor(burst)} a "
+                "message",
+            )
         wait_s = (n - tokens) / self.samples_per_s
-        return Decision(False, wait_s, f"vehicle {vehicle_id} is over its rate limit of {self.samples_per_s:g} "
-                                       f"samples/s ({self.burst_s:g} s of burst): {n} samples refused, none stored; "
-                                       f"retry in {wait_s:.1f} s")
+        return Decision(
+            False,
+            wait_s,
+            f"vehicle {vehicle_id} is over its rate limit of {self.samples_per_s:g} "
+            f"samples/s ({self.burst_s:g} s of burst): {n} samples refused, none stored; "
+            f"retry in {wait_s:.1f} s",
+        )
 
     def _forget_idle(self, now_s: float) -> None:
         """Drop the buckets unused for burst_s or longer: they are full again, as a new one would be."""

@@ -59,8 +59,16 @@ from roadgrip.data.telemetry import RANGES, VEHICLE_ID_RE
 from roadgrip.units import deg_to_rad, kmh_to_mps, mps_to_kmh, rad_to_deg
 
 JSON_TYPES = frozenset({"application/json"})
-NDJSON_TYPES = frozenset({"application/x-ndjson", "application/ndjson", "application/jsonl", "application/x-jsonl",
-                          "application/jsonlines", "application/x-jsonlines"})
+NDJSON_TYPES = frozenset(
+    {
+        "application/x-ndjson",
+        "application/ndjson",
+        "application/jsonl",
+        "application/x-jsonl",
+        "application/jsonlines",
+        "application/x-jsonlines",
+    }
+)
 _JSON_SPACE = " \t\r"  # JSON's whitespace, less the newline that ends an NDJSON line
 _OBJECTS_IN_A_ROW = re.compile(r"\}[ \t\r]*,[ \t\r]*\{")
 CLIP_CHARS = 40  # values and keys quoted in messages are cut to this many characters
@@ -88,9 +96,12 @@ VSS = {
     "Vehicle.Acceleration.Lateral": VssSignal("accel_lat_mps2", "m/s^2"),
     "Vehicle.AngularVelocity.Yaw": VssSignal("yaw_rate_radps", "deg/s", deg_to_rad, rad_to_deg),
     "Vehicle.Chassis.SteeringWheel.Angle": VssSignal("steering_wheel_angle_rad", "deg", deg_to_rad, rad_to_deg),
-    **{f"Vehicle.Chassis.Axle.{axle}.AngularSpeed": VssSignal(f"wheel_speed_{w}_radps", "deg/s", deg_to_rad,
-                                                              rad_to_deg)
-       for w, axle in _WHEEL_AXLES.items()},
+    **{
+        f"Vehicle.Chassis.Axle.{axle}.AngularSpeed": VssSignal(
+            f"wheel_speed_{w}_radps", "deg/s", deg_to_rad, rad_to_deg
+        )
+        for w, axle in _WHEEL_AXLES.items()
+    },
     "Vehicle.ADAS.ABS.IsEngaged": VssSignal("abs_active", "-"),
     "Vehicle.ADAS.CruiseControl.IsActive": VssSignal("acc_active", "-"),
     "Vehicle.ADAS.TCS.IsEngaged": VssSignal("tcs_active", "-"),
@@ -122,13 +133,25 @@ class SampleError:
     timestamp_ms: int | None = None
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "field": self.field, "reason": self.reason, "vehicle_id": self.vehicle_id,
-                "timestamp_ms": self.timestamp_ms}
+        return {
+            "index": self.index,
+            "field": self.field,
+            "reason": self.reason,
+            "vehicle_id": self.vehicle_id,
+            "timestamp_ms": self.timestamp_ms,
+        }
 
 
-def parse_payload(body: bytes, *, content_type: str | None = None, max_bytes: int = 1_048_576,
-                  max_samples: int = 10_000, now_ms: int, max_future_ms: int = 60_000,
-                  vehicle_id: str | None = None) -> tuple[list[dict], list[SampleError]]:
+def parse_payload(
+    body: bytes,
+    *,
+    content_type: str | None = None,
+    max_bytes: int = 1_048_576,
+    max_samples: int = 10_000,
+    now_ms: int,
+    max_future_ms: int = 60_000,
+    vehicle_id: str | None = None,
+) -> tuple[list[dict], list[SampleError]]:
     """Parse and validate a payload of telemetry (the rules are in the module docstring).
 
     `now_ms` is the server clock (ms since the Unix epoch); `vehicle_id` the vehicle whose credentials sent the payload
@@ -160,13 +183,21 @@ def parse_payload(body: bytes, *, content_type: str | None = None, max_bytes: in
 
 # ------------------------------------------------------------------------------------------------- the payload
 
+
 def _check_options(body, max_bytes, max_samples, now_ms, max_future_ms, vehicle_id) -> None:
     if not isinstance(body, (bytes, bytearray)):
         raise TypeError(f"body must be bytes, got {type(body).__name__}")
-    for name, value, low in (("max_bytes", max_bytes, 1), ("max_samples", max_samples, 1), ("now_ms", now_ms, 0),
-                             ("max_future_ms", max_future_ms, 0)):
-        if (type(value) is not int and (isinstance(value, bool) or not isinstance(value, numbers.Integral))
-                or value < low):
+    for name, value, low in (
+        ("max_bytes", max_bytes, 1),
+        ("max_samples", max_samples, 1),
+        ("now_ms", now_ms, 0),
+        ("max_future_ms", max_future_ms, 0),
+    ):
+        if (
+            type(value) is not int
+            and (isinstance(value, bool) or not isinstance(value, numbers.Integral))
+            or value < low
+        ):
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if vehicle_id is not None and not (isinstance(vehicle_id, str) and VEHICLE_ID_RE.fullmatch(vehicle_id)):
         raise ValueError(f"vehicle_id must be None or match {VEHICLE_ID_RE.pattern}, got {vehicle_id!r}")
@@ -181,8 +212,12 @@ def _kind(content_type: str | None) -> str | None:
         return "json"
     if media in NDJSON_TYPES:
         return "ndjson"
-    raise PayloadError(f"content type {_clip(content_type)!r} is not accepted: send application/json (an object or an "
-                       "array) or application/x-ndjson (one object per line)", status=415, field="content_type")
+    raise PayloadError(
+        f"content type {_clip(content_type)!r} is not accepted: send application/json (an object or an "
+        "array) or application/x-ndjson (one object per line)",
+        status=415,
+        field="content_type",
+    )
 
 
 def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, list[int] | None]:
@@ -203,8 +238,13 @@ def _documents(text: str, kind: str | None, max_samples: int) -> tuple[list, lis
             doc = _loads(text)
         except json.JSONDecodeError as e:
             hint = " (one object per line is NDJSON: send it as application/x-ndjson)" if e.msg == "Extra data" else ""
-            raise PayloadError(f"payload is not valid JSON: {e.msg} at line {e.lineno} column {e.colno}{hint}") from None
-        except (ValueError, RecursionError) as e:  # json's limit on integer digits, or nesting deeper than Python's stack
+            raise PayloadError(
+                f"payload is not valid JSON: {e.msg} at line {e.lineno} column {e.colno}{hint}"
+            ) from None
+        except (
+            ValueError,
+            RecursionError,
+        ) as e:  # json's limit on integer digits, or nesting deeper than Python's stack
             raise PayloadError(f"payload is not valid JSON: {_json_failure(e)}") from None
         return _json_samples(doc, max_samples), None
 
@@ -264,7 +304,9 @@ def _json_samples(doc, max_samples: int) -> list:
     if type(doc) is dict:
         return [doc]
     if type(doc) is not list:
-        raise PayloadError(f"a JSON payload must be an object (one sample) or an array of samples, got {_describe(doc)}")
+        raise PayloadError(
+            f"a JSON payload must be an object (one sample) or an array of samples, got {_describe(doc)}"
+        )
     if len(doc) > max_samples:
         raise PayloadError(f"payload holds {len(doc)} samples, more than the limit of {max_samples}", status=413)
     if not doc:
@@ -390,8 +432,11 @@ class _Checker:
             if name == "vehicle_id":
                 raise _Refused(_VIN, f"missing required field '{_VIN}' (or 'vehicle_id')")
             if name == "timestamp_ms":
-                raise _Refused(name, f"missing required field '{name}' (VSS has no sample time: send timestamp_ms, "
-                                     "integer ms since the Unix epoch, beside the VSS keys)")
+                raise _Refused(
+                    name,
+                    f"missing required field '{name}' (VSS has no sample time: send timestamp_ms, "
+                    "integer ms since the Unix epoch, beside the VSS keys)",
+                )
             raise _Refused(_WIRE_TO_VSS[name], f"missing required field '{_WIRE_TO_VSS[name]}'")
 
     def _vehicle(self, vid, labels: dict | None) -> None:
@@ -411,15 +456,20 @@ class _Checker:
         elif type(ts) is float and math.isfinite(ts):
             raise _Refused("timestamp_ms", f"timestamp_ms {ts!r} is not a whole number of milliseconds")
         elif type(ts) is not int:
-            raise _Refused("timestamp_ms", "timestamp_ms must be an integer number of milliseconds since the Unix "
-                                           f"epoch, got {_describe(ts)}")
+            raise _Refused(
+                "timestamp_ms",
+                f"timestamp_ms must be an integer number of milliseconds since the Unix epoch, got {_describe(ts)}",
+            )
         if ts < 0:
             raise _Refused("timestamp_ms", f"timestamp_ms {_show(ts)} must be >= 0")
         if ts > self.latest_ms:
             ahead_ms = ts - self.now_ms
             ahead = f"{ahead_ms / 1000:.1f} s" if ahead_ms < 10**18 else "more than 10^15 s"
-            raise _Refused("timestamp_ms", f"timestamp_ms {_show(ts)} is {ahead} in the future (limit "
-                                           f"{self.max_future_ms / 1000:g} s; server time {self.now_ms})")
+            raise _Refused(
+                "timestamp_ms",
+                f"timestamp_ms {_show(ts)} is {ahead} in the future (limit "
+                f"{self.max_future_ms / 1000:g} s; server time {self.now_ms})",
+            )
         return ts
 
 
@@ -443,8 +493,11 @@ def _from_vss(doc: dict) -> tuple[dict, dict]:
         elif key in VSS_PLAIN_KEYS:
             wire = key
         else:
-            raise _Refused(key, f"wire field '{key}' mixed with VSS keys: a sample is either wire format v1 or VSS "
-                                f"(only {' and '.join(VSS_PLAIN_KEYS)} may stand beside VSS keys)")
+            raise _Refused(
+                key,
+                f"wire field '{key}' mixed with VSS keys: a sample is either wire format v1 or VSS "
+                f"(only {' and '.join(VSS_PLAIN_KEYS)} may stand beside VSS keys)",
+            )
         if wire in sample and sample[wire] != value:  # only vehicle_id beside Vehicle.VehicleIdentification.VIN
             vin, plain = (value, sample[wire]) if key == _VIN else (sample[wire], value)
             raise _Refused(_VIN, f"{_VIN} {_quote(vin)} and vehicle_id {_quote(plain)} differ: send one of them")
@@ -454,8 +507,10 @@ def _from_vss(doc: dict) -> tuple[dict, dict]:
 
 def _unknown(key: str, names) -> str:
     if key == "t_s":
-        return ("unknown field 't_s': the wire format takes timestamp_ms (integer ms since the Unix epoch, UTC), "
-                "not t_s, which only files may use")
+        return (
+            "unknown field 't_s': the wire format takes timestamp_ms (integer ms since the Unix epoch, UTC), "
+            "not t_s, which only files may use"
+        )
     close = difflib.get_close_matches(key, names, n=1) if len(key) <= 100 else []
     return f"unknown field '{_clip(key)}'" + (f" (did you mean '{close[0]}'?)" if close else "")
 
@@ -495,8 +550,9 @@ def _identity(doc, vehicle_id: str | None) -> tuple[str | None, int | None]:
 
 # ------------------------------------------------------------------------------------------------- messages
 
+
 def _clip(text: str) -> str:
-    return text if len(text) <= CLIP_CHARS else text[:CLIP_CHARS - 3] + "..."
+    return text if len(text) <= CLIP_CHARS else text[: CLIP_CHARS - 3] + "..."
 
 
 def _quote(value) -> str:

@@ -117,16 +117,22 @@ class _Stream(Protocol):
     state: object
     last_estimated_ms: int | None
     checkpoint_at_ms: float  # data time at which the vehicle is due (inf: due, or nothing estimated to write yet)
-    written_ms: int | None   # last_estimated_ms of the stored state
+    written_ms: int | None  # last_estimated_ms of the stored state
 
 
 class Checkpoints:
     """A pipeline's checkpoints (module docstring). Called from the pipeline's thread only; `counters` is the
     pipeline's PipelineCounters (checkpoints_written, checkpoints_restored, checkpoint_s)."""
 
-    def __init__(self, storage: Storage, estimator: Estimator, counters,
-                 interval_ms: int = CHECKPOINT_INTERVAL_MS, round_s: float = CHECKPOINT_ROUND_S,
-                 per_round: int = MAX_CHECKPOINTS_PER_ROUND):
+    def __init__(
+        self,
+        storage: Storage,
+        estimator: Estimator,
+        counters,
+        interval_ms: int = CHECKPOINT_INTERVAL_MS,
+        round_s: float = CHECKPOINT_ROUND_S,
+        per_round: int = MAX_CHECKPOINTS_PER_ROUND,
+    ):
         self.storage = storage
         self.estimator = estimator
         self.counters = counters
@@ -170,12 +176,16 @@ class Checkpoints:
 
     def write_all(self, streams: Mapping[str, _Stream]) -> None:
         """Every vehicle estimated since its last checkpoint (the pipeline stops)."""
-        changed = [v for v, s in streams.items() if s.last_estimated_ms is not None
-                   and s.last_estimated_ms != s.written_ms]
+        changed = [
+            v for v, s in streams.items() if s.last_estimated_ms is not None and s.last_estimated_ms != s.written_ms
+        ]
         for start in range(0, len(changed), STOP_CHUNK):
-            if not self._write(changed[start:start + STOP_CHUNK], streams):
-                log.error("the estimator states of %d vehicles were not stored at the stop: they restart "
-                          "from their last checkpoint", len(changed) - start)
+            if not self._write(changed[start : start + STOP_CHUNK], streams):
+                log.error(
+                    "the estimator states of %d vehicles were not stored at the stop: they restart "
+                    "from their last checkpoint",
+                    len(changed) - start,
+                )
                 return
         self._due.clear()
 

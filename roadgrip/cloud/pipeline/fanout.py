@@ -57,21 +57,35 @@ def new_friction_map(settings: Settings, **overrides) -> FrictionMap:
     """The friction map of the settings (resolution, half-life, age limit, the warnings' pass gap: one pass rule for
     both, roadgrip/cloud/domain/passes.py), as serve and the region owners build it; `overrides`: FrictionMap
     arguments that replace the settings' (a study's). The one Settings-to-map mapping."""
-    return FrictionMap(**{"resolution": settings.h3_resolution, "half_life_s": settings.map_half_life_s,
-                          "max_age_s": settings.map_max_age_s, "pass_gap_s": settings.warning_pass_gap_s,
-                          **overrides})
+    return FrictionMap(
+        **{
+            "resolution": settings.h3_resolution,
+            "half_life_s": settings.map_half_life_s,
+            "max_age_s": settings.map_max_age_s,
+            "pass_gap_s": settings.warning_pass_gap_s,
+            **overrides,
+        }
+    )
 
 
 def new_warning_engine(settings: Settings, action_sequence=None, **overrides) -> WarningEngine:
     """The warning engine of the settings, as serve and the region owners build it; `action_sequence` as WarningEngine
     takes it; `overrides`: WarningEngine arguments that replace the settings' (the fleet benchmark's sweep). The one
     Settings-to-engine mapping."""
-    return WarningEngine(**{
-        "resolution": settings.h3_resolution, "threshold_mu": settings.warning_threshold_mu,
-        "min_low_passes": settings.warning_min_low_passes, "min_dry_passes": settings.warning_min_dry_passes,
-        "pass_gap_s": settings.warning_pass_gap_s, "min_excited_per_pass": settings.warning_min_excited_per_pass,
-        "validity_s": settings.warning_validity_s, "station_id": settings.station_id,
-        "action_sequence": action_sequence, **overrides})
+    return WarningEngine(
+        **{
+            "resolution": settings.h3_resolution,
+            "threshold_mu": settings.warning_threshold_mu,
+            "min_low_passes": settings.warning_min_low_passes,
+            "min_dry_passes": settings.warning_min_dry_passes,
+            "pass_gap_s": settings.warning_pass_gap_s,
+            "min_excited_per_pass": settings.warning_min_excited_per_pass,
+            "validity_s": settings.warning_validity_s,
+            "station_id": settings.station_id,
+            "action_sequence": action_sequence,
+            **overrides,
+        }
+    )
 
 
 class RegionSink(Protocol):
@@ -134,8 +148,15 @@ class RegionFanout:
     `store` and their DENMs published. Its clock (`now_ms`): the server's, or with map_clock "data" the newest sample
     of the rounds it was given. Not thread-safe: one caller at a time."""
 
-    def __init__(self, store: WarningsStore, settings: Settings, friction_map: FrictionMap,
-                 warning_engine: WarningEngine, publish=None, clock=time.time):
+    def __init__(
+        self,
+        store: WarningsStore,
+        settings: Settings,
+        friction_map: FrictionMap,
+        warning_engine: WarningEngine,
+        publish=None,
+        clock=time.time,
+    ):
         self.store = store
         self.settings = settings
         self.friction_map = friction_map
@@ -176,8 +197,9 @@ class RegionFanout:
         """Without new estimates, let the server's clock end passes and expire warnings (a region owner calls it
         about once a second; serve's one region is updated by every round of any vehicle instead). Nothing with the
         data clock, which only data moves."""
-        if self.settings.map_clock == "data" or not (self.warning_engine.open_passes_
-                                                      or self.warning_engine.active_cells_):
+        if self.settings.map_clock == "data" or not (
+            self.warning_engine.open_passes_ or self.warning_engine.active_cells_
+        ):
             return
         now_ms = self.now_ms()
         self.friction_map.add([], now_ms)  # idle passes end in the map as in the engine (domain/passes.py)
@@ -188,14 +210,30 @@ class RegionFanout:
         transaction), counted, logged (raised and ended at WARNING; a refresh, every low pass in a warned cell, at
         DEBUG) and their DENMs published."""
         denms = [denm(event) for event in events]
-        self.store.put_warnings([{"warning_id": e.warning_id, "cell": e.cell, "status": e.status,
-                                  "detection_ms": e.detection_ms, "updated_ms": e.updated_ms,
-                                  "message": {"denm": d, "event": dataclasses.asdict(e)}}
-                                 for e, d in zip(events, denms)])
+        self.store.put_warnings(
+            [
+                {
+                    "warning_id": e.warning_id,
+                    "cell": e.cell,
+                    "status": e.status,
+                    "detection_ms": e.detection_ms,
+                    "updated_ms": e.updated_ms,
+                    "message": {"denm": d, "event": dataclasses.asdict(e)},
+                }
+                for e, d in zip(events, denms)
+            ]
+        )
         for event in events:
             self.warning_changes[_change(event)] += 1
-            log.log(logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
-                    "warning %s %s in cell %s (%s%s)", event.warning_id, event.status, event.cell, event.reason, source)
+            log.log(
+                logging.DEBUG if event.sequence_number and event.status == "active" else logging.WARNING,
+                "warning %s %s in cell %s (%s%s)",
+                event.warning_id,
+                event.status,
+                event.cell,
+                event.reason,
+                source,
+            )
         if self.publish is not None:
             for message in denms:
                 self.publish(WARNINGS_TOPIC, orjson.dumps(message))
@@ -206,8 +244,15 @@ class Fanout:
     `clock` (callable() -> s; a test's fake one): both parts read it; by default each its own (time.time for the map
     and warnings, time.monotonic for the publish interval)."""
 
-    def __init__(self, storage: Storage, settings: Settings, friction_map: FrictionMap,
-                 warning_engine: WarningEngine, publish=None, clock=None):
+    def __init__(
+        self,
+        storage: Storage,
+        settings: Settings,
+        friction_map: FrictionMap,
+        warning_engine: WarningEngine,
+        publish=None,
+        clock=None,
+    ):
         self.storage = storage
         self.settings = settings
         clocks = {} if clock is None else {"clock": clock}

@@ -21,8 +21,9 @@ import numpy as np
 class LatencyRecorder:
     def __init__(self, window: int = 100_000, bin_ms: float = 10.0, max_ms: float = 600_000.0):
         if window < 1 or bin_ms <= 0 or max_ms <= bin_ms:
-            raise ValueError(f"need window >= 1 and 0 < bin_ms < max_ms, got window={window!r}, bin_ms={bin_ms!r}, "
-                             f"max_ms={max_ms!r}")
+            raise ValueError(
+                f"need window >= 1 and 0 < bin_ms < max_ms, got window={window!r}, bin_ms={bin_ms!r}, max_ms={max_ms!r}"
+            )
         self.bin_ms = float(bin_ms)
         self.max_ms = float(max_ms)
         self._bins = int(np.ceil(max_ms / bin_ms))
@@ -50,6 +51,5 @@ class LatencyRecorder:
         if n == 0:
             return {"p50_ms": None, "p99_ms": None, "n": 0, "over_max": 0}
         cumulative = np.cumsum(self._histogram)
-        p50, p99 = (min(self.max_ms, (int(np.searchsorted(cumulative, q * n)) + 1) * self.bin_ms)
-                    for q in (0.5, 0.99))
+        p50, p99 = (min(self.max_ms, (int(np.searchsorted(cumulative, q * n)) + 1) * self.bin_ms) for q in (0.5, 0.99))
         return {"p50_ms": p50, "p99_ms": p99, "n": n, "over_max": int(self._histogram[-1])}

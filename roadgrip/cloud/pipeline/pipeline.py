@@ -78,7 +78,7 @@ class StoredSink(Protocol):
 
 @dataclass(frozen=True)
 class SubmitResult:
-    stored: int      # samples newly stored
+    stored: int  # samples newly stored
     duplicates: int  # samples already stored before (or twice in the submission)
 
 
@@ -108,13 +108,13 @@ class _Held:
 @dataclass
 class _VehicleStream:
     state: object
-    pending: list = field(default_factory=list)   # heap of (timestamp_ms, seq, sample)
+    pending: list = field(default_factory=list)  # heap of (timestamp_ms, seq, sample)
     newest_ms: int = -1
     last_estimated_ms: int | None = None
     last_arrival_s: float = 0.0
-    stored: set = field(default_factory=set)      # timestamps stored within DEDUP_HORIZON_MS of newest_ms
+    stored: set = field(default_factory=set)  # timestamps stored within DEDUP_HORIZON_MS of newest_ms
     checkpoint_at_ms: float = math.inf  # data time at which its state is due for a checkpoint (Checkpoints)
-    written_ms: int | None = None       # last_estimated_ms of its stored state
+    written_ms: int | None = None  # last_estimated_ms of its stored state
 
 
 @dataclass
@@ -132,10 +132,10 @@ class PipelineCounters:
     slow_rounds: int = 0  # rounds that took longer than SLOW_ROUND_S
     # seconds spent since start, by part of the round: where a stall went
     estimate_s: float = 0.0  # reorder buffers and the estimator
-    write_s: float = 0.0     # the round's transaction (telemetry and estimates)
-    checkpoints_written: int = 0   # estimator states stored (roadgrip/cloud/pipeline/checkpoints.py)
+    write_s: float = 0.0  # the round's transaction (telemetry and estimates)
+    checkpoints_written: int = 0  # estimator states stored (roadgrip/cloud/pipeline/checkpoints.py)
     checkpoints_restored: int = 0  # vehicles that went on from a stored estimator state
-    checkpoint_s: float = 0.0      # seconds spent storing estimator states
+    checkpoint_s: float = 0.0  # seconds spent storing estimator states
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -148,8 +148,15 @@ class Pipeline:
     (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not. `clock` (callable() -> s, monotonic; a test's
     fake one): the reorder window's (when a vehicle's samples arrived) and the storage retry's backoff."""
 
-    def __init__(self, storage: Storage, settings: Settings, estimator: Estimator, sink: StoredSink,
-                 skip_estimated: bool = False, clock=time.monotonic):
+    def __init__(
+        self,
+        storage: Storage,
+        settings: Settings,
+        estimator: Estimator,
+        sink: StoredSink,
+        skip_estimated: bool = False,
+        clock=time.monotonic,
+    ):
         self.storage = storage
         self.settings = settings
         self.estimator = estimator
@@ -284,8 +291,9 @@ class Pipeline:
 
     def _checkpoint_all(self) -> None:
         if self.storage_down:
-            log.error("storage is down at the stop: the estimator states of %d vehicles were not stored",
-                      len(self._streams))
+            log.error(
+                "storage is down at the stop: the estimator states of %d vehicles were not stored", len(self._streams)
+            )
             return
         try:
             self.checkpoints.write_all(self._streams)
@@ -305,8 +313,9 @@ class Pipeline:
             self._profiles.pop(vehicle_id, None)
             self._streams.pop(vehicle_id, None)
         if self._held is not None and not self._write_held():
-            self._refuse_or_keep(inbox, StorageUnavailable("storage is down; the service holds what it "
-                                                           "acknowledged until it is back"))
+            self._refuse_or_keep(
+                inbox, StorageUnavailable("storage is down; the service holds what it acknowledged until it is back")
+            )
             return
         try:
             for sub in inbox:  # every profile first: a storage failure here leaves nothing half done
@@ -381,8 +390,9 @@ class Pipeline:
         finally:
             self.counters.write_s += time.perf_counter() - started
         if self._failures:
-            log.warning("storage is back after %d failed tries; wrote the %d samples held", self._failures,
-                        len(held.rows))
+            log.warning(
+                "storage is back after %d failed tries; wrote the %d samples held", self._failures, len(held.rows)
+            )
         self._held, self._failures, self._retry_at = None, 0, 0.0
         for sub, timestamps in held.results:
             stored = len(timestamps) - (sum((sub.vehicle_id, ts) in repeats for ts in timestamps) if repeats else 0)
@@ -425,8 +435,10 @@ class Pipeline:
         first_ms: dict[str, float] = {}
         for sub in inbox:
             if sub.vehicle_id not in self._streams:
-                first_ms[sub.vehicle_id] = min(first_ms.get(sub.vehicle_id, math.inf),
-                                               min((s["timestamp_ms"] for s in sub.samples), default=math.inf))
+                first_ms[sub.vehicle_id] = min(
+                    first_ms.get(sub.vehicle_id, math.inf),
+                    min((s["timestamp_ms"] for s in sub.samples), default=math.inf),
+                )
         if not first_ms:
             return
         states = self.checkpoints.start_states({v: self._profiles[v] for v in first_ms})
@@ -438,8 +450,10 @@ class Pipeline:
                     estimated_ms[vehicle_id] = stored[-1]["timestamp_ms"]
         for vehicle_id, state in states.items():
             self._streams[vehicle_id] = _VehicleStream(
-                state, last_estimated_ms=estimated_ms.get(vehicle_id),
-                checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]))
+                state,
+                last_estimated_ms=estimated_ms.get(vehicle_id),
+                checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]),
+            )
 
     def _profile(self, vehicle_id: str) -> VehicleParams:
         params = self._profiles.get(vehicle_id)

@@ -87,9 +87,13 @@ class CloudService:
             self.ingest = Ingest(s, Pipeline(self.storage, s, estimator, self.fanout), reject=self._reject_mqtt)
         self.ingest.start()
         self._start_mqtt()
-        log.info("cloud started: storage %s, mqtt %s, estimator %s, ingest %s", self.storage,
-                 self.mqtt_url or "off", s.estimator,
-                 f"in {s.ingest_processes} processes" if s.ingest_processes else "in this process")
+        log.info(
+            "cloud started: storage %s, mqtt %s, estimator %s, ingest %s",
+            self.storage,
+            self.mqtt_url or "off",
+            s.estimator,
+            f"in {s.ingest_processes} processes" if s.ingest_processes else "in this process",
+        )
 
     def stop(self) -> None:
         if self.mqtt is not None:
@@ -135,16 +139,28 @@ class CloudService:
         self.warning_engine.restore(active)
         reports = self.storage.station_reports_since(since)
         self.friction_map.add_station([row for report in reports for row in self._evidence_of(report)])
-        log.info("restored the map from %d stored estimates, %d station reports and %d active warnings", len(rows),
-                 len(reports), len(active))
+        log.info(
+            "restored the map from %d stored estimates, %d station reports and %d active warnings",
+            len(rows),
+            len(reports),
+            len(active),
+        )
 
     def _evidence_of(self, stored: dict) -> list[dict]:
         """A stored station report's evidence rows, one per covered cell it was stored with."""
         if stored["mu"] is None:
             return []
-        return [{"station_id": stored["station_id"], "cell": cell, "timestamp_ms": stored["timestamp_ms"],
-                 "mu": stored["mu"], "mu_lower": stored["mu_lower"], "mu_upper": stored["mu_upper"]}
-                for cell in stored["cells"]]
+        return [
+            {
+                "station_id": stored["station_id"],
+                "cell": cell,
+                "timestamp_ms": stored["timestamp_ms"],
+                "mu": stored["mu"],
+                "mu_lower": stored["mu_lower"],
+                "mu_upper": stored["mu_upper"],
+            }
+            for cell in stored["cells"]
+        ]
 
     # ------------------------------------------------------------------------------------------------- MQTT
     def _start_mqtt(self) -> None:
@@ -155,8 +171,10 @@ class CloudService:
         if mode in ("auto", "managed"):
             if not mosquitto_available():
                 if mode == "managed":
-                    raise RuntimeError("mqtt=managed but mosquitto is not installed: run "
-                                       "`bash scripts/install_system_deps.sh` or set mqtt to a broker URL")
+                    raise RuntimeError(
+                        "mqtt=managed but mosquitto is not installed: run "
+                        "`bash scripts/install_system_deps.sh` or set mqtt to a broker URL"
+                    )
                 log.warning("mosquitto is not installed: serving HTTP ingest only")
                 return
             self.broker = ManagedBroker(Path(s.data_dir) / "mosquitto", port=s.mqtt_port)
@@ -170,9 +188,15 @@ class CloudService:
             username, password = s.mqtt_username, s.mqtt_password
         # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, Mosquitto's default
         self._station_worker = ThreadPoolExecutor(1, thread_name_prefix="station-reports")
-        self.mqtt = MqttClient(self.mqtt_url, username, password, client_id="roadgrip-cloud",
-                               on_telemetry=self.ingest.mqtt_message, on_station_report=self._station_message,
-                               max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT)
+        self.mqtt = MqttClient(
+            self.mqtt_url,
+            username,
+            password,
+            client_id="roadgrip-cloud",
+            on_telemetry=self.ingest.mqtt_message,
+            on_station_report=self._station_message,
+            max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT,
+        )
         self.mqtt.connect()
 
     def _publish(self, topic: str, payload: bytes) -> None:
@@ -181,8 +205,11 @@ class CloudService:
         if topic.rsplit("/", 1)[-1] == "friction" and self.mqtt.unacknowledged > MAX_UNACKNOWLEDGED_ESTIMATES:
             self.estimate_messages_dropped += 1
             if self.estimate_messages_dropped % 1000 == 1:
-                log.warning("%d publishes wait for the broker: dropped %d estimate messages so far (the estimates "
-                            "are stored)", self.mqtt.unacknowledged, self.estimate_messages_dropped)
+                log.warning(
+                    "%d publishes wait for the broker: dropped %d estimate messages so far (the estimates are stored)",
+                    self.mqtt.unacknowledged,
+                    self.estimate_messages_dropped,
+                )
             return
         self.mqtt.publish(topic, payload)
 
@@ -190,8 +217,7 @@ class CloudService:
         """Rejections of an MQTT message (roadgrip/cloud/ingest/admission.py): counted, logged, published on the vehicle's error
         topic."""
         self.mqtt_rejected += len(errors)
-        log.warning("rejected %d sample(s) from vehicle %s over MQTT: %s", len(errors), vehicle_id,
-                    errors[0]["reason"])
+        log.warning("rejected %d sample(s) from vehicle %s over MQTT: %s", len(errors), vehicle_id, errors[0]["reason"])
         # json, not orjson: a reason quotes what was sent, which may hold a lone surrogate (escaped by json)
         self._publish(errors_topic(vehicle_id), json.dumps({"vehicle_id": vehicle_id, "rejected": errors}).encode())
 
@@ -214,13 +240,16 @@ class CloudService:
     def _handle_station_message(self, station_id: str, payload: bytes, ack) -> None:
         s = self.settings
         try:
-            reports = parse_reports(payload, station_id=station_id, now_ms=int(time.time() * 1000),
-                                    max_future_ms=int(s.max_future_s * 1000))
+            reports = parse_reports(
+                payload, station_id=station_id, now_ms=int(time.time() * 1000), max_future_ms=int(s.max_future_s * 1000)
+            )
         except ReportError as exc:
             self.mqtt_rejected += 1
             log.warning("rejected a message of station %s over MQTT: %s", station_id, exc)
-            self._publish(station_errors_topic(station_id), json.dumps({"station_id": station_id,
-                                                                        "rejected": [exc.to_dict()]}).encode())
+            self._publish(
+                station_errors_topic(station_id),
+                json.dumps({"station_id": station_id, "rejected": [exc.to_dict()]}).encode(),
+            )
             ack()
             return
         try:
@@ -236,8 +265,12 @@ class CloudService:
         returns their secrets. All or nothing (one transaction): ValueError when a vehicle_id is taken or given
         twice."""
         secrets_ = [new_secret() for _ in vehicles]
-        self.storage.register_vehicles([(vehicle_id, profile.to_dict(), hash_token(secret))
-                                        for (vehicle_id, profile), secret in zip(vehicles, secrets_)])
+        self.storage.register_vehicles(
+            [
+                (vehicle_id, profile.to_dict(), hash_token(secret))
+                for (vehicle_id, profile), secret in zip(vehicles, secrets_)
+            ]
+        )
         for vehicle_id, _ in vehicles:
             self.ingest.forget_vehicle(vehicle_id)
         if self.broker is not None:
@@ -284,24 +317,33 @@ class CloudService:
         return ServiceCollector(self)
 
     def health(self) -> dict:
-        status = {"status": "ok", "storage": "ok", "mqtt": "off" if self.mqtt is None else
-                  ("connected" if self.mqtt.connected else "disconnected")}
+        status = {
+            "status": "ok",
+            "storage": "ok",
+            "mqtt": "off" if self.mqtt is None else ("connected" if self.mqtt.connected else "disconnected"),
+        }
         try:
             self.storage.ping()
         except StorageUnavailable as exc:
             status.update(status="unavailable", storage=str(exc))
         ingest = self.ingest.stats()
         if ingest.pop("storage_down"):
-            status.update(status="unavailable", storage=status["storage"] if status["storage"] != "ok"
-                          else "writes failing; retrying")
+            status.update(
+                status="unavailable",
+                storage=status["storage"] if status["storage"] != "ok" else "writes failing; retrying",
+            )
         if self.mqtt is not None and not self.mqtt.connected:
             status["status"] = "degraded" if status["status"] == "ok" else status["status"]
         processes = ingest.get("ingest_processes", [])
-        status["pipeline"] = {**ingest, "fanout_s": self.fanout.busy_s, "mqtt_rejected": self.mqtt_rejected,
-                              "mqtt_unacknowledged": None if self.mqtt is None else self.mqtt.unacknowledged,
-                              "estimate_messages_dropped": self.estimate_messages_dropped,
-                              "latency": self.fanout.latency.recent(),
-                              "latency_since_start": self.fanout.latency.since_start()}
+        status["pipeline"] = {
+            **ingest,
+            "fanout_s": self.fanout.busy_s,
+            "mqtt_rejected": self.mqtt_rejected,
+            "mqtt_unacknowledged": None if self.mqtt is None else self.mqtt.unacknowledged,
+            "estimate_messages_dropped": self.estimate_messages_dropped,
+            "latency": self.fanout.latency.recent(),
+            "latency_since_start": self.fanout.latency.since_start(),
+        }
         # the service's processes together: this one and its ingest processes
         own = rss_mb()
         status["memory_rss_mb"] = None if own is None else own + sum(p["rss_mb"] or 0.0 for p in processes)

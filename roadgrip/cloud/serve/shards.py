@@ -110,13 +110,17 @@ class IngestShards:
                     shard.process.kill()
             raise
         for shard in self._shards:
-            shard.reader = threading.Thread(target=self._read, args=(shard,), name=f"roadgrip-ingest-{shard.index}",
-                                            daemon=True)
+            shard.reader = threading.Thread(
+                target=self._read, args=(shard,), name=f"roadgrip-ingest-{shard.index}", daemon=True
+            )
             shard.reader.start()
         self._ticker = threading.Thread(target=self._tick, name="roadgrip-fanout", daemon=True)
         self._ticker.start()
-        log.info("%d ingest processes started (pids %s)", len(self._shards),
-                 ", ".join(str(s.process.pid) for s in self._shards))
+        log.info(
+            "%d ingest processes started (pids %s)",
+            len(self._shards),
+            ", ".join(str(s.process.pid) for s in self._shards),
+        )
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Each ingest process stores what it was given and stops; then the last estimates are published."""
@@ -145,8 +149,11 @@ class IngestShards:
     def _launch(self, shard: _Shard) -> None:
         conn, child = self._context.Pipe()
         shard.process = self._context.Process(
-            target=serve_shard, args=(shard.index, self.settings.model_dump(), child, logging.getLogger().level),
-            name=f"roadgrip-ingest-{shard.index}", daemon=True)
+            target=serve_shard,
+            args=(shard.index, self.settings.model_dump(), child, logging.getLogger().level),
+            name=f"roadgrip-ingest-{shard.index}",
+            daemon=True,
+        )
         shard.process.start()
         child.close()
         shard.conn = conn
@@ -158,8 +165,9 @@ class IngestShards:
         try:
             message = shard.conn.recv()
         except EOFError:
-            raise RuntimeError(f"ingest process {shard.index} exited while starting (exit code "
-                               f"{shard.process.exitcode})") from None
+            raise RuntimeError(
+                f"ingest process {shard.index} exited while starting (exit code {shard.process.exitcode})"
+            ) from None
         if message[0] != "ready":
             raise RuntimeError(f"ingest process {shard.index} failed to start:\n{message[1]}")
 
@@ -177,6 +185,7 @@ class IngestShards:
             with shard.lock:
                 shard.requests[request] = future
                 self._send(shard, ("submit", request, vehicle_id, samples, received))
+
         self._sender.submit(send)
         return future
 
@@ -201,14 +210,21 @@ class IngestShards:
         summed: dict = {}
         for key in PipelineCounters.__dataclass_fields__:
             values = [part[key] for part in parts]
-            summed[key] = (max(values, default=0.0) if key in _MAX_OF else sum(values))
+            summed[key] = max(values, default=0.0) if key in _MAX_OF else sum(values)
         summed["backlog"] = sum(part["backlog"] for part in parts)
         summed["storage_down"] = any(part["storage_down"] for part in parts)
         summed["forwarded_unacknowledged"] = sum(len(shard.pending) for shard in self._shards)
-        summed["ingest_processes"] = [{"index": shard.index, "pid": shard.process.pid,
-                                       "alive": shard.process.is_alive(), "restarts": shard.restarts,
-                                       "backlog": shard.stats.get("backlog"), "rss_mb": rss_mb(shard.process.pid)}
-                                      for shard in self._shards]
+        summed["ingest_processes"] = [
+            {
+                "index": shard.index,
+                "pid": shard.process.pid,
+                "alive": shard.process.is_alive(),
+                "restarts": shard.restarts,
+                "backlog": shard.stats.get("backlog"),
+                "rss_mb": rss_mb(shard.process.pid),
+            }
+            for shard in self._shards
+        ]
         return summed
 
     def views(self) -> list[ProcessView]:
@@ -218,9 +234,17 @@ class IngestShards:
             if not shard.stats:
                 continue
             rss = rss_mb(shard.process.pid)
-            views.append(ProcessView(f"ingest-{shard.index}", shard.stats, shard.metrics, restarts=shard.restarts,
-                                     alive=shard.process.is_alive(), rss_bytes=None if rss is None else rss * 2**20,
-                                     forwarded_unacknowledged=len(shard.pending)))
+            views.append(
+                ProcessView(
+                    f"ingest-{shard.index}",
+                    shard.stats,
+                    shard.metrics,
+                    restarts=shard.restarts,
+                    alive=shard.process.is_alive(),
+                    rss_bytes=None if rss is None else rss * 2**20,
+                    forwarded_unacknowledged=len(shard.pending),
+                )
+            )
         return views
 
     # ------------------------------------------------------------------------------------------------- the channels
@@ -272,8 +296,13 @@ class IngestShards:
     def _restart(self, shard: _Shard) -> None:
         shard.process.join(5.0)
         shard.restarts += 1
-        log.error("ingest process %d stopped (exit code %s): starting it again, with the %d MQTT messages it had "
-                  "not acknowledged", shard.index, shard.process.exitcode, len(shard.pending))
+        log.error(
+            "ingest process %d stopped (exit code %s): starting it again, with the %d MQTT messages it had "
+            "not acknowledged",
+            shard.index,
+            shard.process.exitcode,
+            len(shard.pending),
+        )
         with shard.lock:
             failed = IngestUnavailable(f"ingest process {shard.index} stopped; nothing was acknowledged, send again")
             for future in shard.requests.values():
@@ -284,8 +313,7 @@ class IngestShards:
                 self._launch(shard)
                 self._await_ready(shard)
             except Exception:
-                log.exception("ingest process %d failed to start; trying again in %.0f s", shard.index,
-                              RESTART_DELAY_S)
+                log.exception("ingest process %d failed to start; trying again in %.0f s", shard.index, RESTART_DELAY_S)
                 time.sleep(RESTART_DELAY_S)
                 return  # the reader finds the channel closed and comes back here
         # forwarded again from another thread: this one must go on reading (the process answers as it reads)
@@ -346,6 +374,7 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
                 conn.send(message)
             except OSError:  # the service is gone: what is stored stays, what is not acknowledged comes again
                 pass
+
     try:
         settings = Settings(**settings_fields)
         storage = open_storage(settings.storage_url)
@@ -356,8 +385,11 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
         send(("failed", traceback.format_exc()))
         return
     sink = _ToService(send)
-    ingest = sink.ingest = Ingest(settings, Pipeline(storage, settings, estimator, sink),
-                                  reject=lambda vehicle_id, errors: send(("reject", vehicle_id, errors)))
+    ingest = sink.ingest = Ingest(
+        settings,
+        Pipeline(storage, settings, estimator, sink),
+        reject=lambda vehicle_id, errors: send(("reject", vehicle_id, errors)),
+    )
     tune_memory_for_serving()
     send(("ready",))  # before the pipeline's first counters
     ingest.start()
@@ -378,7 +410,8 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
             elif kind == "submit":
                 _, request, vehicle_id, samples, received = message
                 ingest.submit(vehicle_id, samples, received).add_done_callback(
-                    functools.partial(_answer, send, request))
+                    functools.partial(_answer, send, request)
+                )
             elif kind == "forget":
                 ingest.forget_vehicle(message[1])
             elif kind == "stop":

@@ -87,4 +87,3 @@ def checked_rows(kind: str, rows: list[dict], table: Table) -> list[dict]:
 def check_limit(limit: int) -> None:
     if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
         raise ValueError(f"limit must be a positive integer, got {limit!r}")
-

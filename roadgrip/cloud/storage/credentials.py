@@ -27,8 +27,14 @@ class Credentials:
     def __init__(self, db: Database):
         self._db = db
 
-    def add_credential(self, name: str, role: str, secret_hash: str, vehicle_id: str | None = None,
-                       before_commit: Callable[[], None] | None = None) -> None:
+    def add_credential(
+        self,
+        name: str,
+        role: str,
+        secret_hash: str,
+        vehicle_id: str | None = None,
+        before_commit: Callable[[], None] | None = None,
+    ) -> None:
         """Store a new credential. A "vehicle" credential's name is its vehicle's id (vehicle_id defaults to it);
         readers and admins have no vehicle_id. ValueError if `name` is taken. `before_commit` (as in
         `register_vehicles`) runs once the row is in, before the commit."""
@@ -39,12 +45,19 @@ class Credentials:
         if role == "vehicle":
             vehicle_id = name if vehicle_id is None else vehicle_id
             if vehicle_id != name:
-                raise ValueError(f"a vehicle credential is named by its vehicle's id: name {name!r}, "
-                                 f"vehicle_id {vehicle_id!r}")
+                raise ValueError(
+                    f"a vehicle credential is named by its vehicle's id: name {name!r}, vehicle_id {vehicle_id!r}"
+                )
         elif vehicle_id is not None:
             raise ValueError(f"a {role} credential has no vehicle_id, got {vehicle_id!r}")
-        row = {"name": name, "role": role, "secret_hash": secret_hash, "vehicle_id": vehicle_id, "revoked": False,
-               "created_ms": now_ms()}
+        row = {
+            "name": name,
+            "role": role,
+            "secret_hash": secret_hash,
+            "vehicle_id": vehicle_id,
+            "revoked": False,
+            "created_ms": now_ms(),
+        }
         insert = self._db.insert(credentials_table).values(row).on_conflict_do_nothing()
         with self._db.transaction() as conn:
             added = conn.execute(insert.returning(credentials_table.c.name)).first()
@@ -58,8 +71,7 @@ class Credentials:
         return Credential(**rows[0]) if rows else None
 
     def credentials(self) -> list[Credential]:
-        return [Credential(**row)
-                for row in self._db.all(select(credentials_table).order_by(credentials_table.c.name))]
+        return [Credential(**row) for row in self._db.all(select(credentials_table).order_by(credentials_table.c.name))]
 
     def revoke_credential(self, name: str) -> bool:
         """Revoke credential `name`; True if it existed and was active."""

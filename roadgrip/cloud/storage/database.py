@@ -62,10 +62,27 @@ from roadgrip.cloud.storage.telemetry import Telemetry, Written
 from roadgrip.cloud.storage.vehicles import Vehicles
 
 __all__ = [
-    "ACTIVE", "ROLES", "Credential", "Fenced", "Storage", "StorageUnavailable", "Written", "counters_table",
-    "credentials_table", "estimates_table", "estimator_states_table", "map_cells_table", "metadata",
-    "normalise_url", "open_storage", "partition_owners_table", "region_owners_table", "station_reports_table",
-    "telemetry_table", "vehicles_table", "warnings_table",
+    "ACTIVE",
+    "ROLES",
+    "Credential",
+    "Fenced",
+    "Storage",
+    "StorageUnavailable",
+    "Written",
+    "counters_table",
+    "credentials_table",
+    "estimates_table",
+    "estimator_states_table",
+    "map_cells_table",
+    "metadata",
+    "normalise_url",
+    "open_storage",
+    "partition_owners_table",
+    "region_owners_table",
+    "station_reports_table",
+    "telemetry_table",
+    "vehicles_table",
+    "warnings_table",
 ]
 
 
@@ -111,8 +128,14 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ credentials.py
 
-    def add_credential(self, name: str, role: str, secret_hash: str, vehicle_id: str | None = None,
-                       before_commit: Callable[[], None] | None = None) -> None:
+    def add_credential(
+        self,
+        name: str,
+        role: str,
+        secret_hash: str,
+        vehicle_id: str | None = None,
+        before_commit: Callable[[], None] | None = None,
+    ) -> None:
         return self._credentials.add_credential(name, role, secret_hash, vehicle_id, before_commit)
 
     def credential(self, name: str) -> Credential | None:
@@ -132,8 +155,9 @@ class Storage:
     def put_vehicle(self, vehicle_id: str, profile: dict) -> None:
         return self._vehicles.put_vehicle(vehicle_id, profile)
 
-    def register_vehicles(self, vehicles: list[tuple[str, dict, str]],
-                          before_commit: Callable[[], None] | None = None) -> None:
+    def register_vehicles(
+        self, vehicles: list[tuple[str, dict, str]], before_commit: Callable[[], None] | None = None
+    ) -> None:
         return self._vehicles.register_vehicles(vehicles, before_commit)
 
     def vehicle_profile(self, vehicle_id: str) -> dict | None:
@@ -144,12 +168,15 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ telemetry.py, partitions.py
 
-    def write_batch(self, telemetry: list[dict], estimates: list[dict],
-                    fences: Mapping[int, int] | None = None) -> Written:
+    def write_batch(
+        self, telemetry: list[dict], estimates: list[dict], fences: Mapping[int, int] | None = None
+    ) -> Written:
         return self._telemetry.write_batch(telemetry, estimates, fences)
 
     def _insert_sql(self, table: Table, n_rows: int, returning: bool) -> str:
-        return self._telemetry.insert_sql(table, n_rows, returning)  # for results/trials/reliability/sqlite_returning_gil.py
+        return self._telemetry.insert_sql(
+            table, n_rows, returning
+        )  # for results/trials/reliability/sqlite_returning_gil.py
 
     def take_partition(self, partition_id: int, owner: str) -> int:
         return self._partitions.take_partition(partition_id, owner)
@@ -157,8 +184,9 @@ class Storage:
     def partition_owners(self) -> dict[int, str]:
         return self._partitions.partition_owners()
 
-    def estimates(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
-                  limit: int = 10000) -> list[dict]:
+    def estimates(
+        self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None, limit: int = 10000
+    ) -> list[dict]:
         return self._telemetry.estimates(vehicle_id, start_ms, end_ms, limit)
 
     def estimates_since(self, since_ms: int, limit: int = 1_000_000) -> list[dict]:
@@ -167,8 +195,9 @@ class Storage:
     def latest_estimates(self) -> list[dict]:
         return self._telemetry.latest_estimates()
 
-    def telemetry(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
-                  limit: int = 100000) -> list[dict]:
+    def telemetry(
+        self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None, limit: int = 100000
+    ) -> list[dict]:
         return self._telemetry.telemetry(vehicle_id, start_ms, end_ms, limit)
 
     def counts(self) -> dict[str, int]:

@@ -22,8 +22,10 @@ def normalise_url(url: str) -> URL:
     try:
         sa_url = make_url(url)
     except exc.ArgumentError:
-        raise ValueError(f"storage URL {url.partition('://')[0]}://... is not a database URL: "
-                         "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE") from None
+        raise ValueError(
+            f"storage URL {url.partition('://')[0]}://... is not a database URL: "
+            "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE"
+        ) from None
     backend, _, driver = sa_url.drivername.partition("+")
     if backend in ("postgresql", "postgres") and driver in ("", "psycopg"):
         return sa_url.set(drivername="postgresql+psycopg")
@@ -31,14 +33,20 @@ def normalise_url(url: str) -> URL:
         if sa_url.database in (None, "", ":memory:"):
             raise ValueError(f"storage URL {url!r}: SQLite storage needs a file, sqlite:///PATH")
         return sa_url.set(drivername="sqlite+pysqlite")
-    raise ValueError(f"unsupported storage URL scheme {sa_url.drivername!r}: "
-                     "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE")
+    raise ValueError(
+        f"unsupported storage URL scheme {sa_url.drivername!r}: "
+        "use sqlite:///PATH or postgresql://USER@HOST:PORT/DATABASE"
+    )
 
 
 def _sqlite_pragmas(dbapi_connection, connection_record) -> None:
     cursor = dbapi_connection.cursor()
-    for pragma in ("journal_mode=WAL", "synchronous=NORMAL", "foreign_keys=ON",
-                   f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}"):
+    for pragma in (
+        "journal_mode=WAL",
+        "synchronous=NORMAL",
+        "foreign_keys=ON",
+        f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}",
+    ):
         cursor.execute(f"PRAGMA {pragma}")
     cursor.close()
 
@@ -50,12 +58,17 @@ def make_engine(sa_url: URL) -> Engine:
         try:
             Path(sa_url.database).parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise StorageUnavailable(f"database {sa_url.render_as_string(hide_password=True)} unavailable: "
-                                     f"{err}") from err
+            raise StorageUnavailable(
+                f"database {sa_url.render_as_string(hide_password=True)} unavailable: {err}"
+            ) from err
         engine = sa.create_engine(sa_url)
         sa.event.listen(engine, "connect", _sqlite_pragmas)
         return engine
     # Positional $n parameters passed through as they are (psycopg's RawCursor): psycopg's conversion of named
     # parameters is slow for a multi-row INSERT (17 parameters a row) and cut the write rate to a quarter.
-    return sa.create_engine(sa_url, pool_pre_ping=True, paramstyle="numeric_dollar", connect_args={
-        "connect_timeout": CONNECT_TIMEOUT_S, "cursor_factory": psycopg.RawCursor})
+    return sa.create_engine(
+        sa_url,
+        pool_pre_ping=True,
+        paramstyle="numeric_dollar",
+        connect_args={"connect_timeout": CONNECT_TIMEOUT_S, "cursor_factory": psycopg.RawCursor},
+    )

@@ -27,16 +27,18 @@ class EstimatorStates:
         latest = {}
         for row in rows:
             if not isinstance(row.get("state"), dict):
-                raise TypeError(f"state of vehicle {row.get('vehicle_id')!r} must be a dict, got "
-                                f"{type(row.get('state')).__name__}")
+                raise TypeError(
+                    f"state of vehicle {row.get('vehicle_id')!r} must be a dict, got {type(row.get('state')).__name__}"
+                )
             latest[(row.get("vehicle_id"), row.get("estimator"))] = {"updated_ms": updated_ms, **row}
         if not latest:
             return
         rows = checked_rows("estimator state", list(latest.values()), estimator_states_table)
         insert = self._db.insert(estimator_states_table)
-        upsert = insert.on_conflict_do_update(index_elements=["vehicle_id", "estimator"],
-                                              set_={"state": insert.excluded.state,
-                                                    "updated_ms": insert.excluded.updated_ms})
+        upsert = insert.on_conflict_do_update(
+            index_elements=["vehicle_id", "estimator"],
+            set_={"state": insert.excluded.state, "updated_ms": insert.excluded.updated_ms},
+        )
         with self._db.transaction() as conn:
             check_fences(conn, fences)
             conn.execute(upsert, rows)
@@ -47,8 +49,9 @@ class EstimatorStates:
         states: dict[str, dict] = {}
         ids = sorted(set(vehicle_ids))
         for start in range(0, len(ids), 1000):  # well inside every database's limit on parameters
-            query = select(c.vehicle_id, c.state).where(c.estimator == estimator,
-                                                        c.vehicle_id.in_(ids[start:start + 1000]))
+            query = select(c.vehicle_id, c.state).where(
+                c.estimator == estimator, c.vehicle_id.in_(ids[start : start + 1000])
+            )
             states.update((row["vehicle_id"], row["state"]) for row in self._db.all(query))
         return states
 

@@ -82,8 +82,10 @@ class LocalPostgres:
     def _init(self) -> None:
         missing = [p.name for p in (PG_BIN / "initdb", PG_BIN / "pg_ctl") if not p.exists()]
         if missing:
-            raise PostgresUnavailable(f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): "
-                                      "run `bash scripts/install_system_deps.sh`")
+            raise PostgresUnavailable(
+                f"PostgreSQL 15 not installed ({', '.join(missing)} missing in {PG_BIN}): "
+                "run `bash scripts/install_system_deps.sh`"
+            )
         if self._given_root is None:
             self.root = Path(tempfile.mkdtemp(prefix="roadgrip-pg-"))  # its parents must be reachable by postgres
         else:
@@ -95,18 +97,22 @@ class LocalPostgres:
             self._as_postgres = ["runuser", "-u", "postgres", "--"]
             reach = subprocess.run([*self._as_postgres, "test", "-w", str(self.root)], check=False)
             if reach.returncode != 0:
-                raise PostgresUnavailable(f"the user postgres, as which root runs the server, cannot reach {self.root}: "
-                                          "make every folder above it searchable by others (chmod o+x)")
-        self._pg(PG_BIN / "initdb", "-D", self.root / "data", "-U", "postgres", "-A", "trust", "-E", "UTF8",
-                 "--locale=C")
+                raise PostgresUnavailable(
+                    f"the user postgres, as which root runs the server, cannot reach {self.root}: "
+                    "make every folder above it searchable by others (chmod o+x)"
+                )
+        self._pg(
+            PG_BIN / "initdb", "-D", self.root / "data", "-U", "postgres", "-A", "trust", "-E", "UTF8", "--locale=C"
+        )
         (self.root / "data" / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
 
     def start(self) -> None:
         if self.root is None:
             self._init()
         options = f"-c listen_addresses=127.0.0.1 -c port={self.port} -k {self.root} -c fsync=on"
-        self._pg(PG_BIN / "pg_ctl", "start", "-w", "-D", self.root / "data", "-l", self.root / "server.log",
-                 "-o", options)
+        self._pg(
+            PG_BIN / "pg_ctl", "start", "-w", "-D", self.root / "data", "-l", self.root / "server.log", "-o", options
+        )
 
     def stop(self) -> None:
         self._pg(PG_BIN / "pg_ctl", "stop", "-w", "-m", "fast", "-D", self.root / "data")
@@ -114,8 +120,20 @@ class LocalPostgres:
     def close(self) -> None:
         if self.root is None:
             return
-        subprocess.run([*self._as_postgres, str(PG_BIN / "pg_ctl"), "stop", "-w", "-m", "immediate", "-D",
-                        str(self.root / "data")], check=False, capture_output=True)
+        subprocess.run(
+            [
+                *self._as_postgres,
+                str(PG_BIN / "pg_ctl"),
+                "stop",
+                "-w",
+                "-m",
+                "immediate",
+                "-D",
+                str(self.root / "data"),
+            ],
+            check=False,
+            capture_output=True,
+        )
         shutil.rmtree(self.root, ignore_errors=True)
         self.root = None
 

@@ -19,8 +19,9 @@ def _checked_warnings(rows: list[dict]) -> list[dict]:
     latest = {}
     for row in rows:
         if not isinstance(row.get("message"), dict):
-            raise TypeError(f"message of warning {row.get('warning_id')!r} must be a dict, got "
-                            f"{type(row.get('message')).__name__}")
+            raise TypeError(
+                f"message of warning {row.get('warning_id')!r} must be a dict, got {type(row.get('message')).__name__}"
+            )
         latest[row["warning_id"]] = row
     return checked_rows("warning", list(latest.values()), warnings_table)
 
@@ -45,8 +46,12 @@ class MapWarnings:
 
     def _upsert_warnings(self, conn: Connection, rows: list[dict]) -> None:
         insert = self._db.insert(warnings_table)
-        conn.execute(insert.on_conflict_do_update(
-            index_elements=["warning_id"], set_={name: insert.excluded[name] for name in _WARNING_UPDATES}), rows)
+        conn.execute(
+            insert.on_conflict_do_update(
+                index_elements=["warning_id"], set_={name: insert.excluded[name] for name in _WARNING_UPDATES}
+            ),
+            rows,
+        )
 
     def put_warnings(self, rows: list[dict]) -> None:
         """Store (or replace) warnings in one transaction: each row holds warning_id, cell, status, detection_ms,
@@ -65,8 +70,11 @@ class MapWarnings:
         has taken that queue since."""
         warnings = _checked_warnings(warnings)
         updated_ms = now_ms()
-        cells = checked_rows("map cell", list({row["cell"]: {"updated_ms": updated_ms, **row}
-                                               for row in cells}.values()), map_cells_table)
+        cells = checked_rows(
+            "map cell",
+            list({row["cell"]: {"updated_ms": updated_ms, **row} for row in cells}.values()),
+            map_cells_table,
+        )
         if not warnings and not cells:
             return
         with self._db.transaction() as conn:
@@ -75,8 +83,13 @@ class MapWarnings:
                 self._upsert_warnings(conn, warnings)
             if cells:
                 insert = self._db.insert(map_cells_table)
-                conn.execute(insert.on_conflict_do_update(index_elements=["cell"], set_={
-                    name: insert.excluded[name] for name in ("region", "last_ms", "updated_ms", "state")}), cells)
+                conn.execute(
+                    insert.on_conflict_do_update(
+                        index_elements=["cell"],
+                        set_={name: insert.excluded[name] for name in ("region", "last_ms", "updated_ms", "state")},
+                    ),
+                    cells,
+                )
 
     def map_cells(self, region: str | None = None, since_ms: int | None = None) -> list[dict]:
         """Stored map cells (cell, region, last_ms, updated_ms, state), of one region or all, with last_ms >= since_ms
@@ -114,12 +127,17 @@ class MapWarnings:
     def take_region_queue(self, region_queue: int, owner: str) -> int:
         """Raise the region queue's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
         which the owner's fenced writes carry (`put_region_output`)."""
-        insert = self._db.insert(region_owners_table).values(region_queue=region_queue, epoch=1, owner=owner,
-                                                             taken_ms=now_ms())
+        insert = self._db.insert(region_owners_table).values(
+            region_queue=region_queue, epoch=1, owner=owner, taken_ms=now_ms()
+        )
         upsert = insert.on_conflict_do_update(
             index_elements=["region_queue"],
-            set_={"epoch": region_owners_table.c.epoch + 1, "owner": insert.excluded.owner,
-                  "taken_ms": insert.excluded.taken_ms}).returning(region_owners_table.c.epoch)
+            set_={
+                "epoch": region_owners_table.c.epoch + 1,
+                "owner": insert.excluded.owner,
+                "taken_ms": insert.excluded.taken_ms,
+            },
+        ).returning(region_owners_table.c.epoch)
         with self._db.transaction() as conn:
             return conn.execute(upsert).scalar_one()
 

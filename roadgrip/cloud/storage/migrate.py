@@ -39,8 +39,10 @@ MIGRATIONS = Path(__file__).with_name("migrations")  # Alembic's script location
 VERSION_TABLE = "roadgrip_schema_version"
 SCHEMA_LOCK_KEY = 0x726F6164  # "road": the PostgreSQL advisory lock held while the schema is made
 POSTGIS_DDL = (
-    ("ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
-     "GENERATED ALWAYS AS (ST_SetSRID(ST_MakePoint(longitude_deg, latitude_deg), 4326)) STORED"),
+    (
+        "ALTER TABLE estimates ADD COLUMN IF NOT EXISTS geom geometry(Point, 4326) "
+        "GENERATED ALWAYS AS (ST_SetSRID(ST_MakePoint(longitude_deg, latitude_deg), 4326)) STORED"
+    ),
     "CREATE INDEX IF NOT EXISTS ix_estimates_geom ON estimates USING GIST (geom)",
 )
 POSTGIS_OBJECTS = frozenset({"geom", "ix_estimates_geom", "spatial_ref_sys"})  # POSTGIS_DDL's and the extension's

@@ -36,12 +36,17 @@ class Partitions:
     def take_partition(self, partition_id: int, owner: str) -> int:
         """Raise the partition's epoch (1 when first taken) and name `owner` as its owner; returns the new epoch,
         which the owner's fenced writes carry (`write_batch`). Waits for fenced writes of the partition in progress."""
-        insert = self._db.insert(partition_owners_table).values(partition_id=partition_id, epoch=1, owner=owner,
-                                                                taken_ms=now_ms())
+        insert = self._db.insert(partition_owners_table).values(
+            partition_id=partition_id, epoch=1, owner=owner, taken_ms=now_ms()
+        )
         upsert = insert.on_conflict_do_update(
             index_elements=["partition_id"],
-            set_={"epoch": partition_owners_table.c.epoch + 1, "owner": insert.excluded.owner,
-                  "taken_ms": insert.excluded.taken_ms}).returning(partition_owners_table.c.epoch)
+            set_={
+                "epoch": partition_owners_table.c.epoch + 1,
+                "owner": insert.excluded.owner,
+                "taken_ms": insert.excluded.taken_ms,
+            },
+        ).returning(partition_owners_table.c.epoch)
         with self._db.transaction() as conn:
             return conn.execute(upsert).scalar_one()
 

@@ -35,8 +35,12 @@ KEY = ("vehicle_id", "timestamp_ms")  # the key of telemetry and estimates
 
 def _sql_type(column):
     """The SQL type of a `roadgrip.data.schema` column, from its pyarrow type."""
-    for is_type, sql_type in ((pa.types.is_string, sa.String), (pa.types.is_integer, sa.BigInteger),
-                              (pa.types.is_floating, sa.Float), (pa.types.is_boolean, sa.Boolean)):
+    for is_type, sql_type in (
+        (pa.types.is_string, sa.String),
+        (pa.types.is_integer, sa.BigInteger),
+        (pa.types.is_floating, sa.Float),
+        (pa.types.is_boolean, sa.Boolean),
+    ):
         if is_type(column.type):
             return sql_type()
     raise TypeError(f"column {column.name}: no SQL type for pyarrow type {column.type}")
@@ -47,83 +51,103 @@ metadata = sa.MetaData()
 # Plain rowid tables on SQLite, not WITHOUT ROWID: a batch holds samples of many vehicles, and a table clustered by
 # (vehicle_id, timestamp_ms) took them three times slower (1,000 vehicles, 1,000-row batches).
 telemetry_table = Table(
-    "telemetry", metadata,
+    "telemetry",
+    metadata,
     *(Column(c.name, _sql_type(c), nullable=not c.required) for c in TELEMETRY),
-    sa.PrimaryKeyConstraint(*KEY))
+    sa.PrimaryKeyConstraint(*KEY),
+)
 estimates_table = Table(
-    "estimates", metadata,
+    "estimates",
+    metadata,
     *(Column(c.name, _sql_type(c), nullable=not c.required) for c in ESTIMATE),
-    sa.PrimaryKeyConstraint(*KEY), sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"))
+    sa.PrimaryKeyConstraint(*KEY),
+    sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"),
+)
 vehicles_table = Table(
-    "vehicles", metadata,
+    "vehicles",
+    metadata,
     Column("vehicle_id", sa.String, primary_key=True),
     Column("profile", JSON, nullable=False),
-    Column("updated_ms", sa.BigInteger, nullable=False))
+    Column("updated_ms", sa.BigInteger, nullable=False),
+)
 credentials_table = Table(
-    "credentials", metadata,
+    "credentials",
+    metadata,
     Column("name", sa.String, primary_key=True),
     Column("role", sa.String, sa.CheckConstraint(f"role IN {ROLES}", name="ck_credentials_role"), nullable=False),
     Column("secret_hash", sa.String, nullable=False),
     Column("vehicle_id", sa.String),
     Column("revoked", sa.Boolean, nullable=False),
-    Column("created_ms", sa.BigInteger, nullable=False))
+    Column("created_ms", sa.BigInteger, nullable=False),
+)
 warnings_table = Table(
-    "warnings", metadata,
+    "warnings",
+    metadata,
     Column("warning_id", sa.String, primary_key=True),
     Column("cell", sa.String, nullable=False),
     Column("status", sa.String, nullable=False),
     Column("detection_ms", sa.BigInteger, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
-    Column("message", JSON, nullable=False))
+    Column("message", JSON, nullable=False),
+)
 
 # Each vehicle's estimator state (its self-calibration), one row per estimator name: a service switched from one
 # estimator to another and back finds the first one's state again (roadgrip/cloud/pipeline/checkpoints.py).
 estimator_states_table = Table(
-    "estimator_states", metadata,
+    "estimator_states",
+    metadata,
     Column("vehicle_id", sa.String, nullable=False),
     Column("estimator", sa.String, nullable=False),
     Column("state", JSON, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
-    sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
+    sa.PrimaryKeyConstraint("vehicle_id", "estimator"),
+)
 
 # Cluster workers' ownership of partitions (roadgrip/cloud/cluster/worker.py): a worker that takes a partition raises its
 # epoch; a write fenced with an older epoch fails (`Storage.write_batch`'s `fences`), so that a worker that lost a
 # partition without noticing stores nothing of it after the next owner has begun.
 partition_owners_table = Table(
-    "partition_owners", metadata,
+    "partition_owners",
+    metadata,
     Column("partition_id", sa.Integer, primary_key=True, autoincrement=False),
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
-    Column("taken_ms", sa.BigInteger, nullable=False))
+    Column("taken_ms", sa.BigInteger, nullable=False),
+)
 
 # Cluster mode's friction map (roadgrip/cloud/cluster/regions.py): each cell's state as its region's owner last saved it
 # (`FrictionMap.cell_states`), for the API replicas to render the map from and a new owner to go on from; the owners of
 # region queues, with an epoch each, fence those writes and the region's warnings as partition_owners fence telemetry.
 map_cells_table = Table(
-    "map_cells", metadata,
+    "map_cells",
+    metadata,
     Column("cell", sa.String, primary_key=True),
     Column("region", sa.String, nullable=False),
     Column("last_ms", sa.BigInteger, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
     Column("state", JSON, nullable=False),
-    sa.Index("ix_map_cells_region", "region"), sa.Index("ix_map_cells_last_ms", "last_ms"))
+    sa.Index("ix_map_cells_region", "region"),
+    sa.Index("ix_map_cells_last_ms", "last_ms"),
+)
 region_owners_table = Table(
-    "region_owners", metadata,
+    "region_owners",
+    metadata,
     Column("region_queue", sa.Integer, primary_key=True, autoincrement=False),
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
-    Column("taken_ms", sa.BigInteger, nullable=False))
+    Column("taken_ms", sa.BigInteger, nullable=False),
+)
 
 # Counters shared by the processes of a cluster: the DENM ActionID sequence numbers of the regions' warning engines
 # (one originating station, many engines).
 counters_table = Table(
-    "counters", metadata,
-    Column("name", sa.String, primary_key=True),
-    Column("value", sa.BigInteger, nullable=False))
+    "counters", metadata, Column("name", sa.String, primary_key=True), Column("value", sa.BigInteger, nullable=False)
+)
 
 # Roadside stations' reports (roadgrip/cloud/domain/stations.py), as validated, with the evidence the service drew from them.
 station_reports_table = Table(
-    "station_reports", metadata,
+    "station_reports",
+    metadata,
     Column("station_id", sa.String, nullable=False),
     Column("timestamp_ms", sa.BigInteger, nullable=False),
     Column("latitude_deg", sa.Float, nullable=False),
@@ -139,4 +163,5 @@ station_reports_table = Table(
     Column("cells", JSON, nullable=False),
     Column("received_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("station_id", "timestamp_ms"),
-    sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"))
+    sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"),
+)

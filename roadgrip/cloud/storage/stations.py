@@ -23,13 +23,13 @@ class StationReports:
         to now); a report whose (station_id, timestamp_ms) is stored already is skipped. Returns the keys newly
         stored."""
         received_ms = now_ms()
-        rows = checked_rows("station report", [{"received_ms": received_ms, **row} for row in rows],
-                            station_reports_table)
+        rows = checked_rows(
+            "station report", [{"received_ms": received_ms, **row} for row in rows], station_reports_table
+        )
         if not rows:
             return set()
         c = station_reports_table.c
-        insert = self._db.insert(station_reports_table).on_conflict_do_nothing().returning(c.station_id,
-                                                                                          c.timestamp_ms)
+        insert = self._db.insert(station_reports_table).on_conflict_do_nothing().returning(c.station_id, c.timestamp_ms)
         with self._db.transaction() as conn:
             return {(row[0], row[1]) for row in conn.execute(insert, rows)}
 
@@ -46,12 +46,19 @@ class StationReports:
         if not keys:
             return []
         c = station_reports_table.c
-        return self._db.all(select(station_reports_table).where(sa.tuple_(c.station_id, c.timestamp_ms).in_(keys))
-                            .order_by(c.timestamp_ms, c.station_id))
+        return self._db.all(
+            select(station_reports_table)
+            .where(sa.tuple_(c.station_id, c.timestamp_ms).in_(keys))
+            .order_by(c.timestamp_ms, c.station_id)
+        )
 
     def station_reports_since(self, since_ms: int, limit: int = 100_000) -> list[dict]:
         """The reports of all stations with timestamp_ms >= since_ms, oldest first, at most `limit`."""
         check_limit(limit)
         c = station_reports_table.c
-        return self._db.all(select(station_reports_table).where(c.timestamp_ms >= since_ms)
-                            .order_by(c.timestamp_ms, c.station_id).limit(limit))
+        return self._db.all(
+            select(station_reports_table)
+            .where(c.timestamp_ms >= since_ms)
+            .order_by(c.timestamp_ms, c.station_id)
+            .limit(limit)
+        )

@@ -40,8 +40,9 @@ class Telemetry:
         self._db = db
         self._insert_sqls: dict[tuple[str, int, bool], str] = {}  # (table, rows, RETURNING) -> multi-row INSERT
 
-    def write_batch(self, telemetry: list[dict], estimates: list[dict],
-                    fences: Mapping[int, int] | None = None) -> Written:
+    def write_batch(
+        self, telemetry: list[dict], estimates: list[dict], fences: Mapping[int, int] | None = None
+    ) -> Written:
         """Store telemetry rows (keys: TELEMETRY's column names; optional ones may be None or absent) and estimate
         rows (keys: the estimates table's columns; position and h3_cell may be None or absent) in one transaction.
         Rows whose (vehicle_id, timestamp_ms) is stored already, or came earlier in the same list, are skipped.
@@ -72,9 +73,13 @@ class Telemetry:
         with self._db.transaction() as conn:
             check_fences(conn, fences)
             inserted = set(self._insert_new(conn, telemetry_table, telemetry, returning=True))
-            return Written(len(inserted), self._insert_new(conn, estimates_table, estimates),
-                           frozenset(key for row in telemetry if (key := (row["vehicle_id"], row["timestamp_ms"]))
-                                     not in inserted))
+            return Written(
+                len(inserted),
+                self._insert_new(conn, estimates_table, estimates),
+                frozenset(
+                    key for row in telemetry if (key := (row["vehicle_id"], row["timestamp_ms"])) not in inserted
+                ),
+            )
 
     def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
         """Insert `rows`, skipping keys stored already: the number inserted, or with `returning` the keys inserted.
@@ -86,7 +91,7 @@ class Telemetry:
         start = 0
         for size in INSERT_SIZES:
             while len(rows) - start >= size:
-                values = tuple(itertools.chain.from_iterable(map(values_of, rows[start:start + size])))
+                values = tuple(itertools.chain.from_iterable(map(values_of, rows[start : start + size])))
                 result = conn.exec_driver_sql(self.insert_sql(table, size, returning), values)
                 if returning:
                     keys += [tuple(key) for key in result.all()]
@@ -119,8 +124,9 @@ class Telemetry:
             query = query.where(table.c.timestamp_ms < end_ms)
         return self._db.all(query.order_by(table.c.timestamp_ms).limit(limit))
 
-    def estimates(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
-                  limit: int = 10000) -> list[dict]:
+    def estimates(
+        self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None, limit: int = 10000
+    ) -> list[dict]:
         """The estimates of `vehicle_id` with start_ms <= timestamp_ms < end_ms (either bound may be None), oldest
         first, at most `limit`."""
         return self._range(estimates_table, vehicle_id, start_ms, end_ms, limit)
@@ -129,8 +135,12 @@ class Telemetry:
         """The estimates of all vehicles with timestamp_ms >= since_ms, oldest first, at most `limit`."""
         check_limit(limit)
         c = estimates_table.c
-        return self._db.all(select(estimates_table).where(c.timestamp_ms >= since_ms)
-                            .order_by(c.timestamp_ms, c.vehicle_id).limit(limit))
+        return self._db.all(
+            select(estimates_table)
+            .where(c.timestamp_ms >= since_ms)
+            .order_by(c.timestamp_ms, c.vehicle_id)
+            .limit(limit)
+        )
 
     def latest_estimates(self) -> list[dict]:
         """The newest estimate of every vehicle with a stored profile and an estimate, by vehicle_id.
@@ -144,29 +154,43 @@ class Telemetry:
         out."""
         c, v = estimates_table.c, vehicles_table.c
         newer = estimates_table.alias("newer")
-        newest = select(v.vehicle_id, select(func.max(newer.c.timestamp_ms))
-                        .where(newer.c.vehicle_id == v.vehicle_id).scalar_subquery())
+        newest = select(
+            v.vehicle_id,
+            select(func.max(newer.c.timestamp_ms)).where(newer.c.vehicle_id == v.vehicle_id).scalar_subquery(),
+        )
         query = select(estimates_table).where(sa.tuple_(c.vehicle_id, c.timestamp_ms).in_(newest))
         return self._db.all(query.order_by(c.vehicle_id))
 
-    def telemetry(self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None,
-                  limit: int = 100000) -> list[dict]:
+    def telemetry(
+        self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None, limit: int = 100000
+    ) -> list[dict]:
         """The telemetry of `vehicle_id` with start_ms <= timestamp_ms < end_ms, oldest first, at most `limit`."""
         return self._range(telemetry_table, vehicle_id, start_ms, end_ms, limit)
 
     def counts(self) -> dict[str, int]:
         """Rows in each table: telemetry, estimates, vehicles (with a profile), warnings."""
-        tables = {"telemetry": telemetry_table, "estimates": estimates_table, "vehicles": vehicles_table,
-                  "warnings": warnings_table}
-        query = select(*(select(func.count()).select_from(t).scalar_subquery().label(name)
-                         for name, t in tables.items()))
+        tables = {
+            "telemetry": telemetry_table,
+            "estimates": estimates_table,
+            "vehicles": vehicles_table,
+            "warnings": warnings_table,
+        }
+        query = select(
+            *(select(func.count()).select_from(t).scalar_subquery().label(name) for name, t in tables.items())
+        )
         return self._db.all(query)[0]
 
     def telemetry_extent(self) -> dict[str, tuple[int, int, int]]:
         """vehicle_id -> (rows, first timestamp_ms, last timestamp_ms) of its stored telemetry."""
         c = telemetry_table.c
-        rows = self._db.all(select(c.vehicle_id, func.count().label("n"), func.min(c.timestamp_ms).label("first"),
-                                   func.max(c.timestamp_ms).label("last")).group_by(c.vehicle_id))
+        rows = self._db.all(
+            select(
+                c.vehicle_id,
+                func.count().label("n"),
+                func.min(c.timestamp_ms).label("first"),
+                func.max(c.timestamp_ms).label("last"),
+            ).group_by(c.vehicle_id)
+        )
         return {row["vehicle_id"]: (row["n"], row["first"], row["last"]) for row in rows}
 
     def latest_timestamps(self) -> dict[str, int]:

@@ -23,18 +23,19 @@ class Vehicles:
         if not isinstance(profile, dict):
             raise TypeError(f"profile of vehicle {vehicle_id!r} must be a dict, got {type(profile).__name__}")
         with self._db.transaction() as conn:
-            conn.execute(self._profile_upsert(),
-                         {"vehicle_id": vehicle_id, "profile": profile, "updated_ms": now_ms()})
+            conn.execute(self._profile_upsert(), {"vehicle_id": vehicle_id, "profile": profile, "updated_ms": now_ms()})
 
     def _profile_upsert(self):
         """INSERT of vehicle profiles that replaces a stored one (parameters: vehicle_id, profile, updated_ms)."""
         insert = self._db.insert(vehicles_table)
         return insert.on_conflict_do_update(
             index_elements=["vehicle_id"],
-            set_={"profile": insert.excluded.profile, "updated_ms": insert.excluded.updated_ms})
+            set_={"profile": insert.excluded.profile, "updated_ms": insert.excluded.updated_ms},
+        )
 
-    def register_vehicles(self, vehicles: list[tuple[str, dict, str]],
-                          before_commit: Callable[[], None] | None = None) -> None:
+    def register_vehicles(
+        self, vehicles: list[tuple[str, dict, str]], before_commit: Callable[[], None] | None = None
+    ) -> None:
         """For each (vehicle_id, profile, secret_hash): store the profile (replacing a stored one) and a new "vehicle"
         credential named vehicle_id, all in one transaction, so that a failure part way leaves none of them stored
         (nor a credential whose secret nobody received). ValueError, storing nothing, when a vehicle_id is given twice
@@ -53,14 +54,30 @@ class Vehicles:
         created_ms = now_ms()
         credentials = self._db.insert(credentials_table).on_conflict_do_nothing().returning(credentials_table.c.name)
         with self._db.transaction() as conn:
-            added = {row[0] for row in conn.execute(credentials, [
-                {"name": v, "role": "vehicle", "secret_hash": h, "vehicle_id": v, "revoked": False,
-                 "created_ms": created_ms} for v, _, h in vehicles])}
+            added = {
+                row[0]
+                for row in conn.execute(
+                    credentials,
+                    [
+                        {
+                            "name": v,
+                            "role": "vehicle",
+                            "secret_hash": h,
+                            "vehicle_id": v,
+                            "revoked": False,
+                            "created_ms": created_ms,
+                        }
+                        for v, _, h in vehicles
+                    ],
+                )
+            }
             if len(added) < len(vehicles):  # raising rolls the transaction back
                 taken = [v for v in ids if v not in added]
                 raise ValueError(f"vehicle_id(s) already registered: {', '.join(taken[:10])}")
-            conn.execute(self._profile_upsert(),
-                         [{"vehicle_id": v, "profile": p, "updated_ms": created_ms} for v, p, _ in vehicles])
+            conn.execute(
+                self._profile_upsert(),
+                [{"vehicle_id": v, "profile": p, "updated_ms": created_ms} for v, p, _ in vehicles],
+            )
             if before_commit is not None:
                 before_commit()
 
@@ -69,5 +86,7 @@ class Vehicles:
 
     def vehicle_ids(self) -> list[str]:
         """The ids of the vehicles with a stored profile, sorted."""
-        return [row["vehicle_id"] for row in self._db.all(
-            select(vehicles_table.c.vehicle_id).order_by(vehicles_table.c.vehicle_id))]
+        return [
+            row["vehicle_id"]
+            for row in self._db.all(select(vehicles_table.c.vehicle_id).order_by(vehicles_table.c.vehicle_id))
+        ]

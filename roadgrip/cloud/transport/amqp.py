@@ -55,12 +55,40 @@ def mqtt_routing_key(topic: str) -> str:
 
 def _keyed_queues(exchange: str, names: list[str]) -> tuple[list[dict], list[dict], dict]:
     """Quorum queues with single-active-consumer behind a consistent-hash exchange, weight 1 each."""
-    queues = [{"name": name, "vhost": "/", "durable": True, "auto_delete": False,
-               "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True}} for name in names]
-    bindings = [{"source": exchange, "vhost": "/", "destination": name, "destination_type": "queue",
-                 "routing_key": "1", "arguments": {}} for name in names]  # the binding key is the queue's weight
-    return queues, bindings, {"name": exchange, "vhost": "/", "type": "x-consistent-hash", "durable": True,
-                              "auto_delete": False, "internal": False, "arguments": {}}
+    queues = [
+        {
+            "name": name,
+            "vhost": "/",
+            "durable": True,
+            "auto_delete": False,
+            "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True},
+        }
+        for name in names
+    ]
+    bindings = [
+        {
+            "source": exchange,
+            "vhost": "/",
+            "destination": name,
+            "destination_type": "queue",
+            "routing_key": "1",
+            "arguments": {},
+        }
+        for name in names
+    ]  # the binding key is the queue's weight
+    return (
+        queues,
+        bindings,
+        {
+            "name": exchange,
+            "vhost": "/",
+            "type": "x-consistent-hash",
+            "durable": True,
+            "auto_delete": False,
+            "internal": False,
+            "arguments": {},
+        },
+    )
 
 
 def topology(partitions: int, region_queues: int = REGION_QUEUES) -> dict:
@@ -71,20 +99,36 @@ def topology(partitions: int, region_queues: int = REGION_QUEUES) -> dict:
     if isinstance(region_queues, bool) or not isinstance(region_queues, int) or region_queues < 1:
         raise ValueError(f"region_queues must be a positive integer, got {region_queues!r}")
     queues, bindings, telemetry = _keyed_queues(TELEMETRY_EXCHANGE, [partition_queue(p) for p in range(partitions)])
-    forward = {"source": MQTT_EXCHANGE, "vhost": "/", "destination": TELEMETRY_EXCHANGE,
-               "destination_type": "exchange", "routing_key": TELEMETRY_BINDING, "arguments": {}}
-    region_qs, region_bindings, estimates = _keyed_queues(ESTIMATES_EXCHANGE,
-                                                          [region_queue(r) for r in range(region_queues)])
-    return {"exchanges": [telemetry, estimates], "queues": queues + region_qs,
-            "bindings": [forward, *bindings, *region_bindings]}
+    forward = {
+        "source": MQTT_EXCHANGE,
+        "vhost": "/",
+        "destination": TELEMETRY_EXCHANGE,
+        "destination_type": "exchange",
+        "routing_key": TELEMETRY_BINDING,
+        "arguments": {},
+    }
+    region_qs, region_bindings, estimates = _keyed_queues(
+        ESTIMATES_EXCHANGE, [region_queue(r) for r in range(region_queues)]
+    )
+    return {
+        "exchanges": [telemetry, estimates],
+        "queues": queues + region_qs,
+        "bindings": [forward, *bindings, *region_bindings],
+    }
 
 
 def declare_topology(channel, partitions: int, region_queues: int = REGION_QUEUES) -> None:
     """Declare `topology(partitions, region_queues)` on a pika channel: a no-op where it exists as declared."""
     t = topology(partitions, region_queues)
     for e in t["exchanges"]:
-        channel.exchange_declare(e["name"], e["type"], durable=e["durable"], auto_delete=e["auto_delete"],
-                                 internal=e["internal"], arguments=e["arguments"])
+        channel.exchange_declare(
+            e["name"],
+            e["type"],
+            durable=e["durable"],
+            auto_delete=e["auto_delete"],
+            internal=e["internal"],
+            arguments=e["arguments"],
+        )
     for q in t["queues"]:
         channel.queue_declare(q["name"], durable=q["durable"], auto_delete=q["auto_delete"], arguments=q["arguments"])
     for b in t["bindings"]:
@@ -117,8 +161,8 @@ class RabbitCluster:
         self.root, self.vehicles, self.partitions, self.secret = root, vehicles, partitions, secret
         self.nodes = nodes
         ports = free_ports(4 * nodes + 1)
-        self.amqp_ports, self.dist_ports = ports[0:nodes], ports[nodes:2 * nodes]
-        self.mqtt_ports, self.management_ports = ports[2 * nodes:3 * nodes], ports[3 * nodes:4 * nodes]
+        self.amqp_ports, self.dist_ports = ports[0:nodes], ports[nodes : 2 * nodes]
+        self.mqtt_ports, self.management_ports = ports[2 * nodes : 3 * nodes], ports[3 * nodes : 4 * nodes]
         self.epmd_port = ports[4 * nodes]
         self.procs: list[subprocess.Popen | None] = [None] * nodes
         self.epmd: subprocess.Popen | None = None
@@ -130,34 +174,58 @@ class RabbitCluster:
     def env(self, i: int) -> dict[str, str]:
         base = self.root / f"rg{i}"
         env_file = self.root / "rabbitmq-env.conf"
-        return {**os.environ, "HOME": str(self.home), "ERL_EPMD_PORT": str(self.epmd_port),
-                "RABBITMQ_CONF_ENV_FILE": str(env_file), "RABBITMQ_NODENAME": self.node_name(i),
-                "RABBITMQ_NODE_IP_ADDRESS": HOST, "RABBITMQ_NODE_PORT": str(self.amqp_ports[i]),
-                "RABBITMQ_DIST_PORT": str(self.dist_ports[i]), "RABBITMQ_MNESIA_BASE": str(base / "mnesia"),
-                "RABBITMQ_LOG_BASE": str(base / "log"), "RABBITMQ_CONFIG_FILE": str(base / "rabbitmq.conf"),
-                "RABBITMQ_ENABLED_PLUGINS_FILE": str(self.root / "enabled_plugins"),
-                "RABBITMQ_PID_FILE": str(base / "pid")}
+        return {
+            **os.environ,
+            "HOME": str(self.home),
+            "ERL_EPMD_PORT": str(self.epmd_port),
+            "RABBITMQ_CONF_ENV_FILE": str(env_file),
+            "RABBITMQ_NODENAME": self.node_name(i),
+            "RABBITMQ_NODE_IP_ADDRESS": HOST,
+            "RABBITMQ_NODE_PORT": str(self.amqp_ports[i]),
+            "RABBITMQ_DIST_PORT": str(self.dist_ports[i]),
+            "RABBITMQ_MNESIA_BASE": str(base / "mnesia"),
+            "RABBITMQ_LOG_BASE": str(base / "log"),
+            "RABBITMQ_CONFIG_FILE": str(base / "rabbitmq.conf"),
+            "RABBITMQ_ENABLED_PLUGINS_FILE": str(self.root / "enabled_plugins"),
+            "RABBITMQ_PID_FILE": str(base / "pid"),
+        }
 
     def ctl(self, i: int, *args: str, timeout_s: float = 120) -> str:
-        return subprocess.run([str(self.bin_dir / "rabbitmqctl"), "-n", self.node_name(i), *args], env=self.env(i),
-                              check=True, capture_output=True, text=True, timeout=timeout_s).stdout
+        return subprocess.run(
+            [str(self.bin_dir / "rabbitmqctl"), "-n", self.node_name(i), *args],
+            env=self.env(i),
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+        ).stdout
 
     def start_node(self, i: int) -> None:
         base = self.root / f"rg{i}"
         base.mkdir(exist_ok=True)
-        (base / "rabbitmq.conf").write_text("\n".join([
-            "loopback_users = none",
-            f"mqtt.listeners.tcp.default = {HOST}:{self.mqtt_ports[i]}",
-            "mqtt.allow_anonymous = false",
-            "mqtt.vhost = /",
-            "mqtt.exchange = amq.topic",
-            f"management.tcp.ip = {HOST}",
-            f"management.tcp.port = {self.management_ports[i]}",
-            "log.file.level = warning",
-        ]) + "\n")
+        (base / "rabbitmq.conf").write_text(
+            "\n".join(
+                [
+                    "loopback_users = none",
+                    f"mqtt.listeners.tcp.default = {HOST}:{self.mqtt_ports[i]}",
+                    "mqtt.allow_anonymous = false",
+                    "mqtt.vhost = /",
+                    "mqtt.exchange = amq.topic",
+                    f"management.tcp.ip = {HOST}",
+                    f"management.tcp.port = {self.management_ports[i]}",
+                    "log.file.level = warning",
+                ]
+            )
+            + "\n"
+        )
         with open(base / "stdout.log", "ab") as log:
-            self.procs[i] = subprocess.Popen([str(self.bin_dir / "rabbitmq-server")], env=self.env(i), stdout=log,
-                                             stderr=subprocess.STDOUT, start_new_session=True)
+            self.procs[i] = subprocess.Popen(
+                [str(self.bin_dir / "rabbitmq-server")],
+                env=self.env(i),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
 
     def start(self) -> None:
         self.home.mkdir(exist_ok=True)
@@ -166,10 +234,15 @@ class RabbitCluster:
         cookie.chmod(0o400)
         (self.root / "rabbitmq-env.conf").write_text("")
         (self.root / "enabled_plugins").write_text(
-            "[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange,rabbitmq_management].\n")
+            "[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange,rabbitmq_management].\n"
+        )
         # a session of its own, as the nodes': a terminal's Ctrl-C reaches the process that runs the cluster only
-        self.epmd = subprocess.Popen(["epmd", "-port", str(self.epmd_port)], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, start_new_session=True)
+        self.epmd = subprocess.Popen(
+            ["epmd", "-port", str(self.epmd_port)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         wait_port(self.epmd_port, 10)
         for i in range(self.nodes):
             self.start_node(i)
@@ -184,19 +257,51 @@ class RabbitCluster:
             wait_port(self.management_ports[i], 60)
 
     def definitions(self) -> dict:
-        users = [{"name": SERVICE_USER, "password_hash": rabbit_password_hash(self.secret),
-                  "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": ["administrator"]}]
+        users = [
+            {
+                "name": SERVICE_USER,
+                "password_hash": rabbit_password_hash(self.secret),
+                "hashing_algorithm": "rabbit_password_hashing_sha256",
+                "tags": ["administrator"],
+            }
+        ]
         permissions = [{"user": SERVICE_USER, "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}]
         topic_permissions = []
         for v in self.vehicles:
-            users.append({"name": v, "password_hash": rabbit_password_hash(self.secret),
-                          "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": []})
-            permissions.append({"user": v, "vhost": "/", "configure": "^mqtt-subscription-.*", "write": "^amq\\.topic$",
-                                "read": "^amq\\.topic$"})
-            topic_permissions.append({"user": v, "vhost": "/", "exchange": "amq.topic",
-                                      "write": f"^roadgrip\\.v1\\.vehicles\\.{v}\\.telemetry$", "read": "^$"})
-        return {"rabbit_version": "3.10.8", "users": users, "vhosts": [{"name": "/"}], "permissions": permissions,
-                "topic_permissions": topic_permissions, **topology(self.partitions)}
+            users.append(
+                {
+                    "name": v,
+                    "password_hash": rabbit_password_hash(self.secret),
+                    "hashing_algorithm": "rabbit_password_hashing_sha256",
+                    "tags": [],
+                }
+            )
+            permissions.append(
+                {
+                    "user": v,
+                    "vhost": "/",
+                    "configure": "^mqtt-subscription-.*",
+                    "write": "^amq\\.topic$",
+                    "read": "^amq\\.topic$",
+                }
+            )
+            topic_permissions.append(
+                {
+                    "user": v,
+                    "vhost": "/",
+                    "exchange": "amq.topic",
+                    "write": f"^roadgrip\\.v1\\.vehicles\\.{v}\\.telemetry$",
+                    "read": "^$",
+                }
+            )
+        return {
+            "rabbit_version": "3.10.8",
+            "users": users,
+            "vhosts": [{"name": "/"}],
+            "permissions": permissions,
+            "topic_permissions": topic_permissions,
+            **topology(self.partitions),
+        }
 
     def setup(self) -> None:
         path = self.root / "definitions.json"

@@ -147,8 +147,16 @@ class ConfirmedPublisher:
             if self._connection is not None:
                 self._drop()
 
-    def publish(self, exchange: str, routing_key: str, bodies: list[bytes], properties: pika.BasicProperties,
-                mandatory: bool = False, deadline_s: float | None = None, what: str = "a message") -> float:
+    def publish(
+        self,
+        exchange: str,
+        routing_key: str,
+        bodies: list[bytes],
+        properties: pika.BasicProperties,
+        mandatory: bool = False,
+        deadline_s: float | None = None,
+        what: str = "a message",
+    ) -> float:
         """Publish `bodies` in order, each waiting for its confirm; on a failure (a nack, a lost connection, no
         broker reachable) publish them all again on a new connection, from the next broker, every RECONNECT_S,
         until all are confirmed (a message confirmed before the failure is then published twice: the consumers take
@@ -164,8 +172,10 @@ class ConfirmedPublisher:
         and it is still not confirmed. `what` names the message in errors and the log."""
         started = time.monotonic()
         if not self._lock.acquire(timeout=-1 if deadline_s is None else max(0.0, deadline_s)):
-            raise TimeoutError(f"{what} not published within {deadline_s:.1f} s: the publisher was busy with "
-                               "another message all that time")
+            raise TimeoutError(
+                f"{what} not published within {deadline_s:.1f} s: the publisher was busy with "
+                "another message all that time"
+            )
         try:
             while True:
                 try:
@@ -178,7 +188,10 @@ class ConfirmedPublisher:
                     return time.monotonic() - try_started
                 except pika.exceptions.UnroutableError:
                     raise
-                except (pika.exceptions.AMQPError, OSError) as exc:  # a nack too: a new connection, publisher.py says why
+                except (
+                    pika.exceptions.AMQPError,
+                    OSError,
+                ) as exc:  # a nack too: a new connection, publisher.py says why
                     self.failures += 1
                     log.warning("%s: %s not confirmed through broker %d (%r)", self.what, what, self.broker, exc)
                     if self._connection is not None:
@@ -236,8 +249,14 @@ class ConsumerAttempt(Protocol):
         `broker` the index in the list of the broker it went through."""
 
 
-def consume(brokers: list[str], start: int, closing: threading.Event, attempt: Callable[[], ConsumerAttempt],
-            what: str, errors: tuple[type[BaseException], ...] = ()) -> None:
+def consume(
+    brokers: list[str],
+    start: int,
+    closing: threading.Event,
+    attempt: Callable[[], ConsumerAttempt],
+    what: str,
+    errors: tuple[type[BaseException], ...] = (),
+) -> None:
     """Until `closing` is set: connect (`connect`, from brokers[start]), run a fresh `attempt()` on the connection,
     close it, tell the attempt how it ended. A connection given up (pika's errors, OSError, or one of `errors`
     raised by the attempt) is closed, and the next attempt goes through the next broker after RECONNECT_S; after a

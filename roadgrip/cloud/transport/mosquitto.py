@@ -146,8 +146,15 @@ class ManagedBroker:
 
     host = "127.0.0.1"
 
-    def __init__(self, workdir: Path, port: int = 0, service_user: str = "roadgrip-cloud",
-                 service_password: str | None = None, *, max_queued_messages: int = MAX_QUEUED_MESSAGES):
+    def __init__(
+        self,
+        workdir: Path,
+        port: int = 0,
+        service_user: str = "roadgrip-cloud",
+        service_password: str | None = None,
+        *,
+        max_queued_messages: int = MAX_QUEUED_MESSAGES,
+    ):
         if not 0 <= port <= 65_535:
             raise ValueError(f"port must be in [0, 65535], got {port}")
         _check_name("service_user", service_user)
@@ -198,9 +205,14 @@ class ManagedBroker:
                 self.port = free_port(self.host)
             self._write_config()
             with open(self.workdir / "mosquitto.out", "ab") as out:
-                self._process = subprocess.Popen([executable, "-c", str(self.conf_path)], stdin=subprocess.DEVNULL,
-                                                 stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-                                                 preexec_fn=_stop_with_parent)  # noqa: PLW1509 (fork-safe)
+                self._process = subprocess.Popen(
+                    [executable, "-c", str(self.conf_path)],
+                    stdin=subprocess.DEVNULL,
+                    stdout=out,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                    preexec_fn=_stop_with_parent,  # noqa: PLW1509 (fork-safe: one prctl call)
+                )
             try:
                 self._wait_ready(timeout_s)
                 return
@@ -248,8 +260,9 @@ class ManagedBroker:
             raise ValueError(f"role must be one of {ROLES}, got {role!r}")
         if role == "vehicle":
             if vehicle_id is not None and vehicle_id != name:
-                raise ValueError(f"a vehicle's login name is its vehicle_id: got name {name!r}, vehicle_id "
-                                 f"{vehicle_id!r}")
+                raise ValueError(
+                    f"a vehicle's login name is its vehicle_id: got name {name!r}, vehicle_id {vehicle_id!r}"
+                )
         elif vehicle_id is not None:
             raise ValueError(f"vehicle_id is for role 'vehicle' only, got {vehicle_id!r} for role {role!r}")
         return _Login(password_hash(password), role)
@@ -278,13 +291,19 @@ class ManagedBroker:
         if not path.exists():
             return {}
         saved = json.loads(path.read_text())
-        return {name: _Login(entry["password_hash"], entry["role"]) for name, entry in saved.items()
-                if entry["role"] in ROLES}
+        return {
+            name: _Login(entry["password_hash"], entry["role"])
+            for name, entry in saved.items()
+            if entry["role"] in ROLES
+        }
 
     def _save_logins(self) -> None:
         self.workdir.mkdir(parents=True, exist_ok=True)
-        saved = {name: {"password_hash": login.password_hash, "role": login.role}
-                 for name, login in self._logins.items() if login.role in ROLES}
+        saved = {
+            name: {"password_hash": login.password_hash, "role": login.role}
+            for name, login in self._logins.items()
+            if login.role in ROLES
+        }
         _write_private(self.workdir / LOGINS_FILE, json.dumps(saved, indent=1) + "\n")
 
     def _write_config(self) -> None:
@@ -317,12 +336,21 @@ class ManagedBroker:
         sections = []
         for name, login in self._logins.items():
             if login.role == "service":
-                rules = [("read", TELEMETRY_SUBSCRIPTION), ("write", FRICTION_SUBSCRIPTION),
-                         ("write", ERRORS_SUBSCRIPTION), ("write", WARNINGS_TOPIC),
-                         ("read", STATION_REPORTS_SUBSCRIPTION), ("write", STATION_ERRORS_SUBSCRIPTION)]
+                rules = [
+                    ("read", TELEMETRY_SUBSCRIPTION),
+                    ("write", FRICTION_SUBSCRIPTION),
+                    ("write", ERRORS_SUBSCRIPTION),
+                    ("write", WARNINGS_TOPIC),
+                    ("read", STATION_REPORTS_SUBSCRIPTION),
+                    ("write", STATION_ERRORS_SUBSCRIPTION),
+                ]
             elif login.role == "vehicle":
-                rules = [("write", telemetry_topic(name)), ("read", friction_topic(name)),
-                         ("read", errors_topic(name)), ("read", WARNINGS_TOPIC)]
+                rules = [
+                    ("write", telemetry_topic(name)),
+                    ("read", friction_topic(name)),
+                    ("read", errors_topic(name)),
+                    ("read", WARNINGS_TOPIC),
+                ]
             elif login.role == "station":
                 rules = [("write", station_reports_topic(name)), ("read", station_errors_topic(name))]
             else:
@@ -357,15 +385,21 @@ class ManagedBroker:
                 return
             except (OSError, TimeoutError):  # not listening yet (a refused login is a RuntimeError: no retry)
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"mosquitto not accepting connections on {self.url} after {timeout_s} s:\n"
-                                       f"{self._output_tail()}") from None
+                    raise RuntimeError(
+                        f"mosquitto not accepting connections on {self.url} after {timeout_s} s:\n{self._output_tail()}"
+                    ) from None
                 time.sleep(0.02)
 
     def _probe(self, timeout_s: float) -> None:
         """Log in as the service (a clean session, closed again); RuntimeError when the broker refuses it."""
         try:
-            client = connect_paho(self.url, self.service_user, self.service_password, timeout_s=timeout_s,
-                                  client_id=f"{self.service_user}-probe-{secrets.token_hex(4)}")
+            client = connect_paho(
+                self.url,
+                self.service_user,
+                self.service_password,
+                timeout_s=timeout_s,
+                client_id=f"{self.service_user}-probe-{secrets.token_hex(4)}",
+            )
         except BrokerRefused as err:
             raise RuntimeError(f"mosquitto refused the service's login: {err}\n{self._output_tail()}") from err
         client.disconnect()

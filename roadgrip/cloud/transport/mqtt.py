@@ -100,7 +100,7 @@ def vehicle_of_topic(topic: str) -> str | None:
     other topic, or for an id that is not a valid vehicle_id."""
     if not topic.startswith(VEHICLES_PREFIX):
         return None
-    parts = topic[len(VEHICLES_PREFIX):].split("/")
+    parts = topic[len(VEHICLES_PREFIX) :].split("/")
     if len(parts) != 2 or parts[1] not in VEHICLE_TOPIC_KINDS or VEHICLE_ID_RE.fullmatch(parts[0]) is None:
         return None
     return parts[0]
@@ -119,7 +119,7 @@ def station_of_topic(topic: str) -> str | None:
     """The station id in `roadgrip/v1/stations/{id}/reports`; None for any other topic or an invalid id."""
     if not topic.startswith(STATIONS_PREFIX):
         return None
-    parts = topic[len(STATIONS_PREFIX):].split("/")
+    parts = topic[len(STATIONS_PREFIX) :].split("/")
     if len(parts) != 2 or parts[1] != "reports" or VEHICLE_ID_RE.fullmatch(parts[0]) is None:
         return None
     return parts[0]
@@ -146,15 +146,25 @@ class PublishRefused(RuntimeError):
     authorized for a topic outside the client's ACL."""
 
     def __init__(self, topic: str, reason_code: ReasonCode):
-        super().__init__(f"publish to {topic!r} refused by the broker: reason code {reason_code.value:#04x} "
-                         f"({reason_code})")
+        super().__init__(
+            f"publish to {topic!r} refused by the broker: reason code {reason_code.value:#04x} ({reason_code})"
+        )
         self.topic = topic
         self.reason_code = reason_code
 
 
-def connect_paho(url: str, username: str, password: str, *, client_id: str | None = None, timeout_s: float = 10,
-                 clean_start: bool = True, properties: Properties | None = None,
-                 manual_ack: bool = False, protocol: str = "5") -> paho.Client:
+def connect_paho(
+    url: str,
+    username: str,
+    password: str,
+    *,
+    client_id: str | None = None,
+    timeout_s: float = 10,
+    clean_start: bool = True,
+    properties: Properties | None = None,
+    manual_ack: bool = False,
+    protocol: str = "5",
+) -> paho.Client:
     """A paho client (MQTT 5, or `protocol` "3.1.1": clean session as `clean_start`, no properties) connected to `url`
     as `username`, its network loop then running in paho's thread (which reconnects by itself after a drop).
 
@@ -168,9 +178,13 @@ def connect_paho(url: str, username: str, password: str, *, client_id: str | Non
     if protocol != "5" and properties is not None:
         raise ValueError(f"properties are MQTT 5 only, got some for protocol {protocol!r}")
     v5 = protocol == "5"
-    client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id or f"roadgrip-{secrets.token_hex(6)}",
-                         protocol=MQTT_PROTOCOLS[protocol], manual_ack=manual_ack,
-                         clean_session=None if v5 else clean_start)
+    client = paho.Client(
+        CallbackAPIVersion.VERSION2,
+        client_id=client_id or f"roadgrip-{secrets.token_hex(6)}",
+        protocol=MQTT_PROTOCOLS[protocol],
+        manual_ack=manual_ack,
+        clean_session=None if v5 else clean_start,
+    )
     client.username_pw_set(username, password)
     answered = threading.Event()
     reply: list[ReasonCode] = []
@@ -236,14 +250,23 @@ class MqttClient:
     after the connection the message arrived on has dropped does nothing: the broker delivers that message again.
     """
 
-    def __init__(self, url: str, username: str, password: str, client_id: str,
-                 on_telemetry: TelemetryHandler | None = None, *, on_station_report: TelemetryHandler | None = None,
-                 session_expiry_s: int = 86_400,
-                 receive_maximum: int = 10_000, max_queued_messages: int = 100_000,
-                 max_inflight: int = DEFAULT_MAX_INFLIGHT,
-                 keepalive_s: int = 30,
-                 reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
-                 reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S):
+    def __init__(
+        self,
+        url: str,
+        username: str,
+        password: str,
+        client_id: str,
+        on_telemetry: TelemetryHandler | None = None,
+        *,
+        on_station_report: TelemetryHandler | None = None,
+        session_expiry_s: int = 86_400,
+        receive_maximum: int = 10_000,
+        max_queued_messages: int = 100_000,
+        max_inflight: int = DEFAULT_MAX_INFLIGHT,
+        keepalive_s: int = 30,
+        reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
+        reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S,
+    ):
         self.host, self.port = parse_url(url)
         if not 1 <= receive_maximum <= 65_535:
             raise ValueError(f"receive_maximum must be in [1, 65535] (MQTT 5), got {receive_maximum}")
@@ -283,8 +306,9 @@ class MqttClient:
         `TimeoutError` after `timeout_s`; the client is then stopped. Later disconnects are repaired in the background."""
         if self._client is not None:
             raise RuntimeError("connect() called twice: close() first")
-        client = paho.Client(CallbackAPIVersion.VERSION2, client_id=self.client_id, protocol=paho.MQTTv5,
-                             manual_ack=True)
+        client = paho.Client(
+            CallbackAPIVersion.VERSION2, client_id=self.client_id, protocol=paho.MQTTv5, manual_ack=True
+        )
         client.username_pw_set(self.username, self._password)
         client.reconnect_delay_set(self.reconnect_min_delay_s, self.reconnect_max_delay_s)
         client.max_queued_messages_set(self.max_queued_messages)
@@ -301,8 +325,7 @@ class MqttClient:
         self._failure = None
         self._client = client
         try:
-            client.connect(self.host, self.port, keepalive=self.keepalive_s, clean_start=False,
-                           properties=properties)
+            client.connect(self.host, self.port, keepalive=self.keepalive_s, clean_start=False, properties=properties)
         except OSError:
             self._client = None
             raise
@@ -326,8 +349,10 @@ class MqttClient:
             raise RuntimeError("publish() before connect()")
         info = client.publish(topic, payload, qos=qos)
         if info.rc == MQTTErrorCode.MQTT_ERR_QUEUE_SIZE:
-            raise BufferError(f"{self.client_id}: {self.max_queued_messages} messages already wait to be published "
-                              f"(max_queued_messages); {topic!r} dropped")
+            raise BufferError(
+                f"{self.client_id}: {self.max_queued_messages} messages already wait to be published "
+                f"(max_queued_messages); {topic!r} dropped"
+            )
         if qos > 0:
             with self._lock:
                 self._unacknowledged += 1
@@ -372,9 +397,14 @@ class MqttClient:
         log.info("%s: connected to %s (session present: %s)", self.client_id, self.url, flags.session_present)
         allowed = getattr(properties, "ReceiveMaximum", 65_535)  # absent: the MQTT 5 default
         if allowed < self.max_inflight:
-            log.error("%s: %s accepts %d unacknowledged publishes, this client sends up to %d (max_inflight): set "
-                      "the broker's max_inflight_messages to at least that", self.client_id, self.url, allowed,
-                      self.max_inflight)
+            log.error(
+                "%s: %s accepts %d unacknowledged publishes, this client sends up to %d (max_inflight): set "
+                "the broker's max_inflight_messages to at least that",
+                self.client_id,
+                self.url,
+                allowed,
+                self.max_inflight,
+            )
         if self.on_telemetry is None:
             self._ready.set()
             return
@@ -409,8 +439,11 @@ class MqttClient:
             try:
                 self.on_station_report(station_id, message.payload, ack)
             except Exception:
-                log.exception("%s: station report handler failed on a message of %s; left unacknowledged",
-                              self.client_id, station_id)
+                log.exception(
+                    "%s: station report handler failed on a message of %s; left unacknowledged",
+                    self.client_id,
+                    station_id,
+                )
             return
         if self.on_telemetry is None or vehicle_id is None or not message.topic.endswith("/telemetry"):
             # a subscription left in the persistent session by an earlier client with this id, or a foreign topic
@@ -420,8 +453,9 @@ class MqttClient:
         try:
             self.on_telemetry(vehicle_id, message.payload, ack)
         except Exception:
-            log.exception("%s: telemetry handler failed on a message of %s; left unacknowledged", self.client_id,
-                          vehicle_id)
+            log.exception(
+                "%s: telemetry handler failed on a message of %s; left unacknowledged", self.client_id, vehicle_id
+            )
 
     def _acker(self, client: paho.Client, mid: int, qos: int) -> Callable[[], None]:
         generation = self._generation
@@ -470,20 +504,32 @@ class UserClient:
         if self.paho is not None:
             raise RuntimeError("connect() called twice: close() first")
         if self.protocol != "auto":
-            client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
-                                  timeout_s=timeout_s, protocol=self.protocol)
+            client = connect_paho(
+                self.url,
+                self.username,
+                self._password,
+                client_id=self.client_id,
+                timeout_s=timeout_s,
+                protocol=self.protocol,
+            )
         else:
             try:
-                client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
-                                      timeout_s=timeout_s, protocol="5")
+                client = connect_paho(
+                    self.url, self.username, self._password, client_id=self.client_id, timeout_s=timeout_s, protocol="5"
+                )
                 self.protocol = "5"
             except ConnectionError as exc:
                 if isinstance(exc, BrokerRefused) and exc.reason_code.value != UNSUPPORTED_PROTOCOL_VERSION:
                     raise
-                log.info("%s: %s did not take MQTT 5 (%s); connecting with MQTT 3.1.1", self.client_id, self.url,
-                         exc)
-                client = connect_paho(self.url, self.username, self._password, client_id=self.client_id,
-                                      timeout_s=timeout_s, protocol="3.1.1")
+                log.info("%s: %s did not take MQTT 5 (%s); connecting with MQTT 3.1.1", self.client_id, self.url, exc)
+                client = connect_paho(
+                    self.url,
+                    self.username,
+                    self._password,
+                    client_id=self.client_id,
+                    timeout_s=timeout_s,
+                    protocol="3.1.1",
+                )
                 self.protocol = "3.1.1"
         client.on_publish = self._on_publish
         client.on_subscribe = self._on_subscribe

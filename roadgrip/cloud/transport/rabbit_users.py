@@ -86,13 +86,23 @@ def permissions(name: str, role: str, vhost: str = "/") -> tuple[dict, dict]:
     elif role == "reader":
         write = "^$"
         # a subscription to roadgrip/v1/vehicles/+/friction binds with the key roadgrip.v1.vehicles.*.friction
-        read = "^(" + re.escape(routing_key(friction_topic("X"))).replace("X", r"[^.]+") + "|" + \
-            re.escape(routing_key(WARNINGS_TOPIC)) + ")$"
+        read = (
+            "^("
+            + re.escape(routing_key(friction_topic("X"))).replace("X", r"[^.]+")
+            + "|"
+            + re.escape(routing_key(WARNINGS_TOPIC))
+            + ")$"
+        )
     else:
         raise ValueError(f"broker logins are for roles {BROKER_ROLES}, got {role!r}")
     exchange = re.escape(MQTT_EXCHANGE)
-    permission = {"user": name, "vhost": vhost, "configure": f"^{queues}$", "write": f"^({exchange}|{queues})$",
-                  "read": f"^({exchange}|{queues})$"}
+    permission = {
+        "user": name,
+        "vhost": vhost,
+        "configure": f"^{queues}$",
+        "write": f"^({exchange}|{queues})$",
+        "read": f"^({exchange}|{queues})$",
+    }
     topic = {"user": name, "vhost": vhost, "exchange": MQTT_EXCHANGE, "write": write, "read": read}
     return permission, topic
 
@@ -101,8 +111,9 @@ class RabbitUsers:
     """Logins on a RabbitMQ cluster through the management HTTP API of any of its nodes (`management_urls`, tried in
     turn from the last one that answered), as `username` (an administrator). Safe across threads."""
 
-    def __init__(self, management_urls: list[str], username: str, password: str, vhost: str = "/",
-                 timeout_s: float = TIMEOUT_S):
+    def __init__(
+        self, management_urls: list[str], username: str, password: str, vhost: str = "/", timeout_s: float = TIMEOUT_S
+    ):
         if not management_urls:
             raise ValueError("at least one management URL is needed")
         for url in management_urls:
@@ -146,13 +157,20 @@ class RabbitUsers:
         users, perms, topics = [], [], []
         for name, secret, role in logins:
             permission, topic = permissions(name, role, self.vhost)
-            users.append({"name": name, "password_hash": rabbit_password_hash(secret),
-                          "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": ""})
+            users.append(
+                {
+                    "name": name,
+                    "password_hash": rabbit_password_hash(secret),
+                    "hashing_algorithm": "rabbit_password_hashing_sha256",
+                    "tags": "",
+                }
+            )
             perms.append(permission)
             topics.append(topic)
         if users:
-            self._request("POST", "/api/definitions", json={"users": users, "permissions": perms,
-                                                            "topic_permissions": topics})
+            self._request(
+                "POST", "/api/definitions", json={"users": users, "permissions": perms, "topic_permissions": topics}
+            )
 
     def delete_login(self, name: str) -> None:
         """Delete the user: nothing logs in as it any more and its open connections are closed (module docstring).

@@ -63,8 +63,10 @@ def register_importer(importer: Importer, *, replace: bool = False) -> Importer:
     """Add `importer` to the registry under its name (an importer object, not a class); returns it. A name already
     taken is a `ValueError` unless `replace`."""
     if isinstance(importer, type):
-        raise TypeError(f"register_importer takes an importer object, got the class {importer.__name__}: "
-                        f"register {importer.__name__}() instead")
+        raise TypeError(
+            f"register_importer takes an importer object, got the class {importer.__name__}: "
+            f"register {importer.__name__}() instead"
+        )
     name = getattr(importer, "name", None)
     if not isinstance(name, str) or not name.strip():
         raise TypeError(f"an importer needs a non-empty string `name`, got {name!r} on {importer!r}")
@@ -72,8 +74,9 @@ def register_importer(importer: Importer, *, replace: bool = False) -> Importer:
     if missing:
         raise TypeError(f"importer {name!r} lacks the method(s) {', '.join(missing)} (see roadgrip.fleet.importers)")
     if name in _REGISTRY and _REGISTRY[name] is not importer and not replace:
-        raise ValueError(f"an importer named {name!r} is already registered ({_REGISTRY[name]!r}); "
-                         "pass replace=True to replace it")
+        raise ValueError(
+            f"an importer named {name!r} is already registered ({_REGISTRY[name]!r}); pass replace=True to replace it"
+        )
     _REGISTRY[name] = importer
     _FAILED.pop(name, None)
     return importer

@@ -105,8 +105,15 @@ GRID_S = 0.005
 SMOOTH_S = 0.1
 MIN_CORRELATION = 0.5  # below it the two signals do not show one motion: no offset can be trusted
 
-OPTIONS = ("vehicle_id", "start_ms", "origin_lat_deg", "origin_lon_deg", "clock_offset_s", "max_lag_s",
-           "steering_full_scale_rad")
+OPTIONS = (
+    "vehicle_id",
+    "start_ms",
+    "origin_lat_deg",
+    "origin_lon_deg",
+    "clock_offset_s",
+    "max_lag_s",
+    "steering_full_scale_rad",
+)
 
 
 @functools.cache
@@ -128,8 +135,7 @@ class BmwM8Importer:
         folder = _folder(Path(path))
         if folder is None:
             return False
-        return (set(FAST_COLUMNS) <= _header(folder / FAST_FILE)
-                and set(SLOW_COLUMNS) <= _header(folder / SLOW_FILE))
+        return set(FAST_COLUMNS) <= _header(folder / FAST_FILE) and set(SLOW_COLUMNS) <= _header(folder / SLOW_FILE)
 
     def load(self, path: Path, **options) -> pa.Table:
         check_options(self.name, options, OPTIONS)
@@ -147,24 +153,37 @@ class BmwM8Importer:
         fast = read_csv_columns(folder / FAST_FILE, FAST_COLUMNS)
         slow = read_csv_columns(folder / SLOW_FILE, SLOW_COLUMNS)
         if options.get("clock_offset_s") is None:
-            offset_s, corr = estimate_clock_offset(fast["time"], fast["Velocity_X"], slow["car_time"],
-                                                   slow["Acceleration_X"], max_lag_s=max_lag_s)
+            offset_s, corr = estimate_clock_offset(
+                fast["time"], fast["Velocity_X"], slow["car_time"], slow["Acceleration_X"], max_lag_s=max_lag_s
+            )
             how = f"cross-correlation of Acceleration_X with d(Velocity_X)/dt, peak correlation {corr:.3f}"
             logger.info("%s: clock offset time - car_time = %.4f s (%s)", folder, offset_s, how)
         else:
             offset_s = _number(options, "clock_offset_s", 0.0, -1e6, 1e6)
             how = "given"
-        table = to_wire(fast, slow, offset_s=offset_s, vehicle_id=vehicle_id, start_ms=start_ms,
-                        origin=(lat0, lon0), steering_full_scale_rad=full_scale)
+        table = to_wire(
+            fast,
+            slow,
+            offset_s=offset_s,
+            vehicle_id=vehicle_id,
+            start_ms=start_ms,
+            origin=(lat0, lon0),
+            steering_full_scale_rad=full_scale,
+        )
         batch = validate_telemetry(table, source=str(folder), wheel_radius_m=m8_profile().wheel_radius_m)
         for warning in batch.warnings:
             logger.warning("%s: %s", folder, warning)
-        return batch.table.replace_schema_metadata({
-            "roadgrip.importer": self.name, "roadgrip.clock_offset_s": f"{offset_s:.6f}",
-            "roadgrip.clock_offset_method": how})
+        return batch.table.replace_schema_metadata(
+            {
+                "roadgrip.importer": self.name,
+                "roadgrip.clock_offset_s": f"{offset_s:.6f}",
+                "roadgrip.clock_offset_method": how,
+            }
+        )
 
 
 # ------------------------------------------------------------------------------------------------ reading
+
 
 def _folder(path: Path) -> Path | None:
     """The log folder of `path` (the folder itself or one of its two files), or None."""
@@ -183,8 +202,12 @@ def read_csv_columns(path: Path, columns: tuple[str, ...]) -> dict[str, np.ndarr
     """The float64 `columns` of a CSV file, rows sorted by the first column (stable) with the rows whose first
     column is not a finite number left out."""
     try:
-        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
-            include_columns=list(columns), column_types={c: pa.float64() for c in columns}))
+        table = pacsv.read_csv(
+            path,
+            convert_options=pacsv.ConvertOptions(
+                include_columns=list(columns), column_types={c: pa.float64() for c in columns}
+            ),
+        )
     except (pa.ArrowInvalid, KeyError) as err:
         missing = sorted(set(columns) - _header(path))
         if missing:
@@ -203,13 +226,18 @@ def _number(options: dict, name: str, default: float, low: float, high: float) -
     value = options.get(name)
     if value is None:
         return default
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not (
-            low <= value <= high):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or not (low <= value <= high)
+    ):
         raise ValueError(f"{name} must be a number in [{low:g}, {high:g}], got {value!r}")
     return float(value)
 
 
 # ------------------------------------------------------------------------------------------ clock alignment
+
 
 def grid_means(t: np.ndarray, x: np.ndarray, start_s: float, period_s: float, n: int) -> np.ndarray:
     """Mean of the samples `x` (at times `t`, s) in each of the `n` bins [start_s + k period_s, start_s + (k+1)
@@ -245,16 +273,24 @@ def _smooth(x: np.ndarray, width: int) -> np.ndarray:
     return np.convolve(x, kernel, "same") / np.convolve(np.ones_like(x), kernel, "same")
 
 
-def estimate_clock_offset(fast_t: np.ndarray, speed_mps: np.ndarray, slow_t: np.ndarray, accel_mps2: np.ndarray, *,
-                          max_lag_s: float = MAX_LAG_S, step_s: float = GRID_S,
-                          smooth_s: float = SMOOTH_S) -> tuple[float, float]:
+def estimate_clock_offset(
+    fast_t: np.ndarray,
+    speed_mps: np.ndarray,
+    slow_t: np.ndarray,
+    accel_mps2: np.ndarray,
+    *,
+    max_lag_s: float = MAX_LAG_S,
+    step_s: float = GRID_S,
+    smooth_s: float = SMOOTH_S,
+) -> tuple[float, float]:
     """(offset_s, peak correlation): the offset between the two clocks, `fast time = slow time + offset_s`, at which
     the slow logger's longitudinal acceleration best matches the rate of change of the fast logger's speed (step 1 of
     the module docstring). Times in s, sorted; `ValueError` when the best correlation is under MIN_CORRELATION (too
     little acceleration in the log to align on) or the peak lies at the edge of +-max_lag_s."""
     if not (max_lag_s > 0 and step_s > 0 and smooth_s >= 0):
-        raise ValueError(f"max_lag_s, step_s must be > 0 and smooth_s >= 0, got {max_lag_s!r}, {step_s!r}, "
-                         f"{smooth_s!r}")
+        raise ValueError(
+            f"max_lag_s, step_s must be > 0 and smooth_s >= 0, got {max_lag_s!r}, {step_s!r}, {smooth_s!r}"
+        )
     width = round(smooth_s / step_s)
     tf, v = _on_grid(np.asarray(fast_t, np.float64), speed_mps, step_s)
     dv = _smooth(np.gradient(v, step_s), width)  # d(speed)/dt, m/s^2
@@ -277,17 +313,26 @@ def estimate_clock_offset(fast_t: np.ndarray, speed_mps: np.ndarray, slow_t: np.
         if denom > 0:
             corr[i] = float(np.dot(x, y)) / denom  # Pearson r
     if not np.isfinite(corr).any():
-        raise ValueError("cannot align the clocks: " + (
-            "neither speed nor acceleration varies in the log" if overlapped else
-            "the two logs overlap by less than a second at every lag tried"))
+        raise ValueError(
+            "cannot align the clocks: "
+            + (
+                "neither speed nor acceleration varies in the log"
+                if overlapped
+                else "the two logs overlap by less than a second at every lag tried"
+            )
+        )
     best = int(np.nanargmax(corr))
     peak = float(corr[best])
     if peak < MIN_CORRELATION:
-        raise ValueError(f"cannot align the clocks: the best correlation of acceleration with d(speed)/dt is "
-                         f"{peak:.2f} (at least {MIN_CORRELATION} needed; is there any acceleration in the log?)")
+        raise ValueError(
+            f"cannot align the clocks: the best correlation of acceleration with d(speed)/dt is "
+            f"{peak:.2f} (at least {MIN_CORRELATION} needed; is there any acceleration in the log?)"
+        )
     if best in (0, lags.size - 1) or not np.isfinite(corr[best - 1]) or not np.isfinite(corr[best + 1]):
-        raise ValueError(f"cannot align the clocks: the best correlation lies at the edge of the lags tried "
-                         f"(+-{max_lag_s:g} s); try a larger max_lag_s")
+        raise ValueError(
+            f"cannot align the clocks: the best correlation lies at the edge of the lags tried "
+            f"(+-{max_lag_s:g} s); try a larger max_lag_s"
+        )
     c0, c1, c2 = corr[best - 1], corr[best], corr[best + 1]
     curvature = c0 - 2 * c1 + c2
     shift = 0.5 * (c0 - c2) / curvature if curvature < 0 else 0.0  # vertex of the parabola through the 3 points
@@ -296,8 +341,17 @@ def estimate_clock_offset(fast_t: np.ndarray, speed_mps: np.ndarray, slow_t: np.
 
 # ------------------------------------------------------------------------------------------------ to wire
 
-def to_wire(fast: dict[str, np.ndarray], slow: dict[str, np.ndarray], *, offset_s: float, vehicle_id: str,
-            start_ms: int, origin: tuple[float, float], steering_full_scale_rad: float) -> pa.Table:
+
+def to_wire(
+    fast: dict[str, np.ndarray],
+    slow: dict[str, np.ndarray],
+    *,
+    offset_s: float,
+    vehicle_id: str,
+    start_ms: int,
+    origin: tuple[float, float],
+    steering_full_scale_rad: float,
+) -> pa.Table:
     """The two logs as wire-format v1 rows (TELEMETRY_SCHEMA, not yet validated): steps 2-4 of the module
     docstring, with the slow clock moved onto the fast one by `offset_s`."""
     t_fast = fast["time"]
@@ -312,8 +366,9 @@ def to_wire(fast: dict[str, np.ndarray], slow: dict[str, np.ndarray], *, offset_
     if not full.all():
         logger.warning("dropped %d of %d 100 ms bins that one of the logs left empty", int((~full).sum()), n)
     k = np.flatnonzero(full)
-    lat, lon, _ = pymap3d.enu2geodetic(s["Rel_pos_x"][k], s["Rel_pos_y"][k], np.zeros(k.size), origin[0], origin[1],
-                                       0.0)
+    lat, lon, _ = pymap3d.enu2geodetic(
+        s["Rel_pos_x"][k], s["Rel_pos_y"][k], np.zeros(k.size), origin[0], origin[1], 0.0
+    )
     columns = {
         "vehicle_id": pa.array([vehicle_id] * k.size, pa.string()),
         "timestamp_ms": pa.array(start_ms + k * round(PERIOD_S * 1000), pa.int64()),
@@ -330,5 +385,7 @@ def to_wire(fast: dict[str, np.ndarray], slow: dict[str, np.ndarray], *, offset_
         "lateral_speed_mps": f["Velocity_Y"][k],
     }
     # optional columns the log has no signal for (tcs_active, esc_active): null, "unknown"
-    return pa.table({f.name: columns[f.name] if f.name in columns else pa.nulls(k.size, f.type)
-                     for f in TELEMETRY_SCHEMA}, schema=TELEMETRY_SCHEMA)
+    return pa.table(
+        {f.name: columns[f.name] if f.name in columns else pa.nulls(k.size, f.type) for f in TELEMETRY_SCHEMA},
+        schema=TELEMETRY_SCHEMA,
+    )

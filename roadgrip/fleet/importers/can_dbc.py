@@ -126,8 +126,11 @@ class CanDbcImporter:
             raise ValueError(f"{folder} holds {len(csvs)} CAN logs ({[c.name for c in csvs]}): pass one of them")
         mapping, dbc_path = _resolve(folder, dbcs, options.get("mapping"))
         max_age_s = options.get("max_age_s")
-        if max_age_s is not None and (isinstance(max_age_s, bool) or not isinstance(max_age_s, (int, float))
-                                      or not (math.isfinite(max_age_s) and max_age_s > 0)):
+        if max_age_s is not None and (
+            isinstance(max_age_s, bool)
+            or not isinstance(max_age_s, (int, float))
+            or not (math.isfinite(max_age_s) and max_age_s > 0)
+        ):
             raise ValueError(f"max_age_s must be a number of seconds > 0, got {max_age_s!r}")
         vehicle_id = check_vehicle_id(options.get("vehicle_id") or mapping.vehicle_id or folder.name)
         start_ms = options.get("start_ms")
@@ -144,11 +147,16 @@ class CanDbcImporter:
             logger.warning("%s: %s", folder, warning)
         self.last_profile_ = mapping.profile
         age = _ages(mapping, max_age_s)
-        return batch.table.replace_schema_metadata({
-            "roadgrip.importer": self.name, "roadgrip.mapping": mapping.path.name, "roadgrip.dbc": dbc_path.name,
-            "roadgrip.vehicle": mapping.profile.name,
-            "roadgrip.resampling": f"latest value at each 100 ms instant (zero-order hold), signals at most {age}: "
-                                   f"{kept} of {total} instants kept"})
+        return batch.table.replace_schema_metadata(
+            {
+                "roadgrip.importer": self.name,
+                "roadgrip.mapping": mapping.path.name,
+                "roadgrip.dbc": dbc_path.name,
+                "roadgrip.vehicle": mapping.profile.name,
+                "roadgrip.resampling": f"latest value at each 100 ms instant (zero-order hold), signals at most {age}: "
+                f"{kept} of {total} instants kept",
+            }
+        )
 
 
 def _ages(mapping: CanMapping, max_age_s: float | None) -> str:
@@ -162,6 +170,7 @@ def _ages(mapping: CanMapping, max_age_s: float | None) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ finding files
+
 
 def _log_files(path: Path) -> tuple[Path, list[Path], list[Path]] | None:
     """(folder, CAN CSV files, DBC files) of a log folder or of a CAN CSV file in one; None if `path` is neither."""
@@ -181,8 +190,10 @@ def _log_files(path: Path) -> tuple[Path, list[Path], list[Path]] | None:
 def _checked_files(path: Path) -> tuple[Path, list[Path], list[Path]]:
     found = _log_files(path)
     if found is None or not found[1] or not found[2]:
-        raise ValueError(f"{path} is not a raw CAN log: expected a folder holding a CSV file with the columns "
-                         f"{list(CAN_COLUMNS)} and the car's .dbc file (or that CSV file itself)")
+        raise ValueError(
+            f"{path} is not a raw CAN log: expected a folder holding a CSV file with the columns "
+            f"{list(CAN_COLUMNS)} and the car's .dbc file (or that CSV file itself)"
+        )
     return found
 
 
@@ -201,8 +212,10 @@ def _resolve(folder: Path, dbcs: list[Path], option) -> tuple[CanMapping, Path]:
     else:
         local = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in (".yaml", ".yml") and p.is_file()]
         if len(local) > 1:
-            raise ValueError(f"{folder} holds {len(local)} YAML files ({[p.name for p in local]}); pass the CAN "
-                             "mapping as the option `mapping`")
+            raise ValueError(
+                f"{folder} holds {len(local)} YAML files ({[p.name for p in local]}); pass the CAN "
+                "mapping as the option `mapping`"
+            )
         if local:
             mapping = load_mapping(local[0])
         else:
@@ -211,15 +224,18 @@ def _resolve(folder: Path, dbcs: list[Path], option) -> tuple[CanMapping, Path]:
                 raise ValueError(
                     f"no CAN mapping for {folder}: put a mapping file (YAML, see roadgrip.fleet.importers.can_dbc) "
                     f"beside the log or pass the option `mapping`; roadgrip ships mappings for the DBC files "
-                    f"{sorted(shipped_mappings())}, and this folder has {[d.name for d in dbcs]}")
+                    f"{sorted(shipped_mappings())}, and this folder has {[d.name for d in dbcs]}"
+                )
             mapping = load_mapping(next(iter(shipped.values())))
     if mapping.dbc is not None:
         named = [d for d in dbcs if d.name == mapping.dbc]
         if named:
             return mapping, named[0]
     if len(dbcs) != 1:
-        raise ValueError(f"{folder} holds {len(dbcs)} DBC files ({[d.name for d in dbcs]}) and the mapping "
-                         f"{mapping.path.name} names {mapping.dbc!r}: which one decodes the log?")
+        raise ValueError(
+            f"{folder} holds {len(dbcs)} DBC files ({[d.name for d in dbcs]}) and the mapping "
+            f"{mapping.path.name} names {mapping.dbc!r}: which one decodes the log?"
+        )
     return mapping, dbcs[0]
 
 
@@ -250,8 +266,12 @@ def load_dbc(path: str | Path):
     text = path.read_text(encoding="cp1252")  # the DBC format's customary encoding, as cantools reads it
     text, dropped = drop_unused_value_tables(text)
     if dropped:
-        logger.warning("%s: dropped %d value table(s) for signals it does not define: %s", path.name, len(dropped),
-                       ", ".join(dropped))
+        logger.warning(
+            "%s: dropped %d value table(s) for signals it does not define: %s",
+            path.name,
+            len(dropped),
+            ", ".join(dropped),
+        )
     try:
         return cantools.database.load_string(text, database_format="dbc")
     except Exception as err:  # noqa: BLE001 - cantools raises its own errors, and others from its parser
@@ -285,8 +305,9 @@ def read_can_csv(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     types = {"Time": pa.float64(), "Bus": pa.int64(), "MessageID": pa.int64(), "Message": pa.string()}
     try:
-        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=list(CAN_COLUMNS),
-                                                                          column_types=types))
+        table = pacsv.read_csv(
+            path, convert_options=pacsv.ConvertOptions(include_columns=list(CAN_COLUMNS), column_types=types)
+        )
     except (pa.ArrowInvalid, KeyError) as err:
         raise ValueError(f"cannot read the CAN log {path}: {err}") from None
     time_s = table["Time"].to_numpy(zero_copy_only=False).astype(np.float64)
@@ -295,14 +316,17 @@ def read_can_csv(path: str | Path) -> dict[str, np.ndarray]:
         logger.warning("%s: left out %d rows without a finite Time", path.name, int((~ok).sum()))
     if not ok.any():
         raise ValueError(f"the CAN log {path} has no frames")
-    return {"time_s": time_s[ok],
-            "bus": table["Bus"].fill_null(-1).to_numpy(zero_copy_only=False)[ok],
-            "frame_id": table["MessageID"].fill_null(-1).to_numpy(zero_copy_only=False)[ok],
-            "payload": np.asarray(table["Message"].fill_null("").to_pylist(), dtype=object)[ok]}
+    return {
+        "time_s": time_s[ok],
+        "bus": table["Bus"].fill_null(-1).to_numpy(zero_copy_only=False)[ok],
+        "frame_id": table["MessageID"].fill_null(-1).to_numpy(zero_copy_only=False)[ok],
+        "payload": np.asarray(table["Message"].fill_null("").to_pylist(), dtype=object)[ok],
+    }
 
 
-def decode(frames: dict[str, np.ndarray], messages: dict[SignalSource, object], *,
-           source_name: str = "log") -> dict[SignalSource, tuple[np.ndarray, np.ndarray]]:
+def decode(
+    frames: dict[str, np.ndarray], messages: dict[SignalSource, object], *, source_name: str = "log"
+) -> dict[SignalSource, tuple[np.ndarray, np.ndarray]]:
     """(times in s, values in the DBC's units, summed over the source's signals, sorted by time) of each source, from
     the frames on its bus with its message's frame id. Frames that do not decode are left out, with a warning."""
     by_key: dict[tuple[int, int], list[SignalSource]] = {}
@@ -324,11 +348,21 @@ def decode(frames: dict[str, np.ndarray], messages: dict[SignalSource, object], 
             for s in sources:
                 values[s].append(sum(float(decoded[name]) for name in s.signals))
         if failures:
-            logger.warning("%s: %d of %d frames of %s (id %d, bus %d) did not decode and were left out (first: %s)",
-                           source_name, len(failures), rows.size, message.name, frame_id, bus, failures[0])
+            logger.warning(
+                "%s: %d of %d frames of %s (id %d, bus %d) did not decode and were left out (first: %s)",
+                source_name,
+                len(failures),
+                rows.size,
+                message.name,
+                frame_id,
+                bus,
+                failures[0],
+            )
         if not good:
-            raise ValueError(f"{source_name} has no decodable frame of {message.name} (id {frame_id}) on bus {bus}, "
-                             f"which the mapping needs for {[s.field for s in sources]}")
+            raise ValueError(
+                f"{source_name} has no decodable frame of {message.name} (id {frame_id}) on bus {bus}, "
+                f"which the mapping needs for {[s.field for s in sources]}"
+            )
         t = frames["time_s"][np.asarray(good)]
         for s in sources:
             out[s] = (t, np.asarray(values[s], np.float64))
@@ -337,8 +371,10 @@ def decode(frames: dict[str, np.ndarray], messages: dict[SignalSource, object], 
 
 # -------------------------------------------------------------------------------------------------- resampling
 
-def latest_values(t_ms: np.ndarray, values: np.ndarray, grid_ms: np.ndarray,
-                  max_age_ms: float) -> tuple[np.ndarray, np.ndarray]:
+
+def latest_values(
+    t_ms: np.ndarray, values: np.ndarray, grid_ms: np.ndarray, max_age_ms: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(value, fresh) at each grid instant: the latest of `values` (at sorted times `t_ms`) at or before it
     (zero-order hold; NaN before the first), and whether that value is at most `max_age_ms` old."""
     i = np.searchsorted(t_ms, grid_ms, side="right") - 1
@@ -349,14 +385,22 @@ def latest_values(t_ms: np.ndarray, values: np.ndarray, grid_ms: np.ndarray,
     return held, fresh
 
 
-def to_wire(series: dict[SignalSource, tuple[np.ndarray, np.ndarray]], mapping: CanMapping, *, vehicle_id: str,
-            start_ms: int | None, max_age_s: float | None = None) -> tuple[pa.Table, int, int]:
+def to_wire(
+    series: dict[SignalSource, tuple[np.ndarray, np.ndarray]],
+    mapping: CanMapping,
+    *,
+    vehicle_id: str,
+    start_ms: int | None,
+    max_age_s: float | None = None,
+) -> tuple[pa.Table, int, int]:
     """(wire-format rows in TELEMETRY_SCHEMA, not yet validated; grid instants kept; grid instants in all) of the
     decoded signals: resampled, converted to SI and ISO 8855 as the module docstring says."""
     first_s = min(t[0] for t, _ in series.values())
     last_s = max(t[-1] for t, _ in series.values())
-    grid_ms = np.arange(math.ceil(first_s * 1000 / PERIOD_MS), math.floor(last_s * 1000 / PERIOD_MS) + 1,
-                        dtype=np.int64) * PERIOD_MS
+    grid_ms = (
+        np.arange(math.ceil(first_s * 1000 / PERIOD_MS), math.floor(last_s * 1000 / PERIOD_MS) + 1, dtype=np.int64)
+        * PERIOD_MS
+    )
     fresh = np.ones(grid_ms.size, bool)
     held = {}
     for source, (t_s, values) in series.items():
@@ -366,28 +410,39 @@ def to_wire(series: dict[SignalSource, tuple[np.ndarray, np.ndarray]], mapping: 
         fresh &= ok
     k = np.flatnonzero(fresh)
     if not k.size:
-        raise ValueError("no 100 ms instant of the log has every mapped signal fresh (at most "
-                         f"{max_age_s or max(s.max_age_s for s in series):g} s old); the fields' frames do not overlap")
+        raise ValueError(
+            "no 100 ms instant of the log has every mapped signal fresh (at most "
+            f"{max_age_s or max(s.max_age_s for s in series):g} s old); the fields' frames do not overlap"
+        )
     if grid_ms.size - k.size:
-        logger.info("kept %d of %d grid instants: at the others a signal's latest frame was too old", k.size,
-                    grid_ms.size)
+        logger.info(
+            "kept %d of %d grid instants: at the others a signal's latest frame was too old", k.size, grid_ms.size
+        )
     timestamps = grid_ms[k]
     if start_ms is not None:
         timestamps = timestamps - timestamps[0] + start_ms
     elif first_s < RELATIVE_CLOCK_S:
-        logger.warning("the log's Time counts from its start, not from the Unix epoch: timestamps start at %d ms "
-                       "(pass start_ms to choose)", DEFAULT_START_MS)
+        logger.warning(
+            "the log's Time counts from its start, not from the Unix epoch: timestamps start at %d ms "
+            "(pass start_ms to choose)",
+            DEFAULT_START_MS,
+        )
         timestamps = timestamps - timestamps[0] + DEFAULT_START_MS
 
-    columns = {"vehicle_id": pa.array([vehicle_id] * k.size, pa.string()),
-               "timestamp_ms": pa.array(timestamps, pa.int64())}
+    columns = {
+        "vehicle_id": pa.array([vehicle_id] * k.size, pa.string()),
+        "timestamp_ms": pa.array(timestamps, pa.int64()),
+    }
     for source, values in held.items():
         columns[source.field] = _to_field(source, values[k], mapping.profile.wheel_radius_m)
     for field, value in mapping.constants.items():
         columns[field] = np.full(k.size, value, bool)
     arrays = [columns[f.name] if f.name in columns else pa.nulls(k.size, f.type) for f in TELEMETRY_SCHEMA]
-    return pa.Table.from_arrays([pa.array(a, f.type) for a, f in zip(arrays, TELEMETRY_SCHEMA)],
-                                schema=TELEMETRY_SCHEMA), int(k.size), int(grid_ms.size)
+    return (
+        pa.Table.from_arrays([pa.array(a, f.type) for a, f in zip(arrays, TELEMETRY_SCHEMA)], schema=TELEMETRY_SCHEMA),
+        int(k.size),
+        int(grid_ms.size),
+    )
 
 
 def _to_field(source: SignalSource, values: np.ndarray, wheel_radius_m: float) -> np.ndarray:

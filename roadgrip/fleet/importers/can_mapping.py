@@ -93,15 +93,19 @@ def load_mapping(path: str | Path) -> CanMapping:
             raise ValueError(f"{where}: {field!r} is not a field of wire format v1; fields: {list(FIELD_UNITS)}")
         if isinstance(spec, bool):
             if field not in BOOL_FIELDS:
-                raise ValueError(f"{where}: only the flags {list(BOOL_FIELDS)} may be a constant (not reported), "
-                                 f"got {field}: {spec!r}")
+                raise ValueError(
+                    f"{where}: only the flags {list(BOOL_FIELDS)} may be a constant (not reported), "
+                    f"got {field}: {spec!r}"
+                )
             constants[field] = spec
             continue
         sources.append(_source(field, spec, default_bus, default_age, where))
     missing = [f for f in REQUIRED_FIELDS if f not in data["fields"]]
     if missing:
-        raise ValueError(f"{where} lacks the required wire field(s) {missing}; a flag the log lacks is written "
-                         "`abs_active: false` (not reported)")
+        raise ValueError(
+            f"{where} lacks the required wire field(s) {missing}; a flag the log lacks is written "
+            "`abs_active: false` (not reported)"
+        )
     return CanMapping(path, tuple(sources), constants, _profile(data["vehicle"], path, where), vehicle_id, dbc)
 
 
@@ -129,8 +133,15 @@ def _source(field: str, spec, default_bus: int, default_age: float, where: str) 
         if unit is None:
             raise ValueError(f"{here} needs `unit`: the unit the DBC gives {'+'.join(names)} (e.g. km/h, deg/s)")
         unit = _convertible(field, unit, here)
-    return SignalSource(field, message, tuple(names), _bus(spec.get("bus", default_bus), f"{here}: bus"), unit, sign,
-                        _max_age(spec.get("max_age_s", default_age), f"{here}: max_age_s"))
+    return SignalSource(
+        field,
+        message,
+        tuple(names),
+        _bus(spec.get("bus", default_bus), f"{here}: bus"),
+        unit,
+        sign,
+        _max_age(spec.get("max_age_s", default_age), f"{here}: max_age_s"),
+    )
 
 
 def _convertible(field: str, unit, where: str) -> str:
@@ -149,8 +160,10 @@ def _convertible(field: str, unit, where: str) -> str:
     else:
         ok = si == target
     if not ok:
-        raise ValueError(f"{where}: unit {unit!r} does not convert to the field's {target}"
-                         + (" (or a speed at the tyre, divided by the wheel radius)" if field in WHEEL_FIELDS else ""))
+        raise ValueError(
+            f"{where}: unit {unit!r} does not convert to the field's {target}"
+            + (" (or a speed at the tyre, divided by the wheel radius)" if field in WHEEL_FIELDS else "")
+        )
     return name
 
 
@@ -185,6 +198,7 @@ def _max_age(value, where: str) -> float:
 
 # ------------------------------------------------------------------------------------------- against the DBC
 
+
 def check_against_dbc(mapping: CanMapping, db, dbc_name: str) -> dict[SignalSource, object]:
     """The DBC message of each source, after checking that the message and its signals exist and that every signal's
     unit, where the DBC states one, is the unit the mapping expects; `ValueError` naming the field, message and
@@ -193,20 +207,26 @@ def check_against_dbc(mapping: CanMapping, db, dbc_name: str) -> dict[SignalSour
     for source in mapping.sources:
         here = f"{mapping.path.name}: field {source.field}"
         try:
-            message = (db.get_message_by_frame_id(source.message) if isinstance(source.message, int)
-                       else db.get_message_by_name(source.message))
+            message = (
+                db.get_message_by_frame_id(source.message)
+                if isinstance(source.message, int)
+                else db.get_message_by_name(source.message)
+            )
         except KeyError:
             raise ValueError(f"{here}: message {source.message!r} is not in {dbc_name}") from None
         known = [s.name for s in message.signals]
         for name in source.signals:
             if name not in known:
-                raise ValueError(f"{here}: signal {name!r} is not in message {message.name} of {dbc_name}; its "
-                                 f"signals: {known}")
+                raise ValueError(
+                    f"{here}: signal {name!r} is not in message {message.name} of {dbc_name}; its signals: {known}"
+                )
             unit = (message.get_signal_by_name(name).unit or "").strip()
             if source.unit is None:
                 if unit not in ("", "-"):
-                    raise ValueError(f"{here}: signal {message.name}.{name} has unit {unit!r} in {dbc_name}, but "
-                                     "the field is a flag (no unit)")
+                    raise ValueError(
+                        f"{here}: signal {message.name}.{name} has unit {unit!r} in {dbc_name}, but "
+                        "the field is a flag (no unit)"
+                    )
                 continue
             if unit in ("", "-"):
                 continue
@@ -215,7 +235,9 @@ def check_against_dbc(mapping: CanMapping, db, dbc_name: str) -> dict[SignalSour
             except ValueError:
                 same = False
             if not same:
-                raise ValueError(f"{here}: signal {message.name}.{name} has unit {unit!r} in {dbc_name}, but the "
-                                 f"mapping expects {source.unit!r}")
+                raise ValueError(
+                    f"{here}: signal {message.name}.{name} has unit {unit!r} in {dbc_name}, but the "
+                    f"mapping expects {source.unit!r}"
+                )
         messages[source] = message
     return messages

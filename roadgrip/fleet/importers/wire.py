@@ -49,8 +49,9 @@ class WireImporter:
     def load(self, path: Path, **options) -> pa.Table:
         check_options(self.name, options, OPTIONS)
         path = Path(path)
-        batch = read_telemetry(path, max_gap_s=options.get("max_gap_s", 0.25),
-                               wheel_radius_m=options.get("wheel_radius_m"))
+        batch = read_telemetry(
+            path, max_gap_s=options.get("max_gap_s", 0.25), wheel_radius_m=options.get("wheel_radius_m")
+        )
         for warning in batch.warnings:
             logger.warning("%s: %s", path, warning)
         out = batch.table
@@ -86,8 +87,10 @@ def with_vehicle_id(table: pa.Table, vehicle_id: str, source: str) -> pa.Table:
     check_vehicle_id(vehicle_id)
     present = pc.unique(table["vehicle_id"]).to_pylist()
     if len(present) > 1:
-        raise ValueError(f"vehicle_id={vehicle_id!r} cannot rename {source}: it holds {len(present)} vehicles "
-                         f"({', '.join(map(str, present[:5]))}{' ...' if len(present) > 5 else ''})")
+        raise ValueError(
+            f"vehicle_id={vehicle_id!r} cannot rename {source}: it holds {len(present)} vehicles "
+            f"({', '.join(map(str, present[:5]))}{' ...' if len(present) > 5 else ''})"
+        )
     index = table.schema.get_field_index("vehicle_id")
     return table.set_column(index, table.schema.field(index), pa.array([vehicle_id] * table.num_rows, pa.string()))
 
@@ -100,7 +103,9 @@ def shifted_to(table: pa.Table, start_ms: int) -> pa.Table:
         return table
     shift = start_ms - pc.min(table["timestamp_ms"]).as_py()
     index = table.schema.get_field_index("timestamp_ms")
-    return table.set_column(index, table.schema.field(index), pc.add(table["timestamp_ms"], pa.scalar(shift, pa.int64())))
+    return table.set_column(
+        index, table.schema.field(index), pc.add(table["timestamp_ms"], pa.scalar(shift, pa.int64()))
+    )
 
 
 def csv_header(line: str) -> set[str]:
@@ -125,7 +130,7 @@ def _column_names(path: Path) -> set[str]:
             text = f.read(1 << 16).lstrip()
             if not text.startswith("["):
                 return set()
-            first = text[1:text.find("}") + 1] if "}" in text else ""
+            first = text[1 : text.find("}") + 1] if "}" in text else ""
     try:
         obj = json.loads(first)
     except json.JSONDecodeError:

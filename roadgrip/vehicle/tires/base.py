@@ -60,8 +60,9 @@ class TireModel(ABC):
     def forces(self, tire: TireParams, slip_ratio, slip_angle_rad, fz_n, mu):
         """(fx_n, fy_n) arrays for broadcastable inputs: slip ratio, slip angle [rad], vertical load [N], road mu."""
         forces_array = _array_loop(self.kernel)
-        s, a, fz, m = (np.ascontiguousarray(x, dtype=np.float64) for x in np.broadcast_arrays(
-            slip_ratio, slip_angle_rad, fz_n, mu))
+        s, a, fz, m = (
+            np.ascontiguousarray(x, dtype=np.float64) for x in np.broadcast_arrays(slip_ratio, slip_angle_rad, fz_n, mu)
+        )
         fx = np.empty(s.size)
         fy = np.empty(s.size)
         forces_array(self.row(tire), s.ravel(), a.ravel(), fz.ravel(), m.ravel(), fx, fy)

@@ -17,4 +17,3 @@ def tire_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu):
     if model == MAGIC_FORMULA_ID:
         return magic_formula_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu)
     return burckhardt_forces(tp, slip_ratio, slip_angle_rad, fz_n, mu)
-

@@ -30,7 +30,7 @@ CHOSEN = "suv-w"
 
 def _post(client: httpx.Client, auth: tuple[str, str], samples: list[dict], chunk: int = 50) -> None:
     for start in range(0, len(samples), chunk):
-        answer = client.post("/v1/telemetry", json=samples[start:start + chunk], auth=auth)
+        answer = client.post("/v1/telemetry", json=samples[start : start + chunk], auth=auth)
         answer.raise_for_status()
 
 
@@ -106,8 +106,10 @@ def test_the_page_draws_the_cells_the_warning_the_vehicles_and_the_chosen_vehicl
 
 def test_the_page_is_public_and_the_latest_positions_need_a_reader(tmp_path):
     tiles = "https://{s}.tile.openstreetmap.org/{z}/{x}/{y}.png"
-    with CloudService(dashboard_settings(tmp_path, map_tiles_url=tiles)) as service, \
-            TestClient(create_app(service)) as client:
+    with (
+        CloudService(dashboard_settings(tmp_path, map_tiles_url=tiles)) as service,
+        TestClient(create_app(service)) as client,
+    ):
         page = client.get("/dashboard")
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
         assert 'id="dashboard"' in page.text
@@ -116,8 +118,14 @@ def test_the_page_is_public_and_the_latest_positions_need_a_reader(tmp_path):
         assert config["map_tiles_url"] == tiles and "OpenStreetMap" in config["map_tiles_attribution"]
         assert (config["h3_resolution"], config["refresh_interval_s"]) == (10, 1.0)
         assert ADMIN[1] not in client.get("/dashboard/config.json").text
-        for path in ("dashboard.js", "dashboard.css", "leaflet/leaflet.js", "leaflet/leaflet.css",
-                     "leaflet/images/layers.png", "leaflet/LICENSE"):
+        for path in (
+            "dashboard.js",
+            "dashboard.css",
+            "leaflet/leaflet.js",
+            "leaflet/leaflet.css",
+            "leaflet/images/layers.png",
+            "leaflet/LICENSE",
+        ):
             assert client.get(f"/dashboard/static/{path}").status_code == 200, path
 
         assert client.get("/v1/vehicles/latest").status_code == 401

@@ -79,9 +79,22 @@ class Replica:
         args += [arg for i in brokers for arg in ("--management", cluster.management_url(i))]
         env = {**os.environ, "ROADGRIP_ADMIN_SECRET": ADMIN[1], "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0"}
         with open(log_path, "wb") as log:
-            self.proc = subprocess.Popen([str(ROADGRIP), "api", "--database", database_url, "--port", str(self.port),
-                                          "--mqtt", cluster.mqtt_url(brokers[0]), *args],
-                                         stdout=log, stderr=subprocess.STDOUT, env=env)
+            self.proc = subprocess.Popen(
+                [
+                    str(ROADGRIP),
+                    "api",
+                    "--database",
+                    database_url,
+                    "--port",
+                    str(self.port),
+                    "--mqtt",
+                    cluster.mqtt_url(brokers[0]),
+                    *args,
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
         self.http = httpx.Client(base_url=self.url, timeout=30)
 
     def wait_ready(self, timeout_s: float = 60) -> None:
@@ -105,8 +118,10 @@ class Replica:
 @pytest.fixture(scope="module")
 def replicas(cluster, database_url, tmp_path_factory):
     logs = tmp_path_factory.mktemp("api")
-    started = [Replica(cluster, database_url, [0, 1, 2], logs / "api1.log"),
-               Replica(cluster, database_url, [2, 1, 0], logs / "api2.log")]
+    started = [
+        Replica(cluster, database_url, [0, 1, 2], logs / "api1.log"),
+        Replica(cluster, database_url, [2, 1, 0], logs / "api2.log"),
+    ]
     try:
         for replica in started:
             replica.wait_ready()
@@ -133,9 +148,11 @@ class MqttVehicle:
         self.client.reconnect_delay_set(5, 5)
         self.client.on_connect = lambda _c, _u, _f, code, _p: self.events.append((time.monotonic(), "connect", code))
         self.client.on_disconnect = lambda _c, _u, _f, code, _p: self.events.append(
-            (time.monotonic(), "disconnect", code))
+            (time.monotonic(), "disconnect", code)
+        )
         self.client.on_subscribe = lambda _c, _u, _m, codes, _p: self.events.append(
-            (time.monotonic(), "suback", [c.value for c in codes]))
+            (time.monotonic(), "suback", [c.value for c in codes])
+        )
         self.client.connect(host, int(port))
         self.client.loop_start()
 
@@ -234,8 +251,13 @@ def consume_partitions(cluster: RabbitCluster, want: int, timeout_s: float = 20)
     channel = connection.channel()
     got: list[tuple[str, bytes]] = []
     for p in range(PARTITIONS):
-        channel.basic_consume(partition_queue(p), lambda ch, method, _props, body: (
-            got.append((method.routing_key, body)), ch.basic_ack(method.delivery_tag)))
+        channel.basic_consume(
+            partition_queue(p),
+            lambda ch, method, _props, body: (
+                got.append((method.routing_key, body)),
+                ch.basic_ack(method.delivery_tag),
+            ),
+        )
     deadline = time.monotonic() + timeout_s
     while len(got) < want and time.monotonic() < deadline:
         connection.process_data_events(0.2)
@@ -270,13 +292,30 @@ def test_map_and_warnings_are_read_from_storage_by_every_replica(replicas, datab
     settings = Settings()
     now = int(time.time() * 1000)
     fmap = new_friction_map(settings)
-    rows = [{"vehicle_id": "m1", "timestamp_ms": now - 20_000 + 100 * k, "latitude_deg": 38.0,
-             "longitude_deg": 114.5 + 2.0 / 111_000 * k * 1.27, "mu": 0.25, "mu_lower": 0.2, "mu_upper": 0.3,
-             "excited": True, "mu_proven": None} for k in range(100)]
+    rows = [
+        {
+            "vehicle_id": "m1",
+            "timestamp_ms": now - 20_000 + 100 * k,
+            "latitude_deg": 38.0,
+            "longitude_deg": 114.5 + 2.0 / 111_000 * k * 1.27,
+            "mu": 0.25,
+            "mu_lower": 0.2,
+            "mu_upper": 0.3,
+            "excited": True,
+            "mu_proven": None,
+        }
+        for k in range(100)
+    ]
     fmap.add(rows, now)
     cell = h3.latlng_to_cell(38.0, 114.5, settings.h3_resolution)
-    warning = {"warning_id": "w-1", "cell": cell, "status": "active", "detection_ms": now, "updated_ms": now,
-               "message": {"denm": {"cell": cell, "test": True}, "event": {}}}
+    warning = {
+        "warning_id": "w-1",
+        "cell": cell,
+        "status": "active",
+        "detection_ms": now,
+        "updated_ms": now,
+        "message": {"denm": {"cell": cell, "test": True}, "event": {}},
+    }
     storage = open_storage(database_url)
     try:
         storage.put_region_output([warning], cell_rows(fmap, fmap.cells_by_id_, 5))
@@ -307,9 +346,23 @@ def test_a_registration_the_broker_does_not_take_stores_nothing(cluster, databas
     port = free_ports(1)[0]
     log = tmp_path / "api.log"
     with open(log, "wb") as out:
-        proc = subprocess.Popen([str(ROADGRIP), "api", "--database", database_url, "--port", str(port),
-                                 "--broker", cluster.amqp_url(0), "--management", f"http://{HOST}:{dead}"],
-                                stdout=out, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(
+            [
+                str(ROADGRIP),
+                "api",
+                "--database",
+                database_url,
+                "--port",
+                str(port),
+                "--broker",
+                cluster.amqp_url(0),
+                "--management",
+                f"http://{HOST}:{dead}",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
     try:
         http = httpx.Client(base_url=f"http://{HOST}:{port}", timeout=30)
         deadline = time.monotonic() + 60
@@ -351,17 +404,32 @@ def test_replicas_register_a_fleet_at_once_with_one_broker_request(cluster, repl
         assert two.http.get(f"/v1/vehicles/{a['name']}", auth=(a["name"], a["secret"])).status_code == 200
 
 
-def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches_the_map(cluster, replicas,
-                                                                                           database_url, tmp_path):
+def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches_the_map(
+    cluster, replicas, database_url, tmp_path
+):
     """The whole path with a `roadgrip worker`: telemetry accepted (202) by replica two is stored; a station's report
     posted to replica one goes to its region's owner (the worker) and is in the map replica two reads."""
     one, two = replicas
     log_path = tmp_path / "worker.log"
     env = {**os.environ, "ROADGRIP_RATE_LIMIT_SAMPLES_PER_S": "0"}
     with open(log_path, "wb") as log:
-        worker = subprocess.Popen([str(ROADGRIP), "worker", "--database", database_url, "--partitions",
-                                   str(PARTITIONS), "--broker", cluster.amqp_url(1), "--broker", cluster.amqp_url(2)],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env)
+        worker = subprocess.Popen(
+            [
+                str(ROADGRIP),
+                "worker",
+                "--database",
+                database_url,
+                "--partitions",
+                str(PARTITIONS),
+                "--broker",
+                cluster.amqp_url(1),
+                "--broker",
+                cluster.amqp_url(2),
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
     try:
         deadline = time.monotonic() + 120
         while "worker consuming" not in log_path.read_text():
@@ -370,7 +438,7 @@ def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches
         secret = register(one, "whole-01")
         samples = wire_samples(patch_drive(0.3, 3), "whole-01", int(time.time() * 1000) - 60_000)[:50]
         for start in range(0, 50, 10):
-            answer = two.http.post("/v1/telemetry", json=samples[start:start + 10], auth=("whole-01", secret))
+            answer = two.http.post("/v1/telemetry", json=samples[start : start + 10], auth=("whole-01", secret))
             assert answer.status_code == 202, answer.text
         storage = open_storage(database_url)
         try:
@@ -384,8 +452,13 @@ def test_a_worker_stores_what_a_replica_accepted_and_a_stations_evidence_reaches
 
         station = one.http.post("/v1/stations", json={"station_id": "rws-01"}, auth=ADMIN).json()
         assert station["mqtt_url"] is None  # stations report over HTTP in the cluster
-        report = {"station_id": "rws-01", "timestamp_ms": int(time.time() * 1000) - 1000, "latitude_deg": 47.2,
-                  "longitude_deg": 8.6, "surface_state": "ice"}
+        report = {
+            "station_id": "rws-01",
+            "timestamp_ms": int(time.time() * 1000) - 1000,
+            "latitude_deg": 47.2,
+            "longitude_deg": 8.6,
+            "surface_state": "ice",
+        }
         answer = one.http.post("/v1/stations/rws-01/reports", json=report, auth=("rws-01", station["secret"]))
         assert answer.status_code == 200 and answer.json()["evidence_cells"] > 0, answer.text
         cell = h3.latlng_to_cell(47.2, 8.6, Settings().h3_resolution)
@@ -406,14 +479,14 @@ def region_messages(cluster: RabbitCluster) -> int:
     connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(1)))
     try:
         channel = connection.channel()
-        return sum(channel.queue_declare(region_queue(q), passive=True).method.message_count
-                   for q in range(REGION_QUEUES))
+        return sum(
+            channel.queue_declare(region_queue(q), passive=True).method.message_count for q in range(REGION_QUEUES)
+        )
     finally:
         connection.close()
 
 
-def test_a_station_report_sent_again_is_handed_on_again_and_without_a_broker_answers_503_stored(cluster,
-                                                                                                 database_url):
+def test_a_station_report_sent_again_is_handed_on_again_and_without_a_broker_answers_503_stored(cluster, database_url):
     """A replica's backend in this process, through the API's routes: a station's report is stored and its evidence
     handed to the region stage (a message per region of its cells); sent again, it is a duplicate whose evidence is
     handed on again (the region owner applies it once). With no broker reachable, a new report is stored and the
@@ -421,18 +494,25 @@ def test_a_station_report_sent_again_is_handed_on_again_and_without_a_broker_ans
     settings = Settings(database_url=database_url, admin_secret=ADMIN[1])
     management = [cluster.management_url(1)]
     reachable = ClusterBackend(settings, [cluster.amqp_url(1)], management)
-    unreachable = ClusterBackend(settings, [f"amqp://{SERVICE_USER}:{SECRET}@{HOST}:{free_ports(1)[0]}/%2F"],
-                                 management)
+    unreachable = ClusterBackend(
+        settings, [f"amqp://{SERVICE_USER}:{SECRET}@{HOST}:{free_ports(1)[0]}/%2F"], management
+    )
     reachable.start()
     unreachable.start()
     try:
         with TestClient(create_app(reachable)) as client:
             station = client.post("/v1/stations", json={"station_id": "rws-again"}, auth=ADMIN).json()
             auth = ("rws-again", station["secret"])
-            report = {"station_id": "rws-again", "timestamp_ms": int(time.time() * 1000) - 5000, "latitude_deg": 46.9,
-                      "longitude_deg": 7.4, "surface_state": "ice"}
-            regions = {region_of(cell, settings.region_resolution)
-                       for cell in covered_cells(46.9, 7.4, settings.h3_resolution)}
+            report = {
+                "station_id": "rws-again",
+                "timestamp_ms": int(time.time() * 1000) - 5000,
+                "latitude_deg": 46.9,
+                "longitude_deg": 7.4,
+                "surface_state": "ice",
+            }
+            regions = {
+                region_of(cell, settings.region_resolution) for cell in covered_cells(46.9, 7.4, settings.h3_resolution)
+            }
             before = region_messages(cluster)
             first = client.post("/v1/stations/rws-again/reports", json=report, auth=auth)
             assert first.status_code == 200 and first.json()["stored"] == 1, first.text
@@ -467,15 +547,20 @@ def test_telemetry_is_still_accepted_through_the_next_node_when_a_broker_node_di
         if answer.status_code != 202:
             queues = cluster.ctl(1, "list_queues", "-q", "name", "type", "leader", "members", "online", "messages")
             bindings = cluster.ctl(1, "list_bindings", "-q", "source_name", "destination_name", "routing_key")
-            pytest.fail(f"{answer.status_code} {answer.text}\nqueues (node 1):\n{queues}\nbindings:\n{bindings}",
-                        pytrace=False)
+            pytest.fail(
+                f"{answer.status_code} {answer.text}\nqueues (node 1):\n{queues}\nbindings:\n{bindings}", pytrace=False
+            )
         connection = pika.BlockingConnection(pika.URLParameters(cluster.amqp_url(1)))
         channel = connection.channel()
         got: list[bytes] = []
         for p in range(PARTITIONS):
-            channel.basic_consume(partition_queue(p), lambda ch, method, _props, body: (
-                got.append(body) if method.routing_key == f"roadgrip.v1.vehicles.{vehicle_id}.telemetry" else None,
-                ch.basic_ack(method.delivery_tag)))
+            channel.basic_consume(
+                partition_queue(p),
+                lambda ch, method, _props, body: (
+                    got.append(body) if method.routing_key == f"roadgrip.v1.vehicles.{vehicle_id}.telemetry" else None,
+                    ch.basic_ack(method.delivery_tag),
+                ),
+            )
         deadline = time.monotonic() + 30
         while len(got) < 2 and time.monotonic() < deadline:
             connection.process_data_events(0.2)

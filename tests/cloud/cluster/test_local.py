@@ -133,10 +133,27 @@ def test_a_fleet_drives_against_the_local_cluster_and_nothing_is_left_after_it_s
             assert node["pid"] in {pid for pid, _ in started}  # the nodes' servers are the cluster's children
 
         register, read = cluster.api_urls  # one replica registers, the other reads
-        result = runner.invoke(app, ["fleet", "--url", register, "--admin-secret-file", str(cluster.admin_secret_file),
-                                     "--vehicles", str(VEHICLES), "--speed", "20", "--duration", "20",
-                                     *[arg for url in cluster.mqtt_urls for arg in ("--mqtt", url)],
-                                     "--read-url", read, "--prefix", "lc"])
+        result = runner.invoke(
+            app,
+            [
+                "fleet",
+                "--url",
+                register,
+                "--admin-secret-file",
+                str(cluster.admin_secret_file),
+                "--vehicles",
+                str(VEHICLES),
+                "--speed",
+                "20",
+                "--duration",
+                "20",
+                *[arg for url in cluster.mqtt_urls for arg in ("--mqtt", url)],
+                "--read-url",
+                read,
+                "--prefix",
+                "lc",
+            ],
+        )
         said = " ".join(result.output.split())
         assert result.exit_code == 0, result.output
         # "auto" found that RabbitMQ 3.10 does not take MQTT 5, and every sample got its PUBACK
@@ -150,8 +167,12 @@ def test_a_fleet_drives_against_the_local_cluster_and_nothing_is_left_after_it_s
         vehicles = [f"lc-{k:03d}" for k in range(VEHICLES)]
         assert telemetry == {v: SAMPLES_PER_VEHICLE for v in vehicles}  # each PUBACKed sample stored once
         for v in vehicles:
-            answer = httpx.get(f"{read}/v1/vehicles/{v}/estimates", params={"limit": 100_000},
-                               auth=("admin", cluster.admin_secret), timeout=30)
+            answer = httpx.get(
+                f"{read}/v1/vehicles/{v}/estimates",
+                params={"limit": 100_000},
+                auth=("admin", cluster.admin_secret),
+                timeout=30,
+            )
             assert answer.status_code == 200 and len(answer.json()["estimates"]) == estimates[v] > 0
         # the map: the workers' region owners save its cells about once a second; the replica reads them
         deadline = time.monotonic() + 30
@@ -172,10 +193,29 @@ def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, 
     reaches every process of the foreground job: the ones the command runs in sessions of their own do not get it)."""
     out = data_dir.parent / f"{data_dir.name}.out"
     with open(out, "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "roadgrip", "cluster", "up", "--data-dir", str(data_dir),
-                                 "--nodes", "2", "--workers", "1", "--apis", "1", "--partitions", "2"], stdout=log,
-                                stderr=subprocess.STDOUT, env={**os.environ, "COLUMNS": "200"},
-                                start_new_session=True)  # its own process group, as a terminal's job
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "roadgrip",
+                "cluster",
+                "up",
+                "--data-dir",
+                str(data_dir),
+                "--nodes",
+                "2",
+                "--workers",
+                "1",
+                "--apis",
+                "1",
+                "--partitions",
+                "2",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "COLUMNS": "200"},
+            start_new_session=True,
+        )  # its own process group, as a terminal's job
     try:
         deadline = time.monotonic() + 300
         while "local cluster ready" not in out.read_text():

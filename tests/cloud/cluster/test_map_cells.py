@@ -28,9 +28,19 @@ def estimates(vehicle: str, start_ms: int, origin: tuple[float, float], n: int, 
     rows = []
     for k in range(n):
         spread = rng.uniform(0.05, 0.2)
-        rows.append({"vehicle_id": vehicle, "timestamp_ms": start_ms + 100 * k, "latitude_deg": origin[0],
-                     "longitude_deg": origin[1] + 2.0 / 111_000 * k * 1.27, "mu": mu, "mu_lower": mu - spread,
-                     "mu_upper": mu + spread, "excited": k % 3 == 0, "mu_proven": 0.3 if k % 7 == 0 else None})
+        rows.append(
+            {
+                "vehicle_id": vehicle,
+                "timestamp_ms": start_ms + 100 * k,
+                "latitude_deg": origin[0],
+                "longitude_deg": origin[1] + 2.0 / 111_000 * k * 1.27,
+                "mu": mu,
+                "mu_lower": mu - spread,
+                "mu_upper": mu + spread,
+                "excited": k % 3 == 0,
+                "mu_proven": 0.3 if k % 7 == 0 else None,
+            }
+        )
     return rows
 
 
@@ -40,8 +50,19 @@ def a_map(settings: Settings) -> FrictionMap:
     fmap.add(estimates("v2", T0_MS + 40_000, HEBEI, 300, 0.8, 2), T0_MS + 70_000)  # v1's last pass closes later
     fmap.add(estimates("v3", T0_MS + 60_000, FAR, 200, 0.5, 3), T0_MS + 80_000)
     station_cell = h3.latlng_to_cell(*HEBEI, settings.h3_resolution)
-    fmap.add_station([{"station_id": "s1", "cell": station_cell, "timestamp_ms": T0_MS + 50_000, "mu": 0.3,
-                       "mu_lower": 0.2, "mu_upper": 0.4}], T0_MS + 80_000)
+    fmap.add_station(
+        [
+            {
+                "station_id": "s1",
+                "cell": station_cell,
+                "timestamp_ms": T0_MS + 50_000,
+                "mu": 0.3,
+                "mu_lower": 0.2,
+                "mu_upper": 0.4,
+            }
+        ],
+        T0_MS + 80_000,
+    )
     return fmap
 
 
@@ -88,8 +109,7 @@ def test_a_region_is_restored_alone_and_writes_of_a_region_queue_taken_since_are
     restored = new_friction_map(settings)
     assert restore_region(restored, storage, hebei) == sum(row["region"] == hebei for row in rows)
     now_ms = T0_MS + 100_000
-    assert restored.cells(now_ms) == [c for c in fmap.cells(now_ms)
-                                      if region_of(c.cell, REGION_RESOLUTION) == hebei]
+    assert restored.cells(now_ms) == [c for c in fmap.cells(now_ms) if region_of(c.cell, REGION_RESOLUTION) == hebei]
     assert storage.delete_map_cells(hebei, T0_MS + 10**9, fence=(2, new)) == len(restored.cells_by_id_)
     assert storage.map_cells(region=hebei) == []
 

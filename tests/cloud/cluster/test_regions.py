@@ -58,14 +58,17 @@ WORKER_ENV = {"ROADGRIP_MAP_CLOCK": "data", "ROADGRIP_REGION_QUEUES": str(REGION
 SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the map's clock is the data's
 START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
-VEHICLES = [f"{tag}-{name}" for tag in "xyz"
-            for name in ("ice1", "ice2", "close1", "ping", "dry", "close2", "ice3", "close3")]
+VEHICLES = [
+    f"{tag}-{name}" for tag in "xyz" for name in ("ice1", "ice2", "close1", "ping", "dry", "close2", "ice3", "close3")
+]
 STREAMING = [f"s{k:02d}" for k in range(8)]  # vehicles of the mid-stream kill
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    with running_rabbit_cluster(tmp_path_factory.mktemp("rabbit"), VEHICLES + STREAMING, PARTITIONS, "region-test-secret") as rabbit:
+    with running_rabbit_cluster(
+        tmp_path_factory.mktemp("rabbit"), VEHICLES + STREAMING, PARTITIONS, "region-test-secret"
+    ) as rabbit:
         yield rabbit
 
 
@@ -74,8 +77,9 @@ def queue_of_region(channel, region: str) -> int:
     depths (a queue with single-active-consumer refuses basic.get), then purged."""
     channel.confirm_delivery()
     channel.basic_publish(ESTIMATES_EXCHANGE, region, b"probe")
-    deep = [q for q in range(REGION_QUEUES)
-            if channel.queue_declare(region_queue(q), passive=True).method.message_count]
+    deep = [
+        q for q in range(REGION_QUEUES) if channel.queue_declare(region_queue(q), passive=True).method.message_count
+    ]
     for q in deep:
         channel.queue_purge(region_queue(q))
     assert len(deep) == 1, f"the probe for region {region} is in region queues {deep}"
@@ -94,8 +98,10 @@ def regions_on_distinct_queues(cluster: RabbitCluster, n: int) -> list[tuple[flo
             channel.queue_purge(partition_queue(p))
         found: list[tuple[float, str, int]] = []
         for shift_deg in [0, *range(5, 40)]:
-            region = region_of(h3.latlng_to_cell(HEBEI_ORIGIN[0] + shift_deg, HEBEI_ORIGIN[1],
-                                                 SETTINGS.h3_resolution), SETTINGS.region_resolution)
+            region = region_of(
+                h3.latlng_to_cell(HEBEI_ORIGIN[0] + shift_deg, HEBEI_ORIGIN[1], SETTINGS.h3_resolution),
+                SETTINGS.region_resolution,
+            )
             q = queue_of_region(channel, region)
             if q not in {f[2] for f in found}:
                 found.append((float(shift_deg), region, q))
@@ -148,8 +154,13 @@ class WarningsSubscriber:
         self.client.loop_stop()
 
 
-def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int = 0, timeout_s: float = 60.0,
-          pace_s: float = 0.0) -> None:
+def drive(
+    cluster: RabbitCluster,
+    runs: list[tuple[str, list[dict]]],
+    node: int = 0,
+    timeout_s: float = 60.0,
+    pace_s: float = 0.0,
+) -> None:
     """Each vehicle publishes its samples, ten a message, QoS 1 (the vehicles' k-th messages every `pace_s`, or at
     once); returns once every message is PUBACKed. A vehicle whose connection drops (RabbitMQ 3.10's MQTT plugin
     closes it on a quorum queue's nack during a leader election, docs/CLUSTER.md, Workers) connects again and paho
@@ -171,7 +182,7 @@ def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int 
         time.sleep(max(0.0, started + m * pace_s - time.monotonic()))
         for (vehicle, samples), (client, mids, _) in zip(runs, clients):
             if k < len(samples):  # one published while the connection is down is queued and sent on the next one
-                mids.add(client.publish(telemetry_topic(vehicle), json.dumps(samples[k:k + 10]), qos=1).mid)
+                mids.add(client.publish(telemetry_topic(vehicle), json.dumps(samples[k : k + 10]), qos=1).mid)
     deadline = time.monotonic() + timeout_s
     while not all(mids <= acked for _, mids, acked in clients):
         assert time.monotonic() < deadline, "messages not PUBACKed within the timeout"
@@ -181,8 +192,15 @@ def drive(cluster: RabbitCluster, runs: list[tuple[str, list[dict]]], node: int 
         client.loop_stop()
 
 
-def run_of(vehicle: str, patch_mu: float, seed: int, start_ms: int, shift_deg: float, brake_s: float = 10.5,
-           first: int | None = None) -> tuple[str, list[dict]]:
+def run_of(
+    vehicle: str,
+    patch_mu: float,
+    seed: int,
+    start_ms: int,
+    shift_deg: float,
+    brake_s: float = 10.5,
+    first: int | None = None,
+) -> tuple[str, list[dict]]:
     samples = wire_samples(patch_drive(patch_mu, seed, brake_s=brake_s), vehicle, start_ms)[:first]
     for s in samples:
         s["latitude_deg"] += shift_deg
@@ -192,8 +210,9 @@ def run_of(vehicle: str, patch_mu: float, seed: int, start_ms: int, shift_deg: f
 
 class Database:
     def __init__(self, url: str):
-        self.conn = psycopg.connect(make_url(url).set(drivername="postgresql").render_as_string(hide_password=False),
-                                    autocommit=True)
+        self.conn = psycopg.connect(
+            make_url(url).set(drivername="postgresql").render_as_string(hide_password=False), autocommit=True
+        )
 
     def warnings(self) -> dict[str, dict]:
         rows = self.conn.execute("SELECT warning_id, cell, status, message FROM warnings").fetchall()
@@ -214,8 +233,10 @@ def wait_for(what: str, predicate, timeout_s: float, logs) -> float:
     started = time.monotonic()
     while not predicate():
         if time.monotonic() - started > timeout_s:
-            pytest.fail(f"{what} not within {timeout_s} s; worker logs:\n" + "\n---\n".join(log()[-4000:] for log in logs),
-                        pytrace=False)
+            pytest.fail(
+                f"{what} not within {timeout_s} s; worker logs:\n" + "\n---\n".join(log()[-4000:] for log in logs),
+                pytrace=False,
+            )
         time.sleep(0.2)
     return time.monotonic() - started
 
@@ -248,9 +269,15 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
         assert {home_queue, far_queue} <= owners.keys()  # the two regions' estimates reached their two queues
         wait_for("both regions' map cells saved", lambda: {home, far} <= db.map_regions(), 10, logs)
         # published: a DENM for each raised warning, on the MQTT warnings topic
-        wait_for("the DENMs", lambda: len({d["denm"]["management"]["actionID"]["sequenceNumber"]
-                                           for d in subscriber.received()}) >= len(raised["x"]) + len(raised["y"]),
-                 10, logs)
+        wait_for(
+            "the DENMs",
+            lambda: (
+                len({d["denm"]["management"]["actionID"]["sequenceNumber"] for d in subscriber.received()})
+                >= len(raised["x"]) + len(raised["y"])
+            ),
+            10,
+            logs,
+        )
         assert all(d["denm"]["situation"]["eventType"]["causeCode"] == 6 for d in subscriber.received())
         # the saved map, read back as an API replica would: the patch is there, slippery (once both vehicles' passes,
         # which may come through both workers, are in)
@@ -260,8 +287,12 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
             cells = {c.cell: c for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
             return {t: [cells[c] for c in patches[t] if c in cells] for t in "xy"}
 
-        wait_for("both ice vehicles in the saved map", lambda: all(
-            any(c.n_vehicles >= 2 for c in on_patch) for on_patch in saved_patch_cells().values()), 10, logs)
+        wait_for(
+            "both ice vehicles in the saved map",
+            lambda: all(any(c.n_vehicles >= 2 for c in on_patch) for on_patch in saved_patch_cells().values()),
+            10,
+            logs,
+        )
         for t, on_patch in saved_patch_cells().items():
             assert min(c.mu for c in on_patch if c.mu is not None) < 0.4, t
             assert {c.status for c in on_patch} == {"measured"}, t
@@ -276,8 +307,13 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
             owners = db.region_owners()
             if {owners[q][1].rsplit(":", 1)[1] for q in queues if q in owners} == pids:
                 return True
-            drive(cluster, [run_of(f"{tag}-ping", 0.9, 3, START_MS + 130_000 + 5_000 * next(pings), shifts[tag],
-                                   first=5) for tag in "xyz"])
+            drive(
+                cluster,
+                [
+                    run_of(f"{tag}-ping", 0.9, 3, START_MS + 130_000 + 5_000 * next(pings), shifts[tag], first=5)
+                    for tag in "xyz"
+                ],
+            )
             time.sleep(2.0)
             return False
 
@@ -293,20 +329,28 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
         killed_at = time.monotonic()
         later = START_MS + 300_000
         drive(cluster, [run_of(f"{tag}-dry", 0.9, 3, later, shifts[tag]) for tag in "xy"], node=2)
-        drive(cluster, [run_of(f"{tag}-close2", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
-              node=2)
-        wait_for("the home region's queue taken over",
-                 lambda: db.region_owners()[home_queue][1].endswith(f":{survivor.proc.pid}"), 30, (survivor.log,))
+        drive(cluster, [run_of(f"{tag}-close2", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"], node=2)
+        wait_for(
+            "the home region's queue taken over",
+            lambda: db.region_owners()[home_queue][1].endswith(f":{survivor.proc.pid}"),
+            30,
+            (survivor.log,),
+        )
         took_s = time.monotonic() - killed_at
-        print(f"\nregion queue {home_queue} taken over {took_s:.2f} s after the kill (a queue is taken at its first "
-              f"delivery: the drives sent after the kill included)")
+        print(
+            f"\nregion queue {home_queue} taken over {took_s:.2f} s after the kill (a queue is taken at its first "
+            f"delivery: the drives sent after the kill included)"
+        )
         assert took_s < TAKEOVER_LIMIT_S
         # the dry vehicle braked where the ice vehicles did: warnings raised before the kill are cancelled by the new
         # owner, which knows them only from the database (same warning and ActionID); the others are still active
         for t in "xy":
-            wait_for(f"a warning of region {t} raised before the kill cancelled",
-                     lambda t=t: any(db.warnings()[w]["status"] == "cancelled" for w in raised[t]), 60,
-                     (survivor.log,))
+            wait_for(
+                f"a warning of region {t} raised before the kill cancelled",
+                lambda t=t: any(db.warnings()[w]["status"] == "cancelled" for w in raised[t]),
+                60,
+                (survivor.log,),
+            )
         time.sleep(2 * 1.0)  # the owner's next saves
         now = db.warnings()
         for t in "xy":
@@ -316,19 +360,31 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
                 assert (now[w]["status"], event["reason"]) in (("cancelled", "recovered"), ("active", "low friction"))
         assert db.region_owners()[home_queue][0] > epoch
         # the new owner's map went on from the saved cells: the vehicles before the kill are still counted
-        wait_for("the map saved by the new owner", lambda: any(
-            c.n_vehicles > vehicles_before.get(c.cell, 0) for c in stored_friction_map(storage, SETTINGS).cells(
-                later + 120_500) if c.cell in vehicles_before), 10, (survivor.log,))
+        wait_for(
+            "the map saved by the new owner",
+            lambda: any(
+                c.n_vehicles > vehicles_before.get(c.cell, 0)
+                for c in stored_friction_map(storage, SETTINGS).cells(later + 120_500)
+                if c.cell in vehicles_before
+            ),
+            10,
+            (survivor.log,),
+        )
         after = {c.cell: c for c in stored_friction_map(storage, SETTINGS).cells(later + 120_500)}
         assert all(after[c].n_vehicles >= n for c, n in vehicles_before.items() if c in after)
         # and published the cancellations
-        wait_for("the cancellations' DENMs", lambda: any(
-            d["denm"]["management"].get("termination") == "isCancellation" for d in subscriber.received()), 10,
-            (survivor.log,))
+        wait_for(
+            "the cancellations' DENMs",
+            lambda: any(d["denm"]["management"].get("termination") == "isCancellation" for d in subscriber.received()),
+            10,
+            (survivor.log,),
+        )
         stats = survivor.stop()
         assert stats["region_publish_failures"] == 0 and stats["region_messages_published"] > 0
-        print(f"longest time from a round's commit to its region messages' confirm (the crash window): "
-              f"{stats['region_publish_window_s_max']:.3f} s")
+        print(
+            f"longest time from a round's commit to its region messages' confirm (the crash window): "
+            f"{stats['region_publish_window_s_max']:.3f} s"
+        )
     finally:
         subscriber.close()
         storage.close()
@@ -340,22 +396,39 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
 def stream(cluster: RabbitCluster, vehicles: list[str], seconds: float, start_ms: int, node: int) -> None:
     """Each vehicle sends ten samples of steady driving (1 s of data, moving east) every 0.1 s for `seconds`, QoS 1,
     and waits for the last PUBACKs (as tests/cloud/cluster/test_worker.py's fleet, through one node)."""
+
     def samples(vehicle: str, m: int) -> list[dict]:
         w = 20.0 / PAPER_SUV.wheel_radius_m
-        return [{"vehicle_id": vehicle, "timestamp_ms": start_ms + 1000 * m + 100 * k, "latitude_deg": 38.1,
-                 "longitude_deg": 114.5 + 2e-4 * (m + k / 10), "speed_mps": 20.0, "accel_lon_mps2": 0.0,
-                 "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0, "steering_wheel_angle_rad": 0.0,
-                 "wheel_speed_fl_radps": w, "wheel_speed_fr_radps": w, "wheel_speed_rl_radps": w,
-                 "wheel_speed_rr_radps": w, "abs_active": False, "acc_active": False, "tcs_active": False,
-                 "esc_active": False} for k in range(10)]
+        return [
+            {
+                "vehicle_id": vehicle,
+                "timestamp_ms": start_ms + 1000 * m + 100 * k,
+                "latitude_deg": 38.1,
+                "longitude_deg": 114.5 + 2e-4 * (m + k / 10),
+                "speed_mps": 20.0,
+                "accel_lon_mps2": 0.0,
+                "accel_lat_mps2": 0.0,
+                "yaw_rate_radps": 0.0,
+                "steering_wheel_angle_rad": 0.0,
+                "wheel_speed_fl_radps": w,
+                "wheel_speed_fr_radps": w,
+                "wheel_speed_rl_radps": w,
+                "wheel_speed_rr_radps": w,
+                "abs_active": False,
+                "acc_active": False,
+                "tcs_active": False,
+                "esc_active": False,
+            }
+            for k in range(10)
+        ]
 
     messages = int(seconds / 0.1)
-    drive(cluster, [(v, [s for m in range(messages) for s in samples(v, m)]) for v in vehicles], node=node,
-          pace_s=0.1)
+    drive(cluster, [(v, [s for m in range(messages) for s in samples(v, m)]) for v in vehicles], node=node, pace_s=0.1)
 
 
-def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(cluster, postgres_database_url,
-                                                                              tmp_path):
+def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(
+    cluster, postgres_database_url, tmp_path
+):
     """kill -9 of the worker that owns the region's queue while eight vehicles stream: afterwards every estimate stored
     is counted in the saved map at most once, and those the map misses (the crash window: rounds stored and not yet
     confirmed to the region stage when the worker died) are counted and printed."""
@@ -396,17 +469,22 @@ def test_estimates_stored_across_a_worker_kill_mid_stream_count_once_in_the_map(
 
         wait_for("the estimates and the map settled", settled, 60, logs)
         stored, mapped = last["counts"]
-        print(f"\nworker kill mid-stream: {stored} estimates stored, {mapped} in the saved map, {stored - mapped} "
-              f"missing (the crash window)")
+        print(
+            f"\nworker kill mid-stream: {stored} estimates stored, {mapped} in the saved map, {stored - mapped} "
+            f"missing (the crash window)"
+        )
         # where they are missing: per cell, against the newest estimate of each vehicle stored when it was killed
         now_ms = start_ms + 20_000
         in_map = {c.cell: c.n_estimates for c in stored_friction_map(storage, SETTINGS, now_ms).cells(now_ms)}
         for cell, n, first_ms, last_ms in db.conn.execute(
-                "SELECT h3_cell, count(*), min(timestamp_ms), max(timestamp_ms) FROM estimates GROUP BY h3_cell"):
+            "SELECT h3_cell, count(*), min(timestamp_ms), max(timestamp_ms) FROM estimates GROUP BY h3_cell"
+        ):
             if n != in_map.get(cell, 0):
-                print(f"  cell {cell}: {n} stored, {in_map.get(cell, 0)} in the map; stored estimates there from "
-                      f"{first_ms - start_ms} to {last_ms - start_ms} ms of data; the vehicles' newest stored at the "
-                      f"kill: {sorted(t - start_ms for t in at_kill.values())} ms")
+                print(
+                    f"  cell {cell}: {n} stored, {in_map.get(cell, 0)} in the map; stored estimates there from "
+                    f"{first_ms - start_ms} to {last_ms - start_ms} ms of data; the vehicles' newest stored at the "
+                    f"kill: {sorted(t - start_ms for t in at_kill.values())} ms"
+                )
         assert stored > 0 and mapped <= stored  # nothing counted twice
         assert stored - mapped <= MAX_ROUND_SAMPLES  # at most the one round the killed worker had not yet published
     finally:
@@ -431,27 +509,43 @@ def test_a_broker_node_killed_the_regions_go_on(cluster, postgres_database_url, 
     db = Database(postgres_database_url)
     try:
         drive(cluster, [run_of(f"{tag}-ice1", 0.2, 1, START_MS, shifts[tag]) for tag in "xy"], node=1)
-        drive(cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xy"],
-              node=1)
+        drive(
+            cluster, [run_of(f"{tag}-close1", 0.9, 3, START_MS + 120_000, shifts[tag], first=5) for tag in "xy"], node=1
+        )
         wait_for("warnings on both patches", lambda: all(patch_warnings(db, patches[t]) for t in "xy"), 60, logs)
-        before = {w: row["message"]["event"]["sequence_number"] for t in "xy"
-                  for w, row in patch_warnings(db, patches[t]).items()}
+        before = {
+            w: row["message"]["event"]["sequence_number"]
+            for t in "xy"
+            for w, row in patch_warnings(db, patches[t]).items()
+        }
         with node_killed(cluster, 0):
             killed_at = time.monotonic()
             later = START_MS + 240_000  # within the warnings' validity
             drive(cluster, [run_of(f"{tag}-ice3", 0.2, 2, later, shifts[tag]) for tag in "xy"], node=2)
-            drive(cluster, [run_of(f"{tag}-close3", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
-                  node=2)
+            drive(
+                cluster,
+                [run_of(f"{tag}-close3", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"],
+                node=2,
+            )
 
             def refreshed(t: str) -> bool:
                 now = db.warnings()
-                return any(now[w]["message"]["event"]["sequence_number"] > n for w, n in before.items()
-                           if now[w]["cell"] in patches[t])
+                return any(
+                    now[w]["message"]["event"]["sequence_number"] > n
+                    for w, n in before.items()
+                    if now[w]["cell"] in patches[t]
+                )
 
-            wait_for("the warnings refreshed in both regions after the node's kill",
-                     lambda: all(refreshed(t) for t in "xy"), 60, logs)
-            print(f"\nbroker node kill: both regions' warnings refreshed {time.monotonic() - killed_at:.1f} s after "
-                  f"it (the drives sent after the kill included)")
+            wait_for(
+                "the warnings refreshed in both regions after the node's kill",
+                lambda: all(refreshed(t) for t in "xy"),
+                60,
+                logs,
+            )
+            print(
+                f"\nbroker node kill: both regions' warnings refreshed {time.monotonic() - killed_at:.1f} s after "
+                f"it (the drives sent after the kill included)"
+            )
     finally:
         db.close()
         first.stop()

@@ -105,14 +105,29 @@ class Fleet:
 
     def samples(self, vehicle: str, message: int) -> list[dict]:
         w = 20.0 / PAPER_SUV.wheel_radius_m
-        return [{"vehicle_id": vehicle, "timestamp_ms": self.start_ms + 1000 * message + 100 * k,
-                 "latitude_deg": 48.1, "longitude_deg": 11.5 + 2e-4 * (message + k / 10), "speed_mps": 20.0,
-                 "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0,
-                 "steering_wheel_angle_rad": 0.0, "wheel_speed_fl_radps": w, "wheel_speed_fr_radps": w,
-                 "wheel_speed_rl_radps": w, "wheel_speed_rr_radps": w, "abs_active": False, "acc_active": False,
-                 # stated, not left out: pmf does not calibrate on samples whose tcs/esc flags are unknown
-                 "tcs_active": False, "esc_active": False}
-                for k in range(10)]
+        return [
+            {
+                "vehicle_id": vehicle,
+                "timestamp_ms": self.start_ms + 1000 * message + 100 * k,
+                "latitude_deg": 48.1,
+                "longitude_deg": 11.5 + 2e-4 * (message + k / 10),
+                "speed_mps": 20.0,
+                "accel_lon_mps2": 0.0,
+                "accel_lat_mps2": 0.0,
+                "yaw_rate_radps": 0.0,
+                "steering_wheel_angle_rad": 0.0,
+                "wheel_speed_fl_radps": w,
+                "wheel_speed_fr_radps": w,
+                "wheel_speed_rl_radps": w,
+                "wheel_speed_rr_radps": w,
+                "abs_active": False,
+                "acc_active": False,
+                # stated, not left out: pmf does not calibrate on samples whose tcs/esc flags are unknown
+                "tcs_active": False,
+                "esc_active": False,
+            }
+            for k in range(10)
+        ]
 
     def run(self, seconds: float) -> None:
         """Publish for `seconds`, or until `stop_publishing`."""
@@ -145,8 +160,9 @@ class Fleet:
 
 class Database:
     def __init__(self, url: str):
-        self.conn = psycopg.connect(make_url(url).set(drivername="postgresql").render_as_string(hide_password=False),
-                                    autocommit=True)
+        self.conn = psycopg.connect(
+            make_url(url).set(drivername="postgresql").render_as_string(hide_password=False), autocommit=True
+        )
 
     def counts(self) -> dict[str, int]:
         return dict(self.conn.execute("SELECT vehicle_id, count(*) FROM telemetry GROUP BY vehicle_id").fetchall())
@@ -157,6 +173,7 @@ class Database:
     def calibration_weight_s(self) -> dict[str, float]:
         """Each vehicle's stored pmf state: seconds of driving in its accelerometer-bias calibration."""
         from roadgrip.cloud.pipeline.checkpoints import unpack_state
+
         rows = self.conn.execute("SELECT vehicle_id, state FROM estimator_states WHERE estimator = 'pmf'").fetchall()
         return {v: unpack_state(state)["inner"]["memory"][CALIBRATION["accel_bias_weight_s"]] for v, state in rows}
 
@@ -168,8 +185,10 @@ class Database:
 
     def estimates_out_of_order(self) -> int:
         """Estimates stored in a later transaction than a newer estimate of the same vehicle."""
-        rows = self.conn.execute("SELECT vehicle_id, xmin::text::bigint, min(timestamp_ms), max(timestamp_ms) "
-                                 "FROM estimates GROUP BY vehicle_id, xmin ORDER BY vehicle_id, 2").fetchall()
+        rows = self.conn.execute(
+            "SELECT vehicle_id, xmin::text::bigint, min(timestamp_ms), max(timestamp_ms) "
+            "FROM estimates GROUP BY vehicle_id, xmin ORDER BY vehicle_id, 2"
+        ).fetchall()
         bad, newest = 0, {}
         for vehicle, _tx, first_ms, last_ms in rows:
             bad += first_ms <= newest.get(vehicle, -1)
@@ -298,8 +317,10 @@ def wait_spread(db: Database, workers: dict[str, WorkerProcess], expected: list[
     while sorted(held_by(db, workers).values()) != expected:
         if time.monotonic() - since > SPREAD_LIMIT_S:
             logs = "\n".join(f"--- worker {k}:\n{w.log()[-3000:]}" for k, w in workers.items())
-            pytest.fail(f"partitions held {held_by(db, workers)}, expected {expected} within {SPREAD_LIMIT_S} s\n"
-                        f"{logs}", pytrace=False)
+            pytest.fail(
+                f"partitions held {held_by(db, workers)}, expected {expected} within {SPREAD_LIMIT_S} s\n{logs}",
+                pytrace=False,
+            )
         time.sleep(0.2)
     return time.monotonic() - since
 
@@ -315,24 +336,23 @@ def test_partitions_spread_over_workers(cluster, postgres_database_url, tmp_path
     publisher = threading.Thread(target=fleet.run, args=(600.0,))
     workers: dict[str, WorkerProcess] = {}
     try:
-        workers["a"] = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log",
-                                     PARTITIONS)
+        workers["a"] = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker-a.log", PARTITIONS)
         workers["a"].wait_ready()
         publisher.start()
         wait_spread(db, workers, [4], time.monotonic())
-        workers["b"] = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log",
-                                     PARTITIONS)
+        workers["b"] = WorkerProcess(cluster, [1, 2, 0], postgres_database_url, tmp_path / "worker-b.log", PARTITIONS)
         workers["b"].wait_ready()
         took = [wait_spread(db, workers, [2, 2], time.monotonic())]
-        workers["c"] = WorkerProcess(cluster, [2, 0, 1], postgres_database_url, tmp_path / "worker-c.log",
-                                     PARTITIONS)
+        workers["c"] = WorkerProcess(cluster, [2, 0, 1], postgres_database_url, tmp_path / "worker-c.log", PARTITIONS)
         workers["c"].wait_ready()
         took.append(wait_spread(db, workers, [1, 1, 2], time.monotonic()))
         stopped = time.monotonic()
         stats = {"a": workers["a"].stop()}
         took.append(wait_spread(db, workers, [2, 2], stopped))
-        print(f"\npartitions spread {took[0]:.1f} s after b was ready, {took[1]:.1f} s after c, "
-              f"{took[2]:.1f} s after a's stop")
+        print(
+            f"\npartitions spread {took[0]:.1f} s after b was ready, {took[1]:.1f} s after c, "
+            f"{took[2]:.1f} s after a's stop"
+        )
         time.sleep(3.0)
         fleet.stop_publishing()
         publisher.join()
@@ -364,8 +384,10 @@ def scrape(port: int) -> dict[str, dict[tuple, float]]:
 
 def regions_caught_up(m: dict[str, dict[tuple, float]]) -> bool:
     """Whether a worker alone has applied every region message it published and saved a map cell (its scrape `m`)."""
-    return (sum(m["roadgrip_region_messages_applied_total"].values())
-            >= m["roadgrip_region_messages_published_total"][()] and m["roadgrip_map_cells_saved_total"][()] >= 1)
+    return (
+        sum(m["roadgrip_region_messages_applied_total"].values()) >= m["roadgrip_region_messages_published_total"][()]
+        and m["roadgrip_map_cells_saved_total"][()] >= 1
+    )
 
 
 def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
@@ -376,8 +398,9 @@ def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
     vehicles = vehicles_of("e")
     purge(cluster, 0)
     port = free_ports(1)[0]
-    worker = WorkerProcess(cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker.log", PARTITIONS,
-                           ("--metrics-port", str(port)))
+    worker = WorkerProcess(
+        cluster, [0, 1, 2], postgres_database_url, tmp_path / "worker.log", PARTITIONS, ("--metrics-port", str(port))
+    )
     db = Database(postgres_database_url)
     fleet = Fleet(cluster, vehicles)
     try:
@@ -396,8 +419,10 @@ def test_worker_metrics_scraped(cluster, postgres_database_url, tmp_path):
         assert m["roadgrip_partition_messages_ready"] == {(("partition", str(p)),): 0.0 for p in range(PARTITIONS)}
         assert set(m["roadgrip_partition_messages_unacknowledged"].values()) == {0.0}
         assert m["roadgrip_workers_live"][()] == 1.0
-        assert m["roadgrip_samples_rejected_total"][(("process", "main"), ("reason", "invalid"),
-                                                     ("transport", "mqtt"))] == 0
+        assert (
+            m["roadgrip_samples_rejected_total"][(("process", "main"), ("reason", "invalid"), ("transport", "mqtt"))]
+            == 0
+        )
         deadline = time.monotonic() + 15.0  # region messages are applied as they come, cells saved every second
         while not regions_caught_up(m) and time.monotonic() < deadline:
             time.sleep(0.5)
@@ -425,9 +450,19 @@ def broker_evidence(cluster: RabbitCluster, node: int, fleet: Fleet, vehicles: l
     """What the failure message of a broker-node kill shows: the vehicles' paho connection changes, the partition
     queues and their consumers as a surviving node sees them, the workers' logs."""
     lines = [f"{v}: " + ", ".join(f"{t:.2f} {e}" for t, e in fleet.events[v]) for v in vehicles]
-    for args in (("list_queues", "name", "leader", "members", "online", "messages_ready", "messages_unacknowledged",
-                  "consumers"),
-                 ("list_consumers", "queue_name", "channel_pid", "consumer_tag", "active", "activity_status")):
+    for args in (
+        (
+            "list_queues",
+            "name",
+            "leader",
+            "members",
+            "online",
+            "messages_ready",
+            "messages_unacknowledged",
+            "consumers",
+        ),
+        ("list_consumers", "queue_name", "channel_pid", "consumer_tag", "active", "activity_status"),
+    ):
         lines.append(cluster.ctl(node, *args, "-q", timeout_s=30))
     lines += [f"--- worker log {w.log_path.name}:\n{w.log()[-4000:]}" for w in workers]
     return "\n".join(lines)
@@ -471,15 +506,35 @@ def test_broker_node_killed_partitions_served_again(cluster, postgres_database_u
 
 def telemetry_row(vehicle: str, timestamp_ms: int) -> dict:
     w = 20.0 / PAPER_SUV.wheel_radius_m
-    return {"vehicle_id": vehicle, "timestamp_ms": timestamp_ms, "latitude_deg": 48.1, "longitude_deg": 11.5,
-            "speed_mps": 20.0, "accel_lon_mps2": 0.0, "accel_lat_mps2": 0.0, "yaw_rate_radps": 0.0,
-            "steering_wheel_angle_rad": 0.0, "wheel_speed_fl_radps": w, "wheel_speed_fr_radps": w,
-            "wheel_speed_rl_radps": w, "wheel_speed_rr_radps": w, "abs_active": False, "acc_active": False}
+    return {
+        "vehicle_id": vehicle,
+        "timestamp_ms": timestamp_ms,
+        "latitude_deg": 48.1,
+        "longitude_deg": 11.5,
+        "speed_mps": 20.0,
+        "accel_lon_mps2": 0.0,
+        "accel_lat_mps2": 0.0,
+        "yaw_rate_radps": 0.0,
+        "steering_wheel_angle_rad": 0.0,
+        "wheel_speed_fl_radps": w,
+        "wheel_speed_fr_radps": w,
+        "wheel_speed_rl_radps": w,
+        "wheel_speed_rr_radps": w,
+        "abs_active": False,
+        "acc_active": False,
+    }
 
 
 def estimate_row(vehicle: str, timestamp_ms: int) -> dict:
-    return {"vehicle_id": vehicle, "timestamp_ms": timestamp_ms, "mu": 0.8, "mu_lower": 0.7, "mu_upper": 0.9,
-            "excited": False, "estimator": "pmf"}
+    return {
+        "vehicle_id": vehicle,
+        "timestamp_ms": timestamp_ms,
+        "mu": 0.8,
+        "mu_lower": 0.7,
+        "mu_upper": 0.9,
+        "excited": False,
+        "estimator": "pmf",
+    }
 
 
 def test_a_write_fenced_by_a_later_take_stores_nothing(postgres_database_url):
@@ -512,8 +567,9 @@ def test_worker_that_lost_a_partition_stores_only_what_it_still_owns(postgres_da
         fenced = _FencedStorage(worker.storage, worker)
         fenced.write_batch([telemetry_row("f0", 1000), telemetry_row("f1", 1000)], [])
         worker.storage.take_partition(0, "worker-b")
-        written = fenced.write_batch([telemetry_row("f0", 1100), telemetry_row("f1", 1100)],
-                                     [estimate_row("f0", 1100), estimate_row("f1", 1100)])
+        written = fenced.write_batch(
+            [telemetry_row("f0", 1100), telemetry_row("f1", 1100)], [estimate_row("f0", 1100), estimate_row("f1", 1100)]
+        )
         assert (written.telemetry, written.estimates) == (1, 1)
         assert written.already_stored == {("f0", 1100)}
         assert [len(worker.storage.telemetry(v)) for v in ("f0", "f1")] == [1, 2]
@@ -577,10 +633,17 @@ def drive(database_url: str, messages: range, skip_estimated: bool) -> float:
     fanout = Fanout(storage, settings, new_friction_map(settings), new_warning_engine(settings))  # serve's, unpublished
     pipeline = Pipeline(storage, settings, estimator, fanout, skip_estimated=skip_estimated)
     pipeline.start()
-    futures = [pipeline.submit("h0", [{**row, "tcs_active": False, "esc_active": False}
-                                      for row in (telemetry_row("h0", 1000 * m + 100 * k) for k in range(10))],
-                               retry=True)
-               for m in messages]
+    futures = [
+        pipeline.submit(
+            "h0",
+            [
+                {**row, "tcs_active": False, "esc_active": False}
+                for row in (telemetry_row("h0", 1000 * m + 100 * k) for k in range(10))
+            ],
+            retry=True,
+        )
+        for m in messages
+    ]
     for future in futures:
         future.result(30)
     pipeline.stop()

@@ -34,8 +34,17 @@ def test_a_resolution_is_an_integer_in_0_to_15(resolution):
 
 
 def test_the_map_the_engine_and_the_stations_key_by_it():
-    row = {"vehicle_id": "v", "timestamp_ms": T0_MS, "latitude_deg": HEBEI[0], "longitude_deg": HEBEI[1], "mu": 0.2,
-           "mu_lower": 0.1, "mu_upper": 0.3, "excited": True, "mu_proven": None}
+    row = {
+        "vehicle_id": "v",
+        "timestamp_ms": T0_MS,
+        "latitude_deg": HEBEI[0],
+        "longitude_deg": HEBEI[1],
+        "mu": 0.2,
+        "mu_lower": 0.1,
+        "mu_upper": 0.3,
+        "excited": True,
+        "mu_proven": None,
+    }
     fmap, engine = FrictionMap(resolution=9), WarningEngine(resolution=9)
     assert fmap.add([row]) == {cell_of(*HEBEI, 9)} == {fmap.cell_of(*HEBEI)}
     engine.update([row], T0_MS)

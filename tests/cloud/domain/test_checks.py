@@ -8,13 +8,16 @@ import pytest
 from roadgrip.cloud.domain import checks
 
 
-@pytest.mark.parametrize(("check", "args", "bad", "constraint"), [
-    (checks.positive_finite, (), [0, -1.0, math.inf, math.nan, True, "1", None], "a positive finite number"),
-    (checks.positive_at_most, (10.0,), [0, -1, 10.5, math.nan, False, "1"], "a number in (0, 10.0]"),
-    (checks.probability, (), [0, 1, 1.5, -0.1, math.nan, True], "a number in (0, 1)"),
-    (checks.count, (), [0, -3, 1.0, 2.5, True, "2"], "an integer >= 1"),
-    (checks.integer_in, (0, 15), [-1, 16, 10.5, "10", True, None], "an integer in 0..15"),
-])
+@pytest.mark.parametrize(
+    ("check", "args", "bad", "constraint"),
+    [
+        (checks.positive_finite, (), [0, -1.0, math.inf, math.nan, True, "1", None], "a positive finite number"),
+        (checks.positive_at_most, (10.0,), [0, -1, 10.5, math.nan, False, "1"], "a number in (0, 10.0]"),
+        (checks.probability, (), [0, 1, 1.5, -0.1, math.nan, True], "a number in (0, 1)"),
+        (checks.count, (), [0, -3, 1.0, 2.5, True, "2"], "an integer >= 1"),
+        (checks.integer_in, (0, 15), [-1, 16, 10.5, "10", True, None], "an integer in 0..15"),
+    ],
+)
 def test_a_refusal_names_the_parameter_the_constraint_and_the_value(check, args, bad, constraint):
     for value in bad:
         with pytest.raises(ValueError) as refused:

@@ -14,9 +14,11 @@ from roadgrip.sim import roads
 
 
 def test_the_domain_imports_no_format_and_no_simulator():
-    probe = ("import sys\n"
-             "import roadgrip.cloud.domain.friction_map, roadgrip.cloud.domain.warnings, roadgrip.cloud.domain.stations\n"
-             "print(' '.join(sorted(m for m in sys.modules if m.startswith('roadgrip.'))))")
+    probe = (
+        "import sys\n"
+        "import roadgrip.cloud.domain.friction_map, roadgrip.cloud.domain.warnings, roadgrip.cloud.domain.stations\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('roadgrip.'))))"
+    )
     loaded = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True).stdout.split()
     assert "roadgrip.cloud.domain.warnings" in loaded
     forbidden = ("roadgrip.cloud.formats", "roadgrip.sim", "roadgrip.fleet", "roadgrip.evaluation", "roadgrip.bench")

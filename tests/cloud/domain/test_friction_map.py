@@ -18,8 +18,17 @@ MIN_MS = 60_000
 
 
 def est(t_ms=T0_MS, mu=0.5, lo=0.4, hi=0.6, excited=True, vehicle="v1", lat=HEBEI[0], lon=HEBEI[1], proven=None):
-    return {"vehicle_id": vehicle, "timestamp_ms": t_ms, "latitude_deg": lat, "longitude_deg": lon,
-            "mu": mu, "mu_lower": lo, "mu_upper": hi, "excited": excited, "mu_proven": proven}
+    return {
+        "vehicle_id": vehicle,
+        "timestamp_ms": t_ms,
+        "latitude_deg": lat,
+        "longitude_deg": lon,
+        "mu": mu,
+        "mu_lower": lo,
+        "mu_upper": hi,
+        "excited": excited,
+        "mu_proven": proven,
+    }
 
 
 def only_cell(fmap: FrictionMap, now_ms: int) -> CellSummary:
@@ -126,12 +135,14 @@ def test_a_dried_patch_holds_until_its_evidence_fades_under_recent_grip():
     fmap = FrictionMap(half_life_s=600.0)
     fmap.add([est(t_ms=T0_MS, lo=0.05, hi=0.25, vehicle=f"ice{k}") for k in range(3)])
     soon_ms = T0_MS + 5 * MIN_MS
-    fmap.add([est(t_ms=soon_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"dry{k}")
-              for k in range(4)])
+    fmap.add(
+        [est(t_ms=soon_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"dry{k}") for k in range(4)]
+    )
     assert only_cell(fmap, soon_ms).mu < 0.25  # slippery readings of 5 minutes ago still hold the cell
     late_ms = T0_MS + 30 * MIN_MS
-    fmap.add([est(t_ms=late_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"late{k}")
-              for k in range(4)])
+    fmap.add(
+        [est(t_ms=late_ms, mu=0.9, lo=0.2, hi=1.2, excited=False, proven=0.55, vehicle=f"late{k}") for k in range(4)]
+    )
     cell = only_cell(fmap, late_ms)
     assert cell.mu > 0.55 and cell.mu_upper > 1.17  # three half-lives on, passes proving grip outweigh them
 
@@ -155,6 +166,7 @@ def test_ages_are_never_negative():
 def brute_force(rows, now_ms, fmap: FrictionMap):
     """The module docstring's posterior over the given rows, written out directly: passes per vehicle and cell in time
     order, the mean of their excited rows' two soft steps plus the soft step of their largest bound, aged."""
+
     def soft(z, eps=fmap.outlier_rate):
         return np.log(eps + (1 - eps) * norm.cdf(z))
 
@@ -204,13 +216,23 @@ def test_agrees_with_a_brute_force_implementation():
             mu = float(rng.uniform(0.1, 1.0))
             excited = bool(rng.random() < 0.5)
             proven = float(rng.uniform(0.0, mu))
-            rows.append(est(t_ms=t, mu=mu, lo=max(0.0, mu - rng.uniform(0.05, 0.4)),
-                            hi=min(1.2, mu + rng.uniform(0.05, 0.4)), excited=excited, vehicle=f"v{k}",
-                            lat=lat + float(rng.normal(0, 2e-5)), lon=lon, proven=proven))
+            rows.append(
+                est(
+                    t_ms=t,
+                    mu=mu,
+                    lo=max(0.0, mu - rng.uniform(0.05, 0.4)),
+                    hi=min(1.2, mu + rng.uniform(0.05, 0.4)),
+                    excited=excited,
+                    vehicle=f"v{k}",
+                    lat=lat + float(rng.normal(0, 2e-5)),
+                    lon=lon,
+                    proven=proven,
+                )
+            )
     fmap = FrictionMap()
     order = sorted(rows, key=lambda r: r["timestamp_ms"])
     for start in range(0, len(order), 37):  # in time-ordered batches of many vehicles, as the service sends them
-        fmap.add(order[start:start + 37])
+        fmap.add(order[start : start + 37])
     now_ms = max(r["timestamp_ms"] for r in rows) + 1000
     expected = brute_force(rows, now_ms, fmap)
     cells = fmap.cells(now_ms)
@@ -225,22 +247,31 @@ def test_agrees_with_a_brute_force_implementation():
             assert cell.mu is None
             continue
         capped = ll * min(1.0, fmap.max_independent / weight)
-        assert (cell.mu_lower, cell.mu, cell.mu_upper) == pytest.approx(tuple(posterior_quantiles(capped)[0]),
-                                                                        abs=1e-9)
+        assert (cell.mu_lower, cell.mu, cell.mu_upper) == pytest.approx(tuple(posterior_quantiles(capped)[0]), abs=1e-9)
         assert 0.0 <= cell.mu_lower <= cell.mu <= cell.mu_upper <= MU_GRID[-1]
 
 
 def test_a_station_report_is_evidence_and_its_newest_replaces_the_older():
     fmap = FrictionMap()
     cell_id = fmap.cell_of(*HEBEI)
-    report = {"station_id": "rws-1", "cell": cell_id, "timestamp_ms": T0_MS, "mu": 0.15, "mu_lower": 0.05,
-              "mu_upper": 0.3}
+    report = {
+        "station_id": "rws-1",
+        "cell": cell_id,
+        "timestamp_ms": T0_MS,
+        "mu": 0.15,
+        "mu_lower": 0.05,
+        "mu_upper": 0.3,
+    }
     assert fmap.add_station([report]) == {cell_id}
     cell = only_cell(fmap, T0_MS)
     assert cell.status == "measured" and cell.n_stations == 1 and cell.n_estimates == 0
     assert cell.mu_lower < cell.mu < cell.mu_upper < 0.33
-    fmap.add_station([{**report, "timestamp_ms": T0_MS + MIN_MS, "mu": 0.8, "mu_lower": 0.6, "mu_upper": 1.0},
-                      {**report, "timestamp_ms": T0_MS - MIN_MS}])  # an older report arriving late is ignored
+    fmap.add_station(
+        [
+            {**report, "timestamp_ms": T0_MS + MIN_MS, "mu": 0.8, "mu_lower": 0.6, "mu_upper": 1.0},
+            {**report, "timestamp_ms": T0_MS - MIN_MS},
+        ]
+    )  # an older report arriving late is ignored
     cell = only_cell(fmap, T0_MS + MIN_MS)
     assert cell.n_stations == 1 and cell.mu_lower < 0.6 < cell.mu < cell.mu_upper < 1.02
     with pytest.raises(ValueError, match="resolution 10"):
@@ -311,8 +342,20 @@ def test_resolution_is_validated(resolution):
         FrictionMap(resolution=resolution)
 
 
-@pytest.mark.parametrize("name", ["half_life_s", "max_age_s", "min_interval_width", "proven_sigma", "min_proven_mu",
-                                  "pass_gap_s", "outlier_rate", "max_independent", "grip_locality"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "half_life_s",
+        "max_age_s",
+        "min_interval_width",
+        "proven_sigma",
+        "min_proven_mu",
+        "pass_gap_s",
+        "outlier_rate",
+        "max_independent",
+        "grip_locality",
+    ],
+)
 @pytest.mark.parametrize("value", [0, -1.0, float("inf"), float("nan")])
 def test_parameters_are_validated(name, value):
     with pytest.raises(ValueError, match=name):

@@ -91,8 +91,10 @@ def test_a_resumed_pass_stays_open_unless_the_vehicle_has_a_newer_one():
 
 
 def test_rows_are_taken_with_a_position_in_vehicle_and_time_order():
-    rows = [{"vehicle_id": v, "timestamp_ms": t, "latitude_deg": lat, "longitude_deg": 114.5}
-            for v, t, lat in (("b", 2, 38.0), ("a", 3, 38.0), ("a", 1, None), ("a", 2, 38.0))]
+    rows = [
+        {"vehicle_id": v, "timestamp_ms": t, "latitude_deg": lat, "longitude_deg": 114.5}
+        for v, t, lat in (("b", 2, 38.0), ("a", 3, 38.0), ("a", 1, None), ("a", 2, 38.0))
+    ]
     assert [(r["vehicle_id"], r["timestamp_ms"]) for r in in_pass_order(rows)] == [("a", 2), ("a", 3), ("b", 2)]
 
 
@@ -104,24 +106,37 @@ CELL_B = min(h3.grid_ring(CELL_A, 1))  # a neighbour
 
 def row(t_ms: int, cell: str) -> dict:
     lat, lon = h3.cell_to_latlng(cell)
-    return {"vehicle_id": "v", "timestamp_ms": t_ms, "latitude_deg": lat, "longitude_deg": lon, "mu": 0.25,
-            "mu_lower": 0.2, "mu_upper": 0.3, "excited": True, "mu_proven": None}
+    return {
+        "vehicle_id": "v",
+        "timestamp_ms": t_ms,
+        "latitude_deg": lat,
+        "longitude_deg": lon,
+        "mu": 0.25,
+        "mu_lower": 0.2,
+        "mu_upper": 0.3,
+        "excited": True,
+        "mu_proven": None,
+    }
 
 
 def test_five_late_rows_give_the_same_passes_in_the_map_and_the_engine():
     """A vehicle drives through cell A, then B; five of its rows in A arrive after those of B. The map once took each
     as a pass of its own (cell A: 1 pass, weight 0.98, became 6 passes, weight 5.87) where the engine dropped them;
     both now drop and count them."""
-    through = [row(T0_MS + 100 * k, CELL_A) for k in range(20)] + [row(T0_MS + 2000 + 100 * k, CELL_B)
-                                                                   for k in range(20)]
+    through = [row(T0_MS + 100 * k, CELL_A) for k in range(20)] + [
+        row(T0_MS + 2000 + 100 * k, CELL_B) for k in range(20)
+    ]
     late = [row(T0_MS + 50 + 100 * k, CELL_A) for k in range(5)]
     fmap, engine = FrictionMap(pass_gap_s=GAP_S), WarningEngine(pass_gap_s=GAP_S)
     for rows, now_ms in ((through, T0_MS + 4000), (late, T0_MS + 5000)):
         fmap.add(rows, now_ms)
         engine.update(rows, now_ms)
     assert fmap.late_rows_ == engine.late_rows_ == 5
-    assert {v: bounds(p) for v, p in fmap.open_passes_.items()} == \
-        {v: bounds(p) for v, p in engine.open_passes_.items()} == {"v": ("v", CELL_B, T0_MS + 2000, T0_MS + 3900)}
+    assert (
+        {v: bounds(p) for v, p in fmap.open_passes_.items()}
+        == {v: bounds(p) for v, p in engine.open_passes_.items()}
+        == {"v": ("v", CELL_B, T0_MS + 2000, T0_MS + 3900)}
+    )
     assert fmap.passes_.closed_ms == engine.passes_.closed_ms == {"v": T0_MS + 1900}
     a = next(c for c in fmap.cells(T0_MS + 20_000) if c.cell == CELL_A)
     assert (a.n_passes, a.n_estimates) == (1, 20)

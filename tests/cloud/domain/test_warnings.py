@@ -21,7 +21,7 @@ def stream(engine, rows, batch_ms=1000, settle_s=31.0):
     while rows:
         end = start + batch_ms
         batch = [r for r in rows if r["timestamp_ms"] < end]
-        rows = rows[len(batch):]
+        rows = rows[len(batch) :]
         events += engine.update(batch, end)
         start = end
     events += engine.update([], start + int(settle_s * 1000))
@@ -97,8 +97,10 @@ def test_dry_passes_cancel_the_warning_and_keep_its_action_id():
 def test_a_calm_pass_that_proves_grip_is_a_dry_pass():
     engine = two_pass_engine(min_dry_passes=1)
     stream(engine, drive("a", T0_MS) + drive("b", T0_MS + 60_000))
-    calm = [{**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.45}
-            for r in drive("c", T0_MS + 300_000, slippery=set())]
+    calm = [
+        {**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.45}
+        for r in drive("c", T0_MS + 300_000, slippery=set())
+    ]
     events = stream(engine, calm)
     assert {e.cell for e in events} == PATCH and engine.active() == []
     assert {(e.status, e.reason) for e in events} == {("cancelled", "recovered")}
@@ -149,8 +151,9 @@ def test_a_low_pass_refreshes_and_extends_the_warning():
 
 def test_low_passes_before_a_dry_one_do_not_count():
     engine = two_pass_engine()
-    events = stream(engine, drive("a", T0_MS) + drive("c", T0_MS + 100_000, slippery=set())
-                    + drive("b", T0_MS + 200_000))
+    events = stream(
+        engine, drive("a", T0_MS) + drive("c", T0_MS + 100_000, slippery=set()) + drive("b", T0_MS + 200_000)
+    )
     assert raised(events) == set()
 
 
@@ -169,7 +172,7 @@ def test_batching_and_order_do_not_change_the_warnings():
     engine = two_pass_engine()
     events = []
     for start in range(0, len(late), 7):
-        batch = late[start:start + 7]
+        batch = late[start : start + 7]
         events += engine.update(batch, max(r["timestamp_ms"] for r in batch))
     events += engine.update([], T0_MS + 200_000)
     assert sorted((e.warning_id, e.n_passes, e.mu_upper) for e in events) == key
@@ -215,19 +218,42 @@ def test_denm_of_a_raised_warning():
     assert message["roadgrip"]["cell"] == event.cell
 
 
-@pytest.mark.parametrize(("name", "value"), [
-    ("resolution", 16), ("threshold_mu", 0), ("min_low_passes", 0), ("min_dry_passes", 1.5),
-    ("pass_gap_s", -1), ("min_excited_per_pass", True), ("validity_s", 86_401), ("station_id", -1)])
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("resolution", 16),
+        ("threshold_mu", 0),
+        ("min_low_passes", 0),
+        ("min_dry_passes", 1.5),
+        ("pass_gap_s", -1),
+        ("min_excited_per_pass", True),
+        ("validity_s", 86_401),
+        ("station_id", -1),
+    ],
+)
 def test_arguments_are_validated(name, value):
     with pytest.raises(ValueError, match=rf"{name}.*{value!r}"):
         WarningEngine(**{name: value})
 
 
 def test_event_is_frozen():
-    event = WarningEvent(warning_id="c-1", cell=h3.latlng_to_cell(LAT_DEG, LON0_DEG, 10), status="active",
-                         reason="low friction", detection_ms=T0_MS, updated_ms=T0_MS, latitude_deg=LAT_DEG,
-                         longitude_deg=LON0_DEG, mu_upper=0.3, n_passes=2, n_vehicles=1, sequence_number=0,
-                         validity_s=600.0, evidence_ms=T0_MS, action_sequence_number=0)
+    event = WarningEvent(
+        warning_id="c-1",
+        cell=h3.latlng_to_cell(LAT_DEG, LON0_DEG, 10),
+        status="active",
+        reason="low friction",
+        detection_ms=T0_MS,
+        updated_ms=T0_MS,
+        latitude_deg=LAT_DEG,
+        longitude_deg=LON0_DEG,
+        mu_upper=0.3,
+        n_passes=2,
+        n_vehicles=1,
+        sequence_number=0,
+        validity_s=600.0,
+        evidence_ms=T0_MS,
+        action_sequence_number=0,
+    )
     with pytest.raises(AttributeError):
         event.status = "cancelled"
 
@@ -241,11 +267,22 @@ def test_one_vehicle_in_and_out_of_a_cell_along_its_border_is_one_pass():
     rows = []
     for i in range(120):
         lat, lon = (lat_a, lon_a) if (i // 5) % 2 == 0 else (lat_b, lon_b)
-        rows.append({"vehicle_id": "v", "timestamp_ms": T0_MS + 100 * i, "latitude_deg": lat, "longitude_deg": lon,
-                     "mu": 0.2, "mu_lower": 0.1, "mu_upper": 0.3, "excited": True})
+        rows.append(
+            {
+                "vehicle_id": "v",
+                "timestamp_ms": T0_MS + 100 * i,
+                "latitude_deg": lat,
+                "longitude_deg": lon,
+                "mu": 0.2,
+                "mu_lower": 0.1,
+                "mu_upper": 0.3,
+                "excited": True,
+            }
+        )
     assert raised(stream(engine, rows)) == set()
-    assert raised(stream(engine, [{**r, "vehicle_id": "w", "timestamp_ms": r["timestamp_ms"] + 5_000}
-                                  for r in rows])) == {a, b}
+    assert raised(
+        stream(engine, [{**r, "vehicle_id": "w", "timestamp_ms": r["timestamp_ms"] + 5_000} for r in rows])
+    ) == {a, b}
 
 
 def independent_passes(passes, gap_ms):
@@ -259,9 +296,13 @@ def independent_passes(passes, gap_ms):
     return count
 
 
-_operations = st.lists(st.one_of(
-    st.tuples(st.just("add"), st.integers(0, 600), st.sampled_from("abcd"), st.floats(0.0, 0.4)),
-    st.tuples(st.just("drop"), st.integers(0, 600), st.booleans())), max_size=60)
+_operations = st.lists(
+    st.one_of(
+        st.tuples(st.just("add"), st.integers(0, 600), st.sampled_from("abcd"), st.floats(0.0, 0.4)),
+        st.tuples(st.just("drop"), st.integers(0, 600), st.booleans()),
+    ),
+    max_size=60,
+)
 
 
 @settings(max_examples=300, deadline=None)

@@ -73,8 +73,11 @@ def test_a_revocation_through_one_replica_counts_at_once_on_another_that_verifie
         assert cached.authenticate("car-1", secret).role == "vehicle"
 
         costs = {}
-        for name, auth_, login in (("cached", cached, ("car-1", secret)), ("revalidate", one, ("car-1", secret)),
-                                   ("revalidate, admin (scrypt skipped)", one, ("admin", admin_secret))):
+        for name, auth_, login in (
+            ("cached", cached, ("car-1", secret)),
+            ("revalidate", one, ("car-1", secret)),
+            ("revalidate, admin (scrypt skipped)", one, ("admin", admin_secret)),
+        ):
             auth_.authenticate(*login)
             started = time.perf_counter()
             for _ in range(500):

@@ -113,8 +113,12 @@ def test_rate_zero_is_no_limit_and_bad_arguments_are_refused():
     assert not limiter.enabled
     assert all(limiter.allow("car-1", 10_000, now_s=0.0).allowed for _ in range(100))
     assert limiter.tracked == 0
-    for kwargs, name in (({"samples_per_s": -1.0}, "samples_per_s"), ({"samples_per_s": math.nan}, "samples_per_s"),
-                         ({"burst_s": 0.0}, "burst_s"), ({"burst_s": math.inf}, "burst_s")):
+    for kwargs, name in (
+        ({"samples_per_s": -1.0}, "samples_per_s"),
+        ({"samples_per_s": math.nan}, "samples_per_s"),
+        ({"burst_s": 0.0}, "burst_s"),
+        ({"burst_s": math.inf}, "burst_s"),
+    ):
         with pytest.raises(ValueError, match=name):
             RateLimiter(**kwargs)
     for n in (-1, 1.5, True):
@@ -148,10 +152,17 @@ def test_the_settings_carry_the_limit():
 
 # ------------------------------------------------------------------------------------------------ over HTTP
 
+
 @pytest.fixture
 def cloud(tmp_path):
-    settings = Settings(data_dir=tmp_path, mqtt="off", admin_secret=ADMIN[1], flush_interval_s=0.01,
-                        rate_limit_samples_per_s=10.0, rate_limit_burst_s=5.0)  # 50 samples of burst
+    settings = Settings(
+        data_dir=tmp_path,
+        mqtt="off",
+        admin_secret=ADMIN[1],
+        flush_interval_s=0.01,
+        rate_limit_samples_per_s=10.0,
+        rate_limit_burst_s=5.0,
+    )  # 50 samples of burst
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         yield service, client
 
@@ -167,7 +178,7 @@ def test_a_vehicle_far_above_the_rate_gets_429_and_another_vehicle_is_unaffected
     greedy, modest = _register(client, "greedy"), _register(client, "modest")
     greedy_samples = wire_samples(patch_drive(0.9, 3), "greedy", START_MS)
     modest_samples = wire_samples(patch_drive(0.9, 3), "modest", START_MS)
-    answers = [client.post("/v1/telemetry", json=greedy_samples[k:k + 10], auth=greedy) for k in range(0, 200, 10)]
+    answers = [client.post("/v1/telemetry", json=greedy_samples[k : k + 10], auth=greedy) for k in range(0, 200, 10)]
     codes = [a.status_code for a in answers]
     assert codes[:5] == [200] * 5  # the burst: 50 samples
     assert codes.count(429) >= 14  # then refill at 10 samples/s, while 150 are sent within a moment
@@ -175,11 +186,15 @@ def test_a_vehicle_far_above_the_rate_gets_429_and_another_vehicle_is_unaffected
     assert 1 <= int(refused.headers["Retry-After"]) <= 2
     assert "rate limit" in refused.json()["detail"] and "greedy" in refused.json()["detail"]
     stored = {row["timestamp_ms"] for row in service.storage.telemetry("greedy")}
-    accepted = {s["timestamp_ms"] for a, k in zip(answers, range(0, 200, 10)) if a.status_code == 200
-                for s in greedy_samples[k:k + 10]}
+    accepted = {
+        s["timestamp_ms"]
+        for a, k in zip(answers, range(0, 200, 10))
+        if a.status_code == 200
+        for s in greedy_samples[k : k + 10]
+    }
     assert stored == accepted  # the refused requests stored nothing
     for k in range(0, 50, 10):  # meanwhile the other vehicle has its whole burst
-        assert client.post("/v1/telemetry", json=modest_samples[k:k + 10], auth=modest).status_code == 200
+        assert client.post("/v1/telemetry", json=modest_samples[k : k + 10], auth=modest).status_code == 200
     too_big = client.post("/v1/telemetry", json=modest_samples[50:101], auth=modest)
     assert too_big.status_code == 413 and "send at most 50 a message" in too_big.json()["detail"]
 

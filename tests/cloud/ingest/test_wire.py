@@ -63,6 +63,7 @@ def only_error(one, **options) -> SampleError:
 
 # ------------------------------------------------------------------------------------------------ valid samples
 
+
 @pytest.fixture(scope="module")
 def simulated() -> list[dict]:
     run = dataclasses.replace(paper_scenarios()[0], duration_s=3.0)
@@ -140,8 +141,11 @@ def test_a_bad_value_is_refused_naming_the_field_the_value_and_the_rule(field, v
     assert reason in error.reason
 
 
-OUTSIDE = [(name, bound, value) for name, (low, high) in RANGES.items()
-           for bound, value in (("low", low - 0.01 * (high - low)), ("high", high + 0.01 * (high - low)))]
+OUTSIDE = [
+    (name, bound, value)
+    for name, (low, high) in RANGES.items()
+    for bound, value in (("low", low - 0.01 * (high - low)), ("high", high + 0.01 * (high - low)))
+]
 
 
 @pytest.mark.parametrize("name, bound, value", OUTSIDE, ids=[f"{n}-{b}" for n, b, _ in OUTSIDE])
@@ -161,8 +165,10 @@ def test_nan_and_infinity_literals_in_the_body_are_refused():
     body = body.replace(b'"speed_mps": 20.0', b'"speed_mps": -Infinity', 1)
     samples, errors = parse_payload(body, content_type=JSON_TYPE, now_ms=NOW_MS)
     assert len(samples) == 1
-    assert [(e.index, e.reason) for e in errors] == [(0, "speed_mps must be finite, got NaN"),
-                                                      (1, "speed_mps must be finite, got -Infinity")]
+    assert [(e.index, e.reason) for e in errors] == [
+        (0, "speed_mps must be finite, got NaN"),
+        (1, "speed_mps must be finite, got -Infinity"),
+    ]
 
 
 def test_a_huge_integer_is_out_of_range_not_a_crash():
@@ -173,12 +179,16 @@ def test_a_huge_integer_is_out_of_range_not_a_crash():
 
 # ------------------------------------------------------------------------------------------------ keys
 
-@pytest.mark.parametrize("key, reason", [
-    ("sped_mps", "unknown field 'sped_mps' (did you mean 'speed_mps'?)"),
-    ("wheel_speed_fl_rps", "unknown field 'wheel_speed_fl_rps' (did you mean 'wheel_speed_fl_radps'?)"),
-    ("colour", "unknown field 'colour'"),
-    ("t_s", "unknown field 't_s': the wire format takes timestamp_ms"),
-])
+
+@pytest.mark.parametrize(
+    "key, reason",
+    [
+        ("sped_mps", "unknown field 'sped_mps' (did you mean 'speed_mps'?)"),
+        ("wheel_speed_fl_rps", "unknown field 'wheel_speed_fl_rps' (did you mean 'wheel_speed_fl_radps'?)"),
+        ("colour", "unknown field 'colour'"),
+        ("t_s", "unknown field 't_s': the wire format takes timestamp_ms"),
+    ],
+)
 def test_an_unknown_field_is_refused_with_the_close_wire_name(key, reason):
     error = only_error(sample(**{key: 1.0}))
     assert error.field == key
@@ -210,6 +220,7 @@ def test_a_sample_without_vehicle_id_takes_the_authenticated_vehicle():
 
 # ------------------------------------------------------------------------------------------ time and credentials
 
+
 def test_a_timestamp_too_far_in_the_future_is_refused():
     error = only_error(sample(timestamp_ms=NOW_MS + 3_600_000))
     assert error.field == "timestamp_ms"
@@ -231,18 +242,32 @@ def test_a_sample_of_another_vehicle_is_refused():
 
 def test_a_sample_error_carries_what_could_be_read_of_the_sample():
     error = only_error(sample(speed_mps="fast"))
-    assert error.to_dict() == {"index": 0, "field": "speed_mps", "reason": 'speed_mps must be a number, got string '
-                               '"fast"', "vehicle_id": "car-1", "timestamp_ms": SAMPLE["timestamp_ms"]}
+    assert error.to_dict() == {
+        "index": 0,
+        "field": "speed_mps",
+        "reason": 'speed_mps must be a number, got string "fast"',
+        "vehicle_id": "car-1",
+        "timestamp_ms": SAMPLE["timestamp_ms"],
+    }
     error = only_error(sample(vehicle_id=7, timestamp_ms="x", speed_mps="fast"))
     assert (error.vehicle_id, error.timestamp_ms) == (None, None)
 
 
 # ------------------------------------------------------------------------------------------------ payloads
 
+
 def test_a_bad_ndjson_line_is_an_error_for_that_line_and_the_others_are_kept():
-    body = "\n".join([json.dumps(sample(timestamp_ms=NOW_MS - 300)), '{"speed_mps": 1,', "",
-                      json.dumps(sample(timestamp_ms=NOW_MS - 200)), "[1, 2]", "   ",
-                      json.dumps(sample(timestamp_ms=NOW_MS - 100)) + "\r"]).encode()
+    body = "\n".join(
+        [
+            json.dumps(sample(timestamp_ms=NOW_MS - 300)),
+            '{"speed_mps": 1,',
+            "",
+            json.dumps(sample(timestamp_ms=NOW_MS - 200)),
+            "[1, 2]",
+            "   ",
+            json.dumps(sample(timestamp_ms=NOW_MS - 100)) + "\r",
+        ]
+    ).encode()
     samples, errors = parse_payload(body, content_type=NDJSON_TYPE, now_ms=NOW_MS)
     assert [s["timestamp_ms"] for s in samples] == [NOW_MS - 300, NOW_MS - 200, NOW_MS - 100]
     assert [(e.index, e.field) for e in errors] == [(1, None), (4, None)]  # line number - 1; blank lines count
@@ -270,12 +295,19 @@ def test_an_array_element_that_is_not_an_object_is_an_error_for_that_element():
     assert len(samples) == 1
     assert [(e.index, e.field, e.reason) for e in errors] == [
         (0, None, "sample must be a JSON object, got number 1"),
-        (2, None, 'sample must be a JSON object, got string "x"')]
+        (2, None, 'sample must be a JSON object, got string "x"'),
+    ]
 
 
-@pytest.mark.parametrize("body, content_type", [
-    (b'[{"speed_mps": 1},', JSON_TYPE), (b'[{"speed_mps": 1},', None), (b'{"speed_mps": 1', JSON_TYPE),
-    (b'[' * 100_000, None)])
+@pytest.mark.parametrize(
+    "body, content_type",
+    [
+        (b'[{"speed_mps": 1},', JSON_TYPE),
+        (b'[{"speed_mps": 1},', None),
+        (b'{"speed_mps": 1', JSON_TYPE),
+        (b"[" * 100_000, None),
+    ],
+)
 def test_a_json_document_that_does_not_parse_is_a_payload_error(body, content_type):
     with pytest.raises(PayloadError, match="payload is not valid JSON") as err:
         parse_payload(body, content_type=content_type, now_ms=NOW_MS)
@@ -303,8 +335,10 @@ def test_an_oversized_payload_is_refused_with_413_before_it_is_parsed():
     assert len(samples) == 1
 
 
-@pytest.mark.parametrize("body, content_type", [(b"", None), (b"", JSON_TYPE), (b" \n\t\r\n", None),
-                                                (b"\n\n", NDJSON_TYPE), (b"[]", JSON_TYPE), (b" [ ] ", None)])
+@pytest.mark.parametrize(
+    "body, content_type",
+    [(b"", None), (b"", JSON_TYPE), (b" \n\t\r\n", None), (b"\n\n", NDJSON_TYPE), (b"[]", JSON_TYPE), (b" [ ] ", None)],
+)
 def test_a_payload_without_samples_is_a_payload_error(body, content_type):
     with pytest.raises(PayloadError, match="empty payload") as err:
         parse_payload(body, content_type=content_type, now_ms=NOW_MS)
@@ -332,22 +366,33 @@ def test_an_unknown_content_type_is_refused_with_415():
     assert (err.value.status, err.value.field) == (415, "content_type")
 
 
-@pytest.mark.parametrize("content_type, fmt", [
-    ("application/json; charset=utf-8", "json"), ("Application/JSON", "json"), ("application/jsonl", "ndjson"),
-    ("application/x-ndjson; charset=UTF-8", "ndjson"), ("application/ndjson", "ndjson"), (None, "json"),
-    (None, "ndjson")])
+@pytest.mark.parametrize(
+    "content_type, fmt",
+    [
+        ("application/json; charset=utf-8", "json"),
+        ("Application/JSON", "json"),
+        ("application/jsonl", "ndjson"),
+        ("application/x-ndjson; charset=UTF-8", "ndjson"),
+        ("application/ndjson", "ndjson"),
+        (None, "json"),
+        (None, "ndjson"),
+    ],
+)
 def test_content_types_with_parameters_and_any_case_are_understood(content_type, fmt):
     samples, errors = parse_payload(body_of([sample(), sample()], fmt), content_type=content_type, now_ms=NOW_MS)
     assert len(samples) == 2 and errors == []
 
 
-@pytest.mark.parametrize("body, count", [
-    (json.dumps(sample()).encode(), 1),  # one object: an MQTT message of one sample
-    (b"  \n" + json.dumps([sample(), sample()]).encode(), 2),  # an array
-    (body_of([sample(), sample(), sample()], "ndjson"), 3),  # NDJSON
-    (b"{bad\n" + body_of([sample()], "ndjson"), 1),  # NDJSON whose first line is bad
-    ("\ufeff".encode() + json.dumps(sample()).encode(), 1),  # a byte order mark
-])
+@pytest.mark.parametrize(
+    "body, count",
+    [
+        (json.dumps(sample()).encode(), 1),  # one object: an MQTT message of one sample
+        (b"  \n" + json.dumps([sample(), sample()]).encode(), 2),  # an array
+        (body_of([sample(), sample(), sample()], "ndjson"), 3),  # NDJSON
+        (b"{bad\n" + body_of([sample()], "ndjson"), 1),  # NDJSON whose first line is bad
+        ("\ufeff".encode() + json.dumps(sample()).encode(), 1),  # a byte order mark
+    ],
+)
 def test_without_a_content_type_the_format_is_detected(body, count):
     samples, errors = parse_payload(body, now_ms=NOW_MS)
     assert len(samples) == count
@@ -367,6 +412,7 @@ def test_bad_options_are_programming_errors_not_payload_errors():
 
 
 # ------------------------------------------------------------------------------------------------------- VSS
+
 
 def vss_sample(**changes) -> dict:
     out = {
@@ -393,24 +439,46 @@ def vss_sample(**changes) -> dict:
 def test_a_vss_sample_converts_to_wire_format_with_exact_units():
     samples, errors = parse([vss_sample()])
     assert errors == []
-    assert samples == [{
-        "vehicle_id": "WVWZZZ1JZXW000001", "timestamp_ms": NOW_MS - 1_000, "latitude_deg": 38.04,
-        "longitude_deg": 114.51, "speed_mps": 100 / 3.6, "accel_lon_mps2": 0.5, "accel_lat_mps2": -0.2,
-        "yaw_rate_radps": math.pi / 2, "steering_wheel_angle_rad": math.pi, "wheel_speed_fl_radps": math.pi,
-        "wheel_speed_fr_radps": 2 * math.pi, "wheel_speed_rl_radps": 3 * math.pi, "wheel_speed_rr_radps": 4 * math.pi,
-        "abs_active": True, "acc_active": False, "tcs_active": None, "esc_active": None, "lateral_speed_mps": None}]
+    assert samples == [
+        {
+            "vehicle_id": "WVWZZZ1JZXW000001",
+            "timestamp_ms": NOW_MS - 1_000,
+            "latitude_deg": 38.04,
+            "longitude_deg": 114.51,
+            "speed_mps": 100 / 3.6,
+            "accel_lon_mps2": 0.5,
+            "accel_lat_mps2": -0.2,
+            "yaw_rate_radps": math.pi / 2,
+            "steering_wheel_angle_rad": math.pi,
+            "wheel_speed_fl_radps": math.pi,
+            "wheel_speed_fr_radps": 2 * math.pi,
+            "wheel_speed_rl_radps": 3 * math.pi,
+            "wheel_speed_rr_radps": 4 * math.pi,
+            "abs_active": True,
+            "acc_active": False,
+            "tcs_active": None,
+            "esc_active": None,
+            "lateral_speed_mps": None,
+        }
+    ]
     assert samples[0]["speed_mps"] == 27.77777777777778 and list(samples[0]) == list(TELEMETRY_COLUMNS)
 
 
 def test_tcs_and_esc_flags_are_optional_booleans_in_both_key_sets():
-    samples, errors = parse([vss_sample(**{"Vehicle.ADAS.TCS.IsEngaged": True, "Vehicle.ADAS.ESC.IsEngaged": False}),
-                             sample(tcs_active=False, esc_active=True), sample(tcs_active=None)])
+    samples, errors = parse(
+        [
+            vss_sample(**{"Vehicle.ADAS.TCS.IsEngaged": True, "Vehicle.ADAS.ESC.IsEngaged": False}),
+            sample(tcs_active=False, esc_active=True),
+            sample(tcs_active=None),
+        ]
+    )
     assert errors == []
     assert [(s["tcs_active"], s["esc_active"]) for s in samples] == [(True, False), (False, True), (None, None)]
     _, errors = parse([sample(tcs_active=1), vss_sample(**{"Vehicle.ADAS.ESC.IsEngaged": "yes"})])
     assert [(e.field, e.reason) for e in errors] == [
         ("tcs_active", "tcs_active must be true or false, got number 1"),
-        ("Vehicle.ADAS.ESC.IsEngaged", 'Vehicle.ADAS.ESC.IsEngaged must be true or false, got string "yes"')]
+        ("Vehicle.ADAS.ESC.IsEngaged", 'Vehicle.ADAS.ESC.IsEngaged must be true or false, got string "yes"'),
+    ]
 
 
 def test_every_vss_key_maps_to_a_wire_field():
@@ -426,24 +494,39 @@ def test_a_vss_sample_may_carry_vehicle_id_as_a_plain_key_or_take_the_authentica
 
 VSS_ERRORS = [
     ({"Vehicle.Speed": 400}, "Vehicle.Speed", "Vehicle.Speed 400 outside [-18, 360] km/h"),
-    ({"Vehicle.AngularVelocity.Yaw": -200.0}, "Vehicle.AngularVelocity.Yaw",
-     "Vehicle.AngularVelocity.Yaw -200.0 outside [-171.887, 171.887] deg/s"),
+    (
+        {"Vehicle.AngularVelocity.Yaw": -200.0},
+        "Vehicle.AngularVelocity.Yaw",
+        "Vehicle.AngularVelocity.Yaw -200.0 outside [-171.887, 171.887] deg/s",
+    ),
     ({"Vehicle.Speed": "12"}, "Vehicle.Speed", 'Vehicle.Speed must be a number, got string "12"'),
     ({"Vehicle.Speed": math.nan}, "Vehicle.Speed", "Vehicle.Speed must be finite, got NaN"),
     ({"Vehicle.Speed": 10**400}, "Vehicle.Speed", "Vehicle.Speed 1000000000"),
-    ({"Vehicle.ADAS.ABS.IsEngaged": "yes"}, "Vehicle.ADAS.ABS.IsEngaged",
-     'Vehicle.ADAS.ABS.IsEngaged must be true or false, got string "yes"'),
+    (
+        {"Vehicle.ADAS.ABS.IsEngaged": "yes"},
+        "Vehicle.ADAS.ABS.IsEngaged",
+        'Vehicle.ADAS.ABS.IsEngaged must be true or false, got string "yes"',
+    ),
     ({"Vehicle.Speed": DROP}, "Vehicle.Speed", "missing required field 'Vehicle.Speed'"),
     ({"timestamp_ms": DROP}, "timestamp_ms", "missing required field 'timestamp_ms' (VSS has no sample time"),
-    ({"Vehicle.VehicleIdentification.VIN": DROP}, "Vehicle.VehicleIdentification.VIN",
-     "missing required field 'Vehicle.VehicleIdentification.VIN' (or 'vehicle_id')"),
+    (
+        {"Vehicle.VehicleIdentification.VIN": DROP},
+        "Vehicle.VehicleIdentification.VIN",
+        "missing required field 'Vehicle.VehicleIdentification.VIN' (or 'vehicle_id')",
+    ),
     ({"Vehicle.Sped": 1.0}, "Vehicle.Sped", "unknown field 'Vehicle.Sped' (did you mean 'Vehicle.Speed'?)"),
     ({"speed_mps": 1.0}, "speed_mps", "wire field 'speed_mps' mixed with VSS keys"),
     ({"speed_mps": 1.0, "colour": 1}, "colour", "unknown field 'colour'"),  # unknown keys first, then mixing
-    ({"Vehicle.VehicleIdentification.VIN": "no spaces"}, "Vehicle.VehicleIdentification.VIN",
-     'Vehicle.VehicleIdentification.VIN "no spaces" must be 1-64 characters'),
-    ({"vehicle_id": "car-1"}, "Vehicle.VehicleIdentification.VIN",
-     'Vehicle.VehicleIdentification.VIN "WVWZZZ1JZXW000001" and vehicle_id "car-1" differ'),
+    (
+        {"Vehicle.VehicleIdentification.VIN": "no spaces"},
+        "Vehicle.VehicleIdentification.VIN",
+        'Vehicle.VehicleIdentification.VIN "no spaces" must be 1-64 characters',
+    ),
+    (
+        {"vehicle_id": "car-1"},
+        "Vehicle.VehicleIdentification.VIN",
+        'Vehicle.VehicleIdentification.VIN "WVWZZZ1JZXW000001" and vehicle_id "car-1" differ',
+    ),
 ]
 
 
@@ -465,13 +548,16 @@ def test_a_vss_sample_of_another_vehicle_names_the_vin():
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=10), inner, max_size=3),
-    max_leaves=6)
+    max_leaves=6,
+)
 
 
 @st.composite
 def valid_samples(draw):
-    out = {"vehicle_id": draw(st.from_regex(VEHICLE_ID_RE, fullmatch=True)),
-           "timestamp_ms": draw(st.integers(0, NOW_MS + 60_000))}
+    out = {
+        "vehicle_id": draw(st.from_regex(VEHICLE_ID_RE, fullmatch=True)),
+        "timestamp_ms": draw(st.integers(0, NOW_MS + 60_000)),
+    }
     for c in TELEMETRY:
         if c.name in out:
             continue
@@ -488,8 +574,10 @@ def valid_samples(draw):
 
 
 def normalized(s: dict) -> dict:
-    return {name: (float(s[name]) if name in RANGES and s.get(name) is not None else s.get(name))
-            for name in TELEMETRY_COLUMNS}
+    return {
+        name: (float(s[name]) if name in RANGES and s.get(name) is not None else s.get(name))
+        for name in TELEMETRY_COLUMNS
+    }
 
 
 @st.composite
@@ -506,8 +594,7 @@ def entries(draw):
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(entries(), min_size=1, max_size=8), st.sampled_from(["json", "ndjson", "object"]),
-       st.booleans())
+@given(st.lists(entries(), min_size=1, max_size=8), st.sampled_from(["json", "ndjson", "object"]), st.booleans())
 @pytest.mark.slow
 def test_any_json_mixed_into_valid_samples_loses_no_valid_sample_and_reports_each_bad_one_once(items, fmt, detect):
     kinds, values = [k for k, _ in items], [v for _, v in items]
@@ -520,7 +607,8 @@ def test_any_json_mixed_into_valid_samples_loses_no_valid_sample_and_reports_eac
     # The body as one JSON document: the whole of it is a sample (an object), the samples (an array) or no payload.
     whole = fmt == "object" or (detect and fmt == "ndjson" and len(values) == 1)
     refused = (whole and (type(values[0]) not in (dict, list) or values[0] == [])) or (
-        detect and fmt == "ndjson" and len(values) > 1 and type(values[0]) is list)  # detected as an array: bad JSON
+        detect and fmt == "ndjson" and len(values) > 1 and type(values[0]) is list
+    )  # detected as an array: bad JSON
     if whole and type(values[0]) is list:
         kinds, values = ["junk"] * len(values[0]), values[0]
     try:
@@ -542,8 +630,7 @@ def test_any_json_mixed_into_valid_samples_loses_no_valid_sample_and_reports_eac
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.binary(max_size=200) | st.text(max_size=200).map(str.encode),
-       st.sampled_from([None, JSON_TYPE, NDJSON_TYPE]))
+@given(st.binary(max_size=200) | st.text(max_size=200).map(str.encode), st.sampled_from([None, JSON_TYPE, NDJSON_TYPE]))
 def test_any_bytes_give_samples_and_errors_or_a_payload_error_never_another_exception(body, content_type):
     try:
         samples, errors = parse_payload(body, content_type=content_type, now_ms=NOW_MS)

@@ -37,8 +37,17 @@ def pmf_calibration(state) -> dict:
 # ------------------------------------------------------------------------------------------------- encoding
 def test_pack_state_is_lossless_and_keeps_non_finite_numbers_out_of_the_json():
     floats = [0.1 * k + 1e-17 for k in range(40)]
-    data = {"memory": floats, "short": [1.5, 2.5], "ints": list(range(30)), "nan_list": [1.0, math.nan],
-            "rows": [[0.25] * 20, [1, "a"]], "name": "pmf", "t": 3.0, "flag": True, "none": None}
+    data = {
+        "memory": floats,
+        "short": [1.5, 2.5],
+        "ints": list(range(30)),
+        "nan_list": [1.0, math.nan],
+        "rows": [[0.25] * 20, [1, "a"]],
+        "name": "pmf",
+        "t": 3.0,
+        "flag": True,
+        "none": None,
+    }
     packed = pack_state(data)
     assert set(packed["memory"]) == {FLOATS} and set(packed["nan_list"]) == {FLOATS}
     assert packed["short"] == [1.5, 2.5] and packed["ints"] == list(range(30))  # short and integer lists stay
@@ -46,8 +55,9 @@ def test_pack_state_is_lossless_and_keeps_non_finite_numbers_out_of_the_json():
     unpacked = unpack_state(json.loads(json.dumps(packed)))
     assert unpacked["memory"] == floats  # bit for bit
     assert unpacked["nan_list"][0] == 1.0 and math.isnan(unpacked["nan_list"][1])
-    assert {k: v for k, v in unpacked.items() if k not in ("memory", "nan_list")} == \
-        {k: v for k, v in data.items() if k not in ("memory", "nan_list")}
+    assert {k: v for k, v in unpacked.items() if k not in ("memory", "nan_list")} == {
+        k: v for k, v in data.items() if k not in ("memory", "nan_list")
+    }
     with pytest.raises(ValueError, match="non-finite"):
         pack_state({"t_prev": math.inf})
 
@@ -78,9 +88,9 @@ def test_a_restored_pmf_state_starts_a_new_segment_keeping_calibration_and_stiff
     assert pmf_calibration(restored) == pmf_calibration(state)
     mem = restored["inner"].mem.copy()
     pmf._start(mem, True)  # what the next update does first
-    grid = mem[pmf.G0:pmf.G0 + pmf.NM * pmf.NC].reshape(pmf.NM, pmf.NC)
+    grid = mem[pmf.G0 : pmf.G0 + pmf.NM * pmf.NC].reshape(pmf.NM, pmf.NC)
     np.testing.assert_allclose(grid.sum(axis=1), pmf.PRIOR, rtol=1e-12)  # mu: back to the prior
-    before = state["inner"].mem[pmf.G0:pmf.G0 + pmf.NM * pmf.NC].reshape(pmf.NM, pmf.NC).sum(axis=0)
+    before = state["inner"].mem[pmf.G0 : pmf.G0 + pmf.NM * pmf.NC].reshape(pmf.NM, pmf.NC).sum(axis=0)
     np.testing.assert_allclose(grid.sum(axis=0), before / before.sum(), rtol=1e-12)  # stiffness: kept
     for key, index in pmf.CALIBRATION.items():
         assert mem[index] == state["inner"].mem[index], key
@@ -103,9 +113,13 @@ def test_a_stored_state_that_does_not_fit_is_ignored():
 
 # ------------------------------------------------------------------------------------------------- storage
 def test_estimator_states_are_kept_per_vehicle_and_estimator(storage):
-    storage.put_estimator_states([{"vehicle_id": "car-1", "estimator": "pmf", "state": {"a": 1}},
-                                  {"vehicle_id": "car-1", "estimator": "ekf", "state": {"a": 2}},
-                                  {"vehicle_id": "car-2", "estimator": "pmf", "state": {"a": 3}, "updated_ms": 5}])
+    storage.put_estimator_states(
+        [
+            {"vehicle_id": "car-1", "estimator": "pmf", "state": {"a": 1}},
+            {"vehicle_id": "car-1", "estimator": "ekf", "state": {"a": 2}},
+            {"vehicle_id": "car-2", "estimator": "pmf", "state": {"a": 3}, "updated_ms": 5},
+        ]
+    )
     storage.put_estimator_states([{"vehicle_id": "car-1", "estimator": "pmf", "state": {"a": 4}}])  # replaced
     assert storage.estimator_states(["car-1", "car-2", "car-3"], "pmf") == {"car-1": {"a": 4}, "car-2": {"a": 3}}
     assert storage.estimator_states(["car-1"], "ekf") == {"car-1": {"a": 2}}
@@ -173,8 +187,9 @@ def test_a_restarted_service_goes_on_from_each_vehicles_calibration(storage_url,
         estimate = estimator.update(expected, later["suv-1"][0])
         np.testing.assert_array_equal(live["inner"].mem, expected["inner"].mem)
         stored = service.storage.estimates("suv-1", start_ms=START_MS + 120_000)
-        assert [(e["mu"], e["mu_lower"], e["mu_upper"]) for e in stored] == \
-            [(estimate.mu, estimate.mu_lower, estimate.mu_upper)]
+        assert [(e["mu"], e["mu_lower"], e["mu_upper"]) for e in stored] == [
+            (estimate.mu, estimate.mu_lower, estimate.mu_upper)
+        ]
         now = pmf_calibration(live)
         assert {k: now[k] for k in pmf.CALIBRATION} == {k: calibration[k] for k in pmf.CALIBRATION}
         fresh = estimator.start(vehicle_by_name("compact-hatchback"))
@@ -206,6 +221,7 @@ def test_states_are_checkpointed_every_interval_in_bounded_rounds_and_all_at_the
     def recorded(rows):
         batches.append((stopping, [(r["vehicle_id"], unpack_state(r["state"])["inner"]["t_prev"]) for r in rows]))
         put(rows)
+
     storage.put_estimator_states = recorded
     estimator = load_estimator("pmf")
     pipeline = Pipeline(storage, settings, estimator, SimpleNamespace(stored=lambda *a: None, tick=lambda final: None))
@@ -216,11 +232,14 @@ def test_states_are_checkpointed_every_interval_in_bounded_rounds_and_all_at_the
     pipeline.start()
     try:
         for k in range(0, 300, 10):  # 1 s of each vehicle's data every 10 ms
-            futures = [pipeline.submit(v, streams[v][k:k + 10]) for v in vehicles]
+            futures = [pipeline.submit(v, streams[v][k : k + 10]) for v in vehicles]
             for future in futures:
                 future.result(timeout=30)
-        wait_until(lambda: all(pipeline._streams[v].last_estimated_ms == last_ms[v] for v in vehicles), 10,
-                   "every sample estimated")
+        wait_until(
+            lambda: all(pipeline._streams[v].last_estimated_ms == last_ms[v] for v in vehicles),
+            10,
+            "every sample estimated",
+        )
     finally:
         stopping = True
         pipeline.stop()
@@ -251,8 +270,12 @@ def test_while_storage_is_down_the_due_vehicles_wait_for_the_next_round():
     storage, estimator = Flaky(), load_estimator("ekf")
     counters = PipelineCounters()
     checkpoints = Checkpoints(storage, estimator, counters, round_s=0.0)
-    stream = SimpleNamespace(state=estimator.start(vehicle_by_name("paper-suv")), last_estimated_ms=70_000,
-                             checkpoint_at_ms=60_000.0, written_ms=None)
+    stream = SimpleNamespace(
+        state=estimator.start(vehicle_by_name("paper-suv")),
+        last_estimated_ms=70_000,
+        checkpoint_at_ms=60_000.0,
+        written_ms=None,
+    )
     checkpoints.due("car-1", stream)
     checkpoints.write_due({"car-1": stream})
     assert storage.rows == [] and stream.checkpoint_at_ms == math.inf and counters.checkpoints_written == 0
@@ -287,5 +310,8 @@ def test_ingest_processes_store_and_restore_the_states_of_their_own_vehicles(tmp
         for auth in auths:
             post(client, auth, wire_samples(run, auth[0], START_MS + 60_000)[:5])
         settle(service)
-        wait_until(lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["checkpoints_restored"] == 2,
-                   10, "both vehicles restored, one in each ingest process")
+        wait_until(
+            lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["checkpoints_restored"] == 2,
+            10,
+            "both vehicles restored, one in each ingest process",
+        )

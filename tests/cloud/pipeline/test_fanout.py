@@ -35,9 +35,21 @@ def drive(vehicle: str, start_ms: int, origin: tuple[float, float], icy: bool, n
         lon = lon0 + i * STEP_M / 111_320.0 / 0.75
         on_ice = icy and PATCH[0] <= i < PATCH[1]
         mu, lo, hi = (0.12, 0.05, 0.25) if on_ice else (0.9, 0.7, 1.2)
-        rows.append({"vehicle_id": vehicle, "timestamp_ms": start_ms + 100 * i, "latitude_deg": lat,
-                     "longitude_deg": lon, "mu": mu, "mu_lower": lo, "mu_upper": hi, "excited": True,
-                     "estimator": "pmf", "mu_proven": None, "h3_cell": h3.latlng_to_cell(lat, lon, 10)})
+        rows.append(
+            {
+                "vehicle_id": vehicle,
+                "timestamp_ms": start_ms + 100 * i,
+                "latitude_deg": lat,
+                "longitude_deg": lon,
+                "mu": mu,
+                "mu_lower": lo,
+                "mu_upper": hi,
+                "excited": True,
+                "estimator": "pmf",
+                "mu_proven": None,
+                "h3_cell": h3.latlng_to_cell(lat, lon, 10),
+            }
+        )
     return rows
 
 
@@ -47,7 +59,7 @@ def rounds(rows: list[dict], round_ms: int = 1000) -> list[tuple[list[dict], int
     out, start = [], rows[0]["timestamp_ms"]
     while rows:
         batch = [r for r in rows if r["timestamp_ms"] < start + round_ms]
-        rows = rows[len(batch):]
+        rows = rows[len(batch) :]
         if batch:
             out.append((batch, max(r["timestamp_ms"] for r in batch)))
         start += round_ms
@@ -99,10 +111,18 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
     serve_storage = open_storage(f"sqlite:///{tmp_path / 'serve.db'}")
     cluster_storage = open_storage(f"sqlite:///{tmp_path / 'cluster.db'}")
     serve_denms, cluster_denms = [], []
-    serve = Fanout(serve_storage, settings, new_friction_map(settings), new_warning_engine(settings),
-                   publish=lambda topic, payload: serve_denms.append((topic, without_action_id(payload))))
-    regions = Regions(settings, cluster_storage,
-                      publish=lambda topic, payload: cluster_denms.append((topic, without_action_id(payload))))
+    serve = Fanout(
+        serve_storage,
+        settings,
+        new_friction_map(settings),
+        new_warning_engine(settings),
+        publish=lambda topic, payload: serve_denms.append((topic, without_action_id(payload))),
+    )
+    regions = Regions(
+        settings,
+        cluster_storage,
+        publish=lambda topic, payload: cluster_denms.append((topic, without_action_id(payload))),
+    )
     worker = VehicleFanout(settings, Regional(regions))
     for rows, newest in scenario():
         serve.stored(rows, newest + 50.0, newest)
@@ -110,8 +130,9 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
     regions.save()
     assert len({region[:3] for region in regions.held}) == 2  # Hebei's and Munich's base cells, far apart
     serve_warnings = serve_storage.warnings()
-    assert {region_of(w["cell"], settings.region_resolution)[:3] for w in serve_warnings} == \
-        {region[:3] for region in regions.held}
+    assert {region_of(w["cell"], settings.region_resolution)[:3] for w in serve_warnings} == {
+        region[:3] for region in regions.held
+    }
     cluster_warnings = cluster_storage.warnings()
     # one ActionID per warning across the regions (the database numbers them), in the order they were raised
     numbers = [w["message"]["event"].pop("action_sequence_number") for w in cluster_warnings]
@@ -122,8 +143,9 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
     assert cluster_warnings == serve_warnings
     now_ms = serve.now_ms()
     cells = serve.friction_map.cells(now_ms)
-    assert_same_cells(sorted((c for r in regions.held.values() for c in r.friction_map.cells(now_ms)),
-                             key=lambda c: c.cell), cells)
+    assert_same_cells(
+        sorted((c for r in regions.held.values() for c in r.friction_map.cells(now_ms)), key=lambda c: c.cell), cells
+    )
     assert_same_cells(stored_friction_map(cluster_storage, settings, now_ms).cells(now_ms), cells)
     assert len(serve_denms) > len(serve_warnings)  # raised and refreshed
     assert sorted(cluster_denms) == sorted(serve_denms)
@@ -134,8 +156,11 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
 def test_a_regions_new_owner_goes_on_from_the_database_and_counts_a_repeated_message_once(settings, tmp_path):
     storage = open_storage(f"sqlite:///{tmp_path / 'cluster.db'}")
     first = Regions(settings, storage)
-    messages = [(region, message) for rows, newest in scenario()
-                for region, message in region_messages(rows, newest, settings.region_resolution).items()]
+    messages = [
+        (region, message)
+        for rows, newest in scenario()
+        for region, message in region_messages(rows, newest, settings.region_resolution).items()
+    ]
     for region, message in messages:
         first.apply(region, message)
     first.save()
@@ -146,13 +171,16 @@ def test_a_regions_new_owner_goes_on_from_the_database_and_counts_a_repeated_mes
     region, message = messages[-1]
     taken_over.apply(region, message)  # redelivered: its estimates are in the restored cells already
     assert taken_over.dropped == len(message["estimates"])
-    assert_same_cells(taken_over.region(region).friction_map.cells(now_ms),
-                      first.held[region].friction_map.cells(now_ms))
+    assert_same_cells(
+        taken_over.region(region).friction_map.cells(now_ms), first.held[region].friction_map.cells(now_ms)
+    )
     # later, a vehicle brakes on dry road where the ice was: the restored warnings are cancelled
     later = max(m["newest_data_ms"] for _, m in messages) + 120_000
     for origin, tag in ((HEBEI, "h"), (MUNICH, "m")):
-        for rows, newest in rounds(drive(f"{tag}-dry", later, origin, icy=False)
-                                   + drive(f"{tag}-far-2", later + 120_000, (origin[0] + 0.01, origin[1]), False, 50)):
+        for rows, newest in rounds(
+            drive(f"{tag}-dry", later, origin, icy=False)
+            + drive(f"{tag}-far-2", later + 120_000, (origin[0] + 0.01, origin[1]), False, 50)
+        ):
             for region, message in region_messages(rows, newest, settings.region_resolution).items():
                 taken_over.apply(region, message)
     taken_over.save()
@@ -200,15 +228,32 @@ def test_a_region_without_traffic_ends_passes_on_the_servers_clock(tmp_path):
 
 
 def test_the_settings_make_the_map_and_the_engine_in_one_place_each():
-    settings = Settings(h3_resolution=9, map_half_life_s=300.0, map_max_age_s=1800.0, warning_threshold_mu=0.35,
-                        warning_min_low_passes=2, warning_min_dry_passes=3, warning_pass_gap_s=20.0,
-                        warning_min_excited_per_pass=4, warning_validity_s=900.0, station_id=7)
+    settings = Settings(
+        h3_resolution=9,
+        map_half_life_s=300.0,
+        map_max_age_s=1800.0,
+        warning_threshold_mu=0.35,
+        warning_min_low_passes=2,
+        warning_min_dry_passes=3,
+        warning_pass_gap_s=20.0,
+        warning_min_excited_per_pass=4,
+        warning_validity_s=900.0,
+        station_id=7,
+    )
     fmap = new_friction_map(settings)
     assert (fmap.resolution, fmap.half_life_s, fmap.max_age_s, fmap.pass_gap_s) == (9, 300.0, 1800.0, 20.0)
     engine = new_warning_engine(settings, action_sequence=len)
-    assert (engine.resolution, engine.threshold_mu, engine.min_low_passes, engine.min_dry_passes, engine.pass_gap_s,
-            engine.min_excited_per_pass, engine.validity_s, engine.station_id, engine.action_sequence) == \
-        (9, 0.35, 2, 3, 20.0, 4, 900.0, 7, len)
+    assert (
+        engine.resolution,
+        engine.threshold_mu,
+        engine.min_low_passes,
+        engine.min_dry_passes,
+        engine.pass_gap_s,
+        engine.min_excited_per_pass,
+        engine.validity_s,
+        engine.station_id,
+        engine.action_sequence,
+    ) == (9, 0.35, 2, 3, 20.0, 4, 900.0, 7, len)
     swept = new_warning_engine(settings, threshold_mu=0.5, min_low_passes=1)  # a study's overrides
     assert (swept.threshold_mu, swept.min_low_passes, swept.validity_s, swept.action_sequence) == (0.5, 1, 900.0, None)
     assert new_friction_map(settings, half_life_s=60.0).half_life_s == 60.0

@@ -27,8 +27,16 @@ START_MS = 1_700_000_000_000
 
 
 def settings_of(tmp_path, **settings) -> Settings:
-    return Settings(**{"data_dir": tmp_path, "mqtt": "off", "flush_interval_s": 0.01, "reorder_window_s": 0.05,
-                       "map_clock": "data", **settings})
+    return Settings(
+        **{
+            "data_dir": tmp_path,
+            "mqtt": "off",
+            "flush_interval_s": 0.01,
+            "reorder_window_s": 0.05,
+            "map_clock": "data",
+            **settings,
+        }
+    )
 
 
 class Clocked:
@@ -40,9 +48,14 @@ class Clocked:
         settings = settings_of(tmp_path, **settings)
         self.storage = open_storage(settings.storage_url)
         self.published: list[tuple[float, str, list[dict]]] = []
-        self.fanout = Fanout(self.storage, settings, FrictionMap(), WarningEngine(), clock=self.clock,
-                             publish=lambda topic, payload: self.published.append((self.clock(), topic,
-                                                                                   json.loads(payload))))
+        self.fanout = Fanout(
+            self.storage,
+            settings,
+            FrictionMap(),
+            WarningEngine(),
+            clock=self.clock,
+            publish=lambda topic, payload: self.published.append((self.clock(), topic, json.loads(payload))),
+        )
         self.queued_s: dict[tuple[str, int], float] = {}
         self.pipeline = Pipeline(self.storage, settings, load_estimator("ekf"), self, clock=self.clock)
 
@@ -67,7 +80,7 @@ class Clocked:
         step_s = seconds * 2 / n
         for k in range(0, n, 2):
             for v in vehicles:
-                self.pipeline.submit(v, streams[v][k:k + 2])
+                self.pipeline.submit(v, streams[v][k : k + 2])
             self.clock.advance(step_s)
             self.round()
         return n, step_s
@@ -141,8 +154,9 @@ def make_pipeline(tmp_path):
     def make(start: bool = True, **settings):
         settings = settings_of(tmp_path, **settings)
         storage = open_storage(settings.storage_url)
-        pipeline = Pipeline(storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(),
-                                                                            WarningEngine()))
+        pipeline = Pipeline(
+            storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(), WarningEngine())
+        )
         made.append((pipeline, storage))
         if start:
             pipeline.start()
@@ -164,15 +178,15 @@ def small_rounds(monkeypatch):
     def recording(self, rows, estimates):
         written.append(len(rows))
         return write_batch(self, rows, estimates)
+
     monkeypatch.setattr(Storage, "write_batch", recording)
     return written
 
 
-def test_a_queue_is_worked_off_in_rounds_of_at_most_max_round_samples_one_after_the_other(make_pipeline,
-                                                                                        small_rounds):
+def test_a_queue_is_worked_off_in_rounds_of_at_most_max_round_samples_one_after_the_other(make_pipeline, small_rounds):
     pipeline = make_pipeline(start=False, flush_interval_s=5.0)  # a round waiting for the next: 4 x 5 s
     samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
-    futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
+    futures = [pipeline.submit("car-1", samples[k : k + 10]) for k in range(0, 100, 10)]
     started = time.monotonic()
     pipeline.start()
     assert [f.result(timeout=15) for f in futures] and time.monotonic() - started < 15  # not 4 x 5 s
@@ -184,7 +198,7 @@ def test_stopping_stores_a_queue_longer_than_a_round(make_pipeline, small_rounds
     pipeline = make_pipeline(flush_interval_s=5.0)
     samples = wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:100]
     wait_until(lambda: pipeline.counters.rounds >= 1, what="the first (empty) round")  # the next is 5 s away
-    futures = [pipeline.submit("car-1", samples[k:k + 10]) for k in range(0, 100, 10)]
+    futures = [pipeline.submit("car-1", samples[k : k + 10]) for k in range(0, 100, 10)]
     pipeline.stop()
     assert [f.result(timeout=0).stored for f in futures] == [10] * 10
     assert len(pipeline.storage.telemetry("car-1")) == 100
@@ -197,8 +211,9 @@ def test_a_vehicle_forgotten_with_its_queue_dropped_is_not_started_again_from_it
     settings = Settings(data_dir=tmp_path, mqtt="off", reorder_window_s=0.0)
     storage = open_storage(settings.storage_url)
     try:
-        pipeline = Pipeline(storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(),
-                                                                            WarningEngine()))
+        pipeline = Pipeline(
+            storage, settings, load_estimator("ekf"), Fanout(storage, settings, FrictionMap(), WarningEngine())
+        )
         samples = wire_samples(patch_drive(0.9, 3), "v1", START_MS)
         pipeline.submit("v1", samples[:20])
         pipeline.run_round(final=True)

@@ -48,9 +48,17 @@ def ids_on_each_shard(prefix: str, per_shard: int, count: int = 2) -> list[str]:
 def running_sharded(storage_url, tmp_path, **settings):
     """test_api's running cloud with its own Mosquitto and two ingest processes."""
     assert mosquitto_available(), "mosquitto is not installed: run `bash scripts/install_system_deps.sh`"
-    return running_cloud(storage_url, tmp_path, **{"mqtt": "managed", "flush_interval_s": 0.02,
-                                                   "ingest_processes": 2, "friction_publish_interval_s": 0.2,
-                                                   **settings})
+    return running_cloud(
+        storage_url,
+        tmp_path,
+        **{
+            "mqtt": "managed",
+            "flush_interval_s": 0.02,
+            "ingest_processes": 2,
+            "friction_publish_interval_s": 0.2,
+            **settings,
+        },
+    )
 
 
 @pytest.fixture
@@ -74,42 +82,54 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
     answers = []
     for k in range(0, n, 10):
         for vehicle_id, car in cars.items():
-            car.publish(telemetry_topic(vehicle_id), json.dumps(runs[vehicle_id][k:k + 10]))
+            car.publish(telemetry_topic(vehicle_id), json.dumps(runs[vehicle_id][k : k + 10]))
         for vehicle_id in http_ids:
-            answers.append(client.post("/v1/telemetry", json=runs[vehicle_id][k:k + 10], auth=http_auth[vehicle_id]))
+            answers.append(client.post("/v1/telemetry", json=runs[vehicle_id][k : k + 10], auth=http_auth[vehicle_id]))
     car = cars[mqtt_ids[0]]
     car.publish(telemetry_topic(mqtt_ids[0]), json.dumps(runs[mqtt_ids[0]][:10]))  # a repeated message
     repeat = client.post("/v1/telemetry", json=runs[http_ids[0]][:10], auth=http_auth[http_ids[0]])
     assert all(a.status_code == 200 for a in answers) and sum(a.json()["stored"] for a in answers) == 2 * n
-    assert repeat.json() | {"rejected": []} == {"received": 10, "accepted": 10, "stored": 0, "duplicates": 10,
-                                                "rejected": []}
+    assert repeat.json() | {"rejected": []} == {
+        "received": 10,
+        "accepted": 10,
+        "stored": 0,
+        "duplicates": 10,
+        "rejected": [],
+    }
     wait_until(lambda: len(service.storage.estimates(mqtt_ids[0])) == n, 30, "the estimates")
     for vehicle_id in mqtt_ids + http_ids:
         assert [s["timestamp_ms"] for s in service.storage.telemetry(vehicle_id)] == [
-            s["timestamp_ms"] for s in runs[vehicle_id]]
+            s["timestamp_ms"] for s in runs[vehicle_id]
+        ]
         wait_until(lambda v=vehicle_id: len(service.storage.estimates(v)) == n, 30, f"{vehicle_id}'s estimates")
     for vehicle_id, car in cars.items():  # published by the service's process, every estimate once
         got = collect(car.messages, lambda got: sum(len(json.loads(p)) for _, p in got) >= n)
         assert sorted(e["timestamp_ms"] for _, p in got for e in json.loads(p)) == [
-            s["timestamp_ms"] for s in runs[vehicle_id]]
+            s["timestamp_ms"] for s in runs[vehicle_id]
+        ]
         car.close()
+
     def counted() -> tuple[int, int, int]:  # health sums the counters each process sends every STATS_INTERVAL_S
         pipeline = client.get("/v1/health", auth=ADMIN).json()["pipeline"]
         return pipeline["stored"], pipeline["duplicates"], pipeline["estimates"]
+
     wait_until(lambda: counted() == (4 * n, 20, 4 * n), 30, "the counters in health")
     health = client.get("/v1/health", auth=ADMIN).json()
     assert health["status"] == "ok" and health["mqtt"] == "connected"
     pipeline = health["pipeline"]
-    assert [(p["index"], p["alive"], p["restarts"]) for p in pipeline["ingest_processes"]] == [(0, True, 0),
-                                                                                              (1, True, 0)]
+    assert [(p["index"], p["alive"], p["restarts"]) for p in pipeline["ingest_processes"]] == [
+        (0, True, 0),
+        (1, True, 0),
+    ]
     assert pipeline["latency_since_start"]["n"] == 4 * n and pipeline["forwarded_unacknowledged"] == 0
     assert health["memory_rss_mb"] > sum(p["rss_mb"] for p in pipeline["ingest_processes"])
     assert client.get("/v1/map", auth=ADMIN).json()["features"]  # the map, in the service's process
 
 
 def test_http_and_mqtt_share_the_owners_rate_limit(tmp_path):
-    with running_sharded(f"sqlite:///{tmp_path / 'roadgrip.db'}", tmp_path, rate_limit_samples_per_s=1.0,
-                         rate_limit_burst_s=50.0) as (service, client):  # 50 samples of burst, 1 a second more
+    with running_sharded(
+        f"sqlite:///{tmp_path / 'roadgrip.db'}", tmp_path, rate_limit_samples_per_s=1.0, rate_limit_burst_s=50.0
+    ) as (service, client):  # 50 samples of burst, 1 a second more
         vehicle_id, secret, url = register_mqtt(client, "limited-car")
         samples = wire_samples(patch_drive(0.9, 3), vehicle_id, START_MS)
         assert client.post("/v1/telemetry", json=samples[:45], auth=(vehicle_id, secret)).status_code == 200
@@ -131,7 +151,7 @@ def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_
     pid = client.get("/v1/health", auth=ADMIN).json()["pipeline"]["ingest_processes"][owner]["pid"]
     with UserClient(url, vehicle_id, secret).connect() as car:
         for k in range(0, len(samples), 5):
-            car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k:k + 5]))  # PUBACK: the broker has it
+            car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k : k + 5]))  # PUBACK: the broker has it
             if k == len(samples) // 2:
                 os.kill(pid, signal.SIGKILL)
     wait_until(lambda: len(service.storage.telemetry(vehicle_id)) == len(samples), 120, "every sample stored")
@@ -139,13 +159,17 @@ def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_
     assert stored == [s["timestamp_ms"] for s in samples]  # each once, none lost
     process = client.get("/v1/health", auth=ADMIN).json()["pipeline"]["ingest_processes"][owner]
     assert process["alive"] and process["restarts"] == 1 and process["pid"] != pid
-    wait_until(lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["forwarded_unacknowledged"] == 0, 30,
-               "every forwarded message acknowledged")
+    wait_until(
+        lambda: client.get("/v1/health", auth=ADMIN).json()["pipeline"]["forwarded_unacknowledged"] == 0,
+        30,
+        "every forwarded message acknowledged",
+    )
 
 
 def test_an_ingest_process_that_cannot_start_stops_the_service_starting_with_its_reason(tmp_path):
-    settings = Settings(data_dir=tmp_path, mqtt="off", admin_secret=ADMIN[1], ingest_processes=1,
-                        estimator="no-such-model")
+    settings = Settings(
+        data_dir=tmp_path, mqtt="off", admin_secret=ADMIN[1], ingest_processes=1, estimator="no-such-model"
+    )
     service = CloudService(settings)
     with pytest.raises(RuntimeError, match="ingest process 0 failed to start(.|\n)*no-such-model"):
         service.start()

@@ -36,9 +36,9 @@ def schema_differences(url: str) -> list:
     try:
         with engine.connect() as conn, warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Did not recognize type 'geometry'")
-            context = MigrationContext.configure(conn, opts={
-                "version_table": VERSION_TABLE, "compare_type": True,
-                "include_object": not_postgis})
+            context = MigrationContext.configure(
+                conn, opts={"version_table": VERSION_TABLE, "compare_type": True, "include_object": not_postgis}
+            )
             return compare_metadata(context, metadata)
     finally:
         engine.dispose()
@@ -62,36 +62,76 @@ def make_old_database(url: str) -> None:
     for table in (telemetry_table, vehicles_table, warnings_table):
         table.to_metadata(old)
     estimates = Table(
-        "estimates", old,
-        Column("vehicle_id", sa.String, nullable=False), Column("timestamp_ms", sa.BigInteger, nullable=False),
+        "estimates",
+        old,
+        Column("vehicle_id", sa.String, nullable=False),
+        Column("timestamp_ms", sa.BigInteger, nullable=False),
         *(Column(name, sa.Float, nullable=False) for name in ("mu", "mu_lower", "mu_upper")),
-        Column("excited", sa.Boolean, nullable=False), Column("estimator", sa.String, nullable=False),
-        Column("latitude_deg", sa.Float), Column("longitude_deg", sa.Float), Column("h3_cell", sa.String),
-        sa.PrimaryKeyConstraint("vehicle_id", "timestamp_ms"), sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"))
+        Column("excited", sa.Boolean, nullable=False),
+        Column("estimator", sa.String, nullable=False),
+        Column("latitude_deg", sa.Float),
+        Column("longitude_deg", sa.Float),
+        Column("h3_cell", sa.String),
+        sa.PrimaryKeyConstraint("vehicle_id", "timestamp_ms"),
+        sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"),
+    )
     credentials = Table(
-        "credentials", old,
+        "credentials",
+        old,
         Column("name", sa.String, primary_key=True),
-        Column("role", sa.String, sa.CheckConstraint("role IN ('vehicle', 'reader', 'admin')",
-                                                     name="ck_credentials_role"), nullable=False),
-        Column("secret_hash", sa.String, nullable=False), Column("vehicle_id", sa.String),
-        Column("revoked", sa.Boolean, nullable=False), Column("created_ms", sa.BigInteger, nullable=False))
+        Column(
+            "role",
+            sa.String,
+            sa.CheckConstraint("role IN ('vehicle', 'reader', 'admin')", name="ck_credentials_role"),
+            nullable=False,
+        ),
+        Column("secret_hash", sa.String, nullable=False),
+        Column("vehicle_id", sa.String),
+        Column("revoked", sa.Boolean, nullable=False),
+        Column("created_ms", sa.BigInteger, nullable=False),
+    )
     engine = sa.create_engine(normalise_url(url))
     try:
         with engine.begin() as conn:
             old.create_all(conn)
             conn.execute(old.tables["telemetry"].insert(), [telemetry_row("car-1", T0_MS + 100 * i) for i in range(3)])
-            conn.execute(estimates.insert(), [{k: v for k, v in estimate_row("car-1", T0_MS + 100 * i).items()
-                                               if k != "mu_proven"} for i in range(3)])
-            conn.execute(credentials.insert(), [
-                {"name": "car-1", "role": "vehicle", "secret_hash": "h1", "vehicle_id": "car-1", "revoked": False,
-                 "created_ms": T0_MS},
-                {"name": "ops", "role": "admin", "secret_hash": "h2", "vehicle_id": None, "revoked": True,
-                 "created_ms": T0_MS + 1}])
-            conn.execute(old.tables["vehicles"].insert().values(vehicle_id="car-1", profile={"mass_kg": 1500},
-                                                                updated_ms=T0_MS))
+            conn.execute(
+                estimates.insert(),
+                [
+                    {k: v for k, v in estimate_row("car-1", T0_MS + 100 * i).items() if k != "mu_proven"}
+                    for i in range(3)
+                ],
+            )
+            conn.execute(
+                credentials.insert(),
+                [
+                    {
+                        "name": "car-1",
+                        "role": "vehicle",
+                        "secret_hash": "h1",
+                        "vehicle_id": "car-1",
+                        "revoked": False,
+                        "created_ms": T0_MS,
+                    },
+                    {
+                        "name": "ops",
+                        "role": "admin",
+                        "secret_hash": "h2",
+                        "vehicle_id": None,
+                        "revoked": True,
+                        "created_ms": T0_MS + 1,
+                    },
+                ],
+            )
+            conn.execute(
+                old.tables["vehicles"].insert().values(vehicle_id="car-1", profile={"mass_kg": 1500}, updated_ms=T0_MS)
+            )
             with pytest.raises(sa.exc.IntegrityError), conn.begin_nested():  # the old check, as it was
-                conn.execute(credentials.insert().values(name="rsu-1", role="station", secret_hash="h",
-                                                         revoked=False, created_ms=T0_MS))
+                conn.execute(
+                    credentials.insert().values(
+                        name="rsu-1", role="station", secret_hash="h", revoked=False, created_ms=T0_MS
+                    )
+                )
     finally:
         engine.dispose()
 
@@ -106,13 +146,16 @@ def test_a_database_of_an_older_roadgrip_is_upgraded_and_keeps_its_rows(storage_
         assert [r["mu_proven"] for r in storage.estimates("car-1")] == [None, None, None]
         assert [r["mu"] for r in storage.estimates("car-1")] == [0.8] * 3
         assert [(c.name, c.role, c.secret_hash, c.revoked) for c in storage.credentials()] == [
-            ("car-1", "vehicle", "h1", False), ("ops", "admin", "h2", True)]
+            ("car-1", "vehicle", "h1", False),
+            ("ops", "admin", "h2", True),
+        ]
         assert storage.vehicle_profile("car-1") == {"mass_kg": 1500}
         storage.add_credential("rsu-1", "station", "h3")  # the widened check
         with pytest.raises(ValueError, match="rejected by database"), storage._transaction() as conn:  # still a check
             conn.execute(sa.text("UPDATE credentials SET role = 'superuser' WHERE name = 'rsu-1'"))
-        written = storage.write_batch([telemetry_row("car-1", T0_MS + 1000)],
-                                      [estimate_row("car-1", T0_MS + 1000, mu_proven=0.42)])
+        written = storage.write_batch(
+            [telemetry_row("car-1", T0_MS + 1000)], [estimate_row("car-1", T0_MS + 1000, mu_proven=0.42)]
+        )
         assert counted(written) == (1, 1) and storage.estimates("car-1")[-1]["mu_proven"] == 0.42
         storage.put_estimator_states([{"vehicle_id": "car-1", "estimator": "pmf", "state": {"a": 1}}])  # a new table
         assert storage.take_partition(0, "worker-1") == 1 and storage.next_action_sequence_number() == 0

@@ -16,16 +16,35 @@ INJECTION = "x'); DROP TABLE telemetry;--"
 
 def telemetry_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
     row = {c.name: 0.5 for c in TELEMETRY}
-    row.update(vehicle_id=vehicle_id, timestamp_ms=timestamp_ms, latitude_deg=48.1, longitude_deg=11.5,
-               abs_active=False, acc_active=True, tcs_active=None, esc_active=False, lateral_speed_mps=None)
+    row.update(
+        vehicle_id=vehicle_id,
+        timestamp_ms=timestamp_ms,
+        latitude_deg=48.1,
+        longitude_deg=11.5,
+        abs_active=False,
+        acc_active=True,
+        tcs_active=None,
+        esc_active=False,
+        lateral_speed_mps=None,
+    )
     row.update(values)
     return row
 
 
 def estimate_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
-    row = {"vehicle_id": vehicle_id, "timestamp_ms": timestamp_ms, "mu": 0.8, "mu_lower": 0.6, "mu_upper": 0.95,
-           "excited": True, "estimator": "sa-cnn-lstm", "mu_proven": 0.3, "latitude_deg": 48.1, "longitude_deg": 11.5,
-           "h3_cell": "8a1f8d2a1b27fff"}
+    row = {
+        "vehicle_id": vehicle_id,
+        "timestamp_ms": timestamp_ms,
+        "mu": 0.8,
+        "mu_lower": 0.6,
+        "mu_upper": 0.95,
+        "excited": True,
+        "estimator": "sa-cnn-lstm",
+        "mu_proven": 0.3,
+        "latitude_deg": 48.1,
+        "longitude_deg": 11.5,
+        "h3_cell": "8a1f8d2a1b27fff",
+    }
     row.update(values)
     return row
 
@@ -33,8 +52,9 @@ def estimate_row(vehicle_id="car-1", timestamp_ms=T0_MS, **values):
 def drive(vehicle_id, n, t0_ms=T0_MS):
     """n telemetry rows and n estimates of one vehicle, 100 ms apart."""
     times = [t0_ms + 100 * i for i in range(n)]
-    return [telemetry_row(vehicle_id, t) for t in times], [estimate_row(vehicle_id, t, mu=0.1 + i / n)
-                                                           for i, t in enumerate(times)]
+    return [telemetry_row(vehicle_id, t) for t in times], [
+        estimate_row(vehicle_id, t, mu=0.1 + i / n) for i, t in enumerate(times)
+    ]
 
 
 @contextlib.contextmanager
@@ -51,6 +71,7 @@ def counted(written: Written) -> tuple[int, int]:
 
 # -------------------------------------------------------------------------------------------- opening
 
+
 def test_opening_twice_keeps_the_schema_and_the_rows(storage_url):
     first = open_storage(storage_url)
     assert counted(first.write_batch(*drive("car-1", 10))) == (10, 10)
@@ -65,8 +86,10 @@ def test_opening_twice_keeps_the_schema_and_the_rows(storage_url):
 def test_sqlite_connections_use_wal_normal_sync_foreign_keys_and_a_busy_timeout(tmp_path):
     storage = open_storage(f"sqlite:///{tmp_path / 'nested' / 'roadgrip.db'}")
     with storage._engine.connect() as conn:
-        pragma = {name: conn.execute(text(f"PRAGMA {name}")).scalar()
-                  for name in ("journal_mode", "synchronous", "foreign_keys", "busy_timeout")}
+        pragma = {
+            name: conn.execute(text(f"PRAGMA {name}")).scalar()
+            for name in ("journal_mode", "synchronous", "foreign_keys", "busy_timeout")
+        }
     storage.close()
     assert pragma == {"journal_mode": "wal", "synchronous": 1, "foreign_keys": 1, "busy_timeout": 10_000}
 
@@ -104,8 +127,9 @@ def test_ping_raises_storage_unavailable_once_the_server_refuses(postgres_url, p
     storage = open_storage(postgres_database_url)
     storage.ping()
     name = make_url(postgres_database_url).database
-    with psycopg.connect(make_url(postgres_url).set(drivername="postgresql").render_as_string(False),
-                         autocommit=True) as admin:
+    with psycopg.connect(
+        make_url(postgres_url).set(drivername="postgresql").render_as_string(False), autocommit=True
+    ) as admin:
         admin.execute(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS false')
         admin.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = %s", (name,))
         with pytest.raises(StorageUnavailable, match="not currently accepting connections"):
@@ -116,6 +140,7 @@ def test_ping_raises_storage_unavailable_once_the_server_refuses(postgres_url, p
 
 
 # -------------------------------------------------------------------------------------------- telemetry and estimates
+
 
 def test_write_batch_counts_new_rows_and_skips_duplicates(storage):
     telemetry, estimates = drive("car-1", 2500)  # past one 1,000-row INSERT
@@ -147,8 +172,10 @@ def test_rows_come_back_as_written(storage):
         del sparse[optional]  # absent means null
     estimate = estimate_row(latitude_deg=None, longitude_deg=None, h3_cell=None, excited=False)
     assert counted(storage.write_batch([row, sparse], [estimate])) == (2, 1)
-    assert storage.telemetry("car-1") == [row, {**sparse, "latitude_deg": None, "longitude_deg": None,
-                                                "lateral_speed_mps": None}]
+    assert storage.telemetry("car-1") == [
+        row,
+        {**sparse, "latitude_deg": None, "longitude_deg": None, "lateral_speed_mps": None},
+    ]
     assert storage.estimates("car-1") == [estimate]
 
 
@@ -175,8 +202,11 @@ def test_range_queries_are_half_open_ordered_and_per_vehicle(storage):
     storage.write_batch(*drive("car-2", 20, t0_ms=T0_MS + 50))
     times = [e["timestamp_ms"] for e in storage.estimates("car-1", T0_MS + 1000, T0_MS + 2000)]
     assert times == [T0_MS + 100 * i for i in range(10, 20)]
-    assert [e["timestamp_ms"] for e in storage.estimates("car-1", end_ms=T0_MS + 300)] == [T0_MS, T0_MS + 100,
-                                                                                          T0_MS + 200]
+    assert [e["timestamp_ms"] for e in storage.estimates("car-1", end_ms=T0_MS + 300)] == [
+        T0_MS,
+        T0_MS + 100,
+        T0_MS + 200,
+    ]
     assert len(storage.estimates("car-1", start_ms=T0_MS + 4500)) == 5
     assert len(storage.estimates("car-1", limit=7)) == 7
     assert len(storage.telemetry("car-2", T0_MS, T0_MS + 1000)) == 10
@@ -186,8 +216,10 @@ def test_range_queries_are_half_open_ordered_and_per_vehicle(storage):
     assert [e["timestamp_ms"] for e in since] == sorted(e["timestamp_ms"] for e in since)
     assert {e["vehicle_id"] for e in storage.estimates_since(T0_MS, limit=3)} == {"car-1", "car-2"}
     assert storage.latest_timestamps() == {"car-1": T0_MS + 4900, "car-2": T0_MS + 50 + 1900}
-    assert storage.telemetry_extent() == {"car-1": (50, T0_MS, T0_MS + 4900),
-                                          "car-2": (20, T0_MS + 50, T0_MS + 50 + 1900)}
+    assert storage.telemetry_extent() == {
+        "car-1": (50, T0_MS, T0_MS + 4900),
+        "car-2": (20, T0_MS + 50, T0_MS + 50 + 1900),
+    }
     with pytest.raises(ValueError, match="limit"):
         storage.estimates("car-1", limit=0)
 
@@ -236,14 +268,17 @@ def test_one_writer_and_several_readers_in_threads(storage):
 
 # -------------------------------------------------------------------------------------------- PostGIS
 
+
 def test_postgis_geom_is_the_estimate_position(postgres_database_url):
     storage = open_storage(postgres_database_url)
     assert storage.postgis
-    storage.write_batch([], [estimate_row(), estimate_row(timestamp_ms=T0_MS + 100, latitude_deg=None,
-                                                          longitude_deg=None)])
+    storage.write_batch(
+        [], [estimate_row(), estimate_row(timestamp_ms=T0_MS + 100, latitude_deg=None, longitude_deg=None)]
+    )
     with storage._engine.connect() as conn:
-        rows = conn.execute(text("SELECT ST_X(geom), ST_Y(geom), ST_SRID(geom) FROM estimates "
-                                 "ORDER BY timestamp_ms")).all()
+        rows = conn.execute(
+            text("SELECT ST_X(geom), ST_Y(geom), ST_SRID(geom) FROM estimates ORDER BY timestamp_ms")
+        ).all()
     storage.close()
     assert [tuple(r) for r in rows] == [(11.5, 48.1, 4326), (None, None, None)]
 
@@ -251,8 +286,9 @@ def test_postgis_geom_is_the_estimate_position(postgres_database_url):
 def test_without_postgis_everything_else_works(postgres_url, postgres_database_url):
     """A database owner who may not create the extension (not a superuser): no geom column, no failure."""
     name = make_url(postgres_database_url).database
-    with psycopg.connect(make_url(postgres_url).set(drivername="postgresql").render_as_string(False),
-                         autocommit=True) as admin:
+    with psycopg.connect(
+        make_url(postgres_url).set(drivername="postgresql").render_as_string(False), autocommit=True
+    ) as admin:
         role = f"owner_{name}"
         admin.execute(f'CREATE ROLE "{role}" LOGIN')
         admin.execute(f'ALTER DATABASE "{name}" OWNER TO "{role}"')
@@ -264,6 +300,7 @@ def test_without_postgis_everything_else_works(postgres_url, postgres_database_u
 
 
 # -------------------------------------------------------------------------------------------- credentials and vehicles
+
 
 def test_credentials_add_duplicate_revoke_and_rehash(storage):
     storage.add_credential("car-1", "vehicle", "hash-1")
@@ -288,7 +325,9 @@ def test_credentials_add_duplicate_revoke_and_rehash(storage):
     with pytest.raises(ValueError, match="'nobody'"):
         storage.set_secret_hash("nobody", "h")
     assert [(c.name, c.revoked, c.secret_hash) for c in storage.credentials()] == [
-        ("car-1", True, "hash-1"), ("dashboard", False, "hash-3")]
+        ("car-1", True, "hash-1"),
+        ("dashboard", False, "hash-3"),
+    ]
 
 
 def test_a_fleet_is_registered_all_or_nothing(storage):
@@ -319,20 +358,31 @@ def test_vehicle_profiles_are_upserted(storage):
 
 
 def warning_row(warning_id, cell, status, detection_ms, updated_ms, message):
-    return {"warning_id": warning_id, "cell": cell, "status": status, "detection_ms": detection_ms,
-            "updated_ms": updated_ms, "message": message}
+    return {
+        "warning_id": warning_id,
+        "cell": cell,
+        "status": status,
+        "detection_ms": detection_ms,
+        "updated_ms": updated_ms,
+        "message": message,
+    }
 
 
 def test_warnings_are_upserted_and_filtered_by_status(storage):
     message = {"causeCode": 6, "subCauseCode": 0, "validityDuration_s": 600}
     storage.put_warnings([warning_row("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS, message)])
-    storage.put_warnings([warning_row("w2", "8a1f8d2a1b2ffff", "active", T0_MS + 10, T0_MS + 10, message),
-                          warning_row("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS + 30_000, message),
-                          warning_row("w1", "8a1f8d2a1b27fff", "cancelled", T0_MS, T0_MS + 60_000,
-                                      {**message, "cancelled": True})])  # the last of one warning's rows wins
+    storage.put_warnings(
+        [
+            warning_row("w2", "8a1f8d2a1b2ffff", "active", T0_MS + 10, T0_MS + 10, message),
+            warning_row("w1", "8a1f8d2a1b27fff", "active", T0_MS, T0_MS + 30_000, message),
+            warning_row("w1", "8a1f8d2a1b27fff", "cancelled", T0_MS, T0_MS + 60_000, {**message, "cancelled": True}),
+        ]
+    )  # the last of one warning's rows wins
     warnings = storage.warnings()
     assert [(w["warning_id"], w["status"], w["updated_ms"]) for w in warnings] == [
-        ("w1", "cancelled", T0_MS + 60_000), ("w2", "active", T0_MS + 10)]
+        ("w1", "cancelled", T0_MS + 60_000),
+        ("w2", "active", T0_MS + 10),
+    ]
     assert warnings[0]["message"] == {**message, "cancelled": True}
     assert [w["warning_id"] for w in storage.warnings(active_only=True)] == ["w2"]
     assert storage.counts()["warnings"] == 2

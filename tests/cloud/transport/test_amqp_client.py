@@ -63,7 +63,9 @@ def test_a_publish_nobody_confirms_is_given_up_at_its_deadline_after_trying_agai
     started = time.monotonic()
     try:
         with pytest.raises(TimeoutError, match=r"message m not confirmed within 0\.7 s \(last: .*no broker of 2"):
-            publisher.publish("rg.estimates", "key", [b"body"], pika.BasicProperties(), deadline_s=0.7, what="message m")
+            publisher.publish(
+                "rg.estimates", "key", [b"body"], pika.BasicProperties(), deadline_s=0.7, what="message m"
+            )
     finally:
         publisher.close()
     took_s = time.monotonic() - started

@@ -72,15 +72,18 @@ def test_config_listens_on_loopback_only_and_keeps_secrets_private(managed_broke
     assert managed_broker.url == f"mqtt://127.0.0.1:{managed_broker.port}"
 
 
-@pytest.mark.parametrize(("args", "match"), [
-    (("car-1", "pw", "vehicle", "car-2"), "login name is its vehicle_id"),
-    (("car/1", "pw", "vehicle"), "name must match"),
-    (("car+", "pw", "reader"), "name must match"),
-    (("alice", "pw", "reader", "car-1"), "vehicle_id is for role 'vehicle'"),
-    (("alice", "pw", "admin"), "role must be one of"),
-    (("roadgrip-cloud", "pw", "reader"), "service's own login"),
-    (("alice", "", "reader"), "password"),
-])
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        (("car-1", "pw", "vehicle", "car-2"), "login name is its vehicle_id"),
+        (("car/1", "pw", "vehicle"), "name must match"),
+        (("car+", "pw", "reader"), "name must match"),
+        (("alice", "pw", "reader", "car-1"), "vehicle_id is for role 'vehicle'"),
+        (("alice", "pw", "admin"), "role must be one of"),
+        (("roadgrip-cloud", "pw", "reader"), "service's own login"),
+        (("alice", "", "reader"), "password"),
+    ],
+)
 def test_set_user_rejects_bad_logins(tmp_path, args, match):
     with pytest.raises(ValueError, match=match):
         ManagedBroker(tmp_path).set_user(*args)
@@ -91,8 +94,9 @@ def test_set_users_checks_all_then_applies_them_in_one_reload(managed_broker):
         managed_broker.set_users([("car-1", "pw", "vehicle", None), ("bad/name", "pw", "vehicle", None)])
     assert "car-1" not in managed_broker.users  # nothing applied
     reloads = managed_broker.log_path.read_text().count("Reloading config.")
-    managed_broker.set_users([(f"car-{i}", f"pw{i}", "vehicle", f"car-{i}") for i in range(3)]
-                             + [("dash", "pw", "reader", None)])
+    managed_broker.set_users(
+        [(f"car-{i}", f"pw{i}", "vehicle", f"car-{i}") for i in range(3)] + [("dash", "pw", "reader", None)]
+    )
     assert managed_broker.log_path.read_text().count("Reloading config.") == reloads + 1
     for i in range(3):
         with VehicleClient(managed_broker.url, f"car-{i}", f"pw{i}").connect():
@@ -102,8 +106,10 @@ def test_set_users_checks_all_then_applies_them_in_one_reload(managed_broker):
 def test_remove_user_refuses_new_connections_and_drops_the_live_one(managed_broker):
     managed_broker.set_user("car-1", "pw1", "vehicle")
     managed_broker.set_user("car-2", "pw2", "vehicle")
-    with VehicleClient(managed_broker.url, "car-1", "pw1").connect() as live, \
-            VehicleClient(managed_broker.url, "car-2", "pw2").connect() as other:
+    with (
+        VehicleClient(managed_broker.url, "car-1", "pw1").connect() as live,
+        VehicleClient(managed_broker.url, "car-2", "pw2").connect() as other,
+    ):
         assert managed_broker.remove_user("car-1")
         wait_until(lambda: not live.paho.is_connected(), what="car-1 disconnected")
         assert other.paho.is_connected()  # a reload leaves the other logins alone
@@ -150,8 +156,10 @@ def test_start_fails_with_the_log_when_the_port_is_taken(tmp_path):
 
 
 def test_the_broker_stops_when_the_process_that_started_it_is_killed(tmp_path):
-    script = ("import sys, time; from pathlib import Path; from roadgrip.cloud.transport.mosquitto import ManagedBroker; "
-              "b = ManagedBroker(Path(sys.argv[1])); b.start(); print(b._process.pid, flush=True); time.sleep(60)")
+    script = (
+        "import sys, time; from pathlib import Path; from roadgrip.cloud.transport.mosquitto import ManagedBroker; "
+        "b = ManagedBroker(Path(sys.argv[1])); b.start(); print(b._process.pid, flush=True); time.sleep(60)"
+    )
     parent = subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, text=True)
     try:
         broker_pid = int(parent.stdout.readline())

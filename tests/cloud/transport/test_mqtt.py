@@ -40,8 +40,14 @@ def test_topics():
     assert FRICTION_SUBSCRIPTION == "roadgrip/v1/vehicles/+/friction"
     for topic in (telemetry_topic("A.b_9"), friction_topic("A.b_9"), errors_topic("A.b_9")):
         assert vehicle_of_topic(topic) == "A.b_9"
-    for topic in ("roadgrip/v1/warnings", "roadgrip/v1/vehicles/car-1", "roadgrip/v1/vehicles/car-1/other",
-                  "roadgrip/v1/vehicles/a/b/telemetry", "roadgrip/v1/vehicles//telemetry", "x/car-1/telemetry"):
+    for topic in (
+        "roadgrip/v1/warnings",
+        "roadgrip/v1/vehicles/car-1",
+        "roadgrip/v1/vehicles/car-1/other",
+        "roadgrip/v1/vehicles/a/b/telemetry",
+        "roadgrip/v1/vehicles//telemetry",
+        "x/car-1/telemetry",
+    ):
         assert vehicle_of_topic(topic) is None, topic
     for bad in ("", "+", "#", "a/b", "a b", "x" * 65):
         with pytest.raises(ValueError, match="vehicle_id must match"):
@@ -165,8 +171,11 @@ def test_a_reader_reads_all_friction_but_cannot_publish(fleet):
 
 def test_the_service_cannot_publish_telemetry(fleet):
     inbox = Inbox()
-    with service(fleet, inbox, client_id="svc-reader"), service(fleet, client_id="svc-writer") as writer, \
-            vehicle(fleet, "A") as a:
+    with (
+        service(fleet, inbox, client_id="svc-reader"),
+        service(fleet, client_id="svc-writer") as writer,
+        vehicle(fleet, "A") as a,
+    ):
         writer.publish(telemetry_topic("A"), b"forged").wait_for_publish(5)
         a.publish_telemetry(b"sentinel")
         assert inbox.payloads(1) == [("A", b"sentinel")]
@@ -186,8 +195,11 @@ def test_a_vehicle_speaks_mqtt_3_1_1_when_asked_and_auto_keeps_5_where_the_broke
     """The fleet's "auto" falls back to 3.1.1 only for a broker that does not take MQTT 5 (RabbitMQ 3.10: the local
     cluster's test, tests/cloud/cluster/test_local.py); Mosquitto does, so nothing changes for serve."""
     inbox = Inbox()
-    with service(fleet, inbox), VehicleClient(fleet.url, "A", "secret-A", protocol="3.1.1") as old, \
-                VehicleClient(fleet.url, "B", "secret-B", protocol="auto") as new:
+    with (
+        service(fleet, inbox),
+        VehicleClient(fleet.url, "A", "secret-A", protocol="3.1.1") as old,
+        VehicleClient(fleet.url, "B", "secret-B", protocol="auto") as new,
+    ):
         assert old.protocol == "3.1.1" and old.paho.protocol == paho.MQTTv311
         assert new.protocol == "5" and new.paho.protocol == paho.MQTTv5
         old.publish_telemetry(b"over 3.1.1")
@@ -227,7 +239,7 @@ def test_a_message_not_acknowledged_is_delivered_again_after_a_reconnect(fleet):
         ack_first()  # a second call does nothing
     again = Inbox(auto_ack=False)
     with service(fleet, again):
-        (vid, payload, ack), = again.take(1)
+        ((vid, payload, ack),) = again.take(1)
         assert (vid, payload) == ("A", b"second")
         acker = threading.Thread(target=ack)  # ack from another thread
         acker.start()
@@ -243,7 +255,7 @@ def test_an_ack_after_the_connection_dropped_does_nothing(fleet):
     svc = service(fleet, held)
     with vehicle(fleet, "A") as a:
         a.publish_telemetry(b"one")
-    (_, _, ack), = held.take(1)
+    ((_, _, ack),) = held.take(1)
     svc.close()
     ack()  # void: the broker delivers the message again
     with service(fleet, held):

@@ -50,8 +50,9 @@ def register_station(body: StationRegistration, caller: Caller, backend: Backend
 
 
 @router.delete("/v1/credentials/{name}", status_code=204, responses=errors(404, 409))
-def revoke(name: Annotated[str, PathParam(pattern=VEHICLE_ID_RE.pattern)], caller: Caller,
-           backend: Backend) -> Response:
+def revoke(
+    name: Annotated[str, PathParam(pattern=VEHICLE_ID_RE.pattern)], caller: Caller, backend: Backend
+) -> Response:
     require(caller, "admin")
     try:
         found = backend.revoke(name)

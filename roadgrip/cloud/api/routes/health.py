@@ -16,9 +16,16 @@ def health(caller: Caller, backend: Backend) -> JSONResponse:
     return JSONResponse(status, status_code=503 if status["status"] == "unavailable" else 200)
 
 
-@router.get("/metrics", response_class=Response,
-            responses={200: {"content": {"text/plain": {}},
-                             "description": "Prometheus text exposition format (docs/CLOUD.md, \"Metrics\")"}})
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"text/plain": {}},
+            "description": 'Prometheus text exposition format (docs/CLOUD.md, "Metrics")',
+        }
+    },
+)
 def metrics(caller: Caller, registry: MetricsRegistry) -> Response:
     """Prometheus metrics of this service and its ingest processes; who may read them: as /v1/health."""
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_PLAIN_0_0_4)

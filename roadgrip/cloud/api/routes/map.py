@@ -17,8 +17,11 @@ def friction_map(caller: Caller, backend: Backend) -> dict:
     return geojson(fmap.cells(now_ms))
 
 
-@router.get("/v1/map/datex2", response_class=Response,
-            responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}})
+@router.get(
+    "/v1/map/datex2",
+    response_class=Response,
+    responses={200: {"content": {"application/xml": {}}, "description": "DATEX II v3 publication"}},
+)
 def datex2(caller: Caller, backend: Backend) -> Response:
     require(caller, "admin", "reader")
     fmap, now_ms = backend.current_map()

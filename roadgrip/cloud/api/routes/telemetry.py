@@ -24,9 +24,11 @@ router = APIRouter()
 
 class Rejection(BaseModel):
     """A refused sample (roadgrip.cloud.ingest.wire.SampleError)."""
+
     index: int = Field(description="array index, or NDJSON line number - 1")
-    field: str | None = Field(description="the field at fault as sent (wire name or VSS key); null when the sample "
-                                          "is not an object")
+    field: str | None = Field(
+        description="the field at fault as sent (wire name or VSS key); null when the sample is not an object"
+    )
     reason: str
     vehicle_id: str | None = None
     timestamp_ms: int | None = None
@@ -42,6 +44,7 @@ class IngestAnswer(BaseModel):
 
 class PublishedAnswer(BaseModel):
     """Cluster mode: the valid samples are in the vehicle's partition queue, replicated; a worker stores them."""
+
     received: int
     accepted: int = Field(description="valid samples, confirmed by the broker")
     rejected: list[Rejection]
@@ -51,18 +54,39 @@ class NoValidSample(IngestAnswer):
     detail: str
 
 
-@router.post("/v1/telemetry", response_model=IngestAnswer, responses={
-                 **errors(400, 413, 415),
-                 202: {"model": PublishedAnswer, "description": "cluster mode: accepted by the broker and "
-                                                                "replicated, not yet stored"},
-                 422: {"model": NoValidSample, "description": "no valid sample: each rejection says why"},
-                 429: {"model": ErrorAnswer, "description": "the vehicle is over its rate limit: nothing stored",
-                       "headers": {"Retry-After": {"description": "seconds until the same request would pass",
-                                                   "schema": {"type": "integer"}}}}},
-             openapi_extra={"requestBody": {"required": True, "content": {
-                 "application/x-ndjson": {"schema": {"type": "string"}},
-                 "application/json": {"schema": {"oneOf": [{"type": "object"},
-                                                           {"type": "array", "items": {"type": "object"}}]}}}}})
+@router.post(
+    "/v1/telemetry",
+    response_model=IngestAnswer,
+    responses={
+        **errors(400, 413, 415),
+        202: {
+            "model": PublishedAnswer,
+            "description": "cluster mode: accepted by the broker and replicated, not yet stored",
+        },
+        422: {"model": NoValidSample, "description": "no valid sample: each rejection says why"},
+        429: {
+            "model": ErrorAnswer,
+            "description": "the vehicle is over its rate limit: nothing stored",
+            "headers": {
+                "Retry-After": {
+                    "description": "seconds until the same request would pass",
+                    "schema": {"type": "integer"},
+                }
+            },
+        },
+    },
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/x-ndjson": {"schema": {"type": "string"}},
+                "application/json": {
+                    "schema": {"oneOf": [{"type": "object"}, {"type": "array", "items": {"type": "object"}}]}
+                },
+            },
+        }
+    },
+)
 async def ingest(request: Request, caller: Caller, backend: Backend):
     require(caller, "vehicle")
     try:
@@ -76,13 +100,24 @@ async def ingest(request: Request, caller: Caller, backend: Backend):
     # and IngestUnavailable (503) answer as roadgrip/cloud/api/errors.py says
     result = await asyncio.wrap_future(backend.submit_telemetry(caller.vehicle_id, samples, received))
     if not samples:
-        return AsciiJSONResponse({"detail": "no valid sample", "received": received, "accepted": 0, "stored": 0,
-                                  "duplicates": 0, "rejected": rejected}, status_code=422)
+        return AsciiJSONResponse(
+            {
+                "detail": "no valid sample",
+                "received": received,
+                "accepted": 0,
+                "stored": 0,
+                "duplicates": 0,
+                "rejected": rejected,
+            },
+            status_code=422,
+        )
     if isinstance(result, Accepted):
-        return AsciiJSONResponse({"received": received, "accepted": result.samples, "rejected": rejected},
-                                 status_code=202)
-    return IngestAnswer(received=received, accepted=len(samples), stored=result.stored,
-                        duplicates=result.duplicates, rejected=rejected)
+        return AsciiJSONResponse(
+            {"received": received, "accepted": result.samples, "rejected": rejected}, status_code=202
+        )
+    return IngestAnswer(
+        received=received, accepted=len(samples), stored=result.stored, duplicates=result.duplicates, rejected=rejected
+    )
 
 
 async def _read_telemetry(request: Request, s: Settings, vehicle_id: str) -> tuple[list[dict], list[SampleError]]:
@@ -92,14 +127,22 @@ async def _read_telemetry(request: Request, s: Settings, vehicle_id: str) -> tup
     if declared is not None and declared.isdigit() and int(declared) > s.max_payload_bytes:
         raise HTTPException(413, f"body of {declared} bytes exceeds the limit of {s.max_payload_bytes}")
     body = await read_limited(request, s.max_payload_bytes)
-    return parse_payload(body, content_type=request.headers.get("content-type"), max_bytes=s.max_payload_bytes,
-                         max_samples=s.max_samples_per_payload, now_ms=int(time.time() * 1000),
-                         max_future_ms=int(s.max_future_s * 1000), vehicle_id=vehicle_id)
+    return parse_payload(
+        body,
+        content_type=request.headers.get("content-type"),
+        max_bytes=s.max_payload_bytes,
+        max_samples=s.max_samples_per_payload,
+        now_ms=int(time.time() * 1000),
+        max_future_ms=int(s.max_future_s * 1000),
+        vehicle_id=vehicle_id,
+    )
 
 
 def _escaped(rejection: dict) -> dict:
     """A rejection whose texts (the field as sent, the reason quoting the value) hold lone surrogates, which JSON
     escapes carry but UTF-8 cannot encode, with those written as \\udXXXX instead (they were a 500, found by
     fuzzing)."""
-    return {k: v.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(v, str) else v
-            for k, v in rejection.items()}
+    return {
+        k: v.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(v, str) else v
+        for k, v in rejection.items()
+    }

@@ -21,8 +21,10 @@ router = APIRouter()
 
 class VehicleRegistration(BaseModel):
     vehicle_id: str = Field(pattern=VEHICLE_ID_RE.pattern, description="1-64 of A-Za-z0-9_.-, not 'latest'")
-    profile: str | dict = Field("paper-suv", description=f"a known vehicle ({', '.join(VEHICLES)}) or a profile "
-                                                         "mapping with the CONTRACTS 3.2 fields (SI)")
+    profile: str | dict = Field(
+        "paper-suv",
+        description=f"a known vehicle ({', '.join(VEHICLES)}) or a profile mapping with the CONTRACTS 3.2 fields (SI)",
+    )
     _params: VehicleParams | None = PrivateAttr(None)  # the profile read, by `_checked`
 
     @property
@@ -41,8 +43,11 @@ def _checked(body: VehicleRegistration | list[VehicleRegistration]):
     for k, item in enumerate(batch):
         where = "profile" if not isinstance(body, list) else f"[{k}].profile"
         try:
-            params = (vehicle_by_name(item.profile) if isinstance(item.profile, str)
-                      else VehicleParams.from_dict(item.profile))
+            params = (
+                vehicle_by_name(item.profile)
+                if isinstance(item.profile, str)
+                else VehicleParams.from_dict(item.profile)
+            )
         except (ValueError, TypeError, KeyError) as exc:
             raise Refused(f"{where}: {exc}") from None
         unstorable = _unstorable_text(params.to_dict(), where)
@@ -79,8 +84,10 @@ def register_vehicles(body: Registration, caller: Caller, backend: Backend):
         raise  # 422 (roadgrip/cloud/api/errors.py)
     except ValueError as exc:  # a vehicle_id taken, or given twice
         raise HTTPException(409, str(exc)) from None
-    answers = [Issued(name=item.vehicle_id, role="vehicle", secret=secret, mqtt_url=backend.mqtt_url)
-               for item, secret in zip(batch, secrets)]
+    answers = [
+        Issued(name=item.vehicle_id, role="vehicle", secret=secret, mqtt_url=backend.mqtt_url)
+        for item, secret in zip(batch, secrets)
+    ]
     return answers if isinstance(body, list) else answers[0]
 
 
@@ -94,12 +101,14 @@ def vehicle_profile(vehicle_id: VehicleId, caller: Caller, backend: Backend) -> 
 
 
 @router.get("/v1/vehicles/{vehicle_id}/estimates")
-def estimates(vehicle_id: VehicleId, caller: Caller, backend: Backend,
-              start_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="from (ms since epoch, "
-                                                                               "inclusive)")] = None,
-              end_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="to (ms since epoch, "
-                                                                             "exclusive)")] = None,
-              limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000) -> dict:
+def estimates(
+    vehicle_id: VehicleId,
+    caller: Caller,
+    backend: Backend,
+    start_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="from (ms since epoch, inclusive)")] = None,
+    end_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="to (ms since epoch, exclusive)")] = None,
+    limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
+) -> dict:
     may_read_vehicle(caller, vehicle_id)
     rows = backend.storage.estimates(vehicle_id, start_ms, end_ms, limit)
     return {"vehicle_id": vehicle_id, "estimates": rows}

@@ -23,7 +23,8 @@ KEY = ("vehicle_id", "timestamp_ms")
 JSON = sa.JSON().with_variant(postgresql.JSONB(), "postgresql")
 metadata = sa.MetaData()
 Table(
-    "telemetry", metadata,
+    "telemetry",
+    metadata,
     Column("vehicle_id", sa.String, nullable=False),
     Column("timestamp_ms", sa.BigInteger, nullable=False),
     Column("latitude_deg", sa.Float),
@@ -39,9 +40,11 @@ Table(
     Column("tcs_active", sa.Boolean),
     Column("esc_active", sa.Boolean),
     Column("lateral_speed_mps", sa.Float),
-    sa.PrimaryKeyConstraint(*KEY))
+    sa.PrimaryKeyConstraint(*KEY),
+)
 Table(
-    "estimates", metadata,
+    "estimates",
+    metadata,
     Column("vehicle_id", sa.String, nullable=False),
     Column("timestamp_ms", sa.BigInteger, nullable=False),
     Column("mu", sa.Float, nullable=False),
@@ -53,61 +56,76 @@ Table(
     Column("latitude_deg", sa.Float),
     Column("longitude_deg", sa.Float),
     Column("h3_cell", sa.String),
-    sa.PrimaryKeyConstraint(*KEY), sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"))
+    sa.PrimaryKeyConstraint(*KEY),
+    sa.Index("ix_estimates_timestamp_ms", "timestamp_ms"),
+)
 Table(
-    "vehicles", metadata,
+    "vehicles",
+    metadata,
     Column("vehicle_id", sa.String, primary_key=True),
     Column("profile", JSON, nullable=False),
-    Column("updated_ms", sa.BigInteger, nullable=False))
+    Column("updated_ms", sa.BigInteger, nullable=False),
+)
 Table(
-    "credentials", metadata,
+    "credentials",
+    metadata,
     Column("name", sa.String, primary_key=True),
     Column("role", sa.String, sa.CheckConstraint(f"role IN {ROLES}", name="ck_credentials_role"), nullable=False),
     Column("secret_hash", sa.String, nullable=False),
     Column("vehicle_id", sa.String),
     Column("revoked", sa.Boolean, nullable=False),
-    Column("created_ms", sa.BigInteger, nullable=False))
+    Column("created_ms", sa.BigInteger, nullable=False),
+)
 Table(
-    "warnings", metadata,
+    "warnings",
+    metadata,
     Column("warning_id", sa.String, primary_key=True),
     Column("cell", sa.String, nullable=False),
     Column("status", sa.String, nullable=False),
     Column("detection_ms", sa.BigInteger, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
-    Column("message", JSON, nullable=False))
+    Column("message", JSON, nullable=False),
+)
 Table(
-    "estimator_states", metadata,
+    "estimator_states",
+    metadata,
     Column("vehicle_id", sa.String, nullable=False),
     Column("estimator", sa.String, nullable=False),
     Column("state", JSON, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
-    sa.PrimaryKeyConstraint("vehicle_id", "estimator"))
+    sa.PrimaryKeyConstraint("vehicle_id", "estimator"),
+)
 Table(
-    "partition_owners", metadata,
+    "partition_owners",
+    metadata,
     Column("partition_id", sa.Integer, primary_key=True, autoincrement=False),
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
-    Column("taken_ms", sa.BigInteger, nullable=False))
+    Column("taken_ms", sa.BigInteger, nullable=False),
+)
 Table(
-    "map_cells", metadata,
+    "map_cells",
+    metadata,
     Column("cell", sa.String, primary_key=True),
     Column("region", sa.String, nullable=False),
     Column("last_ms", sa.BigInteger, nullable=False),
     Column("updated_ms", sa.BigInteger, nullable=False),
     Column("state", JSON, nullable=False),
-    sa.Index("ix_map_cells_region", "region"), sa.Index("ix_map_cells_last_ms", "last_ms"))
+    sa.Index("ix_map_cells_region", "region"),
+    sa.Index("ix_map_cells_last_ms", "last_ms"),
+)
 Table(
-    "region_owners", metadata,
+    "region_owners",
+    metadata,
     Column("region_queue", sa.Integer, primary_key=True, autoincrement=False),
     Column("epoch", sa.BigInteger, nullable=False),
     Column("owner", sa.String, nullable=False),
-    Column("taken_ms", sa.BigInteger, nullable=False))
+    Column("taken_ms", sa.BigInteger, nullable=False),
+)
+Table("counters", metadata, Column("name", sa.String, primary_key=True), Column("value", sa.BigInteger, nullable=False))
 Table(
-    "counters", metadata,
-    Column("name", sa.String, primary_key=True),
-    Column("value", sa.BigInteger, nullable=False))
-Table(
-    "station_reports", metadata,
+    "station_reports",
+    metadata,
     Column("station_id", sa.String, nullable=False),
     Column("timestamp_ms", sa.BigInteger, nullable=False),
     Column("latitude_deg", sa.Float, nullable=False),
@@ -123,7 +141,8 @@ Table(
     Column("cells", JSON, nullable=False),
     Column("received_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("station_id", "timestamp_ms"),
-    sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"))
+    sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"),
+)
 
 
 def upgrade() -> None:

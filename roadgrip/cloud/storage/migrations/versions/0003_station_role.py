@@ -23,20 +23,23 @@ log = logging.getLogger("roadgrip.cloud.storage.migrations")
 
 ROLES = ("vehicle", "reader", "admin", "station")
 credentials = Table(
-    "credentials", sa.MetaData(),
+    "credentials",
+    sa.MetaData(),
     Column("name", sa.String, primary_key=True),
     Column("role", sa.String, sa.CheckConstraint(f"role IN {ROLES}", name="ck_credentials_role"), nullable=False),
     Column("secret_hash", sa.String, nullable=False),
     Column("vehicle_id", sa.String),
     Column("revoked", sa.Boolean, nullable=False),
-    Column("created_ms", sa.BigInteger, nullable=False))
+    Column("created_ms", sa.BigInteger, nullable=False),
+)
 
 
 def upgrade() -> None:
     conn = op.get_bind()
     if conn.dialect.name == "postgresql":
-        definition = conn.execute(sa.text("SELECT pg_get_constraintdef(oid) FROM pg_constraint "
-                                          "WHERE conname = 'ck_credentials_role'")).scalar()
+        definition = conn.execute(
+            sa.text("SELECT pg_get_constraintdef(oid) FROM pg_constraint WHERE conname = 'ck_credentials_role'")
+        ).scalar()
         if definition is not None and "'station'" not in definition:
             op.drop_constraint("ck_credentials_role", "credentials", type_="check")
             op.create_check_constraint("ck_credentials_role", "credentials", f"role IN {ROLES}")
