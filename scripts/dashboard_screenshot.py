@@ -15,9 +15,9 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "cloud"))  # the drives and the setup of the dashboard test
+sys.path.insert(0, str(ROOT / "tests" / "cloud"))  # the drives and the dashboard tests' set-up
 
-from test_dashboard import (
+from dashboard_fixtures import (
     CHOSEN,
     READER,
     dashboard_settings,

@@ -1,7 +1,8 @@
 """The service under uvicorn and headless Chromium, as the dashboard tests run them (tests/cloud/api/test_dashboard.py,
 tests/cloud/test_station_service.py): the service with its HTTP API in a thread on 127.0.0.1 at a free port
 (`serving`, with `dashboard_settings`), Chromium on a URL with a fresh profile (`run_chromium`; `require_chromium`
-fails, never skips, without it), and the attributes of the page's elements by id (`attributes_by_id`).
+fails, never skips, without it), the attributes of the page's elements by id (`attributes_by_id`), and the patch
+drives sent over HTTP (`load_patch_drives`; scripts/dashboard_screenshot.py uses them for docs/dashboard.png).
 """
 
 from __future__ import annotations
@@ -17,13 +18,16 @@ from collections.abc import Iterator
 from html.parser import HTMLParser
 from pathlib import Path
 
+import httpx
 import pytest
 import uvicorn
+from drives import patch_drive
 from service_fixtures import ADMIN
 
 from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.fleet.terminal import wire_samples
 
 VIRTUAL_TIME_BUDGET_MS = 5000  # page time Chromium lets pass (fetches pause it): about five polling rounds
 CHROMIUM_TIMEOUT_S = 90
@@ -113,3 +117,46 @@ def require_chromium() -> None:
     """Fail (never skip) without Chromium: the page in a real browser is what these tests are for."""
     if shutil.which("chromium") is None and shutil.which("chromium-browser") is None:
         pytest.fail(f"chromium is not installed: {INSTALL_HINT}", pytrace=False)
+
+
+READER = "operator"
+START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
+CHOSEN = "suv-w"
+
+
+def post_samples(client: httpx.Client, auth: tuple[str, str], samples: list[dict], chunk: int = 50) -> None:
+    for start in range(0, len(samples), chunk):
+        answer = client.post("/v1/telemetry", json=samples[start : start + chunk], auth=auth)
+        answer.raise_for_status()
+
+
+def register_vehicle(client: httpx.Client, vehicle_id: str, profile: str) -> tuple[str, str]:
+    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
+    answer.raise_for_status()
+    return vehicle_id, answer.json()["secret"]
+
+
+def settle(service: CloudService) -> None:
+    """Let the pipeline release what its reorder window still holds."""
+    time.sleep(service.settings.reorder_window_s + 0.1)
+    deadline = time.monotonic() + 10
+    while service.ingest.backlog and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(3 * service.settings.flush_interval_s)
+
+
+def load_patch_drives(service: CloudService, base_url: str) -> str:
+    """The drives of test_api's patch test: an SUV and a sedan brake on the slippery patch (mu 0.2), which raises a
+    warning; a hatchback on the dry road two minutes later closes their passes. Then a reader; its secret."""
+    with httpx.Client(base_url=base_url, timeout=60) as client:
+        for vehicle_id, profile, seed in ((CHOSEN, "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):
+            auth = register_vehicle(client, vehicle_id, profile)
+            post_samples(client, auth, wire_samples(patch_drive(0.2, seed, profile), vehicle_id, START_MS))
+        auth = register_vehicle(client, "hatch-d", "compact-hatchback")
+        post_samples(
+            client, auth, wire_samples(patch_drive(0.9, 4, "compact-hatchback"), "hatch-d", START_MS + 120_000)
+        )
+        settle(service)
+        answer = client.post("/v1/readers", json={"name": READER}, auth=ADMIN)
+        answer.raise_for_status()
+        return answer.json()["secret"]

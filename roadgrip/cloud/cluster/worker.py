@@ -535,7 +535,7 @@ class Worker:
             connection.process_data_events(time_limit=WATCH_S)
 
     def _balance(self, now: float) -> None:
-        """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/worker/
+        """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/cluster/
         spread.py)."""
         if any(e.is_set() for e in self._release):
             return

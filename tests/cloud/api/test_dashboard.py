@@ -8,11 +8,22 @@ Chromium is part of what is tested: without it the test fails (install it with `
 
 from __future__ import annotations
 
-import time
-
 import httpx
 import pytest
-from dashboard_fixtures import attributes_by_id, dashboard_settings, require_chromium, run_chromium, serving
+from dashboard_fixtures import (
+    CHOSEN,
+    READER,
+    START_MS,
+    attributes_by_id,
+    dashboard_settings,
+    load_patch_drives,
+    post_samples,
+    register_vehicle,
+    require_chromium,
+    run_chromium,
+    serving,
+    settle,
+)
 from drives import patch_drive
 from fastapi.testclient import TestClient
 from service_fixtures import ADMIN
@@ -22,46 +33,6 @@ from roadgrip.cloud.api.dashboard import content_security_policy, tile_source
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import load_settings
 from roadgrip.fleet.terminal import wire_samples
-
-READER = "operator"
-START_MS = int(time.time() * 1000) - 3_600_000  # an hour ago: inside max_future_s, like a recent drive
-CHOSEN = "suv-w"
-
-
-def _post(client: httpx.Client, auth: tuple[str, str], samples: list[dict], chunk: int = 50) -> None:
-    for start in range(0, len(samples), chunk):
-        answer = client.post("/v1/telemetry", json=samples[start : start + chunk], auth=auth)
-        answer.raise_for_status()
-
-
-def _register(client: httpx.Client, vehicle_id: str, profile: str) -> tuple[str, str]:
-    answer = client.post("/v1/vehicles", json={"vehicle_id": vehicle_id, "profile": profile}, auth=ADMIN)
-    answer.raise_for_status()
-    return vehicle_id, answer.json()["secret"]
-
-
-def _settle(service: CloudService) -> None:
-    """Let the pipeline release what its reorder window still holds."""
-    time.sleep(service.settings.reorder_window_s + 0.1)
-    deadline = time.monotonic() + 10
-    while service.ingest.backlog and time.monotonic() < deadline:
-        time.sleep(0.02)
-    time.sleep(3 * service.settings.flush_interval_s)
-
-
-def load_patch_drives(service: CloudService, base_url: str) -> str:
-    """The drives of test_api's patch test: an SUV and a sedan brake on the slippery patch (mu 0.2), which raises a
-    warning; a hatchback on the dry road two minutes later closes their passes. Then a reader; its secret."""
-    with httpx.Client(base_url=base_url, timeout=60) as client:
-        for vehicle_id, profile, seed in ((CHOSEN, "paper-suv", 1), ("sedan-w", "midsize-sedan", 2)):
-            auth = _register(client, vehicle_id, profile)
-            _post(client, auth, wire_samples(patch_drive(0.2, seed, profile), vehicle_id, START_MS))
-        auth = _register(client, "hatch-d", "compact-hatchback")
-        _post(client, auth, wire_samples(patch_drive(0.9, 4, "compact-hatchback"), "hatch-d", START_MS + 120_000))
-        _settle(service)
-        answer = client.post("/v1/readers", json={"name": READER}, auth=ADMIN)
-        answer.raise_for_status()
-        return answer.json()["secret"]
 
 
 @pytest.mark.slow
@@ -129,12 +100,12 @@ def test_the_page_is_public_and_the_latest_positions_need_a_reader(tmp_path):
             assert client.get(f"/dashboard/static/{path}").status_code == 200, path
 
         assert client.get("/v1/vehicles/latest").status_code == 401
-        vehicle = _register(client, "car-1", "paper-suv")
+        vehicle = register_vehicle(client, "car-1", "paper-suv")
         assert client.get("/v1/vehicles/latest", auth=vehicle).status_code == 403
         reader = (READER, client.post("/v1/readers", json={"name": READER}, auth=ADMIN).json()["secret"])
         assert client.get("/v1/vehicles/latest", auth=reader).json() == {"vehicles": []}
-        _post(client, vehicle, wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:30])
-        _settle(service)
+        post_samples(client, vehicle, wire_samples(patch_drive(0.9, 3), "car-1", START_MS)[:30])
+        settle(service)
         latest = client.get("/v1/vehicles/latest", auth=reader).json()["vehicles"]
         newest = client.get("/v1/vehicles/car-1/estimates", auth=reader).json()["estimates"][-1]
         assert latest == [newest] and newest["latitude_deg"] is not None
