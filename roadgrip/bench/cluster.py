@@ -32,6 +32,9 @@ Cases, in this order, each for `seconds` after a warm-up, the vehicles connectin
 
 Everything shares this machine's cores: the load generators, three broker nodes, PostgreSQL and the workers. The
 figures are this machine's, for the whole set-up; see docs/CLUSTER.md for how to read them.
+
+Size: over 500 lines because one benchmark: the broker's ceiling and the workers' throughput share the cluster it
+starts.
 """
 
 from __future__ import annotations

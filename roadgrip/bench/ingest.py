@@ -17,6 +17,9 @@ within 5 % of the case's duration and everything stored within 2 s of the last o
 
 Samples are real telemetry: a few simulated runs of the random preset, cycled over the vehicles, each vehicle's stream
 looping its run with timestamps that keep counting.
+
+Size: over 500 lines because one benchmark: its load generator, its cases, the soak and the ceilings share the service
+it starts.
 """
 
 from __future__ import annotations

@@ -56,6 +56,9 @@ Definitions (docs/RESULTS.md, "The fleet benchmark"):
   covered when the map's 90 % interval meets that range; its band is that of the lowest true mu in it;
 - evidence share: of the cells driven in the last EVIDENCE_WINDOW_S before an instant, the share with recent excited
   evidence on the map.
+
+Size: over 500 lines because one experiment: the fleet's hour through the service and its scoring against the truth,
+which share the run's timeline.
 """
 
 from __future__ import annotations

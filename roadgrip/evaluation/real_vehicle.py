@@ -19,6 +19,9 @@ wet/dry, is about 0.70, against about 0.68 from Burckhardt's wet and dry asphalt
 - Reference: the SCRIM-like test wheel of sideway_force.py over the wetted road in the group's direction.
 - Outputs: metrics.csv (per group), table7.csv / table7.md (the paper's layout, our columns beside its), ratios.csv (wet/dry
   ratios of the means, with Burckhardt's), estimates.parquet, sfc.parquet and one figure.
+
+Size: over 500 lines because the paper's Table 7: the expressway, the drives, the sideway-force test wheel and the
+comparison, one experiment.
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ run), road ("straight" | "circular"), t_s (time of the estimate in the run, s), 
 Figures follow section 5.1 of the paper: on fixed roads, the truth and each model's prediction at randomly selected
 estimate times of the second experiment; on changing roads, the estimates near each change of the true mu; the
 abscissa is the sequence number of the displayed point.
+
+Size: over 500 lines because the paper's Tables 2-6 and Figures 4-8 in the paper's layout, one function per table,
+sharing the checks of the metrics.
 """
 
 import csv

@@ -71,6 +71,9 @@ option of `sa_cnn_lstm.py`. On a head that is accurate but whose noise spills ov
 0.049 -> 0.048 with none out of range; the agent: 2.8 % -> 0.6 % out, RMSE 0.049 -> 0.056); on a mis-scaled head the
 agent wins (RMSE 0.22 -> 0.05, clipping 0.17). A model with an activation after its last `nn.Linear` cannot be refined
 here (the layer's output is not its prediction); `refine_model` refuses it.
+
+Size: over 500 lines because the paper's Q-learning refinement: its configuration, environment, agent and training loop,
+read together against section 4.4.
 """
 
 from __future__ import annotations

@@ -45,6 +45,9 @@ Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 - A vehicle's pass that crosses a region border ends in the first region only when that region's clock passes
   pass_gap_s beyond it (serve's one map ends it when the vehicle is seen in the next cell).
 - With map_clock "data" each region's clock is the newest sample of the rounds that reached it (serve: of every round).
+
+Size: over 500 lines because the region stage's two sides (the worker's publisher and the region owners' consumers)
+share one message format and one fencing protocol.
 """
 
 from __future__ import annotations

@@ -90,6 +90,9 @@ max_age_s; `add` calls it once per bucket_s of clock.
 
 Time: ages use the caller's now_ms. If now_ms precedes a cell's newest evidence (a terminal's clock ahead of the
 server's), ages in that cell are taken from its newest evidence instead, so that no age is negative.
+
+Size: over 500 lines because about a fifth is the docstring, the evidence model's derivation; the lazy fade and the
+bucket layout must be read together.
 """
 
 from __future__ import annotations

@@ -39,6 +39,9 @@ Each sample (`SampleError`, with its first fault; `index` is its array index, or
 
 Not this module's business: duplicates inside a payload are kept (the pipeline and storage handle them); a key repeated
 inside one JSON object keeps its last value, as `json.loads` does.
+
+Size: over 500 lines because the wire format's one parser: JSON, NDJSON and VSS keys, per-sample checks and the
+rejection report, each rule once.
 """
 
 from __future__ import annotations

@@ -33,6 +33,9 @@ expiry interval), so that the broker keeps the service's subscription and queues
 away (`max_queued_messages` in `roadgrip.cloud.transport.mosquitto`); manual acknowledgement, so that a message the service has not
 yet handled is delivered again after a reconnect; automatic reconnects in paho's network thread, each followed by
 subscribing again.
+
+Size: over 500 lines because the topics and every MQTT client role (service, vehicle, reader, station) over one paho
+set-up and reconnect rule.
 """
 
 from __future__ import annotations
