@@ -26,7 +26,7 @@ from typing import Self
 
 from roadgrip.cloud.api.backend import StationIngest
 from roadgrip.cloud.domain.friction_map import FrictionMap
-from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_reports, stored_rows
+from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_reports, stored_evidence_rows, stored_rows
 from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
@@ -138,29 +138,13 @@ class CloudService:
         active = [WarningEvent(**row["message"]["event"]) for row in self.storage.warnings(active_only=True)]
         self.warning_engine.restore(active)
         reports = self.storage.station_reports_since(since)
-        self.friction_map.add_station([row for report in reports for row in self._evidence_of(report)])
+        self.friction_map.add_station([row for report in reports for row in stored_evidence_rows(report)])
         log.info(
             "restored the map from %d stored estimates, %d station reports and %d active warnings",
             len(rows),
             len(reports),
             len(active),
         )
-
-    def _evidence_of(self, stored: dict) -> list[dict]:
-        """A stored station report's evidence rows, one per covered cell it was stored with."""
-        if stored["mu"] is None:
-            return []
-        return [
-            {
-                "station_id": stored["station_id"],
-                "cell": cell,
-                "timestamp_ms": stored["timestamp_ms"],
-                "mu": stored["mu"],
-                "mu_lower": stored["mu_lower"],
-                "mu_upper": stored["mu_upper"],
-            }
-            for cell in stored["cells"]
-        ]
 
     # ------------------------------------------------------------------------------------------------- MQTT
     def _start_mqtt(self) -> None:
