@@ -8,8 +8,8 @@ ramp and sine steering at 0.5-0.9 of the road's limit, low-speed tight turns) an
 
 Every estimator gets the catalogue profile of its car (bins.catalogue_profile), never the drawn one. Each table holds
 the prior baseline (evaluation/baseline.py) first, then every estimator, by true utilization bin (bins.py) and by mu
-band (<= 0.3, 0.3-0.6, >= 0.6), each cell with RMSE, skill against the prior over the same samples, and the coverage
-of the 90 % interval.
+band (<= 0.3, 0.3-0.6, >= 0.6), then by manoeuvre and mu band, each cell with RMSE, skill against the prior over the
+same samples, and the coverage of the 90 % interval.
 """
 
 from __future__ import annotations
@@ -56,9 +56,23 @@ def cell_metrics(estimates: dict[str, np.ndarray], baseline_mu: float) -> list[d
     return rows
 
 
+def manoeuvre_metrics(estimates: dict[str, np.ndarray], manoeuvres: dict, baseline_mu: float) -> list[dict]:
+    """cell_metrics over all utilizations within each manoeuvre (`manoeuvres`: run id -> manoeuvre): one row per
+    (manoeuvre, band)."""
+    of_sample = np.array([manoeuvres[r] for r in estimates["run_id"]], dtype=object)
+    rows = []
+    for name in dict.fromkeys(manoeuvres.values()):
+        m = of_sample == name
+        if m.any():
+            part = {c: v[m] for c, v in estimates.items()}
+            rows += [{"manoeuvre": name} | r for r in cell_metrics(part, baseline_mu) if r["bin"] == ALL]
+    return rows
+
+
 def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, runs: int | None = None, progress=None):
     """The prior baseline and every estimator (as `load_estimator` gives it: guarded) on a split's runs: one row per
-    (estimator, band, bin), the prior's first."""
+    (estimator, band, bin) with manoeuvre 'all', then one per (estimator, manoeuvre, band) over all bins; the prior's
+    first."""
     from roadgrip.estimators.learned import load_estimator
     from roadgrip.sim.presets import physics_benchmark_runs
     from roadgrip.sim.simulate import simulate
@@ -69,12 +83,17 @@ def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, 
     table = simulate([s for s, _ in drawn])
     truth = {s.run_id: s.vehicle for s, _ in drawn}
     profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    baseline = prior_baseline()
-    rows = [{"estimator": PRIOR_NAME} | r for r in cell_metrics(prior_estimates(table, truth), baseline.mu_median)]
-    for name in estimators:
+    manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
+    baseline_mu = prior_baseline().mu_median
+    rows = []
+    for name in (PRIOR_NAME, *estimators):
         say(f"{name} on the {split} split")
-        estimates = estimates_on_runs(load_estimator(name), table, profiles, truth=truth)
-        rows += [{"estimator": name} | r for r in cell_metrics(estimates, baseline.mu_median)]
+        if name == PRIOR_NAME:
+            estimates = prior_estimates(table, truth)
+        else:
+            estimates = estimates_on_runs(load_estimator(name), table, profiles, truth=truth)
+        rows += [{"estimator": name, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
+        rows += [{"estimator": name} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
     return rows
 
 
@@ -94,17 +113,21 @@ def _cell(row: dict | None) -> str:
 def physics_markdown(rows: list[dict]) -> str:
     """The table: one line per estimator and utilization bin, one column per mu band; each cell RMSE / skill against
     the prior / 90 % coverage (samples)."""
-    found = {(r["estimator"], r["band"], r["bin"]): r for r in rows}
+    found = {(r["estimator"], r.get("manoeuvre", ALL), r["band"], r["bin"]): r for r in rows}
     estimators = list(dict.fromkeys(r["estimator"] for r in rows))
-    header = " | ".join(f"mu {b}" for b in BAND_NAMES) + " | all mu"
-    lines = [
-        "Each cell: RMSE / skill (1 - RMSE / RMSE of the prior, same samples) / 90 % coverage (samples).",
-        "",
-        f"| estimator | utilization | {header} |",
-        "|---|---|" + "---|" * (len(BAND_NAMES) + 1),
-    ]
+    manoeuvres = [m for m in dict.fromkeys(r.get("manoeuvre", ALL) for r in rows) if m != ALL]
+    header = " | ".join(f"mu {b}" for b in BAND_NAMES) + " | all mu |"
+    rule = "|---|---|" + "---|" * (len(BAND_NAMES) + 1)
+    lines = ["Each cell: RMSE / skill (1 - RMSE / RMSE of the prior, same samples) / 90 % coverage (samples).", ""]
+    lines += [f"| estimator | utilization | {header}", rule]
     for name in estimators:
         for b in BIN_NAMES + (ALL,):
-            cells = " | ".join(_cell(found.get((name, band, b))) for band in BAND_NAMES + (ALL,))
+            cells = " | ".join(_cell(found.get((name, ALL, band, b))) for band in BAND_NAMES + (ALL,))
             lines.append(f"| {name} | {b} | {cells} |")
+    if manoeuvres:
+        lines += ["", "By manoeuvre, every utilization:", "", f"| estimator | manoeuvre | {header}", rule]
+        for name in estimators:
+            for m in manoeuvres:
+                cells = " | ".join(_cell(found.get((name, m, band, ALL))) for band in BAND_NAMES + (ALL,))
+                lines.append(f"| {name} | {m} | {cells} |")
     return "\n".join(lines) + "\n"

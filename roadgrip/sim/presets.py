@@ -360,8 +360,8 @@ class PhysicsSplit:
 # hatchback, all three tires): those vehicles and Dugoff / Magic Formula are the validation split. The midsize sedan with
 # Burckhardt's tire is the test split: no constant was chosen on a pmf run of that vehicle with that tire.
 PHYSICS_SPLITS = {
-    "validation": PhysicsSplit((PAPER_SUV, COMPACT_HATCHBACK), (DugoffTire(), MagicFormulaTire()), 2311, 48),
-    "test": PhysicsSplit((MIDSIZE_SEDAN,), (BurckhardtTire(),), 2399, 48),
+    "validation": PhysicsSplit((PAPER_SUV, COMPACT_HATCHBACK), (DugoffTire(), MagicFormulaTire()), 2311, 240),
+    "test": PhysicsSplit((MIDSIZE_SEDAN,), (BurckhardtTire(),), 2399, 240),
 }
 
 

@@ -86,11 +86,12 @@ def test_the_prior_baseline_comes_first_with_no_skill_of_its_own(spied_run):
     prior = [r for r in rows if r["estimator"] == PRIOR_NAME and r["n"]]
     assert prior and all(r["skill"] == 0.0 for r in prior)
     base = prior_baseline()
-    whole = next(r for r in prior if r["band"] == "all" and r["bin"] == "all")
+    whole = next(r for r in prior if (r["manoeuvre"], r["band"], r["bin"]) == ("all", "all", "all"))
     assert whole["n"] == 4 * 300  # every sample of four 30 s runs at 10 Hz
     assert whole["width"] == pytest.approx(base.mu_upper - base.mu_lower)
     table = physics_markdown(rows)
     assert "| prior | all |" in table and "| pmf | all |" in table
+    assert "| prior | ramp_steer |" in table and "| pmf | braking_abs |" in table
 
 
 def test_skill_and_coverage_of_one_cell_by_hand(spied_run):
@@ -106,7 +107,8 @@ def test_skill_and_coverage_of_one_cell_by_hand(spied_run):
     assert truth.max() <= 0.2  # the first four runs are on ice: the <= 0.3 band is every sample
     rmse_est = math.sqrt(np.mean((mu - truth) ** 2))
     rmse_prior = math.sqrt(np.mean((0.775 - truth) ** 2))
-    cell = next(r for r in rows if (r["estimator"], r["band"], r["bin"]) == ("pmf", "<= 0.3", "all"))
+    key = ("pmf", "all", "<= 0.3", "all")
+    cell = next(r for r in rows if (r["estimator"], r["manoeuvre"], r["band"], r["bin"]) == key)
     assert cell["n"] == truth.size
     assert cell["rmse"] == pytest.approx(rmse_est)
     assert cell["skill"] == pytest.approx(1.0 - rmse_est / rmse_prior)
@@ -131,3 +133,11 @@ def test_evaluate_physics_refuses_an_unknown_split_and_a_seed(tmp_path, args, me
     assert result.exit_code == 2, result.output
     assert message in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_manoeuvre_rows_split_the_samples_of_the_whole(spied_run):
+    rows, spy = spied_run
+    per_run = {run["run_id"][0].as_py(): out.num_rows for _, run, out in spy.calls}
+    cells = [r for r in rows if r["estimator"] == "pmf" and r["manoeuvre"] != "all" and r["band"] == "<= 0.3"]
+    assert [r["manoeuvre"] for r in cells] == ["braking_abs", "acceleration", "ramp_steer", "sine_steer"]
+    assert [r["n"] for r in cells] == list(per_run.values())
