@@ -81,7 +81,6 @@ def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, 
     drawn = physics_benchmark_runs(split, runs)
     say(f"simulating the {len(drawn)} runs of the {split} split")
     table = simulate([s for s, _ in drawn])
-    truth = {s.run_id: s.vehicle for s, _ in drawn}
     profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
     manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
     baseline_mu = prior_baseline().mu_median
@@ -89,9 +88,9 @@ def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, 
     for name in (PRIOR_NAME, *estimators):
         say(f"{name} on the {split} split")
         if name == PRIOR_NAME:
-            estimates = prior_estimates(table, truth)
+            estimates = prior_estimates(table, profiles)
         else:
-            estimates = estimates_on_runs(load_estimator(name), table, profiles, truth=truth)
+            estimates = estimates_on_runs(load_estimator(name), table, profiles)
         rows += [{"estimator": name, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
         rows += [{"estimator": name} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
     return rows

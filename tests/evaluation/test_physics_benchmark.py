@@ -92,6 +92,8 @@ def test_the_prior_baseline_comes_first_with_no_skill_of_its_own(spied_run):
     table = physics_markdown(rows)
     assert "| prior | all |" in table and "| pmf | all |" in table
     assert "| prior | ramp_steer |" in table and "| pmf | braking_abs |" in table
+    # the bound is the one the handed profile proves, which the guard enforces: a guarded estimator is never below it
+    assert all(r["below_bound"] == 0.0 for r in rows if r["estimator"] == "pmf" and r["n"])
 
 
 def test_skill_and_coverage_of_one_cell_by_hand(spied_run):
