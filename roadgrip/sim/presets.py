@@ -331,6 +331,8 @@ def preset_scenarios(preset: str, runs: int | None = None, seed: int = 0) -> lis
     if preset.startswith("generalization-"):
         return generalization_scenarios(preset.removeprefix("generalization-"), seed, runs)
     if preset.startswith("physics-"):
+        if seed != 0:
+            raise ValueError(f"the physics presets' seeds are fixed per split (PHYSICS_SPLITS), got seed={seed}")
         return [s for s, _ in physics_benchmark_runs(preset.removeprefix("physics-"), runs)]
     return random_scenarios(100 if runs is None else runs, seed)
 

@@ -38,6 +38,8 @@ def test_splits_are_fixed_cover_every_surface_and_hold_the_test_vehicle_and_tire
     assert {e.name for _, e in validation}.isdisjoint({e.name for _, e in test})
     assert {s.tire.name for s, _ in validation}.isdisjoint({s.tire.name for s, _ in test})
     assert len(preset_scenarios("physics-test")) == PHYSICS_SPLITS["test"].runs
+    with pytest.raises(ValueError, match="fixed per split"):
+        preset_scenarios("physics-validation", seed=1)
 
 
 class _Spy:
