@@ -180,7 +180,7 @@ def train(
 
 @friendly_errors
 def evaluate(
-    benchmark: str = typer.Option(..., help="paper | generalization | real-vehicle | fleet"),
+    benchmark: str = typer.Option(..., help="paper | generalization | real-vehicle | fleet | physics"),
     out: Path = typer.Option(..., help="output folder: metrics.csv, tables.md, figures"),
     data: Path = typer.Option(None, help="paper benchmark: a paper-preset dataset; default: simulate it (seed 0)"),
     seed: int = typer.Option(0, help="seed of the data and the training (fleet: the first seed)"),
@@ -192,15 +192,23 @@ def evaluate(
         "its settings: tradeoff.csv, tradeoff.png (roadgrip/evaluation/"
         "fleet_sweep.py)",
     ),
+    split: str = typer.Option(
+        "validation",
+        help="physics benchmark: validation (choose constants here) | test (held out: run once per release of the "
+        "numbers; printed only when asked for by name)",
+    ),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
     Table 7 (real-vehicle test) in simulation (CONTRACTS 4), or the fleet benchmark (a simulated fleet through the cloud
-    service: warnings and map against the truth; docs/RESULTS.md)."""
+    service: warnings and map against the truth; docs/RESULTS.md), or the physics benchmark (every estimator beside the
+    prior baseline, mu 0.1-1.2, by utilization bin and mu band; docs/RESULTS.md)."""
     from roadgrip.validation import check_choice
 
-    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet"})
+    check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet", "physics"})
     start = time.perf_counter()
-    if benchmark == "fleet":
+    if benchmark == "physics":
+        paths = _evaluate_physics(out, split, seed)
+    elif benchmark == "fleet":
         paths = _evaluate_fleet(out, seed, seeds, sweep)
     elif benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
@@ -282,6 +290,28 @@ def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
             ),
         )
     return {k: v for k, v in result.items() if k not in ("metrics", "ratios")}
+
+
+def _evaluate_physics(out: Path, split: str, seed: int) -> dict:
+    import pyarrow.csv as pacsv
+
+    from roadgrip.evaluation.physics_benchmark import physics_markdown, rows_table, run_physics_benchmark
+    from roadgrip.validation import check_choice
+
+    check_choice("evaluate", "split", split, {"validation", "test"})
+    if seed != 0:
+        raise ValueError(
+            f"the physics benchmark's seeds are fixed per split (roadgrip/sim/presets.py), got --seed {seed}"
+        )
+    with console.status(f"physics benchmark, {split} split") as status:
+        rows = run_physics_benchmark(split, progress=lambda message: status.update(f"physics benchmark: {message}"))
+    out.mkdir(parents=True, exist_ok=True)
+    table = physics_markdown(rows)
+    paths = {"csv": out / f"physics_{split}.csv", "md": out / f"physics_{split}.md"}
+    pacsv.write_csv(rows_table(rows), paths["csv"])
+    paths["md"].write_text(table)
+    console.print(f"physics benchmark, {split} split:\n{table}")
+    return paths
 
 
 def _evaluate_generalization(out: Path, seed: int, workers: int) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from roadgrip.sim.scenario import Scenario
 from roadgrip.units import G_MPS2, kmh_to_mps
 from roadgrip.validation import check_choice
 from roadgrip.vehicle.params import COMPACT_HATCHBACK, MIDSIZE_SEDAN, PAPER_SUV, TireParams, VehicleParams
-from roadgrip.vehicle.tires import BurckhardtTire, DugoffTire, MagicFormulaTire
+from roadgrip.vehicle.tires import BurckhardtTire, DugoffTire, MagicFormulaTire, TireModel
 
 PAPER_DURATION_S = 40.0
 PAPER_TOP_SPEED_MPS = kmh_to_mps(120.0)
@@ -45,7 +46,15 @@ RANDOM_MANOEUVRES = (
     "sine_steer",
     "cruise",
 )
-PRESETS = ("paper", "random", "generalization-train", "generalization-calibration", "generalization-test")
+PRESETS = (
+    "paper",
+    "random",
+    "generalization-train",
+    "generalization-calibration",
+    "generalization-test",
+    "physics-validation",
+    "physics-test",
+)
 TRAINING_VEHICLES = (PAPER_SUV, MIDSIZE_SEDAN)  # the random preset's vehicles; the compact hatchback is held out
 TYPICAL_WHEELBASE_M = 2.9  # to size steering inputs before the vehicle is drawn
 RANDOM_EFFECTS = ProductionEffects.production()  # the random and generalization presets' production-terminal effects
@@ -321,4 +330,132 @@ def preset_scenarios(preset: str, runs: int | None = None, seed: int = 0) -> lis
         return paper_scenarios(seed)
     if preset.startswith("generalization-"):
         return generalization_scenarios(preset.removeprefix("generalization-"), seed, runs)
+    if preset.startswith("physics-"):
+        if seed != 0:
+            raise ValueError(f"the physics presets' seeds are fixed per split (PHYSICS_SPLITS), got seed={seed}")
+        return [s for s, _ in physics_benchmark_runs(preset.removeprefix("physics-"), runs)]
     return random_scenarios(100 if runs is None else runs, seed)
+
+
+# The physics benchmark (roadgrip/evaluation/physics_benchmark.py): mu over the whole range, the manoeuvres that excite
+# the tires, every production effect on; a validation split for choosing constants and a test split on a vehicle and a
+# tire model that no choice of constant looked at. The splits' seeds are fixed: the numbers are the same on every machine.
+PHYSICS_SURFACES = {"ice": (0.1, 0.2), "snow": (0.2, 0.4), "wet": (0.4, 0.7), "dry": (0.7, 1.2)}
+PHYSICS_MANOEUVRES = ("braking_abs", "acceleration", "ramp_steer", "sine_steer", "cruise", "tight_turn")
+PHYSICS_UTILIZATION = (0.5, 0.9)  # share of mu g the steering manoeuvres and the tight turns ask for
+PHYSICS_LIMIT_UTILIZATION = (0.7, 1.4)  # share of mu g braking and accelerating ask for: most reach ABS or TCS
+PHYSICS_DURATION_S = 30.0
+
+
+@dataclass(frozen=True)
+class PhysicsSplit:
+    """One split of the physics benchmark: the catalogue vehicles its cars are drawn around (in turn), its tire models
+    (drawn), its fixed seed and its number of runs."""
+
+    vehicles: tuple[VehicleParams, ...]
+    tires: tuple[TireModel, ...]
+    seed: int
+    runs: int
+
+
+# pmf's constants were chosen on the paper preset (paper SUV, Dugoff) and on the generalization test runs (compact
+# hatchback, all three tires): those vehicles and Dugoff / Magic Formula are the validation split. The midsize sedan with
+# Burckhardt's tire is the test split: no constant was chosen on a pmf run of that vehicle with that tire.
+PHYSICS_SPLITS = {
+    "validation": PhysicsSplit((PAPER_SUV, COMPACT_HATCHBACK), (DugoffTire(), MagicFormulaTire()), 2311, 240),
+    "test": PhysicsSplit((MIDSIZE_SEDAN,), (BurckhardtTire(),), 2399, 240),
+}
+
+
+def physics_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: float, mu: float, wheelbase_m: float):
+    """(speed profile, path builder, steer input) of one physics-benchmark manoeuvre on a road of friction mu.
+
+    Every manoeuvre is sized by the road's mu (a driver who knows the road): braking and accelerating ask 0.7-1.4 mu g
+    (ABS on most stops, traction control on most starts), steering 0.5-0.9 mu g (steering: the neutral-steer angle L a_y / v^2 for it; a ramp steer
+    is the first half of a slow sine, up and back down over the run), low-speed tight turns (radius 12-25 m) reach
+    0.5-0.9 mu g at their end speed."""
+    u = rng.uniform(*PHYSICS_UTILIZATION)
+    if manoeuvre == "braking_abs":
+        v = rng.uniform(15.0, 30.0)
+        decel = rng.uniform(*PHYSICS_LIMIT_UTILIZATION) * mu * G_MPS2
+        times, speeds, t = [0.0], [v], 0.0
+        while t < duration_s:
+            for dt, target in ((rng.uniform(2.0, 5.0), v), (v / decel, 0.0), (1.5, 0.0), (v / (u * mu * G_MPS2), v)):
+                t += dt
+                times.append(t)
+                speeds.append(target)
+        return SpeedProfile(times, speeds), Path.straight, None
+    if manoeuvre == "acceleration":
+        v0, v1 = rng.uniform(0.0, 5.0), rng.uniform(20.0, 35.0)
+        accel = rng.uniform(*PHYSICS_LIMIT_UTILIZATION) * mu * G_MPS2
+        return SpeedProfile([0.0, 2.0, 2.0 + (v1 - v0) / accel], [v0, v0, v1]), Path.straight, None
+    if manoeuvre in ("ramp_steer", "sine_steer"):
+        v = rng.uniform(10.0, 25.0)
+        amplitude = min(wheelbase_m * u * mu * G_MPS2 / v**2, 0.1)
+        start_s = 3.0
+        frequency = 0.5 / (duration_s - start_s) if manoeuvre == "ramp_steer" else rng.uniform(0.2, 0.6)
+        return (
+            SpeedProfile([0.0, duration_s], [v, v]),
+            Path.straight,
+            SteerInput(start_s, duration_s, amplitude, frequency),
+        )
+    if manoeuvre == "cruise":
+        speed, build_path, _, _ = random_manoeuvre(rng, "cruise", duration_s, mu)
+        return speed, build_path, None
+    if manoeuvre == "tight_turn":
+        radius = rng.uniform(12.0, 25.0)
+        v_end = min(math.sqrt(u * mu * G_MPS2 * radius), 15.0)
+        speed = SpeedProfile([0.0, 0.6 * duration_s, duration_s], [min(2.0, v_end), v_end, v_end])
+        return speed, (lambda length: Path.circle(radius, length)), None
+    raise ValueError(f"physics_manoeuvre: manoeuvre must be one of {PHYSICS_MANOEUVRES}, got {manoeuvre!r}")
+
+
+def physics_benchmark_runs(split: str, runs: int | None = None) -> list[tuple[Scenario, VehicleParams]]:
+    """(scenario, catalogue entry its vehicle was drawn around) of every run of a physics-benchmark split.
+
+    Run k: manoeuvre k mod 6, surface (ice, snow, wet, dry: PHYSICS_SURFACES) k div 6 mod 4, so that 24 runs hold every
+    pair once, and catalogue entry k div 24 (round robin over the split's); mu constant over the run, uniform in the
+    surface's range; the vehicle drawn around the entry (docs/VEHICLES.md ranges) with the entry's drive layout (the
+    variant a fleet registers); the split's tire model and its stiffness factor (+-30 %) drawn; a graded road and every
+    production-terminal effect on."""
+    check_choice("physics benchmark", "split", split, set(PHYSICS_SPLITS))
+    spec = PHYSICS_SPLITS[split]
+    n = spec.runs if runs is None else runs
+    if n < 1:
+        raise ValueError(f"physics benchmark runs must be >= 1, got {n!r}")
+    surfaces = tuple(PHYSICS_SURFACES)
+    pairs = len(PHYSICS_MANOEUVRES) * len(surfaces)
+    out = []
+    for k, run_seed in enumerate(_run_seeds(spec.seed, n)):
+        rng = np.random.default_rng(run_seed)
+        manoeuvre = PHYSICS_MANOEUVRES[k % len(PHYSICS_MANOEUVRES)]
+        surface = surfaces[(k // len(PHYSICS_MANOEUVRES)) % len(surfaces)]
+        mu = float(rng.uniform(*PHYSICS_SURFACES[surface]))
+        base = spec.vehicles[(k // pairs) % len(spec.vehicles)]
+        run_id = f"physics-{split}-{k:04d}"
+        vehicle = random_vehicle(rng, run_id, (base,)).replace(
+            drive=base.drive, front_drive_share=base.front_drive_share
+        )
+        speed, build_path, steer = physics_manoeuvre(rng, manoeuvre, PHYSICS_DURATION_S, mu, vehicle.wheelbase_m)
+        distance_m = speed.distance_m(PHYSICS_DURATION_S)
+        tire = spec.tires[int(rng.integers(len(spec.tires)))]
+        spread = RANDOM_EFFECTS.tire_stiffness_spread
+        tire = dataclasses.replace(tire, stiffness_scale=float(rng.uniform(1.0 - spread, 1.0 + spread)))
+        scenario = Scenario(
+            run_id=run_id,
+            path=build_path(1.3 * distance_m + 300.0),
+            mu=MuProfile(np.array([0.0]), np.array([mu]), np.array([mu]), "step"),
+            speed=speed,
+            condition=surface,
+            road="curve" if manoeuvre == "tight_turn" else "straight",
+            vehicle=vehicle,
+            tire=tire,
+            steer=steer,
+            duration_s=PHYSICS_DURATION_S,
+            seed=run_seed,
+            manoeuvre=manoeuvre,
+            grade=random_grade(rng, RANDOM_EFFECTS.grade_max_rad, distance_m),
+            effects=RANDOM_EFFECTS,
+        )
+        out.append((scenario, base))
+    return out

@@ -1,0 +1,132 @@
+"""The physics benchmark: can an estimator tell ice from dry asphalt on a production car, where the prior cannot?
+
+Data (roadgrip/sim/presets.py: physics_benchmark_runs): mu over the whole range 0.1-1.2 (ice, snow, wet, dry), every
+production-terminal effect on, manoeuvres that work the tires (braking into ABS, accelerating into traction control,
+ramp and sine steering at 0.5-0.9 of the road's limit, low-speed tight turns) and cruising. Two splits with fixed seeds:
+`validation` (paper SUV and compact hatchback, Dugoff and Magic Formula tires) is where constants may be chosen; `test`
+(midsize sedan, Burckhardt tire) is looked at once per release of the numbers, never while choosing a constant.
+
+Every estimator gets the catalogue profile of its car (bins.catalogue_profile), never the drawn one. Each table holds
+the prior baseline (evaluation/baseline.py) first, then every estimator, by true utilization bin (bins.py) and by mu
+band (<= 0.3, 0.3-0.6, >= 0.6), then by manoeuvre and mu band, each cell with RMSE, skill against the prior over the
+same samples, and the coverage of the 90 % interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+
+from roadgrip.evaluation.baseline import PRIOR_NAME, prior_baseline
+from roadgrip.evaluation.bins import (
+    BIN_ESTIMATORS,
+    BIN_NAMES,
+    binned_metrics,
+    catalogue_profile,
+    estimates_on_runs,
+    prior_estimates,
+    utilization_bin,
+)
+
+MU_BANDS = (("<= 0.3", 0.0, 0.3), ("0.3-0.6", 0.3, 0.6), (">= 0.6", 0.6, np.inf))
+BAND_NAMES = tuple(name for name, _, _ in MU_BANDS)
+ALL = "all"
+
+
+def mu_band(mu_true) -> np.ndarray:
+    """The band name of each sample's true mu: <= 0.3, 0.3-0.6 (both ends open), >= 0.6."""
+    mu = np.asarray(mu_true, dtype=np.float64)
+    names = np.full(mu.shape, BAND_NAMES[1], dtype=object)
+    names[mu <= MU_BANDS[0][2]] = BAND_NAMES[0]
+    names[mu >= MU_BANDS[2][1]] = BAND_NAMES[2]
+    return names
+
+
+def cell_metrics(estimates: dict[str, np.ndarray], baseline_mu: float) -> list[dict]:
+    """binned_metrics by utilization bin within each mu band (and over all bands): one row per (band, bin), with the
+    skill against the constant baseline_mu over the cell's samples."""
+    e = estimates
+    bins = utilization_bin(e["ax_true_mps2"], e["ay_true_mps2"], e["mu"], e["abs_active"])
+    bands = mu_band(e["mu"])
+    rows = []
+    for band in BAND_NAMES + (ALL,):
+        m = np.ones(len(bands), dtype=bool) if band == ALL else bands == band
+        cols = [e[c][m] for c in ("mu_est", "mu_lower", "mu_upper", "excited", "mu")]
+        rows += [{"band": band} | r for r in binned_metrics(*cols, bins[m], e["bound"][m], baseline_mu)]
+    return rows
+
+
+def manoeuvre_metrics(estimates: dict[str, np.ndarray], manoeuvres: dict, baseline_mu: float) -> list[dict]:
+    """cell_metrics over all utilizations within each manoeuvre (`manoeuvres`: run id -> manoeuvre): one row per
+    (manoeuvre, band)."""
+    of_sample = np.array([manoeuvres[r] for r in estimates["run_id"]], dtype=object)
+    rows = []
+    for name in dict.fromkeys(manoeuvres.values()):
+        m = of_sample == name
+        if m.any():
+            part = {c: v[m] for c, v in estimates.items()}
+            rows += [{"manoeuvre": name} | r for r in cell_metrics(part, baseline_mu) if r["bin"] == ALL]
+    return rows
+
+
+def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, runs: int | None = None, progress=None):
+    """The prior baseline and every estimator (as `load_estimator` gives it: guarded) on a split's runs: one row per
+    (estimator, band, bin) with manoeuvre 'all', then one per (estimator, manoeuvre, band) over all bins; the prior's
+    first."""
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.sim.presets import physics_benchmark_runs
+    from roadgrip.sim.simulate import simulate
+
+    say = progress or (lambda message: None)
+    drawn = physics_benchmark_runs(split, runs)
+    say(f"simulating the {len(drawn)} runs of the {split} split")
+    table = simulate([s for s, _ in drawn])
+    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
+    manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
+    baseline_mu = prior_baseline().mu_median
+    rows = []
+    for name in (PRIOR_NAME, *estimators):
+        say(f"{name} on the {split} split")
+        if name == PRIOR_NAME:
+            estimates = prior_estimates(table, profiles)
+        else:
+            estimates = estimates_on_runs(load_estimator(name), table, profiles)
+        rows += [{"estimator": name, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
+        rows += [{"estimator": name} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
+    return rows
+
+
+def rows_table(rows: list[dict]) -> pa.Table:
+    """The rows as a table with every column any row has (an empty cell's row has only its names and n: nulls)."""
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    return pa.table({c: [r.get(c) for r in rows] for c in columns})
+
+
+def _cell(row: dict | None) -> str:
+    if row is None or row["n"] == 0:
+        return "-"
+    skill = "-" if np.isnan(row["skill"]) else f"{row['skill']:+.2f}"
+    return f"{row['rmse']:.3f} / {skill} / {row['coverage']:.2f} ({row['n']})"
+
+
+def physics_markdown(rows: list[dict]) -> str:
+    """The table: one line per estimator and utilization bin, one column per mu band; each cell RMSE / skill against
+    the prior / 90 % coverage (samples)."""
+    found = {(r["estimator"], r.get("manoeuvre", ALL), r["band"], r["bin"]): r for r in rows}
+    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+    manoeuvres = [m for m in dict.fromkeys(r.get("manoeuvre", ALL) for r in rows) if m != ALL]
+    header = " | ".join(f"mu {b}" for b in BAND_NAMES) + " | all mu |"
+    rule = "|---|---|" + "---|" * (len(BAND_NAMES) + 1)
+    lines = ["Each cell: RMSE / skill (1 - RMSE / RMSE of the prior, same samples) / 90 % coverage (samples).", ""]
+    lines += [f"| estimator | utilization | {header}", rule]
+    for name in estimators:
+        for b in BIN_NAMES + (ALL,):
+            cells = " | ".join(_cell(found.get((name, ALL, band, b))) for band in BAND_NAMES + (ALL,))
+            lines.append(f"| {name} | {b} | {cells} |")
+    if manoeuvres:
+        lines += ["", "By manoeuvre, every utilization:", "", f"| estimator | manoeuvre | {header}", rule]
+        for name in estimators:
+            for m in manoeuvres:
+                cells = " | ".join(_cell(found.get((name, m, band, ALL))) for band in BAND_NAMES + (ALL,))
+                lines.append(f"| {name} | {m} | {cells} |")
+    return "\n".join(lines) + "\n"
