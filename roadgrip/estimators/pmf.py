@@ -154,6 +154,8 @@ LAT_TIME_OFFSET_S = 0.05  # the steering, IMU and wheel CAN groups are read up t
 LAT_RELAXATION_M = 0.6  # a tire's lateral relaxation length (Pacejka ch. 7: 0.3-1 m): its force lags by this / v
 LAT_MAX_STEER_RAD = 0.15  # the single-track model's small angles: cos delta within 1.1 %, tan within 0.8 %
 LAT_OFFSET_SIGMA0_RAD = 0.001  # an uncalibrated offset: steering bias 0.5 deg / ratio, gyro bias 0.002 rad/s x L / v
+LAT_OFFSET_FLOOR_RAD = 0.0003  # what its calibration leaves: the gyro bias's L b_r / v at another speed (11 vs 20 m/s)
+LAT_SLOPE_FLOOR = 0.05  # ... and of the slope: the tires' stiffness with their temperature and the road's texture
 LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: worn, winter, inflation (+-30 %)
 LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
 LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
@@ -161,6 +163,7 @@ LAT_BIAS_FLOOR_MPS2 = 0.1  # what calibration leaves: crossfall varying by 1 % a
 LAT_CALM_AY_MPS2 = 2.0  # calibration only in calm driving ...
 LAT_CALM_SHARE = 0.25  # ... below a quarter of the proven friction: the brush slip angle within 10 % of f / c there
 LAT_REF_AGREE = 0.2  # ... with the yaw rate within 20 % (+ 0.02 rad/s) of the steer's reference (not sliding) ...
+LAT_SLOPE_MIN_AY_MPS2 = 0.3  # the slope from |v r| above 7 x the gyro's noise times v (errors in the regressor <2 %)
 LAT_STEADY_YAW_ACCEL = 0.05  # ... in a steady turn: I_z r' / (m g l) under 0.005 per load (the line is K_us a_y)
 LAT_SLOPE_RANGE = (0.5, 2.0)  # the tires' cornering compliance against the profile's: new summer to worn winter tires
 INCONSISTENT = 1e-3
@@ -599,7 +602,14 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
             fx_f, fx_r = m * atx / fz_front, 0.0
         elif q[Q_DRIVE] == 1.0:
             fx_f, fx_r = 0.0, m * atx / fz_rear
-        var0 = var_meas + mem[K_LP00] + 2.0 * x0 * mem[K_LP01] + x0 * x0 * mem[K_LP11]
+        var0 = (
+            var_meas
+            + mem[K_LP00]
+            + 2.0 * x0 * mem[K_LP01]
+            + x0 * x0 * mem[K_LP11]
+            + LAT_OFFSET_FLOOR_RAD**2
+            + (LAT_SLOPE_FLOOR * x0) ** 2
+        )
         bias_y_var = LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2
         sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var) / G_MPS2
         lk = np.empty(NM)
@@ -623,8 +633,9 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
     # forgetting widens the line's covariance back towards the prior's, never past it (a long straight has no
     # information on the slope: without the cap its variance would grow without bound, RLS's wind-up)
     # the line's regressor in the steady turn, a_y = v r (Rajamani eq. 3.15's K_us a_y): the yaw rate's noise is a
-    # fortieth of the accelerometer's there, and a noisy regressor would pull the slope towards zero
-    x_ss = v * smp[S_R] / G_MPS2 * (1.0 / c_f - 1.0 / c_r)
+    # fortieth of the accelerometer's there, and a noisy regressor would pull the slope towards zero. Nearly straight
+    # (|v r| under LAT_SLOPE_MIN_AY_MPS2) the regressor is mostly the gyro's noise: the offset alone learns there
+    x_ss = v * smp[S_R] / G_MPS2 * (1.0 / c_f - 1.0 / c_r) if abs(v * smp[S_R]) >= LAT_SLOPE_MIN_AY_MPS2 else 0.0
     lam = exp(-dt / RLS_TAU_S)
     p00 = min(mem[K_LP00] / lam, LAT_OFFSET_SIGMA0_RAD**2)
     p11 = min(mem[K_LP11] / lam, LAT_SLOPE_SIGMA0**2)
