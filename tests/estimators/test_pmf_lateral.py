@@ -76,7 +76,7 @@ def test_the_likelihood_prefers_the_mu_whose_bend_matches():
     assert abs(MU_GRID[above][np.argmax(out[above])] - 0.15) <= 0.03
     lateral_likelihood(MU_GRID, f / c_f - f / c_r, f, f, 0.0, 0.0, c_f, c_r, 1.0, 2e-4**2, 0.0, 1.0, out)
     assert MU_GRID[above][np.argmax(out[above])] >= 0.8
-    assert out[above & (MU_GRID <= 0.2)].max() < 0.05
+    assert out[above & (MU_GRID <= 0.2)].max() < 0.25 * out.max()  # half the bend allowed as model error
 
 
 def test_the_calibration_survives_the_state_round_trip():
@@ -90,9 +90,10 @@ def test_the_calibration_survives_the_state_round_trip():
 
 def test_ice_steering_is_seen_before_and_at_the_limit():
     """mu 0.15-0.2, the tires at 50-90 % of their limit, the car calibrated by a calm drive: the 90 % interval covers
-    the truth on at least 85 % of those samples (0.85; 0.69 before the lateral channel was calibrated, 0.17 without
-    it), and mu_upper lies below 0.45 on more than half of those at 80-90 % and on a quarter of all (0.30: below 80 %
-    the brush model's bend, 1.3 x the line at 60 %, is the size of what the tires' stiffness leaves unknown)."""
+    the truth on at least 85 % of those samples (0.86; without the lateral channel 0.42 at 50-80 % and 0.08 beyond),
+    and mu_upper lies below 0.45 on more than half of those at 80-90 % (0.59) and on a quarter of all (0.32: below
+    80 % the brush model's bend, 1.3 x the line at 60 %, is the size of what the tires' shape and stiffness leave
+    unknown). A fresh state has no calibrated line and gets no lateral evidence (docs/PRODUCTION.md)."""
     p = pooled("test", True, 0.5, 0.9)
     assert p["mu"].size >= 500
     covered = (p["lower"] <= p["mu_true"]) & (p["mu_true"] <= p["upper"])
