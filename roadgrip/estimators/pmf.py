@@ -9,6 +9,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+| the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -32,7 +33,23 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   (RADIUS_TAU_S);
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
   over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
-  has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope.
+  has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope;
+- the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
+  a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
+- the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
+  load; b the steering and gyro offsets, k the tires' compliance over the profile's, K_us = k (1 / c_f - 1 / c_r) / g):
+  recursive least squares (RLS_TAU_S) over calm driving only, where the brush model is within 10 % of its line (|a_y|
+  under LAT_CALM_SHARE of the proven friction and LAT_CALM_AY_MPS2, and the yaw rate within LAT_REF_AGREE of the
+  steer's linear reference r_ref = v delta / (L + K_us v^2)); its uncertainty (the RLS covariance) widens the lateral
+  term, so an uncalibrated car's line is a prior of +-LAT_SLOPE_SIGMA0, not a fact.
+
+The lateral channel needs no steady state: the understeer angle alpha_f - alpha_r = delta - L r / v is kinematic (v_y
+cancels) and the axles' forces come from a_y and the yaw acceleration (Newton-Euler), so a sine steer is read as a ramp
+is. What a transient leaves is timing: the steering, IMU and wheel groups read up to LAT_TIME_OFFSET_S apart and the
+tire's force lags its slip angle by its relaxation length over v, so the term's noise grows with the steering and yaw
+rates times that lag. Not modelled (the term then errs): a large roll steer or compliance steer beyond the calibrated
+line's, and a banked turn's road-plane geometry (the accelerometer reads the tires' force, which is what the term needs,
+but the lateral bias calibration takes a long crossfall for bias).
 
 An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
@@ -70,6 +87,12 @@ from numba import njit
 
 from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
+from roadgrip.estimators.lateral import (
+    axle_lateral_per_load,
+    lateral_likelihood,
+    reference_yaw_rate,
+    understeer_gradient,
+)
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import VehicleParams
@@ -127,6 +150,28 @@ SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic F
 # SLIP_SIGMA_PER_MPS / v (CAN resolution, tone-wheel jitter) is 0.002 at 5 m/s, the brush slip of gentle driving
 # (f = 0.05 at C = 25), which the axle slip term needs to see. Parking, junctions and roundabouts lie mostly below.
 SLIP_MIN_SPEED_MPS = 5.0
+# The lateral channel (lateral.py: the single-track model and the brush model's slip angles)
+LAT_STEER_NOISE_RAD = 0.0035  # steering-wheel angle noise: 0.2 degrees (production angle sensors step 0.1 degrees)
+LAT_YAW_NOISE_RADPS = 0.002  # a MEMS gyro's noise, about 0.1 degrees/s
+LAT_TIME_OFFSET_S = 0.05  # the steering, IMU and wheel CAN groups are read up to 50 ms apart
+LAT_RELAXATION_M = 0.6  # a tire's lateral relaxation length (Pacejka ch. 7: 0.3-1 m): its force lags by this / v
+LAT_MAX_STEER_RAD = 0.15  # the single-track model's small angles: cos delta within 1.1 %, tan within 0.8 %
+LAT_OFFSET_SIGMA0_RAD = 0.001  # an uncalibrated offset: steering bias 0.5 deg / ratio, gyro bias 0.002 rad/s x L / v
+LAT_OFFSET_FLOOR_RAD = 0.0003  # what its calibration leaves: the gyro bias's L b_r / v at another speed (11 vs 20 m/s)
+LAT_SLOPE_FLOOR = 0.05  # ... and of the slope: the tires' stiffness with their temperature and the road's texture
+# The line's errors are the same at every sample, not noise that averages out: the term speaks only once the slope is
+# known to this (1 sigma), a third of the brush model's bend at 60 % of the limit (1.32 x the line)
+LAT_SLOPE_CALIBRATED = 0.1
+LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: worn, winter, inflation (+-30 %)
+LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
+LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
+LAT_BIAS_FLOOR_MPS2 = 0.1  # what calibration leaves: crossfall varying by 1 % around the one it learned
+LAT_CALM_AY_MPS2 = 2.0  # calibration only in calm driving ...
+LAT_CALM_SHARE = 0.25  # ... below a quarter of the proven friction: the brush slip angle within 10 % of f / c there
+LAT_REF_AGREE = 0.2  # ... with the yaw rate within 20 % (+ 0.02 rad/s) of the steer's reference (not sliding) ...
+LAT_SLOPE_MIN_AY_MPS2 = 0.3  # the slope from |v r| above 7 x the gyro's noise times v (errors in the regressor <2 %)
+LAT_STEADY_YAW_ACCEL = 0.05  # ... in a steady turn: I_z r' / (m g l) under 0.005 per load (the line is K_us a_y)
+LAT_SLOPE_RANGE = (0.5, 2.0)  # the tires' cornering compliance against the profile's: new summer to worn winter tires
 INCONSISTENT = 1e-3
 EXCITED_WIDTH = 0.25
 MAX_STEP_S = 0.5
@@ -166,8 +211,10 @@ N_S = len(SAMPLE_COLUMNS)
     Q_TRACK_F,
     Q_TRACK_R,
     Q_CA_REAR,
-) = range(15)
-N_Q = 15
+    Q_CA_FRONT,
+    Q_IZ,
+) = range(17)
+N_Q = 17
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
@@ -195,8 +242,19 @@ K_T = NM * NC
     K_V_REF,
     K_U_SEEN,
     K_U_LIMIT,
-) = range(K_T + 1, K_T + 22)
-N_MEM = K_T + 22
+    K_R_PREV,
+    K_D_PREV,
+    K_BIAS_Y,
+    K_BIAS_Y_W,
+    K_LAT_B,
+    K_LAT_S,
+    K_LP00,
+    K_LP01,
+    K_LP11,
+    K_LAT_W,
+    K_MU_LO,
+) = range(K_T + 1, K_T + 33)
+N_MEM = K_T + 33
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -206,6 +264,11 @@ CALIBRATION = {
     "slip_offset_front_rear": K_S0,
     "slip_slope": K_SLOPE,
     "slip_line_weight_s": K_RLS_W,
+    "accel_lat_bias_mps2": K_BIAS_Y,
+    "accel_lat_bias_weight_s": K_BIAS_Y_W,
+    "understeer_offset_rad": K_LAT_B,
+    "cornering_compliance_factor": K_LAT_S,
+    "understeer_line_weight_s": K_LAT_W,
 }
 O_MU, O_LOWER, O_UPPER, O_EXCITED, O_VALID = range(5)
 N_OUT = 5
@@ -229,6 +292,8 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
     q[Q_BRAKE_FRONT] = vehicle.brake_front_share
     q[Q_TRACK_F], q[Q_TRACK_R] = vehicle.track_front_m, vehicle.track_rear_m
     q[Q_CA_REAR] = vehicle.tire_rear.cornering_stiffness_per_load_per_rad
+    q[Q_CA_FRONT] = vehicle.tire_front.cornering_stiffness_per_load_per_rad
+    q[Q_IZ] = vehicle.yaw_inertia_kgm2
     return q
 
 
@@ -258,6 +323,7 @@ def _start(mem, keep_stiffness):
     mem[K_V_REF] = 0.0
     mem[K_U_SEEN] = 0.0
     mem[K_U_LIMIT] = 0.0
+    mem[K_MU_LO] = _quantile(PRIOR, 0.05)
 
 
 @njit(cache=True)
@@ -495,8 +561,103 @@ def init_memory(mem, q):
     mem[K_P00] = 0.02**2  # radius mismatch: +-2 % a wheel
     mem[K_P11] = (0.5 / q[Q_C0]) ** 2
     mem[K_P01] = 0.0
+    mem[K_LAT_S] = 1.0
+    mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
+    mem[K_LP11] = LAT_SLOPE_SIGMA0**2
     _start(mem, False)
     mem[K_STARTED] = 0.0
+
+
+@njit(cache=True)
+def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
+    """The lateral channel: the understeer angle delta - L r / v against the brush model's alpha_f - alpha_r at the
+    axles' forces per load (lateral.py), as evidence over mu; then, in calm driving, the calibration of its line
+    (offset and slope: the understeer gradient over the profile's) by recursive least squares."""
+    if not dt > 0.0 or mem[K_V_PREV] < 0.0 or v < SLIP_MIN_SPEED_MPS or smp[S_ABS] > 0.0:
+        return
+    delta = smp[S_SWA] / q[Q_STEER_RATIO]
+    if abs(delta) > LAT_MAX_STEER_RAD:
+        return
+    m, lf, lr, iz = q[Q_M], q[Q_LF], q[Q_LR], q[Q_IZ]
+    wb = lf + lr
+    c_f, c_r = q[Q_CA_FRONT], q[Q_CA_REAR]
+    yaw_accel = (smp[S_R] - mem[K_R_PREV]) / dt
+    steer_rate = (delta - mem[K_D_PREV]) / dt
+    ay = aty - mem[K_BIAS_Y]
+    f_f, f_r = axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear)
+    understeer = delta - wb * smp[S_R] / v - mem[K_LAT_B]
+    x0 = f_f / c_f - f_r / c_r  # the profile's linear understeer angle
+    # the measurement's variance: steering and gyro noise, the groups' time offsets and the tire's lag on a changing
+    # steer, the yaw acceleration's noise (a difference of two gyro samples) through the axles' forces
+    lag = LAT_TIME_OFFSET_S + LAT_RELAXATION_M / v
+    rate = (abs(steer_rate) + wb * abs(yaw_accel) / v) * lag
+    s_racc = sqrt(2.0) * LAT_YAW_NOISE_RADPS / dt * iz / (m * G_MPS2) * (1.0 / (lr * c_f) + 1.0 / (lf * c_r))
+    var_meas = (
+        (LAT_STEER_NOISE_RAD / q[Q_STEER_RATIO]) ** 2
+        + (LAT_YAW_NOISE_RADPS * wb / v) ** 2
+        + rate * rate
+        + (mem[K_LAT_S] * s_racc) ** 2
+    )
+    if (
+        not at_limit and mem[K_LP11] <= LAT_SLOPE_CALIBRATED**2
+    ):  # a wheel locked or spinning: its axle's forces are not the brush model's; the limit term speaks
+        # each axle's longitudinal force per load (braking by the brake share, driving by the driven axle's)
+        fx_f = fx_r = atx / G_MPS2  # all-wheel drive: each axle by its load
+        if atx < 0.0:
+            fx_f = q[Q_BRAKE_FRONT] * m * atx / fz_front
+            fx_r = (1.0 - q[Q_BRAKE_FRONT]) * m * atx / fz_rear
+        elif q[Q_DRIVE] == 0.0:
+            fx_f, fx_r = m * atx / fz_front, 0.0
+        elif q[Q_DRIVE] == 1.0:
+            fx_f, fx_r = 0.0, m * atx / fz_rear
+        var0 = (
+            var_meas
+            + mem[K_LP00]
+            + 2.0 * x0 * mem[K_LP01]
+            + x0 * x0 * mem[K_LP11]
+            + LAT_OFFSET_FLOOR_RAD**2
+            + (LAT_SLOPE_FLOOR * x0) ** 2
+        )
+        bias_y_var = LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2
+        sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var) / G_MPS2
+        lk = np.empty(NM)
+        lateral_likelihood(MU_GRID, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, mem[K_LAT_S], var0, sf, TEMPER, lk)
+        for i in range(NM):
+            for j in range(NC):
+                like[i, j] = lk[i]
+        _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
+    # calibration in calm driving: well below the proven friction, following the steer's linear reference
+    if (
+        at_limit
+        or smp[S_TCS] + smp[S_ESC] > 0.0
+        or abs(ay) > min(LAT_CALM_AY_MPS2, LAT_CALM_SHARE * G_MPS2 * mem[K_MU_LO])
+        or abs(yaw_accel) > LAT_STEADY_YAW_ACCEL
+    ):
+        return
+    k_us = mem[K_LAT_S] * understeer_gradient(c_f, c_r)
+    r_ref = reference_yaw_rate(v, delta - mem[K_LAT_B], wb, k_us)
+    if abs(smp[S_R] - r_ref) > LAT_REF_AGREE * abs(r_ref) + 0.02:
+        return
+    # forgetting widens the line's covariance back towards the prior's, never past it (a long straight has no
+    # information on the slope: without the cap its variance would grow without bound, RLS's wind-up)
+    # the line's regressor in the steady turn, a_y = v r (Rajamani eq. 3.15's K_us a_y): the yaw rate's noise is a
+    # fortieth of the accelerometer's there, and a noisy regressor would pull the slope towards zero. Nearly straight
+    # (|v r| under LAT_SLOPE_MIN_AY_MPS2) the regressor is mostly the gyro's noise: the offset alone learns there
+    x_ss = v * smp[S_R] / G_MPS2 * (1.0 / c_f - 1.0 / c_r) if abs(v * smp[S_R]) >= LAT_SLOPE_MIN_AY_MPS2 else 0.0
+    lam = exp(-dt / RLS_TAU_S)
+    p00 = min(mem[K_LP00] / lam, LAT_OFFSET_SIGMA0_RAD**2)
+    p11 = min(mem[K_LP11] / lam, LAT_SLOPE_SIGMA0**2)
+    p01 = min(max(mem[K_LP01] / lam, -sqrt(p00 * p11)), sqrt(p00 * p11))
+    ph0, ph1 = p00 + p01 * x_ss, p01 + p11 * x_ss
+    den = ph0 + ph1 * x_ss + var_meas
+    k0, k1 = ph0 / den, ph1 / den
+    err = understeer - mem[K_LAT_S] * x_ss  # the offset is already out of `understeer`
+    mem[K_LAT_B] += k0 * err
+    mem[K_LAT_S] = min(max(mem[K_LAT_S] + k1 * err, LAT_SLOPE_RANGE[0]), LAT_SLOPE_RANGE[1])
+    mem[K_LP00] = p00 - k0 * ph0
+    mem[K_LP01] = p01 - k0 * ph1
+    mem[K_LP11] = p11 - k1 * ph1
+    mem[K_LAT_W] += dt
 
 
 @njit(cache=True)
@@ -614,7 +775,16 @@ def pmf_step(mem, q, smp, t_prev, out):
         if straight and driving:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
+    _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
     _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving)
+    if dt > 0.0 and not controller and v >= SLIP_MIN_SPEED_MPS and straight:
+        # the lateral accelerometer's bias: a_y - v r over straight driving (mounting roll; a road's crossfall too),
+        # the mean of all so far until BIAS_TAU_S of them, then a moving average over that span
+        w = max(1.0 - exp(-dt / BIAS_TAU_S), dt / (mem[K_BIAS_Y_W] + dt))
+        mem[K_BIAS_Y] += w * ((aty - v * smp[S_R]) - mem[K_BIAS_Y])
+        mem[K_BIAS_Y_W] += dt
+    mem[K_R_PREV] = smp[S_R]
+    mem[K_D_PREV] = smp[S_SWA] / q[Q_STEER_RATIO]
     mem[K_V_PREV] = v
     mem[K_U] = u
     mem[K_LIMIT] = 1.0 if limit else 0.0
@@ -642,6 +812,7 @@ def _output(mem, u, s_u, ok, out):
         lower = min(lower, mem[K_U_LIMIT] - 2.0 * s_u)
     out[O_MU] = mu
     out[O_LOWER] = max(lower, 0.0)
+    mem[K_MU_LO] = out[O_LOWER]
     out[O_UPPER] = upper
     excited = u >= 0.5 * mu or mem[K_LIMIT] > 0.0 or upper - lower <= EXCITED_WIDTH
     out[O_EXCITED] = 1.0 if (ok and excited) else 0.0

@@ -1,0 +1,131 @@
+"""The single-track (bicycle) model pieces of pmf's lateral channel: the steer's reference, the axles' forces per load,
+the brush model's slip angle, and the likelihood over mu of a measured understeer angle.
+
+Single-track model (Rajamani, Vehicle Dynamics and Control, 2nd ed., section 3.3, small angles): each axle's lateral
+force is its cornering stiffness times its slip angle, C_f alpha_f and C_r alpha_r (N/rad, both tires), and in a steady
+turn the road-wheel angle is
+
+    delta = L / R + K_us a_y,     K_us = (m / L) (l_r / C_f - l_f / C_r)      (Rajamani eq. 3.14-3.15)
+
+With the stiffness per load the profile gives (C_f = c_f F_z,f, F_z,f = m g l_r / L, likewise at the rear), the masses
+cancel: K_us = (1 / c_f - 1 / c_r) / g. The yaw rate the steer asks for in a steady turn (a_y = v r, R = v / r) is
+
+    r_ref = v delta / (L + K_us v^2)                                          (Rajamani eq. 3.16)
+
+which for a neutral-steer car (K_us = 0) is the kinematic v delta / L.
+
+Without the steady state: the axles' slip angles are alpha_f = delta - (v_y + l_f r) / v and alpha_r = -(v_y - l_r r) / v
+(Rajamani eq. 2.30-2.31), so their difference, the understeer angle
+
+    delta - L r / v = alpha_f - alpha_r                                        (exact: the unmeasured v_y cancels)
+
+is measured at every sample, in a transient as in a steady turn. The axles' forces follow from Newton-Euler for the
+body (Rajamani eq. 2.27-2.28, the front force taken across the body, cos delta ~ 1):
+F_y,f = (m l_r a_y + I_z r') / L, F_y,r = (m l_f a_y - I_z r') / L; per load, f = F_y / F_z.
+
+The brush model (Pacejka, Tyre and Vehicle Dynamics, 3rd ed., section 3.2.2) gives each axle's slip angle at force per
+load f on a road of friction mu and a tire of cornering stiffness per load c:
+
+    tan alpha = (3 mu / c) (1 - (1 - |f| / mu)^(1/3)) sign(f)       (|f| < mu; alpha = f / c at small f, whatever mu)
+
+so an axle's slip angle grows faster than f / c as it nears its limit: the understeer angle bends away from its line
+K_us a_y where the front axle nears its limit (understeer), and towards zero or below where the rear does (oversteer).
+That bend, on the calibrated line, is the evidence over mu. An axle also driven or braked has less left for the side
+(the friction ellipse, Pacejka section 3.2.4): mu_y = sqrt(mu^2 - f_x^2).
+"""
+
+from __future__ import annotations
+
+from math import erf, exp, sqrt
+
+from numba import njit
+
+from roadgrip.units import G_MPS2
+
+# The combined-slip floor: an axle whose longitudinal force per load reaches mu still holds some of it sideways (the
+# ellipse's ends are where the brush model's force direction follows the slip's; 0.1 keeps the lateral curve defined)
+LATERAL_SHARE_FLOOR = 0.1
+# The brush model's bend against other tire curves: at 60 % of the limit the brush's slip angle is 1.32 x the line,
+# a Magic Formula's (C = 1.4) 1.16 x and Dugoff's 1.04 x (linear to half the limit); at 85 % 1.64, 1.45 and 1.67. Their
+# excess over the line differs from the brush's by half of it and more: the error allowed is half the excess
+LATERAL_MODEL_SHARE = 0.5
+
+
+@njit(cache=True)
+def understeer_gradient(c_front_per_rad, c_rear_per_rad):
+    """K_us (rad per m/s^2) from each axle's cornering stiffness per load (per rad): (1 / c_f - 1 / c_r) / g."""
+    return (1.0 / c_front_per_rad - 1.0 / c_rear_per_rad) / G_MPS2
+
+
+@njit(cache=True)
+def reference_yaw_rate(v_mps, delta_rad, wheelbase_m, k_us):
+    """The steady-state yaw rate the road-wheel angle asks for, v delta / (L + K_us v^2) (Rajamani eq. 3.16)."""
+    return v_mps * delta_rad / (wheelbase_m + k_us * v_mps * v_mps)
+
+
+@njit(cache=True)
+def axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear):
+    """(f_front, f_rear): each axle's lateral force per its load, from the body's a_y and yaw acceleration."""
+    wb = lf + lr
+    fy_front = (m * lr * ay + iz * yaw_accel) / wb
+    fy_rear = (m * lf * ay - iz * yaw_accel) / wb
+    return fy_front / fz_front, fy_rear / fz_rear
+
+
+@njit(cache=True)
+def brush_slip_angle(f, mu, c):
+    """The brush model's (tan of the) slip angle at force per load f (signed), friction mu, stiffness per load c, and
+    whether the axle is at its limit (|f| >= mu: the slip angle is then at least the returned one)."""
+    x = abs(f) / mu
+    sat = x >= 1.0
+    if sat:
+        x = 1.0
+    a = 3.0 * mu / c * (1.0 - (1.0 - x) ** (1.0 / 3.0))
+    return (-a if f < 0.0 else a), sat
+
+
+@njit(cache=True)
+def brush_slip_angle_slope(f, mu, c):
+    """d alpha / d f of the brush model: (1 / c) (1 - |f| / mu)^(-2/3), capped where the axle nears its limit."""
+    return (1.0 / c) * max(1.0 - abs(f) / mu, 0.01) ** (-2.0 / 3.0)
+
+
+@njit(cache=True)
+def _phi(x):
+    return 0.5 * (1.0 + erf(x / sqrt(2.0)))
+
+
+@njit(cache=True)
+def lateral_likelihood(
+    mu_grid, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, slope, var0, sf, temper, out
+):
+    """The likelihood over mu (out, one value per grid mu) of a measured understeer angle (rad, the calibrated offset
+    taken out), raised to `temper`; f_*: the axles' lateral, fx_*: their longitudinal forces per load.
+
+    slope: the calibrated factor on the profile's slip angles (1 / the tires' stiffness factor); var0: the variance of
+    the measurement and of the calibration (offset and slope); sf: the force per load's standard deviation (the
+    lateral accelerometer's remaining bias over g), carried through the brush model's slope. An axle at its limit
+    (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then one-sided, and uninformative where both
+    axles are: there the likelihood is the nearest cell's with an axle that holds (from above), so that a sample the
+    model fits badly does not favour the cells where it says nothing (the friction bound judges those)."""
+    for i in range(mu_grid.size - 1, -1, -1):
+        mu = mu_grid[i]
+        mu_f = sqrt(max(mu * mu - fx_front * fx_front, (LATERAL_SHARE_FLOOR * mu) ** 2))
+        mu_r = sqrt(max(mu * mu - fx_rear * fx_rear, (LATERAL_SHARE_FLOOR * mu) ** 2))
+        a_f, sat_f = brush_slip_angle(f_front, mu_f, c_front)
+        a_r, sat_r = brush_slip_angle(f_rear, mu_r, c_rear)
+        pred = slope * (a_f - a_r)
+        lin = slope * (f_front / c_front - f_rear / c_rear)
+        d_slope = slope * (
+            brush_slip_angle_slope(f_front, mu_f, c_front) - brush_slip_angle_slope(f_rear, mu_r, c_rear)
+        )
+        sig = sqrt(var0 + (LATERAL_MODEL_SHARE * (pred - lin)) ** 2 + (sf * d_slope) ** 2)
+        if sat_f and sat_r:
+            out[i] = out[i + 1] if i + 1 < mu_grid.size else 1.0
+        elif sat_f:  # the front slides: the understeer angle is at least (in the force's direction) the prediction
+            out[i] = _phi((understeer - pred) / sig if f_front > 0.0 else (pred - understeer) / sig) ** temper
+        elif sat_r:  # the rear slides: the understeer angle is at most the prediction
+            out[i] = _phi((pred - understeer) / sig if f_rear > 0.0 else (understeer - pred) / sig) ** temper
+        else:
+            z = (understeer - pred) / sig
+            out[i] = exp(-0.5 * temper * z * z)
