@@ -1,10 +1,11 @@
 """Slippery-road warnings per H3 cell (CONTRACTS 3.6), in the shape of an ETSI DENM (cause code 6,
 adverseWeatherCondition-Adhesion).
 
-This module owns the warning rules 2-8 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
+This module owns the warning rules 2-9 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
 as defaults) and the longest validity a DENM can carry (MAX_VALIDITY_S). Rule 1, what a pass is, is passes.py's,
 the friction map's too; the cell of a position is cells.py's; the argument checks are checks.py's. Writing an event
-as a DENM is roadgrip/cloud/formats/denm.py's.
+as a DENM is roadgrip/cloud/formats/denm.py's; where in a cell a warning's low evidence lies, and which dry pass
+speaks of it (rule 9), is roadgrip/cloud/domain/places.py's.
 
 Pure and in memory: `update(estimates, now_ms)` takes estimate rows (CONTRACTS 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
@@ -31,12 +32,14 @@ Rules
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
    excited estimates say mu_upper < threshold_mu is evidence enough; with 2, two vehicles or repeated passes of one)
-   later than its last dry pass and at most validity_s old. One vehicle's passes less than pass_gap_s apart
+   not superseded by a later dry pass over their place (rule 9) and at most validity_s old. One vehicle's passes less than pass_gap_s apart
    count once (`_Evidence`): GNSS noise along a cell border splits one visit into several passes. Only low
    passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
-6. Cancel ("recovered"): min_dry_passes dry passes later than the detection cancel it. A dry pass also clears the
-   cell's earlier low passes (rule 4 counts only low passes after the last dry one).
+6. Cancel ("recovered"): the warning ends when its place is shown dry (rule 9): every spot of its low evidence has had
+   min_dry_passes dry passes over it since its last low reading, the last of them later than the detection. A dry
+   pass elsewhere in the cell neither cancels nor refreshes it. Once every spot has had a dry pass after its low
+   readings, the cell's earlier low passes are cleared (rule 4 counts only low passes after it).
 7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
    validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
    applied to its cell against the pass's time.
@@ -48,6 +51,14 @@ Rules
    rules 3-7 like a vehicle's pass: a station's low reports more than pass_gap_s apart are repeated passes of one
    source (two raise a warning alone with min_low_passes 2), a dry report cancels. A report no newer than the
    station's last one applied in that cell is dropped (counted in `late_rows_`): its newest report supersedes.
+   A station stands for a stretch of road (stations.py): its low report's place is the whole cell, which only a
+   station's dry report shows dry; its dry report speaks of every spot in the cell.
+9. Places (places.py). A low pass marks the spots (H3 resolution-12 cells, about 19 m across) of its estimates that
+   read low (excited, mu_upper < threshold_mu). A dry pass speaks of a spot only when one of its estimates that proved
+   grip (excited with mu_lower >= threshold_mu, or mu_proven >= threshold_mu) lies in it or a neighbour (within about
+   15-30 m); a dry pass that speaks of none of the cell's spots changes nothing there. A low pass whose every spot had a
+   later dry pass over it is superseded (a late row). The event carries the spots not yet shown dry (`spots`), which
+   restore() takes back; an event stored without them restores a place any dry pass in the cell speaks of.
 
 Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
 is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
@@ -59,6 +70,7 @@ regions, roadgrip/cloud/cluster/regions.py).
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import operator
 import statistics
@@ -71,6 +83,7 @@ import h3
 from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
+from roadgrip.cloud.domain.places import UNKNOWN_PLACE, Place, reach, spots_of
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
@@ -114,6 +127,8 @@ class WarningEvent:
     # refreshed it, the dry pass that cancelled it, or the instant it lapsed
     action_sequence_number: int  # DENM ActionID sequenceNumber, one per warning
     station_id: int = 1  # DENM originating station
+    spots: tuple[str, ...] = ()  # the warning's place not yet shown dry (places.py: resolution-12 cells of its low
+    # readings, a station's whole cell as the cell itself); what restore() takes back. Not part of the DENM
 
 
 class _LowPass(NamedTuple):
@@ -192,22 +207,24 @@ def _time_of(p: _LowPass) -> int:
 
 
 class _Pass(Pass):
-    """A pass (passes.py) as the engine judges it: its excited estimates' bounds and its largest proven bound."""
+    """A pass (passes.py) as the engine judges it: its excited estimates' bounds, its largest proven bound, and where
+    its estimates read low and proved grip (rule 9)."""
 
-    __slots__ = ("lowers", "proven", "uppers")
+    __slots__ = ("grip_at", "low_at", "lowers", "proven", "uppers")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
         super().__init__(vehicle_id, cell, t)
         self.uppers: list[float] = []
         self.lowers: list[float] = []
         self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
+        self.low_at: list[tuple[float, float]] = []  # positions of excited estimates with mu_upper < threshold_mu
+        self.grip_at: list[tuple[float, float]] = []  # ... of estimates that proved grip >= threshold_mu
 
 
 class _Warning:
     __slots__ = (
         "action_sequence_number",
         "detection_ms",
-        "dry_passes",
         "evidence_ms",
         "last_event",
         "sequence_number",
@@ -217,16 +234,15 @@ class _Warning:
     def __init__(self, warning_id: str, detection_ms: int, action_sequence_number: int, sequence_number: int = 0):
         self.warning_id, self.detection_ms, self.evidence_ms = warning_id, detection_ms, detection_ms
         self.action_sequence_number, self.sequence_number = action_sequence_number, sequence_number
-        self.dry_passes = 0
         self.last_event: WarningEvent | None = None
 
 
 class _CellState:
-    __slots__ = ("last_dry_ms", "low_passes", "warning")
+    __slots__ = ("low_passes", "place", "warning")
 
     def __init__(self, gap_ms: float):
         self.low_passes = _Evidence(gap_ms)
-        self.last_dry_ms = _NEVER
+        self.place = Place()  # where its low evidence lies (rule 9)
         self.warning: _Warning | None = None
 
 
@@ -279,22 +295,30 @@ class WarningEngine:
         now_ms = int(now_ms)
         gap_ms = self.pass_gap_s * 1000.0
         resolution = self.resolution
+        threshold = self.threshold_mu
         to_cell = cell_of
         place = self.passes_.row
         for row in in_pass_order(estimates):
             vehicle = row["vehicle_id"]
             t = int(row["timestamp_ms"])
-            current = place(vehicle, to_cell(row["latitude_deg"], row["longitude_deg"], resolution), t)
+            lat, lon = row["latitude_deg"], row["longitude_deg"]
+            current = place(vehicle, to_cell(lat, lon, resolution), t)
             if current is None:  # too late to change a verdict (rule 1)
                 continue
             proven = row.get("mu_proven")
-            if proven is not None and proven > current.proven:
-                current.proven = proven
+            if proven is not None:
+                current.proven = max(current.proven, proven)
+                if proven >= threshold:
+                    current.grip_at.append((lat, lon))
             if row["excited"]:
                 lo, hi = row["mu_lower"], row["mu_upper"]
                 checks.finite_bounds(f"estimate of vehicle {vehicle!r} at {t}", lo, hi)
                 current.lowers.append(lo)
                 current.uppers.append(hi)
+                if hi < threshold:
+                    current.low_at.append((lat, lon))
+                elif lo >= threshold:
+                    current.grip_at.append((lat, lon))
         self.passes_.close_idle(now_ms)  # no estimate from a vehicle for pass_gap_s: its pass is over
         closed = self._judged[:]
         self._judged.clear()
@@ -324,7 +348,7 @@ class WarningEngine:
             report.uppers.append(hi)
             report.lowers.append(lo)
             verdict = LOW if hi < self.threshold_mu else DRY if lo >= self.threshold_mu else UNKNOWN
-            self._apply(report, now_ms, events, verdict)
+            self._apply(report, now_ms, events, verdict, station=True)
         self._expire(now_ms, events)
         return events
 
@@ -343,6 +367,7 @@ class WarningEngine:
             state = self._cell(event.cell)
             if state.warning is not None and state.warning.last_event.updated_ms >= event.updated_ms:
                 continue
+            event = dataclasses.replace(event, spots=tuple(event.spots))  # a list when read back from JSON
             warning = _Warning(
                 event.warning_id, event.detection_ms, event.action_sequence_number, event.sequence_number
             )
@@ -353,6 +378,8 @@ class WarningEngine:
             state.low_passes.clear()
             for k in range(max(1, event.n_passes)):
                 state.low_passes.add(_LowPass(event.evidence_ms, f"restored-{k % n_vehicles}", event.mu_upper))
+            state.place.clear()
+            state.place.low(event.spots or (UNKNOWN_PLACE,), event.evidence_ms)
             self.active_cells_.add(event.cell)
             self.next_action_sequence_number_ = max(
                 self.next_action_sequence_number_, (event.action_sequence_number + 1) % 65536
@@ -370,8 +397,16 @@ class WarningEngine:
             return DRY
         return UNKNOWN
 
-    def _apply(self, finished: _Pass, now_ms: int, events: list[WarningEvent], verdict: str | None = None) -> None:
-        """Apply a judged pass to its cell (rules 4-7); its verdict by rule 2 unless given (a station's, rule 8)."""
+    def _apply(
+        self,
+        finished: _Pass,
+        now_ms: int,
+        events: list[WarningEvent],
+        verdict: str | None = None,
+        *,
+        station: bool = False,
+    ) -> None:
+        """Apply a judged pass to its cell (rules 4-7, 9); its verdict by rule 2 unless given (a station's, rule 8)."""
         verdict = self.verdict(finished.uppers, finished.lowers, finished.proven) if verdict is None else verdict
         if verdict == UNKNOWN:
             return
@@ -382,16 +417,19 @@ class WarningEngine:
         if warning is not None and t >= warning.evidence_ms + validity_ms:  # it lapsed before this pass (rule 7)
             self._end(finished.cell, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
             warning = None
+        place = state.place
         if verdict == DRY:
-            state.last_dry_ms = max(state.last_dry_ms, t)
-            state.low_passes.drop_older(t, inclusive=True)
-            if warning is not None and t > warning.detection_ms:
-                warning.dry_passes += 1
-                if warning.dry_passes >= self.min_dry_passes:
-                    self._end(finished.cell, state, RECOVERED, t, now_ms, events)
+            spoken = place and place.spoken_of(None if station else reach(spots_of(finished.grip_at)))
+            if not spoken:
+                return  # grip proven elsewhere in the cell: it says nothing of where it read low (rule 9)
+            place.dry(spoken, t)
+            if place.all_dry(1):  # every low reading here has a dry pass over its spot after it (rule 6)
+                state.low_passes.drop_older(t, inclusive=True)
+            if warning is not None and t > warning.detection_ms and place.all_dry(self.min_dry_passes):
+                self._end(finished.cell, state, RECOVERED, t, now_ms, events)
             return
-        if t <= state.last_dry_ms:
-            return  # superseded by a later dry pass (rule 4)
+        if not place.low({finished.cell} if station else spots_of(finished.low_at), t):
+            return  # superseded by a later dry pass over its place (rules 4, 9)
         horizon = max(now_ms, t) - validity_ms
         state.low_passes.drop_older(horizon)
         state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
@@ -438,6 +476,7 @@ class WarningEngine:
             evidence_ms=warning.evidence_ms,
             action_sequence_number=warning.action_sequence_number,
             station_id=self.station_id,
+            spots=state.place.still_low(self.min_dry_passes) if status == ACTIVE else warning.last_event.spots,
         )
         warning.last_event = event
         return event
@@ -453,6 +492,7 @@ class WarningEngine:
         self.active_cells_.discard(cell)
         if reason == EXPIRED:
             state.low_passes.clear()  # its evidence is older than validity_s
+            state.place.clear()
 
     def _expire(self, now_ms: int, events: list[WarningEvent]) -> None:
         validity_ms = self.validity_s * 1000.0
@@ -475,7 +515,8 @@ class WarningEngine:
         for cell in [c for c, s in self.cell_states_.items() if s.warning is None]:
             state = self.cell_states_[cell]
             state.low_passes.drop_older(horizon)
-            if not state.low_passes and state.last_dry_ms < horizon:
+            state.place.forget(horizon)
+            if not state.low_passes and not state.place:
                 del self.cell_states_[cell]
         self.passes_.forget(horizon)
         for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:
