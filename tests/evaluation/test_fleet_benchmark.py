@@ -63,6 +63,20 @@ def test_a_warning_outliving_its_patch_by_five_minutes():
     assert summary["lingering"] == 1 and summary["linger_over_10min"] == 0 and summary["linger_max_s"] == 300.0
 
 
+def test_a_warning_cancelled_while_its_patch_persists_is_counted():
+    """ICE is there from 20 s to 60 s: a dry pass that cancels its warning at 40 s read grip where the ice still was
+    (or grip elsewhere in the cell); an expiry, or a cancellation after it dried, is not counted."""
+    early = Warning("cell", 25.0, 40.0, "recovered")
+    expired = Warning("cell", 26.0, 45.0, "expired")
+    after = Warning("cell", 30.0, 70.0, "recovered")
+    row = patch_outcome(ICE, [("a", 25.0, 28.0)], [early, expired, after], [], run_end_s=600.0)
+    assert row["cancelled_while_there"] == 1 and row["linger_s"] == pytest.approx(10.0)
+    beside = patch_outcome(ICE, [("a", 25.0, 28.0)], [], [early], run_end_s=600.0)
+    assert beside["cancelled_while_there"] == 0  # a neighbour cell's warning may end while the patch is there
+    overall = summarize_run([row, beside], [], [], 1.0, 0, 0)[-1]
+    assert overall["cancelled_while_there"] == 1
+
+
 def test_a_warning_on_dry_road_is_false_and_counted_per_100_km():
     cells = {ICE.name: patch_cells(NETWORK, ICE)}
     assert cells[ICE.name]
@@ -172,6 +186,7 @@ COUNTS = (
     "lingering",
     "linger_over_10min",
     "censored",
+    "cancelled_while_there",
     "map_cells",
     "bounded_cells",
     "warnings",
