@@ -32,14 +32,13 @@ Rules
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
    excited estimates say mu_upper < threshold_mu is evidence enough; with 2, two vehicles or repeated passes of one)
-   not superseded by a later dry pass over their place (rule 9) and at most validity_s old. One vehicle's passes less than pass_gap_s apart
-   count once (`_Evidence`): GNSS noise along a cell border splits one visit into several passes. Only low
-   passes in the cell itself count: a warning never appears in a cell without them.
+   later than the last dry pass over the cell's place (rule 9) and at most validity_s old. One vehicle's passes less
+   than pass_gap_s apart count once (`_Evidence`): GNSS noise along a cell border splits one visit into several
+   passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
-6. Cancel ("recovered"): the warning ends when its place is shown dry (rule 9): every spot of its low evidence has had
-   min_dry_passes dry passes over it since its last low reading, the last of them later than the detection. A dry
-   pass elsewhere in the cell neither cancels nor refreshes it. Once every spot has had a dry pass after its low
-   readings, the cell's earlier low passes are cleared (rule 4 counts only low passes after it).
+6. Cancel ("recovered"): min_dry_passes dry passes over its place (rule 9) later than the detection cancel it. A dry
+   pass elsewhere in the cell neither cancels nor refreshes it. A dry pass over the place also clears the cell's
+   earlier low passes (rule 4 counts only low passes after the last such dry pass).
 7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
    validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
    applied to its cell against the pass's time.
@@ -52,13 +51,16 @@ Rules
    source (two raise a warning alone with min_low_passes 2), a dry report cancels. A report no newer than the
    station's last one applied in that cell is dropped (counted in `late_rows_`): its newest report supersedes.
    A station stands for a stretch of road (stations.py): its low report's place is the whole cell, which only a
-   station's dry report shows dry; its dry report speaks of every spot in the cell.
+   station's dry report speaks of; its dry report speaks of every place in the cell.
 9. Places (places.py). A low pass marks the spots (H3 resolution-12 cells, about 19 m across) of its estimates that
-   read low (excited, mu_upper < threshold_mu). A dry pass speaks of a spot only when one of its estimates that proved
-   grip (excited with mu_lower >= threshold_mu, or mu_proven >= threshold_mu) lies in it or a neighbour (within about
-   15-30 m); a dry pass that speaks of none of the cell's spots changes nothing there. A low pass whose every spot had a
-   later dry pass over it is superseded (a late row). The event carries the spots not yet shown dry (`spots`), which
-   restore() takes back; an event stored without them restores a place any dry pass in the cell speaks of.
+   read low (excited, mu_upper < threshold_mu); the cell's place is its spots since the last dry pass over it. A dry
+   pass speaks of the place only when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
+   mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m); a dry pass that does not
+   changes nothing in the cell. A vehicle's dry pass that begins within pass_gap_s of its own low pass in the cell is
+   the rest of that visit (GNSS noise along a cell border splits a visit; rule 2 judges a visit that read low as low:
+   grip proven just past a patch's edge on the way out is not the patch drying). The event carries the place
+   (`spots`), which restore() takes back; an event stored without it restores a place any dry pass in the cell speaks
+   of.
 
 Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
 is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
@@ -169,6 +171,11 @@ class _Evidence:
         u, n = self._uppers, len(self._uppers)
         return u[n // 2] if n % 2 else (u[n // 2 - 1] + u[n // 2]) / 2  # as statistics.median
 
+    def last_of(self, vehicle_id: str) -> int | None:
+        """The time of the vehicle's latest low pass held, or None."""
+        times = self._by_vehicle.get(vehicle_id)
+        return times[-1] if times else None
+
     def _counts(self, earlier: int | None, t: int) -> bool:
         return earlier is None or t - earlier > self._gap_ms
 
@@ -225,6 +232,7 @@ class _Warning:
     __slots__ = (
         "action_sequence_number",
         "detection_ms",
+        "dry_passes",
         "evidence_ms",
         "last_event",
         "sequence_number",
@@ -234,15 +242,17 @@ class _Warning:
     def __init__(self, warning_id: str, detection_ms: int, action_sequence_number: int, sequence_number: int = 0):
         self.warning_id, self.detection_ms, self.evidence_ms = warning_id, detection_ms, detection_ms
         self.action_sequence_number, self.sequence_number = action_sequence_number, sequence_number
+        self.dry_passes = 0
         self.last_event: WarningEvent | None = None
 
 
 class _CellState:
-    __slots__ = ("low_passes", "place", "warning")
+    __slots__ = ("last_dry_ms", "low_passes", "place", "warning")
 
     def __init__(self, gap_ms: float):
         self.low_passes = _Evidence(gap_ms)
         self.place = Place()  # where its low evidence lies (rule 9)
+        self.last_dry_ms = _NEVER  # the last dry pass that spoke of it
         self.warning: _Warning | None = None
 
 
@@ -419,17 +429,24 @@ class WarningEngine:
             warning = None
         place = state.place
         if verdict == DRY:
-            spoken = place and place.spoken_of(None if station else reach(spots_of(finished.grip_at)))
-            if not spoken:
-                return  # grip proven elsewhere in the cell: it says nothing of where it read low (rule 9)
-            place.dry(spoken, t)
-            if place.all_dry(1):  # every low reading here has a dry pass over its spot after it (rule 6)
-                state.low_passes.drop_older(t, inclusive=True)
-            if warning is not None and t > warning.detection_ms and place.all_dry(self.min_dry_passes):
-                self._end(finished.cell, state, RECOVERED, t, now_ms, events)
+            if not place or not place.spoken_of(None if station else reach(spots_of(finished.grip_at))):
+                return  # no low evidence here, or grip proven elsewhere in the cell: nothing of its place (rule 9)
+            own_low = state.low_passes.last_of(finished.vehicle_id)
+            if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
+                return  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
+            state.last_dry_ms = max(state.last_dry_ms, t)
+            state.low_passes.drop_older(t, inclusive=True)
+            if warning is None:
+                place.forget(t, inclusive=True)  # the low evidence it held is cleared (rule 6)
+            elif t > warning.detection_ms:
+                warning.dry_passes += 1
+                if warning.dry_passes >= self.min_dry_passes:
+                    self._end(finished.cell, state, RECOVERED, t, now_ms, events)
+                    place.forget(t, inclusive=True)
             return
-        if not place.low({finished.cell} if station else spots_of(finished.low_at), t):
+        if t <= state.last_dry_ms:
             return  # superseded by a later dry pass over its place (rules 4, 9)
+        place.low({finished.cell} if station else spots_of(finished.low_at), t)
         horizon = max(now_ms, t) - validity_ms
         state.low_passes.drop_older(horizon)
         state.low_passes.add(_LowPass(t, finished.vehicle_id, statistics.median(finished.uppers)))
@@ -476,7 +493,7 @@ class WarningEngine:
             evidence_ms=warning.evidence_ms,
             action_sequence_number=warning.action_sequence_number,
             station_id=self.station_id,
-            spots=state.place.still_low(self.min_dry_passes) if status == ACTIVE else warning.last_event.spots,
+            spots=state.place.keys() if status == ACTIVE else warning.last_event.spots,
         )
         warning.last_event = event
         return event
@@ -516,7 +533,7 @@ class WarningEngine:
             state = self.cell_states_[cell]
             state.low_passes.drop_older(horizon)
             state.place.forget(horizon)
-            if not state.low_passes and not state.place:
+            if not state.low_passes and not state.place and state.last_dry_ms < horizon:
                 del self.cell_states_[cell]
         self.passes_.forget(horizon)
         for key in [k for k, t in self.station_last_ms_.items() if t < horizon]:

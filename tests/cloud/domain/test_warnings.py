@@ -388,25 +388,25 @@ def test_a_dry_pass_over_the_low_spot_cancels():
     assert event.spots == raised_event.spots and engine.active() == []
 
 
-def test_a_neighbouring_spot_counts_and_the_whole_place_must_be_shown_dry():
+def test_grip_beside_a_low_spot_speaks_for_the_whole_place():
+    """A neighbouring spot (within about 15-30 m) counts, and one dry pass over part of the place cancels: an
+    estimator's low readings run on after the braking that measured them (places.py)."""
     engine = WarningEngine()
     ice = h3.latlng_to_cell(*ICE_SPOT, 12)
     beside = next(c for c in h3.grid_ring(ice, 1) if h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL)
     stream(engine, at("a", T0_MS, ICE_SPOT, low=True) + at("b", T0_MS + 5_000, OTHER_SPOT, low=True))
     assert len(engine.active()[0].spots) == 2
-    assert stream(engine, at("c", T0_MS + 120_000, h3.cell_to_latlng(beside), low=False)) == []  # half the place
-    (event,) = stream(engine, at("d", T0_MS + 240_000, OTHER_SPOT, low=False))
+    (event,) = stream(engine, at("c", T0_MS + 120_000, h3.cell_to_latlng(beside), low=False))
     assert event.reason == "recovered"
+    assert h3.great_circle_distance(h3.cell_to_latlng(beside), OTHER_SPOT, "m") > 60.0
 
 
-def test_a_low_reading_after_the_dry_pass_makes_the_spot_low_again():
+def test_one_dry_pass_over_the_place_does_not_cancel_when_two_are_needed():
     engine = WarningEngine(min_dry_passes=2)
     stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
-    assert stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False)) == []  # one of two
-    (refresh,) = stream(engine, at("c", T0_MS + 240_000, ICE_SPOT, low=True))
-    assert refresh.status == "active" and refresh.sequence_number == 1
-    assert stream(engine, at("d", T0_MS + 360_000, ICE_SPOT, low=False)) == []  # the count started over
-    (event,) = stream(engine, at("e", T0_MS + 480_000, ICE_SPOT, low=False))
+    assert stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False)) == []
+    assert stream(engine, at("c", T0_MS + 240_000, OTHER_SPOT, low=False)) == []  # elsewhere: does not count
+    (event,) = stream(engine, at("d", T0_MS + 360_000, ICE_SPOT, low=False))
     assert event.reason == "recovered"
 
 
@@ -464,13 +464,25 @@ def test_a_station_speaks_for_the_whole_cell_and_a_vehicle_for_its_track():
     assert event.reason == "recovered"
 
 
-def test_a_late_low_pass_is_superseded_only_where_the_dry_pass_spoke():
+def test_a_late_low_pass_is_superseded_by_a_dry_pass_over_the_place_only():
     engine = two_pass_engine()
-    rows = at("a", T0_MS, ICE_SPOT, low=True) + at("d", T0_MS + 60_000, ICE_SPOT, low=False)
-    stream(engine, rows)
-    late = engine.update(
-        at("b", T0_MS + 30_000, ICE_SPOT, low=True) + at("e", T0_MS + 30_000, OTHER_SPOT, low=True), T0_MS + 200_000
-    )
-    assert late == []  # b's spot was shown dry after it; e alone is one low pass
-    (event,) = stream(engine, at("f", T0_MS + 300_000, OTHER_SPOT, low=True))
+    stream(engine, at("a", T0_MS, OTHER_SPOT, low=True) + at("d", T0_MS + 60_000, ICE_SPOT, low=False))
+    assert engine.cell_states_[CELL].low_passes  # d proved grip away from a's low reading: a still counts
+    (event,) = engine.update(at("b", T0_MS + 30_000, OTHER_SPOT, low=True), T0_MS + 200_000)
     assert event.n_passes == 2 and event.spots == (h3.latlng_to_cell(*OTHER_SPOT, 12),)
+    engine = two_pass_engine()
+    stream(engine, at("a", T0_MS, OTHER_SPOT, low=True) + at("d", T0_MS + 60_000, OTHER_SPOT, low=False))
+    assert engine.update(at("b", T0_MS + 30_000, OTHER_SPOT, low=True), T0_MS + 200_000) == []  # older than d
+
+
+def test_grip_on_the_way_out_of_the_ice_is_the_rest_of_a_low_visit():
+    """A vehicle reads low, crosses a cell border for a moment (GNSS noise) and proves grip just past the patch's edge:
+    the same visit, judged low; another vehicle's grip there later cancels."""
+    engine = WarningEngine()
+    out = h3.cell_to_latlng(h3.grid_ring(CELL, 1)[0])
+    rows = at("a", T0_MS, ICE_SPOT, low=True) + at("a", T0_MS + 2_000, out, low=False, n=2)
+    rows += at("a", T0_MS + 2_200, ICE_SPOT, low=False, n=5)
+    assert raised(stream(engine, rows)) == {CELL}
+    assert [e.cell for e in engine.active()] == [CELL]
+    (event,) = stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
