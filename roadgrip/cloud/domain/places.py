@@ -13,8 +13,9 @@ keeps, per cell, the *spots* of its low evidence:
   above the threshold, or mu_proven at or above it) lies on one of the spots or one of their six neighbours
   (SPOT_RING 1): within about 15-30 m of a low reading, which allows for GNSS error (a few metres) and for an
   estimate's window (pmf reads the last second or so of driving, 10-30 m at road speeds). A vehicle's pass never speaks
-  for a station's whole-cell spot (it proved grip along its own track only). A station's dry report speaks of every
-  spot of the cells it covers.
+  for a station's whole-cell spot (it proved grip along its own track only), and a station's dry report speaks only
+  of a place a station read low (the whole-cell spot): the evidence row of a report holds the cell, not where the
+  station stands, and a station up to COVERAGE_RADIUS_M away says nothing of where a vehicle read ice.
 - One such pass speaks for the whole place, not only for the spots it touched: an estimator's low readings go on for
   a while after the braking that measured them (pmf's posterior carries the ice along: in
   tests/cloud/test_api.py a 46 m braking on a 150 m patch read low over all 150 m), while grip is proven only where a
@@ -68,11 +69,9 @@ class Place:
             if t > self.spots.get(key, _NEVER):
                 self.spots[key] = t
 
-    def spoken_of(self, grip: set[str] | None) -> bool:
-        """Whether a dry pass speaks of the place: a vehicle's (`grip`: the reach of its grip spots) when it touches a
-        spot, a station's (None) always; never for a place without spots."""
-        if grip is None:
-            return bool(self.spots)
+    def spoken_of(self, grip: set[str]) -> bool:
+        """Whether a dry pass whose grip reaches `grip` (a vehicle's: the reach of its grip spots; a station's: its
+        cell, the whole-cell spot) touches a spot of the place."""
         return any(k in grip or k == UNKNOWN_PLACE for k in self.spots)
 
     def keys(self) -> tuple[str, ...]:

@@ -51,7 +51,7 @@ Rules
    source (two raise a warning alone with min_low_passes 2), a dry report cancels. A report no newer than the
    station's last one applied in that cell is dropped (counted in `late_rows_`): its newest report supersedes.
    A station stands for a stretch of road (stations.py): its low report's place is the whole cell, which only a
-   station's dry report speaks of; its dry report speaks of every place in the cell.
+   station's dry report speaks of; its dry report says nothing of where vehicles read low (rule 9).
 9. Places (places.py). A low pass marks the spots (H3 resolution-12 cells, about 19 m across) of its estimates that
    read low (excited, mu_upper < threshold_mu); the cell's place is its spots since the last dry pass over it. A dry
    pass speaks of the place only when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
@@ -429,7 +429,7 @@ class WarningEngine:
             warning = None
         place = state.place
         if verdict == DRY:
-            if not place or not place.spoken_of(None if station else reach(spots_of(finished.grip_at))):
+            if not place or not place.spoken_of({finished.cell} if station else reach(spots_of(finished.grip_at))):
                 return  # no low evidence here, or grip proven elsewhere in the cell: nothing of its place (rule 9)
             own_low = state.low_passes.last_of(finished.vehicle_id)
             if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:

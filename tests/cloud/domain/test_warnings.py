@@ -458,9 +458,10 @@ def test_a_station_speaks_for_the_whole_cell_and_a_vehicle_for_its_track():
     assert stream(engine, at("b", T0_MS + 60_000, ICE_SPOT, low=False)) == []  # grip on one track only
     (event,) = engine.station_evidence([_station_row("rws", T0_MS + 120_000, 0.7, 1.2)], T0_MS + 120_000)
     assert event.reason == "recovered"
-    # a vehicle's low spot: the station's dry report speaks of it
+    # a vehicle's low spot: the station's dry report (its row holds the cell, not where it stands) says nothing of it
     stream(engine, at("c", T0_MS + 200_000, ICE_SPOT, low=True))
-    (event,) = engine.station_evidence([_station_row("rws", T0_MS + 300_000, 0.7, 1.2)], T0_MS + 300_000)
+    assert engine.station_evidence([_station_row("rws", T0_MS + 300_000, 0.7, 1.2)], T0_MS + 300_000) == []
+    (event,) = stream(engine, at("d", T0_MS + 400_000, ICE_SPOT, low=False))
     assert event.reason == "recovered"
 
 
