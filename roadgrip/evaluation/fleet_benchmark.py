@@ -17,16 +17,22 @@ Scenario (one per seed, `make_scenario`):
   cruise, then back up; a pause of TRIP_GAP_S between trips. A trip's patches are those there when it reaches them
   (Network.mu_profile with the planned arrival clock).
 
-Roadside stations (issue 16, item 4; `simulate_station_reports`): `stations_at_patches` stations stand at the centre of
-as many slippery patches (drawn among them), `stations_on_dry_road` on roads at least STATION_CLEARANCE_M from every
-patch; each reports every STATION_REPORT_S (60 s, from a random phase) what its sensors read at its spot, in report
-format v1 (roadgrip/cloud/domain/stations.py):
+Roadside stations (issue 16, item 4; issue 23; `simulate_station_reports`): `stations` road weather stations where a
+road operator would put them, chosen from the network alone, never from the patches (`place_stations`): evenly along
+the network's roads laid end to end, one every (total length / stations) metres from a seeded random offset. Where a
+station happens to stand on a patch is the truth's business (SimStation.patch, for the report only). Each reports
+every STATION_REPORT_S (60 s, from a random phase) what its sensors read at its spot, in report format v1
+(roadgrip/cloud/domain/stations.py):
 - surface state from the true mu there (`state_of`: <= 0.2 ice, <= 0.4 snow, < 0.65 wet with a 1-3 mm film, < 0.95
   wet with a 0.05-0.2 mm film, else dry), moved one class along ice-snow-wet-moist-dry with probability
-  STATION_CONFUSION (0.1) per report: the misclassifications of optical sensors; a surface temperature that goes with
-  it (ice and snow -8..-1 C, else 1..8 C);
-- every other station (the odd ones) also has a friction sensor: the true mu capped at 1 plus N(0, 0.05), clipped to
-  [0, 1], with its class's +-0.1 uncertainty;
+  STATION_CONFUSION (0.1) per report: the misclassifications of optical sensors (an assumption of about one report in
+  ten, not a measured rate: the classes border each other, moist against wet, snow against ice); a surface
+  temperature that goes with it (ice and snow -8..-1 C, else 1..8 C);
+- every other station (the odd ones) also has a friction sensor: the true mu capped at 1, plus the sensor's own bias
+  (drawn once per station, uniform in +-STATION_FRICTION_BIAS, 0.1) and N(0, STATION_FRICTION_NOISE, 0.05) per
+  reading, clipped to [0, 1], with its class's +-0.1 uncertainty. The bias: optical sensors infer friction from the
+  layer they see, not from a tire, and are calibrated per site; a bias of up to the +-0.1 class width that
+  stations.py already gives a reading (FRICTION_UNCERTAINTY) is the assumption, not a datasheet figure;
 - failures: each report is lost with probability STATION_LOSS (0.05); with probability 0.3 a station is out for one
   spell of 10-30 min (no reports); with probability 0.2 it sticks for 10-20 min from a random instant, repeating the
   reading it had then with new timestamps (a frozen sensor).
@@ -111,10 +117,10 @@ PATCH_CLEARANCE_M = 150.0  # between patch edges, and from a patch to any other 
 EVIDENCE_WINDOW_S = 600.0
 WAIT_STEP_S = 0.01
 STATION_REPORT_S = 60.0
-STATION_CLEARANCE_M = 300.0  # a dry-road station from the edge of every patch
 STATION_CONFUSION = 0.1  # a report's state one class off
 STATION_LOSS = 0.05  # a report lost
 STATION_FRICTION_NOISE = 0.05  # standard deviation of a friction sensor's reading
+STATION_FRICTION_BIAS = 0.1  # a friction sensor's own bias: uniform in +- this, drawn once per station
 STATE_ORDER = ("ice", "snow", "wet", "moist", "dry")  # a misread moves one step along
 EXCITED_UTILIZATION = 0.5  # CONTRACTS 4: an excited sample
 OBSERVABLE_SAMPLES = 3  # excited samples that make a pass observable (the warning engine's min_excited_per_pass)
@@ -129,14 +135,15 @@ class FleetConfig:
     appear_max_s: float = 1200.0  # patches appear in [0, appear_max_s] ...
     life_s: tuple[float, float] = (900.0, 1800.0)  # ... and dry up this long after
     snapshot_every_s: float = 300.0
-    stations_at_patches: int = 4  # roadside stations at slippery patches ...
-    stations_on_dry_road: int = 2  # ... and beside dry road
+    stations: int = 6  # roadside stations, evenly along the network (place_stations)
 
     def __post_init__(self):
         if self.vehicles < 1:
             raise ValueError(f"vehicles must be >= 1, got {self.vehicles!r}")
         if not 60.0 <= self.duration_s <= 3 * 3600.0:
             raise ValueError(f"duration_s must lie in [60, 10800], got {self.duration_s!r}")
+        if self.stations < 0:
+            raise ValueError(f"stations must be >= 0, got {self.stations!r}")
         if not 0 < self.life_s[0] <= self.life_s[1]:
             raise ValueError(f"life_s must be (low, high) with 0 < low <= high, got {self.life_s!r}")
 
@@ -273,8 +280,9 @@ class SimStation:
     station_id: str
     east_m: float
     north_m: float
-    patch: str | None  # the patch it stands at, None beside dry road
+    patch: str | None  # the patch whose disc holds its spot (truth, for the report; not used to place it), or None
     friction_sensor: bool
+    friction_bias: float = 0.0  # its friction sensor's bias (STATION_FRICTION_BIAS)
 
 
 def state_of(mu: float, rng: np.random.Generator) -> tuple[str, float | None]:
@@ -291,24 +299,23 @@ def state_of(mu: float, rng: np.random.Generator) -> tuple[str, float | None]:
 
 
 def place_stations(scenario: FleetScenario, rng: np.random.Generator) -> list[SimStation]:
-    """`stations_at_patches` at the centre of slippery patches drawn among them, `stations_on_dry_road` at road points
-    STATION_CLEARANCE_M from every patch's edge."""
+    """`stations` sites evenly along the network's roads laid end to end (one every total / stations metres, from an
+    offset uniform in the first interval), chosen from the network alone; the odd ones with a friction sensor and its
+    bias. Which patch, if any, holds a site is looked up afterwards, for the report."""
     config, network = scenario.config, scenario.network
-    slippery = [p for p in network.patches if p.mu is not None and p.mu < CONTROL_MU]
-    chosen = rng.choice(len(slippery), size=min(config.stations_at_patches, len(slippery)), replace=False)
-    stations = [
-        SimStation(f"rws-{k:02d}", slippery[i].east_m, slippery[i].north_m, slippery[i].name, k % 2 == 1)
-        for k, i in enumerate(sorted(chosen.tolist()))
-    ]
-    points = np.concatenate([road.points_m for road in network.roads])
-    clear = np.ones(len(points), bool)
-    for patch in network.patches:
-        clear &= np.hypot(*(points - [patch.east_m, patch.north_m]).T) > patch.radius_m + STATION_CLEARANCE_M
-    candidates = np.flatnonzero(clear)
-    for k in range(config.stations_on_dry_road):
-        east, north = points[int(rng.choice(candidates))]
-        n = len(stations)
-        stations.append(SimStation(f"rws-{n:02d}", float(east), float(north), None, n % 2 == 1))
+    lengths = np.array([road.path.length_m for road in network.roads])
+    ends = np.cumsum(lengths)
+    spacing = float(ends[-1]) / max(1, config.stations)
+    offset = float(rng.uniform(0.0, spacing))
+    stations = []
+    for k in range(config.stations):
+        along = offset + k * spacing
+        i = min(int(np.searchsorted(ends, along, side="right")), len(lengths) - 1)
+        road = network.roads[i]
+        east, north = points_at(road.path, np.array([along - (ends[i] - lengths[i])]))[0]
+        holder = next((p.name for p in network.patches if p.contains(east, north)), None)
+        bias = float(rng.uniform(-STATION_FRICTION_BIAS, STATION_FRICTION_BIAS)) if k % 2 == 1 else 0.0
+        stations.append(SimStation(f"rws-{k:02d}", float(east), float(north), holder, k % 2 == 1, bias))
     return stations
 
 
@@ -348,7 +355,7 @@ def simulate_station_reports(scenario: FleetScenario, start_ms: int) -> tuple[li
                 ),
             }
             if station.friction_sensor:
-                friction = min(1.0, mu) + float(rng.normal(0.0, STATION_FRICTION_NOISE))
+                friction = min(1.0, mu) + station.friction_bias + float(rng.normal(0.0, STATION_FRICTION_NOISE))
                 reading.update(friction=round(min(1.0, max(0.0, friction)), 3), friction_uncertainty=0.1)
             if stuck[0] <= t < stuck[1]:
                 frozen = frozen or reading

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import h3
 
 from roadgrip.cloud.domain.friction_map import BOUNDED, MEASURED
-from roadgrip.cloud.domain.warnings import THRESHOLD_MU
+from roadgrip.cloud.domain.warnings import RECOVERED, THRESHOLD_MU
 from roadgrip.fleet.network import Patch
 
 BAND_LIMITS = (("mu<=0.2", 0.2), ("0.2-0.4", 0.4), ("0.4-0.6", 0.6))
@@ -82,7 +82,9 @@ def patch_outcome(
 ) -> dict:
     """One patch's row. `passes`: (vehicle, entered, left) while it was there; `on` and `beside`: the warnings
     attributed to it (classify); `passes_after_dry`: passes over its place within TARGET_LINGER_S after it dried;
-    `observable_passes`: the passes whose manoeuvre made mu observable (fleet_benchmark.observable)."""
+    `observable_passes`: the passes whose manoeuvre made mu observable (fleet_benchmark.observable).
+    `cancelled_while_there`: its warnings on it that a dry pass cancelled ("recovered") before it dried, the patch
+    unchanged: the warning engine read grip where the ice still was, or grip elsewhere as grip here."""
     passes = sorted(passes, key=lambda p: p[1])
     vehicles = {p[0] for p in passes}
     warnings = [*on, *beside]
@@ -101,6 +103,7 @@ def patch_outcome(
         "time_to_first_s": None if first is None else first - patch.appear_s,
         "passes_to_first": None if first is None else sum(p[1] <= first for p in passes),
         "warnings": len(warnings),
+        "cancelled_while_there": sum(w.reason == RECOVERED and w.end_s < patch.dry_s for w in on),
         "dried_in_run": patch.dry_s < run_end_s,
         "passes_after_dry": passes_after_dry,
         "linger_s": None,
@@ -211,6 +214,7 @@ def summarize(group: str, patch_rows: list[dict], cell_scores: list[dict]) -> di
         "linger_max_s": _max(r["linger_s"] for r in dried),
         "linger_over_10min": sum(r["linger_s"] > TARGET_LINGER_S for r in dried),
         "censored": sum(r["censored"] for r in dried),
+        "cancelled_while_there": sum(r["cancelled_while_there"] for r in patch_rows),
         **_map_scores("map", [s for s in cell_scores if s["status"] == MEASURED]),
         **_map_scores("bounded", [s for s in cell_scores if s["status"] == BOUNDED]),
     }

@@ -1,13 +1,18 @@
 """`roadgrip evaluate --benchmark fleet`: run the fleet benchmark (roadgrip/evaluation/fleet_benchmark.py) for several
 seeds, score it (roadgrip/evaluation/fleet_metrics.py) and write DIR/metrics.csv (per seed and pooled, per band and
-overall), DIR/patches.csv (one row per patch and seed), DIR/cells.csv (every map cell scored at a snapshot), DIR/stations.csv (detection with and without the roadside
-stations, per seed and pooled), DIR/fleet.md, DIR/map_vs_truth.png, DIR/detection_delay.png and the service's log
-DIR/cloud.log.
+overall), DIR/patches.csv (one row per patch and seed), DIR/cells.csv (every map cell scored at a snapshot),
+DIR/stations.csv (detection with and without the roadside stations, per seed and pooled), DIR/fleet.md,
+DIR/map_vs_truth.png, DIR/detection_delay.png and the service's log DIR/cloud.log.
 
-With and without stations: the service runs with them (fleet_benchmark.simulate_station_reports); the warnings
-without them are the warning engine's recorded input replayed without the stations' rounds (fleet_sweep.replay at the
-product's settings), since stations change no vehicle's estimate. Replaying with the stations' rounds must give the
-service's own warnings back: checked per seed (`replay_matches_service`)."""
+The headline warnings are the vehicles' alone; the stations' are reported beside them. The service runs with the
+stations (fleet_benchmark.simulate_station_reports); the vehicles' warnings are the warning engine's recorded input
+replayed without the stations' rounds (fleet_sweep.replay at the product's settings), since stations change no
+vehicle's estimate. Replaying with the stations' rounds must give the service's own warnings back: checked per seed
+(`replay_matches_service`). The map's scores are the service's (vehicles and stations).
+
+Seeds: the report seeds (`seed`, `seeds`: 0, 1, 2 by default) are scored; the trade-off sweep of the warning engine's
+settings (`sweep`) runs on other seeds, TUNING_SEEDS (100, 101, 102), so that the product's thresholds are chosen on
+seeds the reported figures do not come from."""
 
 from __future__ import annotations
 
@@ -51,6 +56,7 @@ from roadgrip.evaluation.fleet_sweep import as_warnings, choose, replay, rounds_
 from roadgrip.evaluation.fleet_sweep import sweep as run_sweep
 
 DATA_CLOCK_LAG_S = 3600.0  # the run's data clock ends this long before the wall clock (no sample from the future)
+TUNING_SEEDS = (100, 101, 102)  # the sweep's seeds: never the report's
 
 
 @dataclass
@@ -58,11 +64,11 @@ class SeedResult:
     seed: int
     scenario: FleetScenario
     run: ServiceRun
-    warnings: list[Warning]
+    warnings: list[Warning]  # the vehicles' alone (the headline)
     kinds: list[str]
     patch_rows: list[dict]
     cell_scores: list[dict]
-    rows: list[dict]
+    rows: list[dict]  # summarize_run of the vehicles' warnings, with the service's map
     dry_km: float
     driven_cells: int
     cells_with_evidence: int  # driven cells (summed over snapshots) where the map has evidence of any kind
@@ -70,9 +76,10 @@ class SeedResult:
     simulate_s: float
     truth: PatchTruth
     start_ms: int
-    without_rows: list[dict]  # summarize_run of the warnings without stations
-    without_patch_rows: list[dict]
-    without_kinds: list[str]
+    service_warnings: list[Warning]  # the service's: vehicles and stations
+    station_rows: list[dict]  # summarize_run of the service's warnings
+    station_patch_rows: list[dict]
+    station_kinds: list[str]
     replay_matches_service: bool
 
 
@@ -114,7 +121,12 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
         )
     network = scenario.network
     validity_s = Settings.model_fields["warning_validity_s"].default
-    warnings = [warning_from_row(row, start_ms) for row in run.warnings]
+    service_warnings = [warning_from_row(row, start_ms) for row in run.warnings]
+    warnings = as_warnings(replay(rounds_of(run.estimates)), start_ms)  # the vehicles alone, the product's settings
+    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations)), start_ms)
+    matches = sorted(replayed, key=lambda w: (w.detection_s, w.cell)) == sorted(
+        service_warnings, key=lambda w: (w.detection_s, w.cell)
+    )
     truth = patch_truth(scenario, drives)
     kinds, patch_rows = score_warnings(seed, truth, warnings, validity_s, config.duration_s)
     cell_scores, driven_total, evidence_total, measured_total = [], 0, 0, 0
@@ -144,22 +156,18 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
         {"seed": str(seed), **r}
         for r in summarize_run(patch_rows, cell_scores, kinds, dry_km, driven_total, evidence_total, measured_total)
     ]
-    without = as_warnings(replay(rounds_of(run.estimates)), start_ms)  # at the product's settings
-    replayed = as_warnings(replay(rounds_of(run.estimates, run.stations)), start_ms)
-    matches = sorted(replayed, key=lambda w: (w.detection_s, w.cell)) == sorted(
-        warnings, key=lambda w: (w.detection_s, w.cell)
-    )
-    without_kinds, without_patch_rows = score_warnings(seed, truth, without, validity_s, config.duration_s)
+    station_kinds, station_patch_rows = score_warnings(seed, truth, service_warnings, validity_s, config.duration_s)
     at = {site.patch: site.station_id for site in run.station_sites if site.patch is not None}
-    for row, bare in zip(patch_rows, without_patch_rows):
+    for row, served in zip(patch_rows, station_patch_rows):
         row.update(
             station=at.get(row["patch"], ""),
-            detected_without_stations=bare["detected"],
-            time_to_first_s_without_stations=bare["time_to_first_s"],
-            passes_to_first_without_stations=bare["passes_to_first"],
+            detected_with_stations=served["detected"],
+            time_to_first_s_with_stations=served["time_to_first_s"],
+            passes_to_first_with_stations=served["passes_to_first"],
+            cancelled_while_there_with_stations=served["cancelled_while_there"],
         )
-    without_rows = [
-        {"seed": str(seed), **r} for r in summarize_run(without_patch_rows, [], without_kinds, dry_km, 0, 0)
+    station_rows = [
+        {"seed": str(seed), **r} for r in summarize_run(station_patch_rows, [], station_kinds, dry_km, 0, 0)
     ]
     return SeedResult(
         seed,
@@ -177,9 +185,10 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
         simulate_s,
         truth,
         start_ms,
-        without_rows,
-        without_patch_rows,
-        without_kinds,
+        service_warnings,
+        station_rows,
+        station_patch_rows,
+        station_kinds,
         matches,
     )
 
@@ -191,14 +200,21 @@ def run_fleet_benchmark(
     config: FleetConfig = FleetConfig(),
     progress: Callable[[str, float], None] | None = None,
     sweep: dict | None = None,
+    tuning_seeds: tuple[int, ...] = TUNING_SEEDS,
 ) -> dict:
-    """Every seed, pooled scores, the files (with DIR/estimates_seed{S}.parquet: what the warning engine took,
-    fleet_benchmark.EngineRecorder). `sweep`: a grid of warning-engine parameters (fleet_sweep.GRID) to replay those
-    estimates with: DIR/tradeoff.csv and DIR/tradeoff.png. Returns the paths written and the metrics rows."""
+    """Every report seed (seed, seed + 1, ...), pooled scores, the files (with DIR/estimates_seed{S}.parquet: what the
+    warning engine took, fleet_benchmark.EngineRecorder). `sweep`: a grid of warning-engine parameters
+    (fleet_sweep.GRID) to replay the estimates of `tuning_seeds` with (run for that, never a report seed):
+    DIR/tradeoff.csv and DIR/tradeoff.png. Returns the paths written and the metrics rows."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds!r}")
+    report_seeds = range(seed, seed + seeds)
+    if sweep is not None and (not tuning_seeds or set(tuning_seeds) & set(report_seeds)):
+        raise ValueError(
+            f"tuning_seeds must be given and apart from the report seeds {list(report_seeds)}, got {tuning_seeds!r}"
+        )
     logger = logging.getLogger("roadgrip")
     handler = logging.FileHandler(out / "cloud.log", mode="w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -207,7 +223,8 @@ def run_fleet_benchmark(
     logger.setLevel(logging.INFO)
     started = time.perf_counter()
     try:
-        results = [run_seed(s, config, progress) for s in range(seed, seed + seeds)]
+        results = [run_seed(s, config, progress) for s in report_seeds]
+        tuning = [run_seed(s, config, progress) for s in tuning_seeds] if sweep is not None else []
     finally:
         logger.handlers, logger.level, logger.propagate = saved
         handler.close()
@@ -216,7 +233,7 @@ def run_fleet_benchmark(
     sweep_rows = None
     if sweep is not None:
         sweep_started = time.perf_counter()
-        sweep_rows = run_sweep(results, config.duration_s, sweep, progress=progress)
+        sweep_rows = run_sweep(tuning, config.duration_s, sweep, progress=progress)
         sweep_s = time.perf_counter() - sweep_started
     wall_s = time.perf_counter() - started
     patch_rows = [r for res in results for r in res.patch_rows]
@@ -234,18 +251,18 @@ def run_fleet_benchmark(
         )
     ]
     rows = [r for res in results for r in res.rows] + pooled
-    pooled_without = [
+    pooled_with = [
         {"seed": "pooled", **r}
         for r in summarize_run(
-            [r for res in results for r in res.without_patch_rows],
+            [r for res in results for r in res.station_patch_rows],
             [],
-            [k for res in results for k in res.without_kinds],
+            [k for res in results for k in res.station_kinds],
             sum(res.dry_km for res in results),
             0,
             0,
         )
     ]
-    station_rows = station_comparison(rows, [r for res in results for r in res.without_rows] + pooled_without)
+    station_rows = station_comparison([r for res in results for r in res.station_rows] + pooled_with, rows)
     pacsv.write_csv(pa.Table.from_pylist(station_rows), out / "stations.csv")
     columns = list(dict.fromkeys(k for r in rows for k in r))
     pacsv.write_csv(pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows]), out / "metrics.csv")
@@ -273,7 +290,7 @@ def run_fleet_benchmark(
         chosen = choose(sweep_rows)
         paths["tradeoff"] = out / "tradeoff.csv"
         paths["tradeoff_plot"] = plot_tradeoff(sweep_rows, chosen, out / "tradeoff.png")
-        report += "\n" + tradeoff_markdown(sweep_rows, chosen, sweep_s)
+        report += "\n" + tradeoff_markdown(sweep_rows, chosen, sweep_s, tuning_seeds)
     (out / "fleet.md").write_text(report)
     return {"paths": paths, "rows": rows, "wall_s": wall_s, "sweep": sweep_rows}
 
@@ -287,6 +304,7 @@ STATION_METRICS = (
     "passes_to_first_median",
     "linger_max_s",
     "linger_over_10min",
+    "cancelled_while_there",
     "warnings",
     "warnings_beside",
     "false_warnings",
@@ -309,10 +327,19 @@ def station_comparison(with_rows: list[dict], without_rows: list[dict]) -> list[
 
 
 def stations_markdown(rows: list[dict], results: list[SeedResult]) -> str:
-    lines = ["## Roadside stations: detection with and without them", ""]
+    lines = [
+        "## Roadside stations: detection with and without them",
+        "",
+        (
+            "Stations stand evenly along the network (chosen from the network alone); where one happens to stand on "
+            "a patch is said beside it. The headline above is without them."
+        ),
+        "",
+    ]
     for res in results:
         sites = ", ".join(
-            f"{s.station_id} at {s.patch or 'dry road'}{' (friction sensor)' if s.friction_sensor else ''}"
+            f"{s.station_id} {'on ' + s.patch if s.patch else 'off the patches'}"
+            + (f" (friction sensor, bias {s.friction_bias:+.2f})" if s.friction_sensor else "")
             for s in res.run.station_sites
         )
         lines.append(
@@ -324,10 +351,10 @@ def stations_markdown(rows: list[dict], results: list[SeedResult]) -> str:
         "",
         (
             "| seed | group | eligible | recall (with / without) | recall, all patches | by 3rd pass | "
-            "time to 1st, median (min) | passes to 1st, median | longest linger (min) | warnings | "
-            "beside or after | false |"
+            "time to 1st, median (min) | passes to 1st, median | longest linger (min) | cancelled while there | "
+            "warnings | beside or after | false |"
         ),
-        "| --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
 
@@ -337,7 +364,8 @@ def stations_markdown(rows: list[dict], results: list[SeedResult]) -> str:
         lines.append(
             f"| {r['seed']} | {r['group']} | {r['eligible']} | {pair('recall')} | {pair('recall_all')} | "
             f"{pair('within_3rd_pass')} | {pair('time_to_first_median_s', _minutes)} | "
-            f"{pair('passes_to_first_median')} | {pair('linger_max_s', _minutes)} | {pair('warnings')} | "
+            f"{pair('passes_to_first_median')} | {pair('linger_max_s', _minutes)} | "
+            f"{pair('cancelled_while_there')} | {pair('warnings')} | "
             f"{pair('warnings_beside')} | {pair('false_warnings')} |"
         )
     return "\n".join(lines) + "\n"
@@ -367,7 +395,8 @@ def fleet_markdown(
         f"{sum(r.run.samples_sent for r in results):,}, rejected {sum(r.run.rejected for r in results)}."
     )
     title = (
-        f"# Fleet benchmark: {config.vehicles} vehicles, {config.duration_s / 60:.0f} simulated minutes, seeds {seeds}"
+        f"# Fleet benchmark: {config.vehicles} vehicles, {config.duration_s / 60:.0f} simulated minutes, report seeds "
+        f"{seeds}"
     )
     lines = [
         title,
@@ -375,16 +404,16 @@ def fleet_markdown(
         timing,
         "",
         (
-            "## Detection and warnings per band (recall and by-3rd-pass over patches driven by >= 3 vehicles "
-            "while there; times in minutes)"
+            "## Detection and warnings per band, the vehicles alone (recall and by-3rd-pass over patches driven by "
+            ">= 3 vehicles while there; times in minutes; with the roadside stations: below)"
         ),
         "",
         (
             "| seed | group | patches | eligible | recall | recall (all) | by 3rd pass | time to 1st (median / max) | "
             "passes to 1st (median / max) | warned and dried | lingering | linger (median / max) | > 10 min | "
-            "censored |"
+            "censored | cancelled while there |"
         ),
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | --- | ---: | ---: | --- | ---: | ---: |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |",
     ]
     for r in rows:
         if r["group"] == "dry":
@@ -395,7 +424,8 @@ def fleet_markdown(
             f"{_minutes(r['time_to_first_median_s'])} / {_minutes(r['time_to_first_max_s'])} | "
             f"{_fmt(r['passes_to_first_median'], 1)} / {_fmt(r['passes_to_first_max'], 0)} | "
             f"{r['warned_and_dried']} | {r['lingering']} | {_minutes(r['linger_median_s'])} / "
-            f"{_minutes(r['linger_max_s'])} | {r['linger_over_10min']} | {r['censored']} |"
+            f"{_minutes(r['linger_max_s'])} | {r['linger_over_10min']} | {r['censored']} | "
+            f"{r['cancelled_while_there']} |"
         )
     lines += [
         "",
@@ -442,15 +472,18 @@ def fleet_markdown(
         "",
         (
             "| seed | patch | mu | there (min) | passes | observable passes | vehicles | detected | "
-            "time to 1st (min) | passes to 1st | warnings | passes in 10 min after drying | linger (min) |"
+            "time to 1st (min) | passes to 1st | warnings | cancelled while there | passes in 10 min after drying | "
+            "linger (min) | station | detected with stations |"
         ),
-        "| --- | --- | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |",
+        "| --- | --- | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
     ]
     for p in patch_rows:
         lines.append(
             f"| {p['seed']} | {p['patch']} | {p['mu']:.2f} | {p['appear_s'] / 60:.0f}-{p['dry_s'] / 60:.0f} | "
             f"{p['passes']} | {p['observable_passes']} | {p['vehicles']} | {_fmt(p['detected'])} | "
             f"{_minutes(p['time_to_first_s'])} | {_fmt(p['passes_to_first'])} | {p['warnings']} | "
-            f"{p['passes_after_dry']} | {_minutes(p['linger_s'])}{' (censored)' if p['censored'] else ''} |"
+            f"{p['cancelled_while_there']} | {p['passes_after_dry']} | "
+            f"{_minutes(p['linger_s'])}{' (censored)' if p['censored'] else ''} | {p.get('station') or '-'} | "
+            f"{_fmt(p.get('detected_with_stations'))} |"
         )
     return "\n".join(lines) + "\n"

@@ -3,8 +3,10 @@ fleet benchmark run (fleet_benchmark.EngineRecorder: per round, its clock and it
 engines with other settings, each built as the service builds its own (roadgrip/cloud/pipeline/fanout.py
 new_warning_engine, the swept values as overrides), and each setting is scored by the benchmark's own scoring
 (fleet_metrics.score_warnings and summarize_run). Replaying at the service's settings gives the service's
-warnings exactly (checked on every run: `replay_matches_service`), since the engine is a pure function of its calls; the roadside stations'
-evidence (EngineRecorder.station_table) is replayed in its rounds too (`WarningEngine.station_evidence`).
+warnings exactly (checked on every run: `replay_matches_service`), since the engine is a pure function of its calls;
+the roadside stations' evidence (EngineRecorder.station_table) is replayed in its rounds too
+(`WarningEngine.station_evidence`). The sweep is run on the tuning seeds (fleet_report.TUNING_SEEDS), never on the
+seeds the benchmark reports.
 
 The product's setting is chosen from the curve by RULE (`choose`).
 """
@@ -154,7 +156,7 @@ def sweep(
     for j, setting in enumerate(candidates):
         for res, warnings in zip(results, replayed[j]):
             if setting == product:
-                matches = matches and _same(warnings, res.warnings)
+                matches = matches and _same(warnings, res.service_warnings)
             kinds, patch_rows = score_warnings(res.seed, res.truth, warnings, setting["validity_s"], run_end_s)
             per_setting[j].append((res, kinds, patch_rows))
     rows = []
@@ -181,6 +183,7 @@ def sweep(
             "linger_median_s": target["linger_median_s"],
             "linger_max_s": target["linger_max_s"],
             "linger_over_10min": target["linger_over_10min"],
+            "cancelled_while_there": overall["cancelled_while_there"],
             "recall_all_slippery": overall["recall"],
             "warnings": overall["warnings"],
             "warnings_on_patch": overall["warnings_on_patch"],
@@ -229,13 +232,17 @@ def _fmt(value, digits: int = 2) -> str:
     return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
 
 
-def tradeoff_markdown(rows: list[dict], chosen: dict | None, sweep_s: float) -> str:
-    """The curve as a table (settings with no false warning on any seed first, each group by the rule's order)."""
+def tradeoff_markdown(rows: list[dict], chosen: dict | None, sweep_s: float, seeds: Iterable[int] = ()) -> str:
+    """The curve as a table (settings with no false warning on any seed first, each group by the rule's order);
+    `seeds`: the tuning seeds it was replayed on."""
     product = next((r for r in rows if r["product"]), None)
     safe = sorted((r for r in rows if r["max_false_per_seed"] == 0), key=lambda r: _key(r, product))
     unsafe = sorted((r for r in rows if r["max_false_per_seed"] > 0), key=lambda r: _key(r, product))
     lines = [
-        f"## The warning engine's trade-off (replayed estimates, {len(rows)} settings, {sweep_s:.0f} s)",
+        (
+            f"## The warning engine's trade-off (replayed estimates of the tuning seeds "
+            f"{', '.join(str(s) for s in seeds) or '-'}, not the report's; {len(rows)} settings, {sweep_s:.0f} s)"
+        ),
         "",
         f"Rule: {RULE}. Chosen: "
         + (
@@ -248,9 +255,9 @@ def tradeoff_markdown(rows: list[dict], chosen: dict | None, sweep_s: float) -> 
         (
             "| threshold_mu | min_low_passes | min_excited_per_pass | validity_s | product | recall (mu <= 0.3) | "
             "by 3rd pass | passes to 1st (median / max) | linger (median / max, min) | > 10 min | warnings | "
-            "beside or after a patch | false (per seed) | false per 100 km |"
+            "beside or after a patch | false (per seed) | false per 100 km | cancelled while there |"
         ),
-        "| ---: | ---: | ---: | ---: | --- | ---: | ---: | --- | --- | ---: | ---: | ---: | --- | ---: |",
+        "| ---: | ---: | ---: | ---: | --- | ---: | ---: | --- | --- | ---: | ---: | ---: | --- | ---: | ---: |",
     ]
     for r in safe + unsafe:
         linger = [None if v is None else v / 60 for v in (r["linger_median_s"], r["linger_max_s"])]
@@ -260,7 +267,7 @@ def tradeoff_markdown(rows: list[dict], chosen: dict | None, sweep_s: float) -> 
             f"{_fmt(r['within_3rd_pass'])} | {_fmt(r['passes_to_first_median'], 1)} / "
             f"{_fmt(r['passes_to_first_max'], 0)} | {_fmt(linger[0], 1)} / {_fmt(linger[1], 1)} | "
             f"{r['linger_over_10min']} | {r['warnings']} | {r['warnings_beside']} | {r['false_per_seed']} | "
-            f"{_fmt(r['false_per_100km'], 3)} |"
+            f"{_fmt(r['false_per_100km'], 3)} | {r['cancelled_while_there']} |"
         )
     if product is not None:
         lines += [

@@ -63,6 +63,20 @@ def test_a_warning_outliving_its_patch_by_five_minutes():
     assert summary["lingering"] == 1 and summary["linger_over_10min"] == 0 and summary["linger_max_s"] == 300.0
 
 
+def test_a_warning_cancelled_while_its_patch_persists_is_counted():
+    """ICE is there from 20 s to 60 s: a dry pass that cancels its warning at 40 s read grip where the ice still was
+    (or grip elsewhere in the cell); an expiry, or a cancellation after it dried, is not counted."""
+    early = Warning("cell", 25.0, 40.0, "recovered")
+    expired = Warning("cell", 26.0, 45.0, "expired")
+    after = Warning("cell", 30.0, 70.0, "recovered")
+    row = patch_outcome(ICE, [("a", 25.0, 28.0)], [early, expired, after], [], run_end_s=600.0)
+    assert row["cancelled_while_there"] == 1 and row["linger_s"] == pytest.approx(10.0)
+    beside = patch_outcome(ICE, [("a", 25.0, 28.0)], [], [early], run_end_s=600.0)
+    assert beside["cancelled_while_there"] == 0  # a neighbour cell's warning may end while the patch is there
+    overall = summarize_run([row, beside], [], [], 1.0, 0, 0)[-1]
+    assert overall["cancelled_while_there"] == 1
+
+
 def test_a_warning_on_dry_road_is_false_and_counted_per_100_km():
     cells = {ICE.name: patch_cells(NETWORK, ICE)}
     assert cells[ICE.name]
@@ -172,6 +186,7 @@ COUNTS = (
     "lingering",
     "linger_over_10min",
     "censored",
+    "cancelled_while_there",
     "map_cells",
     "bounded_cells",
     "warnings",
@@ -225,12 +240,12 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
     monkeypatch.setattr(
         fleet_report, "run_seed", lambda *args, **kwargs: seeds.append(run_seed(*args, **kwargs)) or seeds[-1]
     )
-    result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config)
+    result = run_fleet_benchmark(tmp_path, seed=3, seeds=1, config=config)  # seed 3: the vehicles alone warn
     (seed,) = seeds
     rows = pacsv.read_csv(tmp_path / "metrics.csv").to_pylist()
     assert result["rows"][-1]["seed"] == "pooled"
-    by_seed = {name: {r["group"]: r for r in rows if r["seed"] == name} for name in ("1", "pooled")}
-    assert by_seed["1"] == {g: {**r, "seed": "1"} for g, r in by_seed["pooled"].items()}  # one seed: pooled is it
+    by_seed = {name: {r["group"]: r for r in rows if r["seed"] == name} for name in ("3", "pooled")}
+    assert by_seed["3"] == {g: {**r, "seed": "3"} for g, r in by_seed["pooled"].items()}  # one seed: pooled is it
     for row in rows:
         for key in SHARES:
             assert row[key] is None or 0.0 <= row[key] <= 1.0, (row["group"], key, row[key])
@@ -238,8 +253,8 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
             assert row.get(key) is None or (row[key] >= 0 and row[key] == int(row[key])), (row["group"], key)
         for key in NON_NEGATIVE:
             assert row.get(key) is None or (math.isfinite(row[key]) and row[key] >= 0), (row["group"], key)
-    overall = by_seed["1"]["all"]
-    assert [by_seed["1"][band]["patches"] for band in ("mu<=0.2", "0.2-0.4", "0.4-0.6")] == [1, 1, 1]
+    overall = by_seed["3"]["all"]
+    assert [by_seed["3"][band]["patches"] for band in ("mu<=0.2", "0.2-0.4", "0.4-0.6")] == [1, 1, 1]
     assert overall["patches"] == 3 and overall["dry_km"] > 1.0
 
     kinds = seed.kinds

@@ -12,7 +12,7 @@ from warning_route import PATCH, T0_MS, drive
 from roadgrip.cloud.domain.warnings import WarningEngine
 from roadgrip.evaluation.fleet_benchmark import EngineRecorder, FleetConfig
 from roadgrip.evaluation.fleet_report import run_fleet_benchmark
-from roadgrip.evaluation.fleet_sweep import as_warnings, choose, grid_settings, replay, rounds_of
+from roadgrip.evaluation.fleet_sweep import GRID, as_warnings, choose, grid_settings, replay, rounds_of
 
 
 def _record(rounds, **kwargs):
@@ -107,13 +107,21 @@ def test_the_benchmark_keeps_the_engine_s_estimates_and_writes_the_curve(tmp_pat
         snapshot_every_s=120.0,
     )
     grid = {"threshold_mu": (0.4, 0.5), "min_low_passes": (1, 2), "min_excited_per_pass": (3,), "validity_s": (600.0,)}
-    result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config, sweep=grid)
+    result = run_fleet_benchmark(tmp_path, seed=1, seeds=1, config=config, sweep=grid, tuning_seeds=(2,))
     estimates = pq.read_table(tmp_path / "estimates_seed1.parquet")
     assert estimates.num_rows > 0 and {"round", "now_ms", "mu_upper", "excited"} <= set(estimates.column_names)
     rows = pacsv.read_csv(tmp_path / "tradeoff.csv").to_pylist()
     assert len(rows) == 4 and sum(r["product"] for r in rows) == 1
+    assert {str(r["seeds"]) for r in rows} == {"2"}  # tuned on the tuning seed, not the report's seed 1
+    assert "tuning seeds 2, not the report's" in (tmp_path / "fleet.md").read_text()
     assert next(r for r in result["sweep"] if r["product"])["replay_matches_service"]
     assert (tmp_path / "tradeoff.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("tuning_seeds", [(), (1, 5), (0,)])
+def test_the_sweep_never_tunes_on_a_report_seed(tmp_path, tuning_seeds):
+    with pytest.raises(ValueError, match="tuning_seeds"):
+        run_fleet_benchmark(tmp_path, seed=0, seeds=2, sweep=GRID, tuning_seeds=tuning_seeds)
 
 
 def test_the_fleet_modules_import_each_other_without_a_circle():

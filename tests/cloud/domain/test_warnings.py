@@ -1,6 +1,7 @@
 """Slippery-road warnings: which cells are raised (exactly the low-friction cells driven, by enough passes), refreshed,
 cancelled by dry passes and expired, and their DENM."""
 
+import dataclasses
 import random
 import statistics
 
@@ -324,3 +325,165 @@ def test_evidence_kept_up_to_date_equals_a_recount_after_every_change(operations
         assert evidence.n_vehicles == len({p.vehicle_id for p in passes})
         if passes:
             assert evidence.median_mu_upper() == statistics.median(p.mu_upper for p in passes)
+
+
+# ------------------------------------------------------------------------------------- the place of a warning (rule 9)
+
+CELL = h3.latlng_to_cell(LAT_DEG, LON0_DEG, 10)
+
+
+def _far_spots():
+    """Two resolution-12 spots of CELL as far apart as its children allow (the cell is ~150 m across)."""
+    children = sorted(c for c in h3.cell_to_children(CELL, 12) if h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL)
+    pairs = [(a, b) for a in children for b in children if a < b]
+    a, b = max(pairs, key=lambda p: h3.great_circle_distance(h3.cell_to_latlng(p[0]), h3.cell_to_latlng(p[1]), "m"))
+    return h3.cell_to_latlng(a), h3.cell_to_latlng(b)
+
+
+ICE_SPOT, OTHER_SPOT = _far_spots()
+
+
+def at(vehicle, start_ms, spot, *, low, n=20, **extra):
+    """n excited estimates, 100 ms apart, within a metre of `spot`: low (mu_upper 0.3) or dry (mu_lower 0.6)."""
+    mu, lo, hi = (0.2, 0.1, 0.3) if low else (0.8, 0.6, 0.95)
+    return [
+        {
+            "vehicle_id": vehicle,
+            "timestamp_ms": start_ms + 100 * i,
+            "latitude_deg": spot[0] + 1e-6 * (i % 5),
+            "longitude_deg": spot[1],
+            "mu": mu,
+            "mu_lower": lo,
+            "mu_upper": hi,
+            "excited": True,
+            **extra,
+        }
+        for i in range(n)
+    ]
+
+
+def test_the_two_spots_are_in_one_cell_and_far_apart():
+    assert h3.latlng_to_cell(*ICE_SPOT, 10) == h3.latlng_to_cell(*OTHER_SPOT, 10) == CELL
+    assert h3.great_circle_distance(ICE_SPOT, OTHER_SPOT, "m") > 80.0
+
+
+def test_a_dry_pass_elsewhere_in_the_cell_neither_cancels_nor_refreshes():
+    engine = WarningEngine()
+    (raised_event,) = stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    assert raised_event.cell == CELL and raised_event.spots == (h3.latlng_to_cell(*ICE_SPOT, 12),)
+    assert stream(engine, at("b", T0_MS + 120_000, OTHER_SPOT, low=False)) == []  # grip proven 80+ m away
+    calm = at("c", T0_MS + 240_000, OTHER_SPOT, low=False, excited=False, mu_proven=0.5)
+    assert stream(engine, calm) == []
+    assert [e.warning_id for e in engine.active()] == [raised_event.warning_id]
+    assert engine.active()[0].sequence_number == 0
+
+
+def test_a_dry_pass_over_the_low_spot_cancels():
+    engine = WarningEngine()
+    (raised_event,) = stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    stream(engine, at("b", T0_MS + 120_000, OTHER_SPOT, low=False))
+    (event,) = stream(engine, at("c", T0_MS + 240_000, ICE_SPOT, low=False))
+    assert (event.warning_id, event.status, event.reason) == (raised_event.warning_id, "cancelled", "recovered")
+    assert T0_MS + 240_000 <= event.evidence_ms < T0_MS + 242_000
+    assert event.spots == raised_event.spots and engine.active() == []
+
+
+def test_grip_beside_a_low_spot_speaks_for_the_whole_place():
+    """A neighbouring spot (within about 15-30 m) counts, and one dry pass over part of the place cancels: an
+    estimator's low readings run on after the braking that measured them (places.py)."""
+    engine = WarningEngine()
+    ice = h3.latlng_to_cell(*ICE_SPOT, 12)
+    beside = next(c for c in h3.grid_ring(ice, 1) if h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL)
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True) + at("b", T0_MS + 5_000, OTHER_SPOT, low=True))
+    assert len(engine.active()[0].spots) == 2
+    (event,) = stream(engine, at("c", T0_MS + 120_000, h3.cell_to_latlng(beside), low=False))
+    assert event.reason == "recovered"
+    assert h3.great_circle_distance(h3.cell_to_latlng(beside), OTHER_SPOT, "m") > 60.0
+
+
+def test_one_dry_pass_over_the_place_does_not_cancel_when_two_are_needed():
+    engine = WarningEngine(min_dry_passes=2)
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    assert stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False)) == []
+    assert stream(engine, at("c", T0_MS + 240_000, OTHER_SPOT, low=False)) == []  # elsewhere: does not count
+    (event,) = stream(engine, at("d", T0_MS + 360_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
+
+
+def test_a_warning_whose_place_is_never_shown_dry_expires():
+    engine = WarningEngine(validity_s=600.0)
+    (raised_event,) = stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    stream(engine, at("b", T0_MS + 300_000, OTHER_SPOT, low=False))
+    (event,) = engine.update([], raised_event.evidence_ms + 600_000)
+    assert (event.reason, event.evidence_ms) == ("expired", raised_event.evidence_ms + 600_000)
+
+
+def test_restore_keeps_the_place():
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    saved = [WarningEvent(**{**dataclasses.asdict(e), "spots": list(e.spots)}) for e in engine.active()]  # as JSON
+    restarted = WarningEngine()
+    restarted.restore(saved)
+    assert restarted.active()[0].spots == engine.active()[0].spots
+    assert stream(restarted, at("b", T0_MS + 120_000, OTHER_SPOT, low=False)) == []
+    (event,) = stream(restarted, at("c", T0_MS + 240_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
+
+
+def test_an_event_stored_without_its_place_is_cancelled_by_any_dry_pass_in_the_cell():
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    old = [dataclasses.replace(e, spots=()) for e in engine.active()]  # stored before warnings kept their place
+    restarted = WarningEngine()
+    restarted.restore(old)
+    (event,) = stream(restarted, at("b", T0_MS + 120_000, OTHER_SPOT, low=False))
+    assert event.reason == "recovered"
+
+
+def _station_row(station_id, t_ms, mu_lower, mu_upper):
+    return {
+        "station_id": station_id,
+        "cell": CELL,
+        "timestamp_ms": t_ms,
+        "mu": mu_upper,
+        "mu_lower": mu_lower,
+        "mu_upper": mu_upper,
+    }
+
+
+def test_a_station_speaks_for_the_whole_cell_and_a_vehicle_for_its_track():
+    engine = WarningEngine()
+    (raised_event,) = engine.station_evidence([_station_row("rws", T0_MS, 0.05, 0.3)], T0_MS)
+    assert raised_event.spots == (CELL,)
+    assert stream(engine, at("b", T0_MS + 60_000, ICE_SPOT, low=False)) == []  # grip on one track only
+    (event,) = engine.station_evidence([_station_row("rws", T0_MS + 120_000, 0.7, 1.2)], T0_MS + 120_000)
+    assert event.reason == "recovered"
+    # a vehicle's low spot: the station's dry report (its row holds the cell, not where it stands) says nothing of it
+    stream(engine, at("c", T0_MS + 200_000, ICE_SPOT, low=True))
+    assert engine.station_evidence([_station_row("rws", T0_MS + 300_000, 0.7, 1.2)], T0_MS + 300_000) == []
+    (event,) = stream(engine, at("d", T0_MS + 400_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
+
+
+def test_a_late_low_pass_is_superseded_by_a_dry_pass_over_the_place_only():
+    engine = two_pass_engine()
+    stream(engine, at("a", T0_MS, OTHER_SPOT, low=True) + at("d", T0_MS + 60_000, ICE_SPOT, low=False))
+    assert engine.cell_states_[CELL].low_passes  # d proved grip away from a's low reading: a still counts
+    (event,) = engine.update(at("b", T0_MS + 30_000, OTHER_SPOT, low=True), T0_MS + 200_000)
+    assert event.n_passes == 2 and event.spots == (h3.latlng_to_cell(*OTHER_SPOT, 12),)
+    engine = two_pass_engine()
+    stream(engine, at("a", T0_MS, OTHER_SPOT, low=True) + at("d", T0_MS + 60_000, OTHER_SPOT, low=False))
+    assert engine.update(at("b", T0_MS + 30_000, OTHER_SPOT, low=True), T0_MS + 200_000) == []  # older than d
+
+
+def test_grip_on_the_way_out_of_the_ice_is_the_rest_of_a_low_visit():
+    """A vehicle reads low, crosses a cell border for a moment (GNSS noise) and proves grip just past the patch's edge:
+    the same visit, judged low; another vehicle's grip there later cancels."""
+    engine = WarningEngine()
+    out = h3.cell_to_latlng(h3.grid_ring(CELL, 1)[0])
+    rows = at("a", T0_MS, ICE_SPOT, low=True) + at("a", T0_MS + 2_000, out, low=False, n=2)
+    rows += at("a", T0_MS + 2_200, ICE_SPOT, low=False, n=5)
+    assert raised(stream(engine, rows)) == {CELL}
+    assert [e.cell for e in engine.active()] == [CELL]
+    (event,) = stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
