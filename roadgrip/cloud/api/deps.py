@@ -10,6 +10,7 @@ sends it, as it always was.
 
 from __future__ import annotations
 
+import re
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
@@ -17,6 +18,7 @@ from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.security import HTTPBasic, HTTPBasicCredentials
 from prometheus_client import CollectorRegistry
+from pydantic import BeforeValidator
 
 from roadgrip.cloud.api.backend import ApiBackend
 from roadgrip.cloud.ingest.auth import Authenticator, AuthError
@@ -114,3 +116,17 @@ def single_query_values(request: Request) -> None:
                 for k in repeated
             ]
         )
+
+
+_DIGITS = re.compile(r"[+-]?[0-9]+")
+
+
+def _integer_text(value):
+    """A query parameter declared an integer is written as one: pydantic's lax mode would take "0.0" or "1e3" (a
+    float's text) as an int, which the OpenAPI document says is not an integer (the fuzzer sends such values)."""
+    if isinstance(value, str) and not _DIGITS.fullmatch(value):
+        raise ValueError(f"must be an integer written in digits, got {value!r}")
+    return value
+
+
+QueryInt = BeforeValidator(_integer_text)  # Annotated[int, QueryInt, Query(...)]: an integer query parameter

@@ -7,7 +7,7 @@ from fastapi import APIRouter, HTTPException, Query
 from pydantic import AfterValidator, BaseModel, Field, PrivateAttr
 
 from roadgrip.cloud.api.backend import VehicleIdRefused
-from roadgrip.cloud.api.deps import Backend, Caller, VehicleId, may_read_vehicle, require
+from roadgrip.cloud.api.deps import Backend, Caller, QueryInt, VehicleId, may_read_vehicle, require
 from roadgrip.cloud.api.errors import Refused, errors
 from roadgrip.cloud.api.routes.credentials import Issued
 from roadgrip.data.telemetry import VEHICLE_ID_RE
@@ -105,9 +105,13 @@ def estimates(
     vehicle_id: VehicleId,
     caller: Caller,
     backend: Backend,
-    start_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="from (ms since epoch, inclusive)")] = None,
-    end_ms: Annotated[int | None, Query(ge=0, le=MAX_MS, description="to (ms since epoch, exclusive)")] = None,
-    limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
+    start_ms: Annotated[
+        int | None, QueryInt, Query(ge=0, le=MAX_MS, description="from (ms since epoch, inclusive)")
+    ] = None,
+    end_ms: Annotated[
+        int | None, QueryInt, Query(ge=0, le=MAX_MS, description="to (ms since epoch, exclusive)")
+    ] = None,
+    limit: Annotated[int, QueryInt, Query(ge=1, le=100_000)] = 10_000,
 ) -> dict:
     may_read_vehicle(caller, vehicle_id)
     rows = backend.storage.estimates(vehicle_id, start_ms, end_ms, limit)
