@@ -73,15 +73,21 @@ def axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear):
 
 
 @njit(cache=True)
+def brush_slip(f, mu, c):
+    """The brush model's slip at force per load f (signed), friction mu, slip stiffness per load c:
+    (3 mu / c) (1 - (1 - |f| / mu)^(1/3)), signed as f, its value at |f| = mu beyond (Pacejka 3.2). With an isotropic
+    brush the form is the same for the longitudinal slip ratio and the tan of the slip angle: pmf's axle-slip term
+    and the lateral channel both read it here."""
+    x = min(abs(f) / mu, 1.0)
+    a = 3.0 * mu / c * (1.0 - (1.0 - x) ** (1.0 / 3.0))
+    return -a if f < 0.0 else a
+
+
+@njit(cache=True)
 def brush_slip_angle(f, mu, c):
     """The brush model's (tan of the) slip angle at force per load f (signed), friction mu, stiffness per load c, and
     whether the axle is at its limit (|f| >= mu: the slip angle is then at least the returned one)."""
-    x = abs(f) / mu
-    sat = x >= 1.0
-    if sat:
-        x = 1.0
-    a = 3.0 * mu / c * (1.0 - (1.0 - x) ** (1.0 / 3.0))
-    return (-a if f < 0.0 else a), sat
+    return brush_slip(f, mu, c), abs(f) / mu >= 1.0
 
 
 @njit(cache=True)
@@ -91,7 +97,8 @@ def brush_slip_angle_slope(f, mu, c):
 
 
 @njit(cache=True)
-def _phi(x):
+def normal_cdf(x):
+    """Phi(x), the standard normal distribution function (compiled; pmf's likelihoods use it too)."""
     return 0.5 * (1.0 + erf(x / sqrt(2.0)))
 
 
@@ -123,9 +130,9 @@ def lateral_likelihood(
         if sat_f and sat_r:
             out[i] = out[i + 1] if i + 1 < mu_grid.size else 1.0
         elif sat_f:  # the front slides: the understeer angle is at least (in the force's direction) the prediction
-            out[i] = _phi((understeer - pred) / sig if f_front > 0.0 else (pred - understeer) / sig) ** temper
+            out[i] = normal_cdf((understeer - pred) / sig if f_front > 0.0 else (pred - understeer) / sig) ** temper
         elif sat_r:  # the rear slides: the understeer angle is at most the prediction
-            out[i] = _phi((pred - understeer) / sig if f_rear > 0.0 else (understeer - pred) / sig) ** temper
+            out[i] = normal_cdf((pred - understeer) / sig if f_rear > 0.0 else (understeer - pred) / sig) ** temper
         else:
             z = (understeer - pred) / sig
             out[i] = exp(-0.5 * temper * z * z)

@@ -79,7 +79,7 @@ docstring is its derivation.
 
 from __future__ import annotations
 
-from math import cos, erf, exp, sin, sqrt
+from math import cos, exp, sin, sqrt
 
 import numpy as np
 import pyarrow as pa
@@ -89,7 +89,9 @@ from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
+    brush_slip,
     lateral_likelihood,
+    normal_cdf,
     reference_yaw_rate,
     understeer_gradient,
 )
@@ -298,11 +300,6 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
 
 
 @njit(cache=True)
-def _phi(x):
-    return 0.5 * (1.0 + erf(x / sqrt(2.0)))
-
-
-@njit(cache=True)
 def _start(mem, keep_stiffness):
     """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps)."""
     cm = np.empty(NC)
@@ -404,7 +401,7 @@ def _demand_likelihood(mu, u, s_u):
     then in [ETA_LIMIT, 1]. Divided by exp(-u / DEMAND_G): P(mu >= u) (1 + DEMAND_G [u / mu in the band] / band)."""
     s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
     band = (1.0 - ETA_LIMIT) * mu
-    return _phi((mu - u) / s_u) * (1.0 + DEMAND_G * _phi((u - ETA_LIMIT * mu) / s_lim) / band)
+    return normal_cdf((mu - u) / s_u) * (1.0 + DEMAND_G * normal_cdf((u - ETA_LIMIT * mu) / s_lim) / band)
 
 
 @njit(cache=True)
@@ -422,7 +419,7 @@ def _band(mu, u_axle, s_u, eta):
     density: a controller stays on for many samples that say the same, and a density's 1 / ((1 - eta) mu), applied
     again at each, would push mu down to the band's lower end for no new reason."""
     s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
-    return _phi((mu - u_axle) / s_u) * _phi((u_axle - eta * mu) / s_lim)
+    return normal_cdf((mu - u_axle) / s_u) * normal_cdf((u_axle - eta * mu) / s_lim)
 
 
 @njit(cache=True)
@@ -448,7 +445,7 @@ def _limit_likelihood(u_axle, s_u, kind, c0, like):
                 s_lim = sqrt(s_u * s_u + (0.03 * mu) ** 2)
                 # a density over the band (normalised): ABS holds its slip band for every wheel it acts on, so a
                 # narrow band (a stiff tire at its peak) that keeps containing u_axle is the better explanation
-                like[i, j] = _phi((hi - u_axle) / s_lim) * _phi((u_axle - lo) / s_lim) / (hi - lo + s_lim)
+                like[i, j] = normal_cdf((hi - u_axle) / s_lim) * normal_cdf((u_axle - lo) / s_lim) / (hi - lo + s_lim)
             elif kind == LIMIT_TCS:
                 like[i, j] = _band(mu, u_axle, s_u, ETA_TCS)
             else:
@@ -460,11 +457,8 @@ def _slip_likelihood(f, s, v, c0, like):
     """The brush model's slip at force per load f against the measured slip s, for each (mu, C), already raised to
     TEMPER (one exp a cell instead of an exp and a power: this runs at every straight driving sample)."""
     s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v
-    sign = -1.0 if f < 0.0 else 1.0
     for i in range(NM):
-        mu = MU_GRID[i]
-        x = min(abs(f) / mu, 1.0)
-        shape = sign * 3.0 * mu / c0 * (1.0 - (1.0 - x) ** (1.0 / 3.0))  # the slip at C = c0; at C it is shape / C
+        shape = brush_slip(f, MU_GRID[i], c0)  # the slip at C = c0; at C it is shape / C
         for j in range(NC):
             pred = shape / C_FACTORS[j]
             sig = s_floor + SLIP_MODEL_SHARE * abs(pred)
