@@ -46,8 +46,14 @@ SI_UNITS = {
     "rpm": ("rad/s", 1.0 / RPM_PER_RADPS),
     "m": ("m", 1.0),
     "s": ("s", 1.0),
+    "N": ("N", 1.0),
+    "kN": ("N", 1000.0),
+    "N m": ("N m", 1.0),
 }
 UNIT_ALIASES = {
+    "nm": "N m",
+    "n.m": "N m",
+    "n*m": "N m",
     "kph": "km/h",
     "kmh": "km/h",
     "km/hr": "km/h",

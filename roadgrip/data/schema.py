@@ -20,6 +20,52 @@ class Column:
     required: bool = True
 
 
+OPTIONAL_CHANNELS = (
+    Column(
+        "gnss_speed_mps",
+        pa.float64(),
+        "m/s",
+        "speed over ground from GNSS Doppler, not fused with the wheel speeds",
+        required=False,
+    ),
+    Column(
+        "gnss_speed_accuracy_mps",
+        pa.float64(),
+        "m/s",
+        "the GNSS receiver's own 1-sigma speed accuracy (u-blox sAcc)",
+        required=False,
+    ),
+    Column(
+        "drive_force_n",
+        pa.float64(),
+        "N",
+        "longitudinal force the powertrain applies at the wheels, all driven wheels together",
+        required=False,
+    ),
+    Column(
+        "brake_force_n",
+        pa.float64(),
+        "N",
+        "force of the friction brakes at the wheels, all together, >= 0",
+        required=False,
+    ),
+    Column(
+        "steering_torque_nm",
+        pa.float64(),
+        "N m",
+        "the driver's torque on the steering wheel, positive left",
+        required=False,
+    ),
+    Column(
+        "eps_assist_torque_nm",
+        pa.float64(),
+        "N m",
+        "the power steering motor's assist referred to the column, positive left",
+        required=False,
+    ),
+)
+CHANNEL_NAMES = tuple(c.name for c in OPTIONAL_CHANNELS)
+
 TELEMETRY = (
     Column("vehicle_id", pa.string(), "-", "1-64 characters of A-Za-z0-9_.-"),
     Column("timestamp_ms", pa.int64(), "ms", "milliseconds since the Unix epoch, UTC"),
@@ -46,6 +92,8 @@ TELEMETRY = (
         "lateral speed of the CoG (simulations, some test vehicles)",
         required=False,
     ),
+    # Optional channels many production cars have (CONTRACTS 3.1): absent (null, NaN) means "not sent", never zero
+    *OPTIONAL_CHANNELS,
 )
 
 GROUND_TRUTH = (

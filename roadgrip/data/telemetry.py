@@ -56,6 +56,14 @@ RANGES = {
     "steering_wheel_angle_rad": (-15.0, 15.0),
     **{c: (-10.0, 350.0) for c in WHEEL_COLUMNS},
     "lateral_speed_mps": (-30.0, 30.0),
+    # optional channels: GNSS speed as the vehicle speed; its accuracy up to a receiver's "no fix" figure; forces up to
+    # 3 g on a 5 t vehicle (a powertrain's drag is a negative drive force); torques past any driver's or EPS motor's
+    "gnss_speed_mps": (-5.0, 100.0),
+    "gnss_speed_accuracy_mps": (0.0, 50.0),
+    "drive_force_n": (-150_000.0, 150_000.0),
+    "brake_force_n": (0.0, 150_000.0),
+    "steering_torque_nm": (-100.0, 100.0),
+    "eps_assist_torque_nm": (-200.0, 200.0),
 }
 
 REJECTION_SCHEMA = pa.schema(

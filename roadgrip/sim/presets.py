@@ -279,7 +279,8 @@ def random_scenarios(
                 seed=run_seed,
                 manoeuvre=manoeuvre,
                 grade=grade,
-                effects=effects,
+                # half the fleet (every second run) sends the optional channels, where production effects are on
+                effects=effects.with_channels() if k % 2 and effects.any_sensor_effect else effects,
             )
         )
     return scenarios

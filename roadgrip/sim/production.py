@@ -19,6 +19,10 @@ size; a scenario carries one (`Scenario.effects`): off for the `paper` preset (t
 | time offsets (time_offset_max_s)             | +-50 ms, per group  | wheel / IMU / steering groups read at t + offset    |
 | road grade (grade_max_rad)                   | +-4 % (+-0.04 rad)  | drawn by the preset, in the dynamics (roads.py)     |
 | tire stiffness (tire_stiffness_spread)       | +-30 %              | drawn by the preset: TireModel.stiffness_scale      |
+| optional channels (gnss_speed, force_signals, | off; the random and | GNSS Doppler speed, drive and brake force, steering |
+|   steering_torque)                           | generalization      | torques (roadgrip/sim/channels.py), else not sent   |
+|                                              | presets: half the   |                                                     |
+|                                              | runs                |                                                     |
 
 Each random quantity is drawn from the run's generator after the base sensor model's draws, all of them whichever effects
 are on (so switching one effect never changes another's draw), and none when every sensor effect is off (so a run with
@@ -27,6 +31,7 @@ the effects off is bit for bit what it was before they existed).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field, fields
 
@@ -48,6 +53,7 @@ SENSOR_FIELDS = (
     "wheel_speed_resolution_kmh",
     "time_offset_max_s",
 )
+CHANNEL_FLAGS = ("gnss_speed", "force_signals", "steering_torque")  # the optional channels a run sends
 
 
 @dataclass(frozen=True)
@@ -65,11 +71,24 @@ class ProductionEffects:
     time_offset_max_s: float = field(default=0.0, metadata=bounded(0.0, 0.5))
     grade_max_rad: float = field(default=0.0, metadata=bounded(0.0, 0.3))
     tire_stiffness_spread: float = field(default=0.0, metadata=bounded(0.0, 0.6))
+    # the optional channels (roadgrip/sim/channels.py has their error models): off means not sent
+    gnss_speed: bool = False
+    force_signals: bool = False
+    steering_torque: bool = False
 
     def __post_init__(self):
         check_bounds(self)
-        if not isinstance(self.speed_from_wheels, bool):
-            raise TypeError(f"ProductionEffects.speed_from_wheels must be a bool, got {self.speed_from_wheels!r}")
+        for name in ("speed_from_wheels", *CHANNEL_FLAGS):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"ProductionEffects.{name} must be a bool, got {getattr(self, name)!r}")
+
+    def with_channels(self, on: bool = True) -> ProductionEffects:
+        """These effects with every optional channel switched on (or off)."""
+        return dataclasses.replace(self, **dict.fromkeys(CHANNEL_FLAGS, on))
+
+    @property
+    def any_channel(self) -> bool:
+        return any(getattr(self, name) for name in CHANNEL_FLAGS)
 
     @classmethod
     def off(cls) -> ProductionEffects:

@@ -16,7 +16,9 @@ the standard deviations below are typical of production sensors (see docs/SIMULA
 
 On top of these, a run's `ProductionEffects` (roadgrip/sim/production.py) may put in what a series car's terminal does:
 speed computed from the wheel speeds, accelerometer mounting angle, bias and body pitch, per-wheel rolling radius, CAN
-resolution and time offsets between signal groups. With every effect off (the default) nothing here changes.
+resolution and time offsets between signal groups. With every effect off (the default) nothing here changes. The
+optional channels (GNSS speed, forces, steering torques: roadgrip/sim/channels.py) are sent where the effects switch
+them on, NaN (not sent) otherwise.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymap3d
 
+from roadgrip.data.schema import CHANNEL_NAMES
+from roadgrip.sim.channels import optional_channels
 from roadgrip.sim.production import ProductionEffects, ecu_signals, sensed_truth
 from roadgrip.units import G_MPS2, deg_to_rad
 from roadgrip.validation import bounded, check_bounds
@@ -94,6 +98,7 @@ class SensorModel:
         (`production.ecu_signals`). Their per-run draws come from a generator spawned from `rng`, so the base model's
         draws are the same with the effects on or off."""
         production = effects is not None and effects.any_sensor_effect
+        true = truth  # the optional channels have their own delays (channels.py), not the CAN groups' offsets
         if production:
             if vehicle is None:
                 raise ValueError(
@@ -126,6 +131,21 @@ class SensorModel:
         out["latitude_deg"], out["longitude_deg"] = np.asarray(lat), np.asarray(lon)
         if production:
             ecu_signals(out, truth, effects, vehicle.wheel_radius_m, vehicle.drive_split[0], sample_period_s)
+        if effects is not None and effects.any_channel:
+            if vehicle is None:
+                raise ValueError("SensorModel.measure: the optional channels need the vehicle (steering, tires)")
+            # a child generator of their own, so the base signals' draws stay as they were
+            out |= optional_channels(
+                true,
+                vehicle,
+                sample_period_s,
+                rng.spawn(1)[0],
+                gnss=effects.gnss_speed,
+                forces=effects.force_signals,
+                steering=effects.steering_torque,
+            )
+        else:
+            out |= {name: np.full(n, np.nan) for name in CHANNEL_NAMES}  # not sent
         return out
 
     def _gauss_markov(self, n, sample_period_s, rng):

@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.data.schema import DATASET_SCHEMA, WHEELS
+from roadgrip.data.schema import CHANNEL_NAMES, DATASET_SCHEMA, WHEELS
 from roadgrip.sim.integrator import CHANNELS, run_batch
 from roadgrip.sim.scenario import SAMPLE_PERIOD_S, Scenario, pack
 from roadgrip.sim.sensors import SensorModel
@@ -62,6 +62,8 @@ def simulate(
             vehicle=scenario.vehicle,
         )
         n = truth.shape[0]
+        for name in CHANNEL_NAMES:  # an optional channel not sent (off, a GNSS outage) is null, as on the wire
+            measured[name] = pa.array(measured[name], pa.float64(), mask=np.isnan(measured[name]))
         columns = {
             "vehicle_id": [f"sim-{scenario.run_id}"] * n,
             "timestamp_ms": start_epoch_ms + np.round(signal["t_s"] * 1000.0).astype(np.int64),

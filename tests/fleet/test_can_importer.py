@@ -294,7 +294,8 @@ def test_wrong_unit_is_named(tmp_path):
         ),
         ({"speed_mps": {"unit": "furlong/fortnight"}}, "field speed_mps: unknown unit 'furlong/fortnight'"),
         ({"speed_mps": {"sign": 2}}, "field speed_mps: sign must be 1 or -1, got 2"),
-        ({"speed_mps": {"scale": 2}}, r"field speed_mps: unknown key\(s\) \['scale'\]"),
+        ({"speed_mps": {"factor": 2}}, r"field speed_mps: unknown key\(s\) \['factor'\]"),
+        ({"speed_mps": {"scale": 0}}, "field speed_mps: scale must be a number > 0, got 0"),
         ({"speed_mps": False}, "only the flags .* may be a constant"),
         ({"speed_mps": {"unit": None}}, "field speed_mps needs `unit`"),
         ({"acc_active": {"unit": "km/h"}}, "field acc_active is a flag"),
@@ -382,6 +383,16 @@ def test_rav4_flags(rav4):
     assert not np.asarray(table["abs_active"]).any()  # not in the log: "not reported"
     engaged = ts[np.argmax(acc)] - ts[0]
     assert 7000 <= engaged <= 7500 and acc[ts - ts[0] >= 7500].all()  # the radar cruise control from 7.3 s on
+
+
+def test_rav4_steering_torques_are_mapped_and_the_channels_it_lacks_are_null(rav4):
+    _, table = rav4
+    driver = np.asarray(table["steering_torque_nm"], dtype=float)
+    eps = np.asarray(table["eps_assist_torque_nm"], dtype=float)
+    assert np.isfinite(driver).mean() > 0.99 and np.isfinite(eps).mean() > 0.99  # optional: stale values null
+    assert 0.3 < np.nanpercentile(np.abs(driver), 99) < 5.0  # nominal 0.01 N m a count: hands-on steering
+    for name in ("gnss_speed_mps", "gnss_speed_accuracy_mps", "drive_force_n", "brake_force_n"):
+        assert table[name].null_count == table.num_rows, name  # not in the log: not sent, never zero
 
 
 def test_rav4_profile(rav4):

@@ -25,8 +25,9 @@ Each sample (`SampleError`, with its first fault; `index` is its array index, or
    keys beside them (VSS has no sample time). Other wire keys mixed with VSS keys are an error (a key known to neither
    is reported first, as unknown). Errors on a VSS sample
    name the VSS key that was sent and give its value and range in the VSS unit;
-3. has every required field (TELEMETRY required=True: all but latitude, longitude, lateral speed and the tcs_active and
-   esc_active flags); a sample without
+3. has every required field (TELEMETRY required=True: all but latitude, longitude, lateral speed, the tcs_active and
+   esc_active flags and the optional channels of `OPTIONAL_CHANNELS`: GNSS speed, forces, steering torques); a sample
+   without
    vehicle_id takes the payload's authenticated vehicle when there is one;
 4. then field by field, vehicle_id, timestamp_ms, then the schema order:
    - vehicle_id: a string matching `VEHICLE_ID_RE`; when the authenticated `vehicle_id` is given, that one;
@@ -109,6 +110,7 @@ VSS = {
     "Vehicle.ADAS.CruiseControl.IsActive": VssSignal("acc_active", "-"),
     "Vehicle.ADAS.TCS.IsEngaged": VssSignal("tcs_active", "-"),
     "Vehicle.ADAS.ESC.IsEngaged": VssSignal("esc_active", "-"),
+    "Vehicle.MotionManagement.Steering.SteeringWheel.Torque": VssSignal("steering_torque_nm", "N m"),
 }
 VSS_PLAIN_KEYS = ("timestamp_ms", "vehicle_id")  # wire keys allowed beside VSS keys
 

@@ -17,14 +17,15 @@ data/real/toyota_rav4_street).
 | `vehicle_id` | the samples' vehicle_id unless the option says otherwise (default: the log folder's name)      |
 | `bus`        | the bus of every signal that names none (default 0)                                            |
 | `max_age_s`  | staleness limit of every signal that names none (default 0.3 s)                               |
-| `fields`     | wire field -> `{message, signal, unit, bus, sign, max_age_s}`; a flag may be `false` instead   |
+| `fields`     | wire field -> `{message, signal, unit, bus, sign, scale, max_age_s}`; a flag may be `false` instead |
 
 `message` is the DBC's message name or frame id; `signal` a signal name, or a list of names that are summed (a coarse
 angle and its fraction); `unit` the unit the DBC must state for it, checked against the DBC (a different one is a
 `ValueError` naming the field, message and signal; a signal without a unit in the DBC is taken in this one) and
 converted to the field's SI unit with `roadgrip.units`; wheel speeds given as a speed at the tyre (km/h, m/s) are
 divided by the profile's `wheel_radius_m`, so that wheel speed x radius gives back the car's own figure; `sign: -1`
-turns a signal of the car's convention into ISO 8855's (x forward, y left, z up, yaw and steering positive to the
+turns a signal of the car's convention into ISO 8855's; `scale` (default 1) multiplies a signal the DBC leaves in counts into
+`unit` (x forward, y left, z up, yaw and steering positive to the
 left). A flag (a boolean field: abs_active, acc_active, ...) has no unit and is true where its signal is not 0;
 `false` instead of a source means the log does not report it. Every required field of CONTRACTS 3.1 must be mapped;
 the optional ones (latitude_deg, longitude_deg, lateral_speed_mps, ...) may be, else they are left empty.
@@ -34,7 +35,8 @@ frame. Each field takes at each instant the latest value of its signal at or bef
 terminal that samples its car's buses every 100 ms does: causal (a live terminal cannot interpolate towards a frame
 that has not come yet, so a replay sends what it would have sent), and never a value the car did not send. The cost
 is a delay of half a frame period on average (5-50 ms at the RAV4's 10-31 Hz), small beside the 100 ms grid. An
-instant is kept only where every mapped signal's latest frame is at most `max_age_s` old (default 0.3 s: three grid
+instant is kept only where every mapped required signal's latest frame is at most `max_age_s` old (an optional
+field's stale value is left absent, NaN, and the instant kept) (default 0.3 s: three grid
 periods; a held value older than that would misstate speed by about 1 m/s under firm braking): where the logger
 dropped frames, the telemetry has a gap, which `validate_telemetry` reports and the estimators do not bridge. Frames
 that do not decode (a payload shorter than its message, bad hex) are left out and counted in a warning.
@@ -77,6 +79,7 @@ import yaml
 from roadgrip.data.telemetry import TELEMETRY_SCHEMA, validate_telemetry
 from roadgrip.fleet.importers.can_mapping import (
     BOOL_FIELDS,
+    REQUIRED_FIELDS,
     WHEEL_FIELDS,
     CanMapping,
     SignalSource,
@@ -407,7 +410,10 @@ def to_wire(
         age_s = max_age_s if max_age_s is not None else source.max_age_s
         t_ms = np.round(t_s * 1e6) / 1e3  # to the microsecond: a frame stamped on a grid instant is at it, not after
         held[source], ok = latest_values(t_ms, values, grid_ms.astype(np.float64), age_s * 1000.0)
-        fresh &= ok
+        if source.field in REQUIRED_FIELDS:
+            fresh &= ok
+        else:  # an optional field's stale value is absent (not sent); the instant stays
+            held[source] = np.where(ok, held[source], np.nan)
     k = np.flatnonzero(fresh)
     if not k.size:
         raise ValueError(
@@ -451,7 +457,7 @@ def _to_field(source: SignalSource, values: np.ndarray, wheel_radius_m: float) -
         return values != 0
     if source.field in ("latitude_deg", "longitude_deg"):
         return source.sign * values  # degrees, as the mapping's unit must be
-    si, si_unit = to_si(values, source.unit)
+    si, si_unit = to_si(values * source.scale, source.unit)
     if source.field in WHEEL_FIELDS and si_unit == "m/s":
         si = si / wheel_radius_m  # speed at the tyre -> wheel angular speed, rad/s
     return source.sign * si

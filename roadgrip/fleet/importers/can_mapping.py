@@ -19,7 +19,7 @@ from roadgrip.units import SI_UNITS, canonical_unit
 from roadgrip.vehicle.params import VehicleParams
 
 MAPPING_KEYS = ("dbc", "vehicle", "vehicle_id", "bus", "max_age_s", "fields")
-SOURCE_KEYS = ("message", "signal", "bus", "unit", "sign", "max_age_s")
+SOURCE_KEYS = ("message", "signal", "bus", "unit", "sign", "scale", "max_age_s")
 DEFAULT_MAX_AGE_S = 0.3  # three periods of the 10 Hz grid: docs/FLEET.md, "Raw CAN logs"
 TIME_FIELDS = ("vehicle_id", "timestamp_ms")
 BOOL_FIELDS = tuple(c.name for c in TELEMETRY if pa.types.is_boolean(c.type))  # flags: abs_active, acc_active, ...
@@ -31,7 +31,7 @@ WHEEL_FIELDS = tuple(c.name for c in TELEMETRY if c.name.startswith("wheel_speed
 @dataclass(frozen=True)
 class SignalSource:
     """Where one wire field comes from: the sum of `signals` (one or more, all in `unit`) of `message` (name or frame
-    id) on `bus`, times `sign` (+1 or -1, to turn the car's convention into ISO 8855's), converted from `unit` (None
+    id) on `bus`, times `sign` (+1 or -1, to turn the car's convention into ISO 8855's) and `scale` (counts to `unit`), converted from `unit` (None
     for a flag: any value but 0 is true) to the field's SI unit. A grid instant needs its latest frame to be no older
     than `max_age_s`."""
 
@@ -42,6 +42,7 @@ class SignalSource:
     unit: str | None
     sign: int
     max_age_s: float
+    scale: float = 1.0  # the DBC's value times this is in `unit` (a signal the DBC leaves in counts)
 
     @property
     def label(self) -> str:
@@ -141,7 +142,16 @@ def _source(field: str, spec, default_bus: int, default_age: float, where: str) 
         unit,
         sign,
         _max_age(spec.get("max_age_s", default_age), f"{here}: max_age_s"),
+        _scale(spec.get("scale", 1.0), field, here),
     )
+
+
+def _scale(value, field: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{where}: scale must be a number > 0, got {value!r}")
+    if field in BOOL_FIELDS and value != 1:
+        raise ValueError(f"{where} is a flag: no scale, got {value!r}")
+    return float(value)
 
 
 def _convertible(field: str, unit, where: str) -> str:

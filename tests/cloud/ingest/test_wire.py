@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from roadgrip.cloud.ingest.wire import VSS, PayloadError, SampleError, parse_payload
-from roadgrip.data.schema import TELEMETRY, TELEMETRY_COLUMNS
+from roadgrip.data.schema import CHANNEL_NAMES, TELEMETRY, TELEMETRY_COLUMNS
 from roadgrip.data.telemetry import RANGES, VEHICLE_ID_RE
 from roadgrip.sim.presets import paper_scenarios
 from roadgrip.sim.simulate import DEFAULT_START_EPOCH_MS, simulate
@@ -437,7 +437,7 @@ def vss_sample(**changes) -> dict:
 
 
 def test_a_vss_sample_converts_to_wire_format_with_exact_units():
-    samples, errors = parse([vss_sample()])
+    samples, errors = parse([vss_sample(**{"Vehicle.MotionManagement.Steering.SteeringWheel.Torque": 1.5})])
     assert errors == []
     assert samples == [
         {
@@ -459,6 +459,12 @@ def test_a_vss_sample_converts_to_wire_format_with_exact_units():
             "tcs_active": None,
             "esc_active": None,
             "lateral_speed_mps": None,
+            "gnss_speed_mps": None,
+            "gnss_speed_accuracy_mps": None,
+            "drive_force_n": None,
+            "brake_force_n": None,
+            "steering_torque_nm": 1.5,
+            "eps_assist_torque_nm": None,
         }
     ]
     assert samples[0]["speed_mps"] == 27.77777777777778 and list(samples[0]) == list(TELEMETRY_COLUMNS)
@@ -482,7 +488,9 @@ def test_tcs_and_esc_flags_are_optional_booleans_in_both_key_sets():
 
 
 def test_every_vss_key_maps_to_a_wire_field():
-    assert {s.wire for s in VSS.values()} == set(TELEMETRY_COLUMNS) - {"timestamp_ms", "lateral_speed_mps"}
+    # VSS has no lateral speed, GNSS Doppler speed, drive or brake force, nor EPS assist torque
+    no_vss = {"timestamp_ms", "lateral_speed_mps", *CHANNEL_NAMES} - {"steering_torque_nm"}
+    assert {s.wire for s in VSS.values()} == set(TELEMETRY_COLUMNS) - no_vss
 
 
 def test_a_vss_sample_may_carry_vehicle_id_as_a_plain_key_or_take_the_authenticated_one():
@@ -642,3 +650,28 @@ def test_any_bytes_give_samples_and_errors_or_a_payload_error_never_another_exce
     if content_type == NDJSON_TYPE:
         lines = [line for line in body.decode().split("\n") if line.strip(" \t\r")]
         assert len(samples) + len(errors) == len(lines)
+
+
+# ------------------------------------------------------------------------------------------- optional channels
+
+
+def test_optional_channels_are_accepted_and_absent_ones_are_none_never_zero():
+    channels = {"gnss_speed_mps": 20.1, "gnss_speed_accuracy_mps": 0.06, "drive_force_n": 850.0, "brake_force_n": 0.0}
+    samples, errors = parse([sample(**channels), sample(timestamp_ms=NOW_MS - 900)])
+    assert errors == []
+    assert {k: samples[0][k] for k in channels} == channels
+    assert samples[0]["steering_torque_nm"] is None and samples[0]["eps_assist_torque_nm"] is None
+    assert all(samples[1][k] is None for k in CHANNEL_NAMES)
+
+
+@pytest.mark.parametrize(
+    "field, value, reason",
+    [
+        ("brake_force_n", -10.0, "brake_force_n -10.0 outside [0, 150000] N"),
+        ("gnss_speed_mps", "20", "gnss_speed_mps must be a number"),
+        ("steering_torque_nm", 500.0, "steering_torque_nm 500.0 outside [-100, 100] N m"),
+    ],
+)
+def test_a_bad_optional_channel_is_refused_naming_it(field, value, reason):
+    error = only_error(sample(**{field: value}))
+    assert error.field == field and error.reason.startswith(reason), error.reason

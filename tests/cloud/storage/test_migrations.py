@@ -16,6 +16,7 @@ from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.storage.engine import normalise_url
 from roadgrip.cloud.storage.migrate import VERSION_TABLE, alembic_config, not_postgis
 from roadgrip.cloud.storage.schema import metadata, telemetry_table, vehicles_table, warnings_table
+from roadgrip.data.schema import CHANNEL_NAMES
 from tests.cloud.storage.test_storage import T0_MS, counted, drive, estimate_row, telemetry_row
 
 HEAD = ScriptDirectory.from_config(alembic_config(None)).get_current_head()
@@ -47,7 +48,7 @@ def schema_differences(url: str) -> list:
 def test_a_new_database_is_at_the_newest_revision_and_matches_the_schema(storage_url):
     assert database_revision(storage_url) is None
     open_storage(storage_url).close()
-    assert HEAD == "0003_station_role" and database_revision(storage_url) == HEAD
+    assert HEAD == "0004_optional_channels" and database_revision(storage_url) == HEAD
     assert schema_differences(storage_url) == []
     storage = open_storage(storage_url)  # at the newest revision already: nothing to do
     assert storage.counts()["telemetry"] == 0
@@ -59,8 +60,14 @@ def make_old_database(url: str) -> None:
     version table): estimates without mu_proven, credentials whose role check names vehicle, reader and admin; a few
     rows in each."""
     old = sa.MetaData()
-    for table in (telemetry_table, vehicles_table, warnings_table):
+    for table in (vehicles_table, warnings_table):
         table.to_metadata(old)
+    Table(  # without the optional channels
+        "telemetry",
+        old,
+        *(c.copy() for c in telemetry_table.columns if c.name not in CHANNEL_NAMES),
+        sa.PrimaryKeyConstraint("vehicle_id", "timestamp_ms"),
+    )
     estimates = Table(
         "estimates",
         old,
@@ -94,7 +101,11 @@ def make_old_database(url: str) -> None:
     try:
         with engine.begin() as conn:
             old.create_all(conn)
-            conn.execute(old.tables["telemetry"].insert(), [telemetry_row("car-1", T0_MS + 100 * i) for i in range(3)])
+            old_rows = [telemetry_row("car-1", T0_MS + 100 * i) for i in range(3)]
+            conn.execute(
+                old.tables["telemetry"].insert(),
+                [{k: v for k, v in r.items() if k not in CHANNEL_NAMES} for r in old_rows],
+            )
             conn.execute(
                 estimates.insert(),
                 [
@@ -145,6 +156,9 @@ def test_a_database_of_an_older_roadgrip_is_upgraded_and_keeps_its_rows(storage_
         assert storage.counts() == {"telemetry": 3, "estimates": 3, "vehicles": 1, "warnings": 0}
         assert [r["mu_proven"] for r in storage.estimates("car-1")] == [None, None, None]
         assert [r["mu"] for r in storage.estimates("car-1")] == [0.8] * 3
+        with storage._transaction() as conn:  # the optional channels added, null (not sent) in the old rows
+            old_channels = conn.execute(sa.text(f"SELECT {', '.join(CHANNEL_NAMES)} FROM telemetry")).all()
+        assert [tuple(r) for r in old_channels] == [(None,) * len(CHANNEL_NAMES)] * 3
         assert [(c.name, c.role, c.secret_hash, c.revoked) for c in storage.credentials()] == [
             ("car-1", "vehicle", "h1", False),
             ("ops", "admin", "h2", True),
