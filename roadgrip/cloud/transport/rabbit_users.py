@@ -91,7 +91,6 @@ def permissions(name: str, role: str, vhost: str = "/") -> tuple[dict, dict]:
             "^("
             + re.escape(routing_key(friction_topic("X"))).replace("X", r"[^.]+")
             + "|"
-            + "|"
             + re.escape(routing_key(WARNINGS_TOPIC))
             + "|"
             + re.escape(routing_key(WARNINGS_UPER_TOPIC))
