@@ -31,8 +31,8 @@ INTEGER values as numbers. Choices:
 
 UPER: the same message as C-ITS stations exchange it, `denm_uper(denm(event))`: the JSON rendering's "header" and
 "denm" members are the ASN.1 value of the type DENM as asn1tools takes it, encoded with the unaligned packed encoding
-rules (about 46 bytes) against the ETSI modules shipped in asn1/ (EN 302 637-3 v1.3.1 DENM-PDU-Descriptions, TS 102
-894-2 v1.3.1 ITS-Container; asn1/README.md), compiled once per process. Constraints are checked on encoding: a value
+rules (46 bytes at resolution 10, docs/CONTRACTS.md) against the ETSI modules shipped in asn1/ (EN 302 637-3 v1.3.1
+DENM-PDU-Descriptions, TS 102 894-2 v1.3.1 ITS-Container; asn1/README.md), compiled once per process. Constraints are checked on encoding: a value
 outside its ASN.1 range is a ValueError, never a wrong byte. `decode_denm_uper` reads one back. The "roadgrip" block
 has no place in the DENM and is not encoded. Several DENMs in one body (GET /v1/warnings/uper) are framed: each is
 preceded by its length in bytes as a 4-byte unsigned big-endian integer (`frame`, `unframe`).
