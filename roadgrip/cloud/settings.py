@@ -17,6 +17,7 @@ from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from roadgrip.cloud.domain import warnings as we
+from roadgrip.cloud.formats.datex2 import check_country
 
 
 class Settings(BaseSettings):
@@ -113,6 +114,12 @@ class Settings(BaseSettings):
     warning_min_excited_per_pass: int = Field(we.MIN_EXCITED_PER_PASS, ge=1)
     warning_validity_s: float = Field(we.VALIDITY_S, gt=0, description="DENM validity; a warning not refreshed expires")
     station_id: int = Field(1, ge=0, le=4294967295, description="ITS station id of the cloud in DENMs")
+    datex2_country: str = Field(
+        "ZZ",
+        description="ISO 3166-1 alpha-2 code of the operator's country, the DATEX II publicationCreator's country "
+        "(roadgrip/cloud/formats/datex2.py); default ZZ, a user-assigned code (Unicode CLDR: unknown region) that "
+        "claims no country: set your own, e.g. NO",
+    )
     # cluster mode: the map and the warnings are kept per region, an H3 parent cell of the map's cells, by the worker
     # that owns the region's queue (roadgrip/cloud/cluster/regions.py); resolution 5 cells are about 250 km^2
     region_resolution: int = Field(
@@ -138,6 +145,11 @@ class Settings(BaseSettings):
         if value in ("off", "auto", "managed") or value.startswith(("mqtt://", "tcp://")):
             return value
         raise ValueError(f"mqtt must be off, auto, managed or mqtt://host:port, got {value!r}")
+
+    @field_validator("datex2_country")
+    @classmethod
+    def _country(cls, value: str) -> str:
+        return check_country(value)
 
     @classmethod
     def settings_customise_sources(

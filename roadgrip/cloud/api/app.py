@@ -20,7 +20,9 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | GET /v1/vehicles/{id}/estimates | admin, reader, the vehicle | estimates (CONTRACTS 3.4) over a time range | vehicles.py |
 | GET /v1/map | admin, reader | the friction map as GeoJSON | map.py |
 | GET /v1/map/datex2 | admin, reader | the map as DATEX II v3 (RoadSurfaceConditionMeasurements, friction) | map.py |
+| GET /v1/map/datex2/sites | admin, reader | its DATEX II v3 measurement site table (a site per H3 cell) | map.py |
 | GET /v1/warnings | admin, reader, vehicles | slippery-road warnings as DENMs | warnings.py |
+| GET /v1/warnings/uper | admin, reader, vehicles | the same DENMs UPER-encoded, each after its 4-byte length | warnings.py |
 | GET /v1/health | anyone authenticated | storage, broker and pipeline state; 503 when storage is down | health.py |
 | GET /metrics | anyone authenticated | Prometheus metrics (docs/CLOUD.md "Metrics (Prometheus)") | health.py |
 | GET /v1/vehicles/latest | admin, reader | each vehicle's newest estimate and position | dashboard.py |
@@ -46,8 +48,9 @@ In the cluster (docs/CLUSTER.md, "Stateless API"), a replica keeps nothing anoth
 - POST /v1/stations/{id}/reports: stored as embedded; the evidence of every report of the payload (a duplicate's as
   stored) is published to the owners of their regions (roadgrip/cloud/cluster/regions.py), which add it to the map and
   the warnings. 503 when no broker node confirmed it within 10 s: the reports are stored, send them again.
-- GET /v1/map and /v1/map/datex2: the map the region owners saved (roadgrip/cloud/cluster/map_cells.py), at the
-  replica's clock, read again when a second old; GET /v1/warnings: the stored warnings.
+- GET /v1/map, /v1/map/datex2 and /v1/map/datex2/sites: the map the region owners saved
+  (roadgrip/cloud/cluster/map_cells.py), at the replica's clock, read again when a second old; GET /v1/warnings and
+  /v1/warnings/uper: the stored warnings.
 - GET /v1/health: storage and broker reachability; GET /metrics: the replica's own counters.
 """
 

@@ -6,7 +6,7 @@ both modes run:
   friction topic, one message (a JSON array) per `friction_publish_interval_s`; the round's estimates then go on to
   the regions;
 - per region (`RegionFanout`): the friction map and the warning engine take the estimates (and roadside stations'
-  evidence), warning changes are stored and their DENMs published at once.
+  evidence), warning changes are stored and their DENMs published at once (JSON and UPER, each on its topic).
 
 `roadgrip serve` has one `Fanout`, in its main process: its vehicles' part, and one region that holds everything (the
 map and the warnings need every vehicle there): the pipeline calls it in the same process, and with
@@ -29,12 +29,12 @@ import orjson
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
 from roadgrip.cloud.domain.warnings import ACTIVE, EXPIRED, WarningEngine
-from roadgrip.cloud.formats.denm import denm
+from roadgrip.cloud.formats.denm import denm, denm_uper
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.latency import LatencyRecorder
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage
-from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic
+from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, WARNINGS_UPER_TOPIC, friction_topic
 from roadgrip.data.schema import ESTIMATE_FIELDS
 
 log = logging.getLogger(__name__)
@@ -208,7 +208,7 @@ class RegionFanout:
     def _warnings_out(self, events: list, source: str) -> None:
         """Warning changes stored (the DENM for readers, the event itself to restore the engine after a restart; one
         transaction), counted, logged (raised and ended at WARNING; a refresh, every low pass in a warned cell, at
-        DEBUG) and their DENMs published."""
+        DEBUG) and their DENMs published, as JSON and UPER-encoded (each on its topic)."""
         denms = [denm(event) for event in events]
         self.store.put_warnings(
             [
@@ -237,6 +237,7 @@ class RegionFanout:
         if self.publish is not None:
             for message in denms:
                 self.publish(WARNINGS_TOPIC, orjson.dumps(message))
+                self.publish(WARNINGS_UPER_TOPIC, denm_uper(message))
 
 
 class Fanout:

@@ -24,11 +24,11 @@ Access rules (the ACL file), with the topics of `roadgrip.cloud.transport.mqtt`;
 | login                               | read                                               | write                                      |
 | ----------------------------------- | -------------------------------------------------- | ------------------------------------------ |
 | the service (`service_user`)        | roadgrip/v1/vehicles/+/telemetry                   | roadgrip/v1/vehicles/+/friction, +/errors, |
-|                                     |                                                    | roadgrip/v1/warnings                       |
+|                                     |                                                    | roadgrip/v1/warnings, warnings/uper        |
 | a vehicle (login name = vehicle_id) | roadgrip/v1/vehicles/<id>/friction, <id>/errors,   | roadgrip/v1/vehicles/<id>/telemetry        |
-|                                     | roadgrip/v1/warnings                               |                                            |
+|                                     | roadgrip/v1/warnings, warnings/uper                |                                            |
 | a reader                            | roadgrip/v1/vehicles/+/friction,                   | -                                          |
-|                                     | roadgrip/v1/warnings                               |                                            |
+|                                     | roadgrip/v1/warnings, warnings/uper                |                                            |
 | a station (login name = station_id) | roadgrip/v1/stations/<id>/errors                   | roadgrip/v1/stations/<id>/reports          |
 
 The service also reads roadgrip/v1/stations/+/reports and writes roadgrip/v1/stations/+/errors.
@@ -70,6 +70,7 @@ from roadgrip.cloud.transport.mqtt import (
     STATION_REPORTS_SUBSCRIPTION,
     TELEMETRY_SUBSCRIPTION,
     WARNINGS_TOPIC,
+    WARNINGS_UPER_TOPIC,
     BrokerRefused,
     connect_paho,
     errors_topic,
@@ -341,6 +342,7 @@ class ManagedBroker:
                     ("write", FRICTION_SUBSCRIPTION),
                     ("write", ERRORS_SUBSCRIPTION),
                     ("write", WARNINGS_TOPIC),
+                    ("write", WARNINGS_UPER_TOPIC),
                     ("read", STATION_REPORTS_SUBSCRIPTION),
                     ("write", STATION_ERRORS_SUBSCRIPTION),
                 ]
@@ -350,11 +352,12 @@ class ManagedBroker:
                     ("read", friction_topic(name)),
                     ("read", errors_topic(name)),
                     ("read", WARNINGS_TOPIC),
+                    ("read", WARNINGS_UPER_TOPIC),
                 ]
             elif login.role == "station":
                 rules = [("write", station_reports_topic(name)), ("read", station_errors_topic(name))]
             else:
-                rules = [("read", FRICTION_SUBSCRIPTION), ("read", WARNINGS_TOPIC)]
+                rules = [("read", FRICTION_SUBSCRIPTION), ("read", WARNINGS_TOPIC), ("read", WARNINGS_UPER_TOPIC)]
             sections.append(f"# {login.role}\nuser {name}\n" + "".join(f"topic {a} {t}\n" for a, t in rules))
         return "\n".join(sections)
 

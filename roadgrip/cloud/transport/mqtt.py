@@ -10,6 +10,7 @@ Topics, all QoS 1; this module is the one place that spells them:
 | roadgrip/v1/vehicles/{vehicle_id}/friction  | the service (estimates) | that vehicle, readers   |
 | roadgrip/v1/vehicles/{vehicle_id}/errors    | the service (rejected)  | that vehicle            |
 | roadgrip/v1/warnings                        | the service             | every vehicle, readers  |
+| roadgrip/v1/warnings/uper                   | the service (UPER DENM) | every vehicle, readers  |
 | roadgrip/v1/stations/{station_id}/reports   | the roadside station    | the service             |
 | roadgrip/v1/stations/{station_id}/errors    | the service (rejected)  | that station            |
 
@@ -67,6 +68,7 @@ STATION_ERRORS_SUBSCRIPTION = STATIONS_PREFIX + "+/errors"
 FRICTION_SUBSCRIPTION = VEHICLES_PREFIX + "+/friction"
 ERRORS_SUBSCRIPTION = VEHICLES_PREFIX + "+/errors"
 WARNINGS_TOPIC = "roadgrip/v1/warnings"
+WARNINGS_UPER_TOPIC = WARNINGS_TOPIC + "/uper"  # the same DENMs, UPER-encoded (roadgrip/cloud/formats/denm.py)
 VEHICLE_TOPIC_KINDS = ("telemetry", "friction", "errors")
 QOS = 1
 DEFAULT_PORT = 1883

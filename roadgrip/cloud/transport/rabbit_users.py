@@ -47,6 +47,7 @@ import httpx
 from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, rabbit_password_hash
 from roadgrip.cloud.transport.mqtt import (
     WARNINGS_TOPIC,
+    WARNINGS_UPER_TOPIC,
     check_vehicle_id,
     errors_topic,
     friction_topic,
@@ -82,7 +83,7 @@ def permissions(name: str, role: str, vhost: str = "/") -> tuple[dict, dict]:
     queues = f"mqtt-subscription-{re.escape(name)}(-[0-9a-f]{{8}})?qos[01]"
     if role == "vehicle":
         write = _key_pattern(telemetry_topic(name))
-        read = _key_pattern(friction_topic(name), errors_topic(name), WARNINGS_TOPIC)
+        read = _key_pattern(friction_topic(name), errors_topic(name), WARNINGS_TOPIC, WARNINGS_UPER_TOPIC)
     elif role == "reader":
         write = "^$"
         # a subscription to roadgrip/v1/vehicles/+/friction binds with the key roadgrip.v1.vehicles.*.friction
@@ -91,6 +92,8 @@ def permissions(name: str, role: str, vhost: str = "/") -> tuple[dict, dict]:
             + re.escape(routing_key(friction_topic("X"))).replace("X", r"[^.]+")
             + "|"
             + re.escape(routing_key(WARNINGS_TOPIC))
+            + "|"
+            + re.escape(routing_key(WARNINGS_UPER_TOPIC))
             + ")$"
         )
     else:

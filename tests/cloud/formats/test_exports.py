@@ -1,4 +1,5 @@
-"""Exports: DATEX II v3 parses back with one friction per measured cell, GeoJSON has one home, TimestampIts counts the
+"""Exports: DATEX II v3 parses back with a site per cell and one friction per measured cell (the schema itself:
+test_datex2_schema.py), GeoJSON has one home, TimestampIts counts the
 leap seconds, the DENM's enumerations and quality."""
 
 import calendar
@@ -59,20 +60,25 @@ def unix_ms(*ymdhms) -> int:
 # ---------------------------------------------------------------------------------------------------------- DATEX II
 
 
-def test_datex2_parses_with_one_friction_per_measured_cell():
+def test_datex2_parses_with_a_site_per_cell_and_one_friction_per_measured_cell():
     cells = sample_map().cells(T0_MS)
     measured = {c.cell: c for c in cells if c.status == "measured"}
     assert len(cells) == 3 and len(measured) == 2
-    text = datex2_xml(cells, T0_MS + 1000, supplier="roadgrip-test")
+    text = datex2_xml(cells, T0_MS + 1000, country="NO", resolution=10, supplier="roadgrip-test")
     root = ET.fromstring(text)
     assert root.tag == f"{{{NS['d2']}}}payload" and root.get(XSI_TYPE) == "roa:MeasuredDataPublication"
     assert root.get("modelBaseVersion") == "3"
     assert root.findtext("com:publicationTime", namespaces=NS) == "2026-01-15T08:00:01.000Z"
+    assert root.findtext("com:publicationCreator/com:country", namespaces=NS) == "NO"
     assert root.findtext("com:publicationCreator/com:nationalIdentifier", namespaces=NS) == "roadgrip-test"
     sites = root.findall("roa:siteMeasurements", NS)
-    assert len(sites) == 2
+    assert [s.find("roa:measurementSiteReference", NS).get("id") for s in sites] == [c.cell for c in cells]
     for site in sites:
-        cell = measured[site.find("roa:measurementSiteReference", NS).get("id")]
+        cell_id = site.find("roa:measurementSiteReference", NS).get("id")
+        if cell_id not in measured:  # mu unknown: the site without a quantity, no number
+            assert site.find("roa:physicalQuantity", NS) is None
+            continue
+        cell = measured[cell_id]
         quantity = site.find("roa:physicalQuantity/roa:physicalQuantity", NS)
         assert quantity.get(XSI_TYPE) == "roa:SinglePhysicalQuantity"
         basic = quantity.find("roa:basicData", NS)
@@ -94,8 +100,10 @@ def test_datex2_parses_with_one_friction_per_measured_cell():
     )
 
 
-def test_datex2_of_no_measured_cell_is_still_well_formed():
-    root = ET.fromstring(datex2_xml([], T0_MS))
+def test_datex2_of_an_empty_map_is_a_generic_publication():
+    root = ET.fromstring(datex2_xml([], T0_MS, country="NO", resolution=10))
+    assert root.get(XSI_TYPE) == "com:GenericPublication"
+    assert root.findtext("com:genericPublicationName", namespaces=NS) == "MeasuredDataPublication"
     assert root.findall("roa:siteMeasurements", NS) == []
 
 
@@ -103,7 +111,7 @@ def test_datex2_clips_friction_to_the_unit_interval():
     fmap = FrictionMap()
     fmap.add([est(38.0, 114.5, 1.3, vehicle=f"v{k}") for k in range(4)])  # four passes: mu >= 1.2, median above 1
     assert fmap.cells(T0_MS)[0].mu > 1.0
-    root = ET.fromstring(datex2_xml(fmap.cells(T0_MS), T0_MS))
+    root = ET.fromstring(datex2_xml(fmap.cells(T0_MS), T0_MS, country="NO", resolution=10))
     assert float(root.find(".//com:friction/com:friction", NS).text) == 1.0
 
 

@@ -16,9 +16,11 @@ from fake_clock import FakeClock
 from roadgrip.cloud.cluster.map_cells import stored_friction_map
 from roadgrip.cloud.cluster.regions import Regions, region_messages
 from roadgrip.cloud.domain.cells import region_of
+from roadgrip.cloud.formats.denm import decode_denm_uper
 from roadgrip.cloud.pipeline.fanout import Fanout, VehicleFanout, new_friction_map, new_warning_engine
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, open_storage
+from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, WARNINGS_UPER_TOPIC
 
 T0_MS = 1_768_464_000_000
 HEBEI = (38.0, 114.5)
@@ -76,8 +78,9 @@ def scenario() -> list[tuple[list[dict], int]]:
     return rounds(rows)
 
 
-def without_action_id(payload: bytes) -> str:
-    denm = json.loads(payload)
+def without_action_id(topic: str, payload: bytes) -> str:
+    """A published DENM, JSON or (on its own topic) UPER-encoded, without its ActionID."""
+    denm = decode_denm_uper(payload) if topic == WARNINGS_UPER_TOPIC else json.loads(payload)
     del denm["denm"]["management"]["actionID"]
     return json.dumps(denm, sort_keys=True)
 
@@ -116,12 +119,12 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
         settings,
         new_friction_map(settings),
         new_warning_engine(settings),
-        publish=lambda topic, payload: serve_denms.append((topic, without_action_id(payload))),
+        publish=lambda topic, payload: serve_denms.append((topic, without_action_id(topic, payload))),
     )
     regions = Regions(
         settings,
         cluster_storage,
-        publish=lambda topic, payload: cluster_denms.append((topic, without_action_id(payload))),
+        publish=lambda topic, payload: cluster_denms.append((topic, without_action_id(topic, payload))),
     )
     worker = VehicleFanout(settings, Regional(regions))
     for rows, newest in scenario():
@@ -147,7 +150,10 @@ def test_serves_one_region_and_the_clusters_regions_give_the_same_warnings_and_m
         sorted((c for r in regions.held.values() for c in r.friction_map.cells(now_ms)), key=lambda c: c.cell), cells
     )
     assert_same_cells(stored_friction_map(cluster_storage, settings, now_ms).cells(now_ms), cells)
-    assert len(serve_denms) > len(serve_warnings)  # raised and refreshed
+    assert len(serve_denms) > 2 * len(serve_warnings)  # raised and refreshed, each as JSON and UPER
+    json_denms = [json.loads(d) for t, d in serve_denms if t == WARNINGS_TOPIC]
+    uper_denms = [json.loads(d) for t, d in serve_denms if t == WARNINGS_UPER_TOPIC]
+    assert uper_denms == [{k: d[k] for k in ("header", "denm")} for d in json_denms]  # one message, two renderings
     assert sorted(cluster_denms) == sorted(serve_denms)
     serve_storage.close()
     cluster_storage.close()
