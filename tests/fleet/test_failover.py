@@ -51,11 +51,17 @@ def _sample(k: int) -> dict:
     return {"vehicle_id": VEHICLE, "timestamp_ms": k}
 
 
-def _received(inbox: Inbox) -> set[int]:
-    got = set()
-    while not inbox.empty():
-        for _, payload in inbox.payloads(1):
-            got.add(json.loads(payload)["timestamp_ms"])
+def _received(inbox: Inbox, expected: set[int]) -> set[int]:
+    """The samples (timestamps) that reached the subscriber, once all of `expected` have (the broker passes a message
+    on after its PUBACK) or the wait fails."""
+    got: set[int] = set()
+
+    def arrived() -> bool:
+        while not inbox.empty():
+            got.update(json.loads(payload)["timestamp_ms"] for _, payload in inbox.payloads(1))
+        return got >= expected
+
+    wait_until(arrived, what=f"samples {sorted(expected)} at the subscriber")
     return got
 
 
@@ -98,9 +104,8 @@ def test_a_vehicle_moves_to_the_live_broker_and_resends_what_was_not_pubacked(br
     assert (counts.sent, counts.acknowledged, counts.lost) == (30, 30, 0)
     assert (counts.endpoint, counts.moves, counts.connects) == (b.url, 1, 2)
     assert counts.longest_outage_s == 1
-    got_a, got_b = _received(inbox_a), _received(inbox_b)
-    assert got_a >= set(range(10))  # what a PUBACKed before it died had reached its subscriber
-    assert got_b == set(range(10, 30))  # the ten never PUBACKed were resent to b, then the buffered ones
+    assert _received(inbox_a, set(range(10))) == set(range(10))  # a PUBACKed these and passed them on before it died
+    assert _received(inbox_b, set(range(10, 30))) == set(range(10, 30))  # the ten never PUBACKed, then the buffered
 
 
 def test_a_full_buffer_counts_what_it_drops_as_lost(brokers):
