@@ -1,4 +1,4 @@
-"""`roadgrip bench sim|estimate|ingest|cluster`: run the benchmarks of roadgrip/bench and print their tables."""
+"""`roadgrip bench sim|estimate|ingest|cluster|failover`: run the benchmarks of roadgrip/bench and print their tables."""
 
 from __future__ import annotations
 
@@ -150,3 +150,42 @@ def sim(
         )
     console.print(table)
     console.print(f"machine: {machine_description()}")
+
+
+@friendly_errors
+def failover(
+    data_dir: Path = typer.Option(..., help="a new or empty folder for the local cluster (kept, with its logs)"),
+    vehicles: int = typer.Option(20, min=1, max=300, help="simulated vehicles at real time over MQTT 3.1.1"),
+    duration: float = typer.Option(100.0, min=10.0, help="seconds of driving"),
+    worker_kill: float = typer.Option(15.0, help="seconds into the drive: worker 0 killed (SIGKILL)"),
+    node_kill: float = typer.Option(35.0, help="seconds into the drive: RabbitMQ node --node killed (SIGKILL)"),
+    node_restart: float = typer.Option(60.0, help="seconds into the drive: that node started again"),
+    node: int = typer.Option(1, min=0, max=2, help="the RabbitMQ node killed"),
+    out: Path | None = typer.Option(None, help="write the results as JSON here"),
+):
+    """A Jepsen-style count (docs/RELIABILITY.md): the local cluster of `roadgrip cluster up`, a fleet driving at real
+    time; a worker killed, then a RabbitMQ node, then the node restarted. Per vehicle: sent, PUBACKed, stored in
+    PostgreSQL, lost, the longest stall, and the partition moves. Exit status 1 when a target of issue 25 is missed."""
+    import json
+
+    from roadgrip.bench.failover import FailoverBench, format_failover_bench, run_failover_bench
+
+    bench = FailoverBench(vehicles, duration, worker_kill, node_kill, node_restart, node)
+    with console.status("starting the local cluster...") as status:
+        result = run_failover_bench(bench, data_dir, lambda message: status.update(message))
+    console.print(format_failover_bench(result))
+    s = result["summary"]
+    console.print(
+        f"sent {s['sent']:,}, PUBACKed {s['pubacked']:,}, stored {s['stored']:,}, lost by the client "
+        f"{s['lost_by_client']:,}, PUBACKed not stored {s['pubacked_not_stored']:,}; {s['vehicles_on_killed_node']} "
+        f"vehicles on the killed node, slowest to resume {s['slowest_resume_s']} s; longest stall "
+        f"{s['longest_stall_s']:.1f} s; partitions taken {s['partitions_taken']}, released "
+        f"{s['partitions_released']} after the drive started ({result['partition_moves']})"
+    )
+    console.print("targets: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in s["targets"].items()))
+    console.print(f"cluster started in {result['cluster_start_s']:.0f} s; {result['elapsed_s']:.0f} s in all")
+    if out is not None:
+        out.write_text(json.dumps(result, indent=1))
+        console.print(f"results: {out}")
+    if not all(s["targets"].values()):
+        raise typer.Exit(1)

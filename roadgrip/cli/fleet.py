@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
@@ -13,7 +14,24 @@ from rich.table import Table
 from roadgrip.cli.common import console, friendly_errors
 
 
+def _fleet_errors(fn):
+    """A fleet that cannot start or reach the cloud ends with its one-line message and exit status 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        from roadgrip.fleet.transport import FleetError
+
+        try:
+            return fn(*args, **kwargs)
+        except (FleetError, OSError) as err:
+            console.print(f"[bold red]error:[/] {err}")
+            raise typer.Exit(1) from err
+
+    return wrapper
+
+
 @friendly_errors
+@_fleet_errors
 def fleet(
     url: str = typer.Option("http://127.0.0.1:8000", help="the running cloud (roadgrip serve)"),
     admin_secret_file: Path = typer.Option(
@@ -51,9 +69,17 @@ def fleet(
         help="after the drive, read each vehicle's estimates and the map back "
         "from this cloud (e.g. another API replica of a cluster)",
     ),
+    buffer_messages: int = typer.Option(
+        6_000,
+        min=1,
+        help="MQTT: messages a vehicle keeps until PUBACKed; beyond, new ones are dropped and counted lost",
+    ),
+    ack_timeout: float = typer.Option(60.0, min=0.0, help="MQTT: seconds to wait for the last PUBACKs after the drive"),
 ):
     """Drive simulated vehicles (or replay a log) against a running cloud: each vehicle registers, then sends its
-    telemetry at 10 Hz with its own credentials."""
+    telemetry at 10 Hz with its own credentials. Over MQTT each vehicle fails over to the next broker when its
+    connection is lost (docs/FLEET.md, "Failover"). Ends with what was sent, acknowledged and lost; exit status 1
+    when samples were lost (or the fleet could not start)."""
     import math
     import os
 
@@ -89,7 +115,11 @@ def fleet(
     use_mqtt = transport == "mqtt" or (transport == "auto" and bool(brokers))
     if use_mqtt and not brokers:
         raise ValueError("--transport mqtt, but the cloud runs without a broker (and no --mqtt was given)")
-    terminals = MqttTerminals(brokers, secrets, mqtt_protocol) if use_mqtt else HttpTerminals(url, secrets)
+    terminals = (
+        MqttTerminals(brokers, secrets, mqtt_protocol, buffer_messages=buffer_messages)
+        if use_mqtt
+        else HttpTerminals(url, secrets)
+    )
     total = sum(len(run) for run in samples.values())
     with Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
@@ -102,19 +132,24 @@ def fleet(
             terminals.send(batch[0]["vehicle_id"], batch)
             bar.advance(task, len(batch))
 
-        result = replay(
-            timeline(samples, speed, time.time()),
-            send,
-            speed=speed if speed < 1e6 else math.inf,
-            batch=1 if use_mqtt else 10,
-        )
-        terminals.close()
-    acknowledged = terminals.acknowledged if use_mqtt else terminals.stored
-    over = f" over MQTT {terminals.protocol} to {len(brokers)} broker(s)" if use_mqtt else ""
+        try:
+            result = replay(
+                timeline(samples, speed, time.time()),
+                send,
+                speed=speed if speed < 1e6 else math.inf,
+                batch=1 if use_mqtt else 10,
+            )
+        finally:
+            bar.update(task, description="waiting for the last acknowledgements")
+            if use_mqtt:
+                terminals.close(ack_timeout)
+            else:
+                terminals.close()
     console.print(
         f"sent {result.samples:,} samples in {result.batches:,} messages over {result.wall_s:.1f} s "
-        f"({result.late_batches} late){over}; {'acknowledged' if use_mqtt else 'stored'}: {acknowledged:,}"
+        f"({result.late_batches} late)"
     )
+    lost = _report(terminals, len(brokers)) if use_mqtt else _report_http(terminals)
     if read_url is not None:
         with console.status(f"reading the estimates and the map back from {read_url}..."):
             stored = read_back(read_url, secret, list(samples))
@@ -124,6 +159,52 @@ def fleet(
             f"{sum(1 for n in counts.values() if n)} of {len(counts)} vehicles, {stored['map_cells']} map "
             f"cells ({'settled' if stored['settled'] else 'still growing'} after {stored['wait_s']:.0f} s)"
         )
+    if lost:
+        raise typer.Exit(1)
+
+
+PER_VEHICLE_TABLE_MAX = 20  # vehicles: up to this many, a row each
+
+
+def _report(terminals, brokers: int) -> int:
+    """Print what the MQTT fleet sent, had PUBACKed and lost (a row per vehicle when few); return the lost samples."""
+    counts = terminals.counts
+    total = {f: sum(getattr(c, f) for c in counts.values()) for f in ("sent", "acknowledged", "refused", "dropped")}
+    unacked = sum(c.unacknowledged for c in counts.values())
+    lost = sum(c.lost for c in counts.values())
+    moved = sum(1 for c in counts.values() if c.moves)
+    longest = max((c.longest_outage_s for c in counts.values()), default=0.0)
+    if len(counts) <= PER_VEHICLE_TABLE_MAX:
+        table = Table(title=f"per vehicle, over MQTT {terminals.protocol} to {brokers} broker(s) (samples)")
+        for name in ("vehicle", "sent", "PUBACKed", "lost", "moves", "longest outage", "last broker"):
+            table.add_column(name, justify="left" if name in ("vehicle", "last broker") else "right")
+        for vid, c in counts.items():
+            table.add_row(
+                vid,
+                f"{c.sent:,}",
+                f"{c.acknowledged:,}",
+                f"{c.lost:,}",
+                str(c.moves),
+                f"{c.longest_outage_s:.1f} s",
+                c.endpoint or "-",
+            )
+        console.print(table)
+    console.print(
+        f"fleet over MQTT {terminals.protocol} to {brokers} broker(s): sent {total['sent']:,} samples, "
+        f"PUBACKed {total['acknowledged']:,}, lost {lost:,} (buffer full {total['dropped']:,}, refused "
+        f"{total['refused']:,}, unacknowledged at the end {unacked:,}); {moved} of {len(counts)} vehicles moved to "
+        f"another broker, longest outage {longest:.1f} s"
+    )
+    return lost
+
+
+def _report_http(terminals) -> int:
+    console.print(
+        f"fleet over HTTP: sent {terminals.sent:,} samples, stored {terminals.stored:,}, rejected "
+        f"{terminals.rejected:,}, lost {terminals.lost:,}"
+        + (f" (first error: {terminals.error})" if terminals.error else "")
+    )
+    return terminals.lost
 
 
 def _replay_samples(

@@ -95,6 +95,22 @@ def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read
     assert f"read back from {cloud.url}: {sum(stored.values()):,} estimates of 2 of 2 vehicles" in said
 
 
+@pytest.mark.slow
+def test_a_vehicle_whose_broker_is_down_goes_to_the_next_and_the_fleet_reports_per_vehicle(cloud):
+    """Vehicle 0 is assigned a port where nothing listens: it connects to the next endpoint; nothing is lost."""
+    dead = f"mqtt://127.0.0.1:{free_port()}"
+    result = runner.invoke(
+        app,
+        ["fleet", "--url", cloud.url, "--vehicles", "2", "--speed", "50", "--duration", "10"]
+        + ["--mqtt", dead, "--mqtt", cloud.service.mqtt_url, "--prefix", "dead"],
+    )
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "PUBACKed 200, lost 0" in said and "dead-000" in said and "dead-001" in said
+    settle(cloud.service)
+    assert cloud.service.storage.counts()["telemetry"] == 2 * 100
+
+
 def test_the_real_log_is_replayed_as_its_own_vehicle(cloud):
     result = runner.invoke(
         app,
