@@ -85,7 +85,9 @@ def test_http_observations_are_stored_once_and_bad_ones_refused_naming_the_field
             assert refused.json()["detail"]["field"] == field, refused.text
         assert client.post("/v1/observations", content=b"{not json", auth=auth).status_code == 400
         reader = client.post("/v1/readers", json={"name": "r"}, auth=ADMIN).json()
-        assert client.post("/v1/observations", content=json.dumps(first), auth=("r", reader["secret"])).status_code == 403
+        assert (
+            client.post("/v1/observations", content=json.dumps(first), auth=("r", reader["secret"])).status_code == 403
+        )
         assert len(service.storage.observations_since(0)) == len(observations)
 
 

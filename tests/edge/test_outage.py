@@ -59,7 +59,9 @@ def test_an_agent_killed_during_a_broker_outage_loses_no_observation(tmp_path, m
     assert first.wait(10) == -signal.SIGKILL
 
     managed_broker.start()
-    with UserClient(managed_broker.url, managed_broker.service_user, managed_broker.service_password).connect() as cloud:
+    with UserClient(
+        managed_broker.url, managed_broker.service_user, managed_broker.service_password
+    ).connect() as cloud:
         cloud.subscribe(f"roadgrip/v1/vehicles/{VEHICLE}/observations")
         second = _edge(tmp_path, managed_broker.url, secret, os.devnull)
         output = second.communicate(timeout=180)[0].decode()
