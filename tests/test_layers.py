@@ -26,7 +26,7 @@ TOP_LEVEL_RANKS = (
     {"sim", "features", "models"},
     {"training", "estimators"},
     {"cloud"},
-    {"fleet"},
+    {"fleet", "edge"},
     {"evaluation"},
     {"bench"},
     {"cli", "__main__"},
@@ -233,3 +233,17 @@ def test_the_rules_catch_a_forbidden_import():
     }
     assert _cycles(fake) == [["roadgrip.cloud.domain.a", "roadgrip.cloud.storage.b"]]
     assert _rank("roadgrip.cloud.storage.b", CLOUD_RANKS, 2) > _rank("roadgrip.cloud.domain.a", CLOUD_RANKS, 2)
+
+
+def test_edge_takes_only_what_the_car_shares_with_the_cloud(graph):
+    """The vehicle end imports of the cloud only the domain, the topic names and the wire parser; the cloud never
+    imports it (docs/ARCHITECTURE.md)."""
+    shared = ("roadgrip.cloud.domain", "roadgrip.cloud.transport.mqtt", "roadgrip.cloud.ingest.wire")
+    crossing = [
+        f"{name} -> {t}"
+        for name, targets in graph.items()
+        for t in targets
+        if (name.startswith("roadgrip.edge") and t.startswith("roadgrip.cloud") and not t.startswith(shared))
+        or (name.startswith("roadgrip.cloud") and t.startswith("roadgrip.edge"))
+    ]
+    assert crossing == []

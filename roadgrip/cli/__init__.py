@@ -2,14 +2,14 @@
 
 This module holds the typer `app` and lists its commands in the order `roadgrip --help` shows them; the commands
 live by what they drive: data.py (simulate, train, evaluate, estimate), fleet.py (fleet, import-log, demo),
-cloud.py (serve, worker, api), bench.py (`bench ...`) and cluster.py (`cluster up`); common.py has what they share.
+cloud.py (serve, worker, api), edge.py (edge), bench.py (`bench ...`) and cluster.py (`cluster up`); common.py has what they share.
 """
 
 from __future__ import annotations
 
 import typer
 
-from roadgrip.cli import bench, cloud, cluster, data, fleet
+from roadgrip.cli import bench, cloud, cluster, data, edge, fleet
 
 app = typer.Typer(
     help="roadgrip: tire-road adhesion (mu) estimation from connected-vehicle telemetry.",
@@ -32,9 +32,11 @@ app.command("serve")(cloud.serve)
 app.command("worker")(cloud.worker)
 app.command("api")(cloud.api)
 app.command("demo")(fleet.demo)
+app.command("edge")(edge.edge)
 bench_app.command("estimate")(bench.estimate)
 bench_app.command("ingest")(bench.ingest)
 bench_app.command("cluster")(bench.cluster)
 bench_app.command("failover")(bench.failover)
 bench_app.command("sim")(bench.sim)
+bench_app.command("uplink")(bench.uplink)
 cluster_app.command("up")(cluster.up)

@@ -1,4 +1,4 @@
-"""`roadgrip bench sim|estimate|ingest|cluster|failover`: run the benchmarks of roadgrip/bench and print their tables."""
+"""`roadgrip bench sim|estimate|ingest|cluster|failover|uplink`: run the benchmarks of roadgrip/bench and print their tables."""
 
 from __future__ import annotations
 
@@ -189,3 +189,18 @@ def failover(
         console.print(f"results: {out}")
     if not all(s["targets"].values()):
         raise typer.Exit(1)
+
+
+@friendly_errors
+def uplink(
+    seed: int = typer.Option(0, help="the fleet benchmark's scenario seed"),
+    vehicles: int = typer.Option(8, min=1, help="vehicles of the fleet benchmark's scenario"),
+    duration_s: float = typer.Option(3600.0, help="the scenario's length, s"),
+):
+    """Uplink bytes per vehicle-hour and messages/s per vehicle, raw against edge mode, on the fleet benchmark's
+    drives; CPU and peak RSS of one `roadgrip edge` process (docs/EDGE.md)."""
+    from roadgrip.bench.uplink import format_uplink, run_uplink_bench
+
+    with console.status("simulating the drives and running the agents..."):
+        result = run_uplink_bench(seed, vehicles, duration_s)
+    console.print(format_uplink(result))

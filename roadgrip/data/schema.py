@@ -1,5 +1,6 @@
 """The one source of truth for column names, types and units: telemetry wire format v1 (CONTRACTS 3.1), the simulation
-dataset (CONTRACTS 3.3) and the estimate (CONTRACTS 3.4) as the cloud stores and publishes it."""
+dataset (CONTRACTS 3.3), the estimate (CONTRACTS 3.4) as the cloud stores and publishes it, and what a vehicle that
+estimates on board sends instead of its telemetry: the friction observation and the heartbeat (CONTRACTS 3.7)."""
 
 from __future__ import annotations
 
@@ -151,3 +152,45 @@ ESTIMATE = (
     Column("h3_cell", pa.string(), "-", "H3 cell of the position at the map's resolution", required=False),
 )
 ESTIMATE_FIELDS = tuple(c.name for c in ESTIMATE)
+
+# A friction observation (CONTRACTS 3.7): what `roadgrip edge` (roadgrip/edge/) sends for one pass of the vehicle
+# through one H3 cell of the map (roadgrip/cloud/domain/passes.py) where it had evidence, instead of the pass's raw
+# telemetry. The domain turns it back into the rows of that pass (roadgrip/cloud/domain/observations.py). mu,
+# mu_lower and mu_upper are VSS Vehicle.ADAS.ESC.RoadFriction.MostProbable / LowerBound / UpperBound (as a fraction,
+# not VSS's percent).
+EVIDENCE_KINDS = ("bound", "abs", "tcs", "esc", "lateral", "slip_slope")
+OBSERVATION = (
+    Column("vehicle_id", pa.string(), "-", "the vehicle, as in its telemetry"),
+    Column("h3_cell", pa.string(), "-", "H3 cell of the pass, at the map's resolution"),
+    Column("first_ms", pa.int64(), "ms", "the pass's first estimated sample, ms since the Unix epoch"),
+    Column("last_ms", pa.int64(), "ms", "the pass's last estimated sample: the pass's time"),
+    Column("latitude_deg", pa.float64(), "deg", "WGS84 latitude of the pass's telling sample"),
+    Column("longitude_deg", pa.float64(), "deg", "WGS84 longitude of the pass's telling sample"),
+    Column("mu", pa.float64(), "-", "most probable mu: median over the excited estimates (else the last estimate)"),
+    Column("mu_lower", pa.float64(), "-", "5 % end: median of the excited estimates' (else the last estimate's)"),
+    Column("mu_upper", pa.float64(), "-", "95 % end: median of the excited estimates' (else the last estimate's)"),
+    Column(
+        "mu_proven", pa.float64(), "-", "the largest bound the car's acceleration proved in the pass", required=False
+    ),
+    Column("excited", pa.bool_(), "-", "an estimate of the pass was excited"),
+    Column("n_estimates", pa.int64(), "-", "estimates in the pass"),
+    Column("n_excited", pa.int64(), "-", "excited estimates in the pass"),
+    Column("evidence", pa.list_(pa.string()), "-", f"kinds of evidence in the pass, of {EVIDENCE_KINDS}"),
+    Column("channels", pa.list_(pa.string()), "-", "the optional telemetry fields (CONTRACTS 3.1) the car has"),
+    Column("vehicle_class", pa.string(), "-", "the vehicle's profile name (CONTRACTS 3.2)"),
+    Column("estimator", pa.string(), "-", "name of the estimator on board"),
+)
+OBSERVATION_FIELDS = tuple(c.name for c in OBSERVATION)
+
+# The sparse heartbeat of an edge vehicle (CONTRACTS 3.7): that it runs, where it is, what waits in its outbox.
+HEARTBEAT = (
+    Column("vehicle_id", pa.string(), "-", "the vehicle"),
+    Column("timestamp_ms", pa.int64(), "ms", "the newest sample's timestamp, ms since the Unix epoch"),
+    Column("latitude_deg", pa.float64(), "deg", "WGS84 latitude of the newest sample", required=False),
+    Column("longitude_deg", pa.float64(), "deg", "WGS84 longitude of the newest sample", required=False),
+    Column("n_samples", pa.int64(), "-", "samples estimated since the previous heartbeat"),
+    Column("n_observations", pa.int64(), "-", "observations made since the previous heartbeat"),
+    Column("outbox_pending", pa.int64(), "-", "messages waiting in the outbox for their PUBACK"),
+    Column("outbox_dropped", pa.int64(), "-", "messages the outbox dropped at its limit, since it was made"),
+)
+HEARTBEAT_FIELDS = tuple(c.name for c in HEARTBEAT)

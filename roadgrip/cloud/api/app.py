@@ -12,6 +12,7 @@ Every call authenticates with HTTP Basic (name and secret; vehicles use their ve
 | POST /v1/vehicles | admin | register a vehicle with its profile (CONTRACTS 3.2); returns its secret once | vehicles.py |
 | GET /v1/vehicles/{id} | admin, reader, the vehicle | its profile | vehicles.py |
 | POST /v1/readers | admin | create a reader credential; returns its secret once | credentials.py |
+| POST /v1/observations, POST /v1/heartbeats | vehicle | an edge vehicle's friction observations and heartbeats (CONTRACTS 3.7) | observations.py |
 | POST /v1/stations | admin | register a roadside station (its own credential); returns its secret once | credentials.py |
 | POST /v1/stations/{id}/reports | the station | its reports (roadgrip/cloud/domain/stations.py: one JSON object or an array) | stations.py |
 | GET /v1/stations | admin, reader | each station's newest report, with the evidence drawn from it and its cells | stations.py |
@@ -61,7 +62,16 @@ from fastapi import Depends, FastAPI
 from roadgrip.cloud.api import errors
 from roadgrip.cloud.api.backend import ApiBackend
 from roadgrip.cloud.api.deps import single_query_values
-from roadgrip.cloud.api.routes import credentials, dashboard, health, stations, telemetry, vehicles, warnings
+from roadgrip.cloud.api.routes import (
+    credentials,
+    dashboard,
+    health,
+    observations,
+    stations,
+    telemetry,
+    vehicles,
+    warnings,
+)
 from roadgrip.cloud.api.routes import map as map_routes
 from roadgrip.cloud.metrics import registry_with
 
@@ -72,6 +82,7 @@ ROUTERS = (
     credentials.router,
     stations.router,
     telemetry.router,
+    observations.router,
     map_routes.router,
     warnings.router,
     health.router,

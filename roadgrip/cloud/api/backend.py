@@ -47,6 +47,15 @@ class StationIngest:
     evidence_cells: int  # cells that got evidence from the new reports
 
 
+@dataclass(frozen=True)
+class EdgeIngest:
+    """What `observations` or `heartbeats` did with a payload of an edge vehicle (CONTRACTS 3.7)."""
+
+    received: int
+    stored: int  # new ones (a repeat of a stored one is a duplicate)
+    duplicates: int
+
+
 class ApiBackend(Protocol):
     settings: Settings
     storage: Storage
@@ -74,6 +83,12 @@ class ApiBackend(Protocol):
 
     def station_reports(self, reports: list) -> StationIngest:
         """Store validated station reports and give the new ones' evidence to the map and the warnings."""
+
+    def observations(self, observations: list[dict]) -> EdgeIngest:
+        """Store validated friction observations of edge vehicles and give the new ones to the map and warnings."""
+
+    def heartbeats(self, heartbeats: list[dict]) -> EdgeIngest:
+        """Store validated heartbeats of edge vehicles."""
 
     def current_map(self) -> tuple[FrictionMap, int]:
         """The friction map and the clock (ms) to read it at."""

@@ -8,6 +8,7 @@
 | the same, from a `Refused` | a rule of a request model, once the request matched the schema | 422 | the rule's sentence, naming where (`[1].profile.name: ...`) |
 | PayloadError | the telemetry parser (roadgrip/cloud/ingest/wire.py) | 400, 413, 415 | a `Fault`: field, reason |
 | ReportError | the station report parser (roadgrip/cloud/domain/stations.py) | 400, 413, 422 | a `ReportFault`: index, field, reason |
+| ObservationError | the edge message parser (roadgrip/cloud/ingest/observations.py) | 400, 413, 422 | a `ReportFault`: index, field, reason |
 | RateLimited | the vehicle's rate limit (roadgrip/cloud/ingest/ratelimit.py) | 429 with Retry-After; 413 when the request alone exceeds the burst | the reason |
 | VehicleIdRefused | the backend: an id this mode cannot carry | 422 | the reason |
 | StorageUnavailable, IngestUnavailable, BrokerUnavailable | the backend | 503 | what was not done |
@@ -32,6 +33,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from roadgrip.cloud.api.backend import VehicleIdRefused
 from roadgrip.cloud.domain.stations import ReportError
 from roadgrip.cloud.ingest.admission import IngestUnavailable, RateLimited
+from roadgrip.cloud.ingest.observations import ObservationError
 from roadgrip.cloud.ingest.wire import PayloadError
 from roadgrip.cloud.storage.database import StorageUnavailable
 from roadgrip.cloud.transport.rabbit_users import BrokerUnavailable
@@ -48,7 +50,8 @@ class Fault(BaseModel):
 
 
 class ReportFault(BaseModel):
-    """A refused payload of station reports: the report (array index), the field and why; nothing was stored."""
+    """A refused payload of station reports or of an edge vehicle's messages: the report or message (array index),
+    the field and why; nothing was stored."""
 
     index: int | None
     field: str | None
@@ -107,6 +110,7 @@ ANSWERS: dict[type[Exception], Callable[[Exception], tuple[int, object, dict | N
     RequestValidationError: _invalid_request,
     PayloadError: lambda exc: (exc.status, {"field": exc.field, "reason": str(exc)}, None),
     ReportError: lambda exc: (exc.status, exc.to_dict(), None),
+    ObservationError: lambda exc: (exc.status, exc.to_dict(), None),
     RateLimited: _rate_limited,
     VehicleIdRefused: lambda exc: (422, str(exc), None),
     StorageUnavailable: lambda exc: (503, f"storage unavailable, nothing was stored: {exc}", None),

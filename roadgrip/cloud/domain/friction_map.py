@@ -108,6 +108,7 @@ from scipy.special import ndtr
 
 from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
+from roadgrip.cloud.domain.observations import MIN_PROVEN_MU
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
 
@@ -208,7 +209,7 @@ class FrictionMap:
         min_interval_width: float = 0.1,
         outlier_rate: float = 0.005,
         proven_sigma: float = 0.02,
-        min_proven_mu: float = 0.1,
+        min_proven_mu: float = MIN_PROVEN_MU,
         pass_gap_s: float = 30.0,
         max_independent: float = 3.0,
         grip_locality: float = 0.5,

@@ -6,7 +6,8 @@ both modes run:
   friction topic, one message (a JSON array) per `friction_publish_interval_s`; the round's estimates then go on to
   the regions;
 - per region (`RegionFanout`): the friction map and the warning engine take the estimates (and roadside stations'
-  evidence), warning changes are stored and their DENMs published at once (JSON and UPER, each on its topic).
+  evidence, and edge vehicles' observations as the rows of their passes), warning changes are stored and their DENMs
+  published at once (JSON and UPER, each on its topic).
 
 `roadgrip serve` has one `Fanout`, in its main process: its vehicles' part, and one region that holds everything (the
 map and the warnings need every vehicle there): the pipeline calls it in the same process, and with
@@ -28,6 +29,7 @@ import numpy as np
 import orjson
 
 from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.domain.observations import pass_rows
 from roadgrip.cloud.domain.warnings import ACTIVE, EXPIRED, WarningEngine
 from roadgrip.cloud.formats.denm import denm, denm_uper
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
@@ -306,3 +308,12 @@ class Fanout:
         lock (RegionFanout.station_reports)."""
         with self._lock:
             self.region.station_reports(rows)
+
+    def observations(self, observations: list[dict]) -> None:
+        """Newly stored friction observations of edge vehicles (CONTRACTS 3.7) into the map and the warning engine as
+        the passes they stand for (roadgrip/cloud/domain/observations.py), under the lock, like a round's estimates."""
+        if not observations:
+            return
+        rows = [row for o in observations for row in pass_rows(o)]
+        with self._lock:
+            self.region.estimates(rows, max(o["last_ms"] for o in observations))

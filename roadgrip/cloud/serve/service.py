@@ -2,6 +2,11 @@
 storage; in this process, or sharded over `ingest_processes`), the fan-out (map, warnings, publishing), the MQTT side
 (a broker given by URL, or a Mosquitto started here), and the HTTP API.
 
+Edge vehicles' observations and heartbeats (CONTRACTS 3.7, roadgrip/cloud/ingest/observations.py) do not either:
+`observations` stores the new ones (once per vehicle_id and last_ms) and hands them to the fan-out, which feeds the map
+and the warnings the passes they stand for; from the HTTP route, or from the MQTT handler on the station worker
+thread (an edge vehicle sends a few messages a minute).
+
 Roadside stations (roadgrip/cloud/domain/stations.py) do not go through the vehicles' pipeline: `station_reports` stores a
 station's validated reports (idempotent on station_id and timestamp_ms) and hands the evidence of the new ones to the
 fan-out (map and warnings, under its lock), in this process, from the HTTP route or from the MQTT handler's own
@@ -24,12 +29,14 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Self
 
-from roadgrip.cloud.api.backend import StationIngest
+from roadgrip.cloud.api.backend import EdgeIngest, StationIngest
 from roadgrip.cloud.domain.friction_map import FrictionMap
+from roadgrip.cloud.domain.observations import pass_rows
 from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_reports, stored_evidence_rows, stored_rows
 from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
+from roadgrip.cloud.ingest.observations import ObservationError, parse_heartbeats, parse_observations
 from roadgrip.cloud.metrics import ServiceCollector
 from roadgrip.cloud.pipeline.fanout import Fanout, new_friction_map, new_warning_engine
 from roadgrip.cloud.pipeline.pipeline import Pipeline
@@ -139,9 +146,12 @@ class CloudService:
         self.warning_engine.restore(active)
         reports = self.storage.station_reports_since(since)
         self.friction_map.add_station([row for report in reports for row in stored_evidence_rows(report)])
+        observations = self.storage.observations_since(since)
+        self.friction_map.add([row for o in observations for row in pass_rows(o)])
         log.info(
-            "restored the map from %d stored estimates, %d station reports and %d active warnings",
+            "restored the map from %d stored estimates, %d observations, %d station reports and %d active warnings",
             len(rows),
+            len(observations),
             len(reports),
             len(active),
         )
@@ -179,6 +189,7 @@ class CloudService:
             client_id="roadgrip-cloud",
             on_telemetry=self.ingest.mqtt_message,
             on_station_report=self._station_message,
+            on_edge=self._edge_message,
             max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT,
         )
         self.mqtt.connect()
@@ -240,6 +251,58 @@ class CloudService:
             self.station_reports(reports)
         except StorageUnavailable as exc:
             log.warning("station %s: storage unavailable, its report is left unacknowledged: %s", station_id, exc)
+            return
+        ack()
+
+    # ------------------------------------------------------------------------------------------------- edge vehicles
+    def observations(self, observations: list[dict]) -> EdgeIngest:
+        """Store validated observations (roadgrip/cloud/ingest/observations.py) and hand the new ones to the map and
+        the warning engine. StorageUnavailable when the database is down (nothing stored)."""
+        new = self.storage.put_observations(observations)
+        fresh = [o for o in observations if (o["vehicle_id"], o["last_ms"]) in new]
+        self.fanout.observations(fresh)
+        return EdgeIngest(len(observations), len(fresh), len(observations) - len(fresh))
+
+    def heartbeats(self, heartbeats: list[dict]) -> EdgeIngest:
+        """Store validated heartbeats. StorageUnavailable when the database is down."""
+        stored = self.storage.put_heartbeats(heartbeats)
+        return EdgeIngest(len(heartbeats), stored, len(heartbeats) - stored)
+
+    def _edge_message(self, vehicle_id: str, kind: str, payload: bytes, ack) -> None:
+        """An MQTT message on an edge vehicle's observations or heartbeat topic (the ACL made sure it is that
+        vehicle's): handled on the station worker thread, as a station's report is; rejections go to the vehicle's
+        errors topic. Acknowledged once stored, or at once when refused (it would never pass)."""
+        self._station_worker.submit(self._handle_edge_message, vehicle_id, kind, payload, ack)
+
+    def _handle_edge_message(self, vehicle_id: str, kind: str, payload: bytes, ack) -> None:
+        s = self.settings
+        now_ms, max_future_ms = int(time.time() * 1000), int(s.max_future_s * 1000)
+        try:
+            if kind == "observations":
+                parsed = parse_observations(
+                    payload,
+                    vehicle_id=vehicle_id,
+                    resolution=s.h3_resolution,
+                    now_ms=now_ms,
+                    max_future_ms=max_future_ms,
+                    max_bytes=s.max_payload_bytes,
+                )
+            else:
+                parsed = parse_heartbeats(
+                    payload,
+                    vehicle_id=vehicle_id,
+                    now_ms=now_ms,
+                    max_future_ms=max_future_ms,
+                    max_bytes=s.max_payload_bytes,
+                )
+        except ObservationError as exc:
+            self._reject_mqtt(vehicle_id, [exc.to_dict()])
+            ack()
+            return
+        try:
+            (self.observations if kind == "observations" else self.heartbeats)(parsed)
+        except StorageUnavailable as exc:
+            log.warning("vehicle %s: storage unavailable, its %s left unacknowledged: %s", vehicle_id, kind, exc)
             return
         ack()
 

@@ -16,6 +16,7 @@ is upgraded, keeping its rows) and returns a `Storage`, whose methods are safe t
 | telemetry.py | telemetry, estimates | write_batch, estimates, estimates_since, latest_estimates, telemetry, counts, telemetry_extent, latest_timestamps |
 | partitions.py | partition_owners | take_partition, partition_owners (and the fences of write_batch, put_estimator_states) |
 | estimator_states.py | estimator_states | put_estimator_states, estimator_states, estimator_state_rows |
+| observations.py | observations, heartbeats | put_observations, observations_since, put_heartbeats, latest_heartbeats |
 | stations.py | station_reports | put_station_reports, latest_station_reports, station_reports_of, station_reports_since |
 | map_warnings.py | warnings, map_cells, region_owners, counters | put_warnings, put_region_output, map_cells, delete_map_cells, next_action_sequence_number, region_owners, take_region_queue, warnings |
 
@@ -41,6 +42,7 @@ from roadgrip.cloud.storage.credentials import Credential, Credentials
 from roadgrip.cloud.storage.engine import make_engine, normalise_url
 from roadgrip.cloud.storage.estimator_states import EstimatorStates
 from roadgrip.cloud.storage.map_warnings import ACTIVE, MapWarnings
+from roadgrip.cloud.storage.observations import Observations
 from roadgrip.cloud.storage.partitions import Partitions
 from roadgrip.cloud.storage.schema import (
     ROLES,
@@ -48,8 +50,10 @@ from roadgrip.cloud.storage.schema import (
     credentials_table,
     estimates_table,
     estimator_states_table,
+    heartbeats_table,
     map_cells_table,
     metadata,
+    observations_table,
     partition_owners_table,
     region_owners_table,
     station_reports_table,
@@ -73,9 +77,11 @@ __all__ = [
     "credentials_table",
     "estimates_table",
     "estimator_states_table",
+    "heartbeats_table",
     "map_cells_table",
     "metadata",
     "normalise_url",
+    "observations_table",
     "open_storage",
     "partition_owners_table",
     "region_owners_table",
@@ -103,6 +109,7 @@ class Storage:
         self._partitions = Partitions(self._db)
         self._estimator_states = EstimatorStates(self._db)
         self._stations = StationReports(self._db)
+        self._observations = Observations(self._db)
         self._map_warnings = MapWarnings(self._db)
 
     def __repr__(self) -> str:
@@ -233,6 +240,20 @@ class Storage:
 
     def station_reports_since(self, since_ms: int, limit: int = 100_000) -> list[dict]:
         return self._stations.station_reports_since(since_ms, limit)
+
+    # ------------------------------------------------------------------------------------ observations.py
+
+    def put_observations(self, rows: list[dict]) -> set[tuple[str, int]]:
+        return self._observations.put_observations(rows)
+
+    def observations_since(self, since_ms: int, limit: int = 1_000_000) -> list[dict]:
+        return self._observations.observations_since(since_ms, limit)
+
+    def put_heartbeats(self, rows: list[dict]) -> int:
+        return self._observations.put_heartbeats(rows)
+
+    def latest_heartbeats(self) -> list[dict]:
+        return self._observations.latest_heartbeats()
 
     # ------------------------------------------------------------------------------------ map_warnings.py
 

@@ -13,6 +13,8 @@ query and the Alembic migrations (storage/migrations/) bring every database to.
 | map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/cluster/regions.py) |
 | region_owners | region_queue | cluster mode: epoch, owner, taken_ms of each region queue (fencing, as partition_owners) |
 | counters | name | value: cluster mode's shared counters (`action_sequence_number`: the regions' DENM ActionIDs) |
+| observations | vehicle_id, last_ms | the columns of `roadgrip.data.schema.OBSERVATION` (an edge vehicle's pass through a cell, CONTRACTS 3.7; evidence and channels as JSON lists), received_ms |
+| heartbeats | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.HEARTBEAT`, received_ms |
 | station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/domain/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |
 
 Times are integers, milliseconds since the Unix epoch (UTC). No foreign keys tie the tables together: a vehicle may send
@@ -27,7 +29,7 @@ import sqlalchemy as sa
 from sqlalchemy import Column, Table
 from sqlalchemy.dialects import postgresql
 
-from roadgrip.data.schema import ESTIMATE, TELEMETRY
+from roadgrip.data.schema import ESTIMATE, HEARTBEAT, OBSERVATION, TELEMETRY
 
 ROLES = ("vehicle", "reader", "admin", "station")  # the credential roles the credentials table's check admits
 KEY = ("vehicle_id", "timestamp_ms")  # the key of telemetry and estimates
@@ -43,6 +45,8 @@ def _sql_type(column):
     ):
         if is_type(column.type):
             return sql_type()
+    if pa.types.is_list(column.type):
+        return JSON
     raise TypeError(f"column {column.name}: no SQL type for pyarrow type {column.type}")
 
 
@@ -164,4 +168,22 @@ station_reports_table = Table(
     Column("received_ms", sa.BigInteger, nullable=False),
     sa.PrimaryKeyConstraint("station_id", "timestamp_ms"),
     sa.Index("ix_station_reports_timestamp_ms", "timestamp_ms"),
+)
+
+# Edge vehicles' friction observations and heartbeats (roadgrip/cloud/ingest/observations.py), as validated; an
+# observation is one pass, keyed by its vehicle and its time (its last estimate's).
+observations_table = Table(
+    "observations",
+    metadata,
+    *(Column(c.name, _sql_type(c), nullable=not c.required) for c in OBSERVATION),
+    Column("received_ms", sa.BigInteger, nullable=False),
+    sa.PrimaryKeyConstraint("vehicle_id", "last_ms"),
+    sa.Index("ix_observations_last_ms", "last_ms"),
+)
+heartbeats_table = Table(
+    "heartbeats",
+    metadata,
+    *(Column(c.name, _sql_type(c), nullable=not c.required) for c in HEARTBEAT),
+    Column("received_ms", sa.BigInteger, nullable=False),
+    sa.PrimaryKeyConstraint("vehicle_id", "timestamp_ms"),
 )

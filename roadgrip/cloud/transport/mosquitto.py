@@ -25,13 +25,14 @@ Access rules (the ACL file), with the topics of `roadgrip.cloud.transport.mqtt`;
 | ----------------------------------- | -------------------------------------------------- | ------------------------------------------ |
 | the service (`service_user`)        | roadgrip/v1/vehicles/+/telemetry                   | roadgrip/v1/vehicles/+/friction, +/errors, |
 |                                     |                                                    | roadgrip/v1/warnings, warnings/uper        |
-| a vehicle (login name = vehicle_id) | roadgrip/v1/vehicles/<id>/friction, <id>/errors,   | roadgrip/v1/vehicles/<id>/telemetry        |
-|                                     | roadgrip/v1/warnings, warnings/uper                |                                            |
+| a vehicle (login name = vehicle_id) | roadgrip/v1/vehicles/<id>/friction, <id>/errors,   | roadgrip/v1/vehicles/<id>/telemetry,       |
+|                                     | roadgrip/v1/warnings, warnings/uper                | <id>/observations, <id>/heartbeat          |
 | a reader                            | roadgrip/v1/vehicles/+/friction,                   | -                                          |
 |                                     | roadgrip/v1/warnings, warnings/uper                |                                            |
 | a station (login name = station_id) | roadgrip/v1/stations/<id>/errors                   | roadgrip/v1/stations/<id>/reports          |
 
-The service also reads roadgrip/v1/stations/+/reports and writes roadgrip/v1/stations/+/errors.
+The service also reads roadgrip/v1/stations/+/reports, roadgrip/v1/vehicles/+/observations and +/heartbeat (edge
+vehicles, CONTRACTS 3.7), and writes roadgrip/v1/stations/+/errors.
 
 Each login gets a `user` section with its own `topic` lines. `pattern ... %u` lines are not used on purpose: a pattern
 applies to every login, so `pattern write roadgrip/v1/vehicles/%u/telemetry` would also let the service and every
@@ -66,6 +67,8 @@ from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.transport.mqtt import (
     ERRORS_SUBSCRIPTION,
     FRICTION_SUBSCRIPTION,
+    HEARTBEAT_SUBSCRIPTION,
+    OBSERVATIONS_SUBSCRIPTION,
     STATION_ERRORS_SUBSCRIPTION,
     STATION_REPORTS_SUBSCRIPTION,
     TELEMETRY_SUBSCRIPTION,
@@ -75,6 +78,8 @@ from roadgrip.cloud.transport.mqtt import (
     connect_paho,
     errors_topic,
     friction_topic,
+    heartbeat_topic,
+    observations_topic,
     station_errors_topic,
     station_reports_topic,
     telemetry_topic,
@@ -345,10 +350,14 @@ class ManagedBroker:
                     ("write", WARNINGS_UPER_TOPIC),
                     ("read", STATION_REPORTS_SUBSCRIPTION),
                     ("write", STATION_ERRORS_SUBSCRIPTION),
+                    ("read", OBSERVATIONS_SUBSCRIPTION),
+                    ("read", HEARTBEAT_SUBSCRIPTION),
                 ]
             elif login.role == "vehicle":
                 rules = [
                     ("write", telemetry_topic(name)),
+                    ("write", observations_topic(name)),
+                    ("write", heartbeat_topic(name)),
                     ("read", friction_topic(name)),
                     ("read", errors_topic(name)),
                     ("read", WARNINGS_TOPIC),

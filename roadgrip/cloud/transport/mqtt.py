@@ -9,6 +9,8 @@ Topics, all QoS 1; this module is the one place that spells them:
 | roadgrip/v1/vehicles/{vehicle_id}/telemetry | the vehicle             | the service             |
 | roadgrip/v1/vehicles/{vehicle_id}/friction  | the service (estimates) | that vehicle, readers   |
 | roadgrip/v1/vehicles/{vehicle_id}/errors    | the service (rejected)  | that vehicle            |
+| roadgrip/v1/vehicles/{vehicle_id}/observations | the vehicle (edge)   | the service             |
+| roadgrip/v1/vehicles/{vehicle_id}/heartbeat | the vehicle (edge)      | the service             |
 | roadgrip/v1/warnings                        | the service             | every vehicle, readers  |
 | roadgrip/v1/warnings/uper                   | the service (UPER DENM) | every vehicle, readers  |
 | roadgrip/v1/stations/{station_id}/reports   | the roadside station    | the service             |
@@ -67,9 +69,12 @@ STATION_REPORTS_SUBSCRIPTION = STATIONS_PREFIX + "+/reports"
 STATION_ERRORS_SUBSCRIPTION = STATIONS_PREFIX + "+/errors"
 FRICTION_SUBSCRIPTION = VEHICLES_PREFIX + "+/friction"
 ERRORS_SUBSCRIPTION = VEHICLES_PREFIX + "+/errors"
+OBSERVATIONS_SUBSCRIPTION = VEHICLES_PREFIX + "+/observations"  # friction observations of edge vehicles (CONTRACTS 3.7)
+HEARTBEAT_SUBSCRIPTION = VEHICLES_PREFIX + "+/heartbeat"
+EDGE_KINDS = ("observations", "heartbeat")
 WARNINGS_TOPIC = "roadgrip/v1/warnings"
 WARNINGS_UPER_TOPIC = WARNINGS_TOPIC + "/uper"  # the same DENMs, UPER-encoded (roadgrip/cloud/formats/denm.py)
-VEHICLE_TOPIC_KINDS = ("telemetry", "friction", "errors")
+VEHICLE_TOPIC_KINDS = ("telemetry", "friction", "errors", *EDGE_KINDS)
 QOS = 1
 DEFAULT_PORT = 1883
 RECONNECT_MIN_DELAY_S = 0.25  # doubling after each failed attempt, up to the max
@@ -79,6 +84,7 @@ MQTT_PROTOCOLS = {"5": paho.MQTTv5, "3.1.1": paho.MQTTv311}  # what a client may
 UNSUPPORTED_PROTOCOL_VERSION = 0x84  # MQTT 5's CONNACK reason code for a protocol version the broker does not speak
 
 TelemetryHandler = Callable[[str, bytes, Callable[[], None]], None]
+EdgeHandler = Callable[[str, str, bytes, Callable[[], None]], None]  # (vehicle_id, kind of EDGE_KINDS, payload, ack)
 
 
 def check_vehicle_id(vehicle_id: str) -> str:
@@ -100,8 +106,16 @@ def errors_topic(vehicle_id: str) -> str:
     return f"{VEHICLES_PREFIX}{check_vehicle_id(vehicle_id)}/errors"
 
 
+def observations_topic(vehicle_id: str) -> str:
+    return f"{VEHICLES_PREFIX}{check_vehicle_id(vehicle_id)}/observations"
+
+
+def heartbeat_topic(vehicle_id: str) -> str:
+    return f"{VEHICLES_PREFIX}{check_vehicle_id(vehicle_id)}/heartbeat"
+
+
 def vehicle_of_topic(topic: str) -> str | None:
-    """The vehicle id in a per-vehicle topic (`roadgrip/v1/vehicles/{id}/telemetry|friction|errors`); None for any
+    """The vehicle id in a per-vehicle topic (`roadgrip/v1/vehicles/{id}/{kind}`, VEHICLE_TOPIC_KINDS); None for any
     other topic, or for an id that is not a valid vehicle_id."""
     if not topic.startswith(VEHICLES_PREFIX):
         return None
@@ -249,7 +263,8 @@ class MqttClient:
     vehicle id taken from the topic (which the broker's ACL ties to the publisher's login). It must be cheap (the
     service puts the message on a queue) and must not block: no other message is read meanwhile. An exception in it
     is logged and the message is left unacknowledged. `on_station_report(station_id, payload, ack)` is the same for
-    the roadside stations' reports. `ack()` may be called from any thread, at any later time, and
+    the roadside stations' reports, `on_edge(vehicle_id, kind, payload, ack)` for edge vehicles' observations and
+    heartbeats (kind "observations" or "heartbeat"). `ack()` may be called from any thread, at any later time, and
     more than once (only the first call counts): paho's `Client.ack` only appends a PUBACK to a deque (atomic in
     CPython) and wakes the network thread through its socket pair, the same path as `publish`. An `ack()` that comes
     after the connection the message arrived on has dropped does nothing: the broker delivers that message again.
@@ -264,6 +279,7 @@ class MqttClient:
         on_telemetry: TelemetryHandler | None = None,
         *,
         on_station_report: TelemetryHandler | None = None,
+        on_edge: EdgeHandler | None = None,
         session_expiry_s: int = 86_400,
         receive_maximum: int = 10_000,
         max_queued_messages: int = 100_000,
@@ -282,6 +298,7 @@ class MqttClient:
         self.client_id = client_id
         self.on_telemetry = on_telemetry
         self.on_station_report = on_station_report
+        self.on_edge = on_edge
         self.session_expiry_s = session_expiry_s
         self.receive_maximum = receive_maximum
         self.max_queued_messages = max_queued_messages
@@ -416,6 +433,8 @@ class MqttClient:
         subscriptions = [(TELEMETRY_SUBSCRIPTION, QOS)]
         if self.on_station_report is not None:
             subscriptions.append((STATION_REPORTS_SUBSCRIPTION, QOS))
+        if self.on_edge is not None:
+            subscriptions += [(OBSERVATIONS_SUBSCRIPTION, QOS), (HEARTBEAT_SUBSCRIPTION, QOS)]
         _, self._subscribe_mid = client.subscribe(subscriptions)
 
     def _on_subscribe(self, _client, _userdata, mid, reason_codes, _properties):
@@ -448,6 +467,15 @@ class MqttClient:
                     "%s: station report handler failed on a message of %s; left unacknowledged",
                     self.client_id,
                     station_id,
+                )
+            return
+        kind = message.topic.rpartition("/")[2]
+        if vehicle_id is not None and kind in EDGE_KINDS and self.on_edge is not None:
+            try:
+                self.on_edge(vehicle_id, kind, message.payload, ack)
+            except Exception:
+                log.exception(
+                    "%s: %s handler failed on a message of %s; left unacknowledged", self.client_id, kind, vehicle_id
                 )
             return
         if self.on_telemetry is None or vehicle_id is None or not message.topic.endswith("/telemetry"):

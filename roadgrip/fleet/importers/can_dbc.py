@@ -440,7 +440,7 @@ def to_wire(
         "timestamp_ms": pa.array(timestamps, pa.int64()),
     }
     for source, values in held.items():
-        columns[source.field] = _to_field(source, values[k], mapping.profile.wheel_radius_m)
+        columns[source.field] = to_field(source, values[k], mapping.profile.wheel_radius_m)
     for field, value in mapping.constants.items():
         columns[field] = np.full(k.size, value, bool)
     arrays = [columns[f.name] if f.name in columns else pa.nulls(k.size, f.type) for f in TELEMETRY_SCHEMA]
@@ -451,7 +451,7 @@ def to_wire(
     )
 
 
-def _to_field(source: SignalSource, values: np.ndarray, wheel_radius_m: float) -> np.ndarray:
+def to_field(source: SignalSource, values: np.ndarray, wheel_radius_m: float) -> np.ndarray:
     """A source's held values (DBC units) in its field's unit and ISO 8855 sign."""
     if source.field in BOOL_FIELDS:
         return values != 0

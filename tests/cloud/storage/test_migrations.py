@@ -48,7 +48,7 @@ def schema_differences(url: str) -> list:
 def test_a_new_database_is_at_the_newest_revision_and_matches_the_schema(storage_url):
     assert database_revision(storage_url) is None
     open_storage(storage_url).close()
-    assert HEAD == "0004_optional_channels" and database_revision(storage_url) == HEAD
+    assert HEAD == "0005_observations" and database_revision(storage_url) == HEAD
     assert schema_differences(storage_url) == []
     storage = open_storage(storage_url)  # at the newest revision already: nothing to do
     assert storage.counts()["telemetry"] == 0
