@@ -46,9 +46,13 @@ def test_an_edge_vehicle_over_mqtt_reaches_the_map_and_raises_a_warning(tmp_path
         finally:
             uplink.close()
         assert summary.pending == 0 and summary.observations > 0 and uplink.refused == 0
-        wait_until(lambda: service.storage.observations_since(0), what="observations stored")
-        stored = service.storage.observations_since(0)
-        assert len(stored) == summary.observations
+        # PUBACK comes from the broker before the service has stored the message: wait for every one
+        wait_until(
+            lambda: len(service.storage.observations_since(0)) >= summary.observations
+            and service.storage.latest_heartbeats(),
+            what="observations and the heartbeat stored",
+        )
+        assert len(service.storage.observations_since(0)) == summary.observations
         assert len(service.storage.latest_heartbeats()) == 1
         readers = client.post("/v1/readers", json={"name": "r"}, auth=ADMIN).json()
         warnings = client.get("/v1/warnings", auth=("r", readers["secret"])).json()["warnings"]
