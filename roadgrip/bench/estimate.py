@@ -96,7 +96,7 @@ def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000, channels: bool
             batch_s = (time.perf_counter() - t0) / repeats
             results.append(
                 {
-                    "estimator": f"{name} [all channels]" if channels else name,
+                    "estimator": f"{name} (all channels)" if channels else name,
                     "updates": n_updates,
                     "updates_per_s": n_updates / total_s,
                     "latency_median_us": float(np.median(latencies)) / 1e3,
