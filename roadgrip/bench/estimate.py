@@ -4,7 +4,9 @@ Each estimator is fed a stream of wire-format samples (dicts, as the cloud hands
 the paper preset's run `paper-decreasing-circular-e2` repeated end to end (it starts and ends at standstill, so the
 repeats join smoothly; timestamps keep counting). `update` is timed call by call after a warm-up (which also
 triggers numba's compilation or cache load); torch is held to one thread while timing, so that the numbers are per core.
-The batch path (`estimate_batch` over the run) is timed too.
+The batch path (`estimate_batch` over the run) is timed too. With `channels`, the run carries every optional channel
+(CONTRACTS 3.1: GNSS speed, drive and brake force, steering torques; the simulator's error models), as a car that sends
+them all: what reading them costs.
 """
 
 from __future__ import annotations
@@ -32,12 +34,16 @@ def bench_estimator_by_name(name: str) -> Estimator:
     return load_estimator(name)
 
 
-def _stream(n_updates: int):
+def _stream(n_updates: int, channels: bool = False):
     """(samples as dicts, the run's table, its vehicle): n_updates samples of the bench run, repeated."""
+    import dataclasses
+
     from roadgrip.sim.presets import paper_scenarios
     from roadgrip.sim.simulate import simulate
 
     scenario = next(s for s in paper_scenarios() if s.run_id == BENCH_RUN)
+    if channels:
+        scenario = dataclasses.replace(scenario, effects=scenario.effects.with_channels())
     table = simulate([scenario])
     rows = table.select(
         [
@@ -55,14 +61,15 @@ def _stream(n_updates: int):
     return samples, table, scenario.vehicle
 
 
-def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000) -> list[dict]:
+def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000, channels: bool = False) -> list[dict]:
     """For each estimator name: streaming updates per second on one core, per-update latency (median and 99th
-    percentile, microseconds), and batch rows per second. `n_updates` timed updates each (at least 100)."""
+    percentile, microseconds), and batch rows per second. `n_updates` timed updates each (at least 100); `channels`:
+    the stream carries every optional channel."""
     if n_updates < 100:
         raise ValueError(f"n_updates must be at least 100, got {n_updates!r}")
     import torch
 
-    samples, table, vehicle = _stream(n_updates + WARMUP_UPDATES)
+    samples, table, vehicle = _stream(n_updates + WARMUP_UPDATES, channels)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     results = []
@@ -89,7 +96,7 @@ def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000) -> list[dict]:
             batch_s = (time.perf_counter() - t0) / repeats
             results.append(
                 {
-                    "estimator": name,
+                    "estimator": f"{name} (all channels)" if channels else name,
                     "updates": n_updates,
                     "updates_per_s": n_updates / total_s,
                     "latency_median_us": float(np.median(latencies)) / 1e3,

@@ -16,13 +16,16 @@ def estimate(
         ["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"
     ),
     updates: int = typer.Option(20000, help="streamed updates per estimator"),
+    channels: bool = typer.Option(
+        False, help="the stream carries every optional channel (GNSS speed, forces, steering torques)"
+    ),
 ):
     """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
     from roadgrip.bench.estimate import bench_estimators, format_bench
     from roadgrip.bench.sim import machine_description
 
     with console.status("benchmarking the estimators..."):
-        rows = bench_estimators(tuple(estimators), updates)
+        rows = bench_estimators(tuple(estimators), updates, channels)
     console.print(format_bench(rows))
     console.print(f"machine: {machine_description()}")
 

@@ -197,6 +197,15 @@ def evaluate(
         help="physics benchmark: validation (choose constants here) | test (held out: run once per release of the "
         "numbers; printed only when asked for by name)",
     ),
+    channels: str = typer.Option(
+        "",
+        help="physics benchmark: comma-separated channel sets, each run with every optional channel the set lacks "
+        "blanked: base | gnss | forces | steering | all | gnss-degraded (default: none, the benchmark without them)",
+    ),
+    estimator: list[str] = typer.Option(
+        [], "--estimator", help="physics benchmark: estimators beside the prior (repeatable; default: all four)"
+    ),
+    runs: int = typer.Option(0, min=0, help="physics benchmark: the split's first runs only (0: all 240)"),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
     Table 7 (real-vehicle test) in simulation (CONTRACTS 4), or the fleet benchmark (a simulated fleet through the cloud
@@ -207,7 +216,7 @@ def evaluate(
     check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet", "physics"})
     start = time.perf_counter()
     if benchmark == "physics":
-        paths = _evaluate_physics(out, split, seed)
+        paths = _evaluate_physics(out, split, seed, channels, tuple(estimator), runs)
     elif benchmark == "fleet":
         paths = _evaluate_fleet(out, seed, seeds, sweep)
     elif benchmark == "paper":
@@ -292,9 +301,12 @@ def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
     return {k: v for k, v in result.items() if k not in ("metrics", "ratios")}
 
 
-def _evaluate_physics(out: Path, split: str, seed: int) -> dict:
+def _evaluate_physics(
+    out: Path, split: str, seed: int, channels: str = "", estimators: tuple[str, ...] = (), runs: int = 0
+) -> dict:
     import pyarrow.csv as pacsv
 
+    from roadgrip.evaluation.bins import BIN_ESTIMATORS
     from roadgrip.evaluation.physics_benchmark import physics_markdown, rows_table, run_physics_benchmark
     from roadgrip.validation import check_choice
 
@@ -304,10 +316,17 @@ def _evaluate_physics(out: Path, split: str, seed: int) -> dict:
             f"the physics benchmark's seeds are fixed per split (roadgrip/sim/presets.py), got --seed {seed}"
         )
     with console.status(f"physics benchmark, {split} split") as status:
-        rows = run_physics_benchmark(split, progress=lambda message: status.update(f"physics benchmark: {message}"))
+        rows = run_physics_benchmark(
+            split,
+            estimators or BIN_ESTIMATORS,
+            runs or None,
+            progress=lambda message: status.update(f"physics benchmark: {message}"),
+            channels=tuple(c.strip() for c in channels.split(",") if c.strip()) or None,
+        )
     out.mkdir(parents=True, exist_ok=True)
     table = physics_markdown(rows)
-    paths = {"csv": out / f"physics_{split}.csv", "md": out / f"physics_{split}.md"}
+    stem = f"physics_{split}" + ("_channels" if channels else "")
+    paths = {"csv": out / f"{stem}.csv", "md": out / f"{stem}.md"}
     pacsv.write_csv(rows_table(rows), paths["csv"])
     paths["md"].write_text(table)
     console.print(f"physics benchmark, {split} split:\n{table}")

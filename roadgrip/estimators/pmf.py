@@ -85,6 +85,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
+from roadgrip.estimators import slip_slope as ch
 from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.lateral import (
@@ -191,9 +192,17 @@ SAMPLE_COLUMNS = (
     "abs_active",
     "tcs_active",
     "esc_active",
+    # the optional channels (CONTRACTS 3.1; slip_slope.py reads the first four): absent or null is NaN, not sent
+    "gnss_speed_mps",
+    "gnss_speed_accuracy_mps",
+    "drive_force_n",
+    "brake_force_n",
 )
 OPTIONAL_COLUMNS = ("tcs_active", "esc_active")  # absent: not reported, taken as not acting
+CHANNEL_COLUMNS = SAMPLE_COLUMNS[12:]
 S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10, 11
+S_GNSS, S_GNSS_ACC, S_DRIVE, S_BRAKE = 12, 13, 14, 15
+N_BASE = 12  # the columns a sample must have finite
 N_S = len(SAMPLE_COLUMNS)
 
 # Parameter vector
@@ -215,8 +224,11 @@ N_S = len(SAMPLE_COLUMNS)
     Q_CA_REAR,
     Q_CA_FRONT,
     Q_IZ,
-) = range(17)
-N_Q = 17
+    Q_C0_FRONT,
+    Q_C0_REAR,
+    Q_FRONT_DRIVE,
+) = range(20)
+N_Q = 20
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
@@ -256,7 +268,11 @@ K_T = NM * NC
     K_LAT_W,
     K_MU_LO,
 ) = range(K_T + 1, K_T + 33)
-N_MEM = K_T + 33
+# the optional channels' block (slip_slope.py), appended in issue 26: a state saved before it (N_MEM_V1 numbers) is
+# read with the block at its start (state_from_dict)
+K_CH = K_T + 33
+N_MEM_V1 = K_CH
+N_MEM = K_CH + ch.N_CHANNEL_MEM
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -296,6 +312,9 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
     q[Q_CA_REAR] = vehicle.tire_rear.cornering_stiffness_per_load_per_rad
     q[Q_CA_FRONT] = vehicle.tire_front.cornering_stiffness_per_load_per_rad
     q[Q_IZ] = vehicle.yaw_inertia_kgm2
+    q[Q_C0_FRONT] = vehicle.tire_front.longitudinal_stiffness_per_load
+    q[Q_C0_REAR] = vehicle.tire_rear.longitudinal_stiffness_per_load
+    q[Q_FRONT_DRIVE] = vehicle.drive_split[0]
     return q
 
 
@@ -558,6 +577,7 @@ def init_memory(mem, q):
     mem[K_LAT_S] = 1.0
     mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
     mem[K_LP11] = LAT_SLOPE_SIGMA0**2
+    ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -657,7 +677,7 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
 @njit(cache=True)
 def pmf_step(mem, q, smp, t_prev, out):
     """One sample. Returns the sample's time (ms) to remember, or t_prev where the sample was rejected."""
-    for k in range(N_S):
+    for k in range(N_BASE):
         if not np.isfinite(smp[k]):
             mem[K_REJECTED] += 1.0
             _output(mem, 0.0, 0.0, False, out)
@@ -735,6 +755,54 @@ def pmf_step(mem, q, smp, t_prev, out):
                 past_peak = True
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     limit = controller or past_peak
+    # the optional channels (slip_slope.py): each axle's force (the force channels, else a_x), its slip against the
+    # GNSS reference; the driven axle's term replaces the axle-slip term below where the reference speaks
+    fx = np.empty(4)
+    forces = ch.axle_forces(
+        fx,
+        smp[S_DRIVE],
+        smp[S_BRAKE],
+        q[Q_M],
+        atx,
+        s_u * G_MPS2,
+        fz_front,
+        fz_rear,
+        q[Q_FRONT_DRIVE],
+        q[Q_BRAKE_FRONT],
+        q[Q_FRR],
+    )
+    ch.gnss_update(mem, K_CH, smp[S_GNSS], smp[S_GNSS_ACC], ax_c, bias_sd, dt)
+    v_x, v_x_sd = ch.reference_speed(mem, K_CH, smp[S_R], q[Q_LR], v, aty, q[Q_CA_REAR])
+    gnss_driven = False
+    if np.isfinite(v_x) and v_x >= SLIP_MIN_SPEED_MPS:
+        calm = not limit and abs(smp[S_R]) * (q[Q_LF] + q[Q_LR]) < 0.05 * v_x
+        evidence = not limit and dt > 0.0 and abs(aty) < ch.EVIDENCE_MAX_AY_MPS2
+        s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v_x
+        for axle in range(2):
+            c0 = q[Q_C0_FRONT] if axle == 0 else q[Q_C0_REAR]
+            if ch.axle_slip_evidence(
+                mem,
+                K_CH,
+                axle,
+                dt,
+                fx[axle],
+                fx[2 + axle],
+                v_front if axle == 0 else v_rear,
+                v_x,
+                v_x_sd,
+                ax_c,
+                calm,
+                evidence,
+                s_floor,
+                SLIP_MODEL_SHARE,
+                c0,
+                MU_GRID,
+                C_FACTORS,
+                TEMPER,
+                like,
+            ):
+                _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
+                gnss_driven = gnss_driven or axle == int(q[Q_DRIVE])
     if not limit:
         mem[K_U_LIMIT] = 0.0
     else:
@@ -766,7 +834,9 @@ def pmf_step(mem, q, smp, t_prev, out):
         fz_d, fz_u = (fz_front, fz_rear) if drive == 0 else (fz_rear, fz_front)
         s_raw = v_d / v_u - 1.0
         f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
-        if straight and driving:
+        if forces:  # the drive force channel: the driven axle's force without the accelerometer's bias
+            f_d = fx[drive]
+        if straight and driving and not gnss_driven:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
@@ -837,8 +907,8 @@ def _sample_vector(sample: dict) -> np.ndarray:
     smp = np.empty(N_S)
     for k, column in enumerate(SAMPLE_COLUMNS):
         if column not in sample:
-            if column in OPTIONAL_COLUMNS:
-                smp[k] = 0.0
+            if column in OPTIONAL_COLUMNS or column in CHANNEL_COLUMNS:
+                smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
                 continue
             raise ValueError(f"pmf: telemetry sample lacks the field {column!r}")
         value = sample[column]
@@ -895,6 +965,13 @@ class PMFEstimator(Estimator):
         out = {name: float(state.mem[k]) for name, k in CALIBRATION.items()}
         out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
         out["inconsistent"] = int(state.mem[K_INCONSISTENT])
+        out["gnss_latency_s"] = float(state.mem[K_CH + ch.C_L])
+        out["gnss_outliers"] = int(state.mem[K_CH + ch.C_OUTLIERS])
+        for axle, name in ((0, "front"), (1, "rear")):
+            line = K_CH + ch.C_LINE + axle * ch.N_LINE
+            out[f"gnss_slip_offset_{name}"] = float(state.mem[line + ch.L_S0])  # the radius against GNSS
+            out[f"gnss_slip_slope_{name}"] = float(state.mem[line + ch.L_K])  # Gustafsson's slope, 1 / C
+            out[f"gnss_slip_line_weight_{name}_s"] = float(state.mem[line + ch.L_W])
         return out
 
     def state_to_dict(self, state: PMFState) -> dict:
@@ -906,15 +983,29 @@ class PMFEstimator(Estimator):
         }
 
     def state_from_dict(self, data: dict) -> PMFState:
+        memory = data.get("memory")
+        if isinstance(memory, list) and len(memory) == N_MEM_V1:
+            # saved before the optional channels' block: everything kept, the block (GNSS lock, latency, the slip
+            # lines against GNSS) starts afresh, as for a new car
+            vehicle = VehicleParams.from_dict(data["vehicle"])
+            q = pack(vehicle)
+            block = np.zeros(N_MEM)
+            ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
+            data = {**data, "memory": list(memory) + block[K_CH:].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))
 
     def estimate_batch(self, table: pa.Table, segments, vehicle: VehicleParams | None = None) -> pa.Table:
         vehicle = self._vehicle(vehicle)
-        missing = [c for c in SAMPLE_COLUMNS if c not in table.column_names and c not in OPTIONAL_COLUMNS]
+        missing = [
+            c
+            for c in SAMPLE_COLUMNS
+            if c not in table.column_names and c not in OPTIONAL_COLUMNS and c not in CHANNEL_COLUMNS
+        ]
         if missing:
             raise ValueError(f"pmf: telemetry table lacks the column(s) {missing}")
         samples = np.zeros((table.num_rows, N_S))
+        samples[:, N_BASE:] = np.nan  # a channel the table lacks is not sent
         for k, column in enumerate(SAMPLE_COLUMNS):
             if column in table.column_names:
                 samples[:, k] = np.nan_to_num(

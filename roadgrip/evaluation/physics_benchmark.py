@@ -10,6 +10,12 @@ Every estimator gets the catalogue profile of its car (bins.catalogue_profile), 
 the prior baseline (evaluation/baseline.py) first, then every estimator, by true utilization bin (bins.py) and by mu
 band (<= 0.3, 0.3-0.6, >= 0.6), then by manoeuvre and mu band, each cell with RMSE, skill against the prior over the
 same samples, and the coverage of the 90 % interval.
+
+By channel set (`channels`, issue 26): the split simulated once with every optional channel on (CONTRACTS 3.1, the
+error models of roadgrip/sim/channels.py), and once more with degraded GNSS where `gnss-degraded` is asked for
+(ChannelModel.degraded_gnss: latency 0.2 s, 10 % outages, 5 % multipath outliers); each set blanks (nulls) the channels
+it lacks, as a car that does not send them, so `base` is the benchmark without channels bit for bit. The prior once,
+then every estimator under each set, its rows named `<estimator> [<set>]`.
 """
 
 from __future__ import annotations
@@ -31,6 +37,28 @@ from roadgrip.evaluation.bins import (
 MU_BANDS = (("<= 0.3", 0.0, 0.3), ("0.3-0.6", 0.3, 0.6), (">= 0.6", 0.6, np.inf))
 BAND_NAMES = tuple(name for name, _, _ in MU_BANDS)
 ALL = "all"
+_GNSS = ("gnss_speed_mps", "gnss_speed_accuracy_mps")
+_FORCES = ("drive_force_n", "brake_force_n")
+_STEERING = ("steering_torque_nm", "eps_assist_torque_nm")
+CHANNEL_SETS = {
+    "base": (),
+    "gnss": _GNSS,
+    "forces": _FORCES,
+    "steering": _STEERING,
+    "all": _GNSS + _FORCES + _STEERING,
+    "gnss-degraded": _GNSS,
+}
+
+
+def blank_channels(table: pa.Table, keep: tuple[str, ...]) -> pa.Table:
+    """The table with every optional channel not in `keep` null (not sent)."""
+    from roadgrip.data.schema import CHANNEL_NAMES
+
+    for name in CHANNEL_NAMES:
+        if name in table.column_names and name not in keep:
+            k = table.column_names.index(name)
+            table = table.set_column(k, name, pa.nulls(table.num_rows, pa.float64()))
+    return table
 
 
 def mu_band(mu_true) -> np.ndarray:
@@ -69,30 +97,54 @@ def manoeuvre_metrics(estimates: dict[str, np.ndarray], manoeuvres: dict, baseli
     return rows
 
 
-def run_physics_benchmark(split: str = "validation", estimators=BIN_ESTIMATORS, runs: int | None = None, progress=None):
+def run_physics_benchmark(
+    split: str = "validation",
+    estimators=BIN_ESTIMATORS,
+    runs: int | None = None,
+    progress=None,
+    channels: tuple[str, ...] | None = None,
+):
     """The prior baseline and every estimator (as `load_estimator` gives it: guarded) on a split's runs: one row per
     (estimator, band, bin) with manoeuvre 'all', then one per (estimator, manoeuvre, band) over all bins; the prior's
-    first."""
-    from roadgrip.estimators.learned import load_estimator
-    from roadgrip.sim.presets import physics_benchmark_runs
-    from roadgrip.sim.simulate import simulate
+    first. `channels`: channel sets (CHANNEL_SETS) to run every estimator under (module doc); None: no channels."""
+    import dataclasses
 
+    from roadgrip.estimators.learned import load_estimator
+    from roadgrip.sim.channels import ChannelModel
+    from roadgrip.sim.presets import physics_benchmark_runs
+    from roadgrip.sim.sensors import SensorModel
+    from roadgrip.sim.simulate import simulate
+    from roadgrip.validation import check_choice
+
+    for name in channels or ():
+        check_choice("physics benchmark", "channels", name, set(CHANNEL_SETS))
     say = progress or (lambda message: None)
     drawn = physics_benchmark_runs(split, runs)
     say(f"simulating the {len(drawn)} runs of the {split} split")
-    table = simulate([s for s, _ in drawn])
+    scenarios = [s for s, _ in drawn]
+    if channels:
+        scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s in scenarios]
+    table = simulate(scenarios)
+    tables = {None: table} if not channels else {}
+    for name in channels or ():
+        source = table
+        if name == "gnss-degraded":
+            source = simulate(scenarios, SensorModel(channels=ChannelModel.degraded_gnss()))
+        tables[name] = blank_channels(source, CHANNEL_SETS[name])
     profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
     manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
     baseline_mu = prior_baseline().mu_median
     rows = []
-    for name in (PRIOR_NAME, *estimators):
-        say(f"{name} on the {split} split")
+    runs_of = [(PRIOR_NAME, None, table)] + [(e, c, t) for c, t in tables.items() for e in estimators]
+    for name, channel_set, data in runs_of:
+        label = name if channel_set is None else f"{name} [{channel_set}]"
+        say(f"{label} on the {split} split")
         if name == PRIOR_NAME:
-            estimates = prior_estimates(table, profiles)
+            estimates = prior_estimates(data, profiles)
         else:
-            estimates = estimates_on_runs(load_estimator(name), table, profiles)
-        rows += [{"estimator": name, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
-        rows += [{"estimator": name} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
+            estimates = estimates_on_runs(load_estimator(name), data, profiles)
+        rows += [{"estimator": label, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
+        rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
     return rows
 
 

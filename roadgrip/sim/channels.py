@@ -4,7 +4,7 @@ is absent (NaN: "not sent"), never zero. docs/SIMULATOR.md ("Optional channels")
 
 | channel | model | error model (defaults: `ChannelModel`) |
 |---|---|---|
-| gnss_speed_mps, gnss_speed_accuracy_mps | horizontal speed over ground, sqrt(v_x^2 + v_y^2), a GNSS Doppler fix every 100 ms (10 Hz, the stream's own rate, so no resampling beyond the latency's interpolation) | per-run latency uniform in [0, gnss_latency_max_s] (the fix describes t - latency); white noise gnss_noise_mps; dropouts: a two-state Markov chain with a gnss_dropout_share of the time lost in outages of mean gnss_dropout_mean_s (tunnels, underpasses); multipath outliers: a gnss_outlier_rate share of fixes off by N(0, gnss_outlier_mps), their reported accuracy left unchanged half the time; accuracy: gnss_noise_mps x U(0.8, 1.5) |
+| gnss_speed_mps, gnss_speed_accuracy_mps | horizontal speed over ground, sqrt(v_x^2 + v_y^2), a GNSS Doppler fix every 100 ms (10 Hz, the stream's own rate, so no resampling beyond the latency's interpolation) | per-run latency uniform in [gnss_latency_min_s, gnss_latency_max_s] (0-0.2 s) (the fix describes t - latency); white noise gnss_noise_mps; dropouts: a two-state Markov chain with a gnss_dropout_share of the time lost in outages of mean gnss_dropout_mean_s (tunnels, underpasses); multipath outliers: a gnss_outlier_rate share of fixes off by N(0, gnss_outlier_mps), their reported accuracy left unchanged half the time; accuracy: gnss_noise_mps x U(0.8, 1.5) |
 | drive_force_n, brake_force_n | the tires' longitudinal forces summed, split by the brake switch: brake force = -sum(min(f_x, 0)) while the driver brakes (0 otherwise), drive force = sum(f_x) + brake force (negative: engine drag); the wheels' own inertia is in the ECU's torque-based figure but not here | per-run scale error uniform +-force_scale_spread (the torque model of the engine ECU, brake pad friction), a lag (the signal describes t - force_lag_s, first-order smoothing of the same time constant), white noise force_noise_n |
 | steering_torque_nm, eps_assist_torque_nm | the front axle's aligning moment M = (t_p + t_m) F_y,front, t_p the brush model's pneumatic trail t0 (1 - |alpha| / alpha_sl) (Pacejka, Tyre and Vehicle Dynamics, 3.2; 0 past alpha_sl = 3 mu F_z / C_alpha), t_m the caster's mechanical trail, through the steering ratio to the column, plus the column's Coulomb friction against the steering rate; the EPS gives the share assist_max T / (|T| + assist_half_nm) of the column torque T (an assist curve growing with the torque), the driver the rest | white noise torque_noise_nm on each |
 
@@ -31,6 +31,7 @@ class ChannelModel:
     """Error models of the optional channels (SI units; 1 sigma for noises, half-widths for uniform per-run draws)."""
 
     gnss_noise_mps: float = field(default=0.05, metadata=bounded(0.0, 5.0))
+    gnss_latency_min_s: float = field(default=0.0, metadata=bounded(0.0, 2.0))
     gnss_latency_max_s: float = field(default=0.2, metadata=bounded(0.0, 2.0))
     gnss_dropout_share: float = field(default=0.05, metadata=bounded(0.0, 0.9))
     gnss_dropout_mean_s: float = field(default=3.0, metadata=bounded(0.1, 600.0))
@@ -50,6 +51,17 @@ class ChannelModel:
 
     def __post_init__(self):
         check_bounds(self)
+        if self.gnss_latency_min_s > self.gnss_latency_max_s:
+            raise ValueError(
+                f"ChannelModel.gnss_latency_min_s ({self.gnss_latency_min_s}) must not exceed gnss_latency_max_s "
+                f"({self.gnss_latency_max_s})"
+            )
+
+    @classmethod
+    def degraded_gnss(cls) -> ChannelModel:
+        """GNSS at its worst that issue 26 asks the estimator to tolerate: latency 0.2 s on every run, 10 % of the
+        time in outages, 5 % of fixes multipath outliers of N(0, 2 m/s)."""
+        return cls(gnss_latency_min_s=0.2, gnss_dropout_share=0.1, gnss_outlier_rate=0.05, gnss_outlier_mps=2.0)
 
 
 def brush_trail_m(alpha_rad, mu, fz_n, c_alpha_per_load, t0_m):
@@ -104,7 +116,7 @@ def optional_channels(
     n = t.size
     nan = np.full(n, np.nan)
     # every draw, whichever channels are on
-    latency = model.gnss_latency_max_s * rng.uniform()
+    latency = model.gnss_latency_min_s + (model.gnss_latency_max_s - model.gnss_latency_min_s) * rng.uniform()
     u_drop = rng.uniform(size=n)
     outlier = rng.uniform(size=n) < model.gnss_outlier_rate
     outlier_size = rng.normal(0.0, model.gnss_outlier_mps, n)

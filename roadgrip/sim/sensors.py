@@ -30,7 +30,7 @@ import numpy as np
 import pymap3d
 
 from roadgrip.data.schema import CHANNEL_NAMES
-from roadgrip.sim.channels import optional_channels
+from roadgrip.sim.channels import ChannelModel, optional_channels
 from roadgrip.sim.production import ProductionEffects, ecu_signals, sensed_truth
 from roadgrip.units import G_MPS2, deg_to_rad
 from roadgrip.validation import bounded, check_bounds
@@ -57,6 +57,9 @@ class SensorModel:
     gnss_time_constant_s: float = field(default=10.0, metadata=bounded(0.0, 1000.0, low_open=True))
     origin_lat_deg: float = field(default=HEBEI_ORIGIN[0], metadata=bounded(-90.0, 90.0))
     origin_lon_deg: float = field(default=HEBEI_ORIGIN[1], metadata=bounded(-180.0, 180.0))
+    channels: ChannelModel = field(
+        default_factory=ChannelModel
+    )  # the optional channels' error models, where a run's effects send them
 
     def __post_init__(self):
         check_bounds(self)
@@ -143,6 +146,7 @@ class SensorModel:
                 gnss=effects.gnss_speed,
                 forces=effects.force_signals,
                 steering=effects.steering_torque,
+                model=self.channels,
             )
         else:
             out |= {name: np.full(n, np.nan) for name in CHANNEL_NAMES}  # not sent

@@ -2,8 +2,10 @@
 production-terminal effect on (speed from the wheels, accelerometer bias, tilt and pitch, radius spread, CAN resolution,
 time offsets, road grade, tire stiffness), each as a terminal sends it and as `roadgrip estimate` reads it.
 
-- abs-brake: the paper's SUV brakes from 22 m/s to a stop on a wet road (mu 0.4): ABS acts for most of it;
-- corner: a mid-size sedan speeds up on a 60 m circle of dry asphalt to 0.6 g of lateral acceleration;
+- abs-brake: the paper's SUV brakes from 22 m/s to a stop on a wet road (mu 0.4): ABS acts for most of it; it sends
+  every optional channel (GNSS speed, drive and brake force, steering torques: CONTRACTS 3.1);
+- corner: a mid-size sedan speeds up on a 60 m circle of dry asphalt to 0.6 g of lateral acceleration; every optional
+  channel too;
 - cruise: a compact hatchback cruises gently up a 2 % grade (nothing to judge mu by).
 
 Together 35 s of data (350 samples), so that every check of the suite over every estimator runs in seconds.
@@ -53,7 +55,7 @@ def _scenarios() -> list[Scenario]:
             vehicle=PAPER_SUV,
             duration_s=8.0,
             seed=3,
-            effects=effects,
+            effects=effects.with_channels(),
         ),
         Scenario(
             run_id="corner",
@@ -63,7 +65,7 @@ def _scenarios() -> list[Scenario]:
             vehicle=MIDSIZE_SEDAN,
             duration_s=12.0,
             seed=4,
-            effects=effects,
+            effects=effects.with_channels(),
         ),
         Scenario(
             run_id="cruise",

@@ -191,6 +191,12 @@ def test_rav4_street_drive_reads_as_no_slippery_road(name, estimators):
     log = Path(__file__).parents[2] / "data/real/toyota_rav4_street"
     table = importer.load(log)
     vehicle = importer.profile(log)
+    # the optional channels its DBC carries (STEER_TORQUE_SENSOR: driver and EPS torque) are in the estimator's input,
+    # the others (GNSS speed, drive and brake force) absent
+    for channel in ("steering_torque_nm", "eps_assist_torque_nm"):
+        assert table[channel].null_count < 0.2 * table.num_rows
+    for channel in ("gnss_speed_mps", "drive_force_n", "brake_force_n"):
+        assert channel not in table.column_names or table[channel].null_count == table.num_rows
     out = estimators[name].estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), vehicle)
     assert out.num_rows > 900
     idx = np.searchsorted(table["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())

@@ -145,3 +145,13 @@ def test_manoeuvre_rows_split_the_samples_of_the_whole(spied_run):
     cells = [r for r in rows if r["estimator"] == "pmf" and r["manoeuvre"] != "all" and r["band"] == "<= 0.3"]
     assert [r["manoeuvre"] for r in cells] == ["braking_abs", "acceleration", "ramp_steer", "sine_steer"]
     assert [r["n"] for r in cells] == list(per_run.values())
+
+
+def test_the_base_channel_set_is_the_benchmark_without_channels_and_sets_are_named():
+    plain = run_physics_benchmark("validation", ("pmf",), runs=2)
+    by_set = run_physics_benchmark("validation", ("pmf",), runs=2, channels=("base", "gnss"))
+    assert {r["estimator"] for r in by_set} == {PRIOR_NAME, "pmf [base]", "pmf [gnss]"}
+    base = [r | {"estimator": "pmf"} for r in by_set if r["estimator"] == "pmf [base]"]
+    assert base == [r for r in plain if r["estimator"] == "pmf"]
+    with pytest.raises(ValueError, match="channels"):
+        run_physics_benchmark("validation", ("pmf",), runs=1, channels=("radar",))

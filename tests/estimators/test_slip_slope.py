@@ -1,0 +1,137 @@
+"""pmf's optional channels (roadgrip/estimators/slip_slope.py): the GNSS reference filter's latency, outliers and
+outages; the axles' forces; slip against GNSS as evidence on a snow road; a state saved before the channels."""
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from roadgrip.data.schema import CHANNEL_NAMES
+from roadgrip.estimators import slip_slope as ch
+from roadgrip.estimators.pmf import K_CH, N_MEM, N_MEM_V1, PMFEstimator
+from roadgrip.sim.driver import SpeedProfile
+from roadgrip.sim.production import ProductionEffects
+from roadgrip.sim.roads import MuProfile, Path
+from roadgrip.sim.scenario import Scenario
+from roadgrip.sim.simulate import simulate
+from roadgrip.vehicle.params import PAPER_SUV
+
+
+def _drive(latency_s=0.15, n=150, dt=0.1):
+    """A true speed and acceleration: cruise, brake at 4 m/s^2, cruise, accelerate; fixes latency_s late, with noise."""
+    t = np.arange(n) * dt
+    a = np.where((t >= 4.0) & (t < 7.0), -4.0, np.where(t >= 10.0, 2.0, 0.0))
+    v = 20.0 + np.concatenate([[0.0], np.cumsum(a[1:] * dt)])
+    z = np.interp(t - latency_s, t, v) + np.random.default_rng(0).normal(0.0, 0.05, n)
+    return t, a, v, z
+
+
+def _filter(z, a, accuracy=0.05, dt=0.1):
+    mem = np.zeros(ch.N_CHANNEL_MEM)
+    ch.init_channel_memory(mem, 0, 25.0, 25.0)
+    track = []
+    for k in range(z.size):
+        ch.gnss_update(mem, 0, z[k], accuracy, a[k], 0.05, dt if k else 0.0)
+        track.append(mem[ch.C_V])
+    return mem, np.array(track)
+
+
+def test_the_gnss_filter_learns_the_latency_and_tracks_the_speed_now():
+    t, a, v, z = _drive(latency_s=0.15)
+    mem, track = _filter(z, a)
+    assert mem[ch.C_L] == pytest.approx(0.15, abs=0.04)
+    # while braking the late fix is 0.6 m/s above the speed now; the filter's speed is not
+    braking = (t > 5.0) & (t < 7.0)
+    assert np.abs(z[braking] - v[braking]).mean() > 0.4
+    assert np.abs(track[braking] - v[braking]).max() < 0.15
+
+
+def test_a_multipath_outlier_is_rejected_and_counted():
+    _, a, v, z = _drive()
+    z[60] += 2.0  # with its receiver's accuracy unchanged
+    mem, track = _filter(z, a)
+    assert mem[ch.C_OUTLIERS] >= 1
+    assert abs(track[60] - v[60]) < 0.15
+
+
+def test_an_outage_silences_the_reference_until_fresh_fixes_agree():
+    _, a, v, z = _drive()
+    z[40:100] = np.nan  # six seconds in a tunnel
+    mem = np.zeros(ch.N_CHANNEL_MEM)
+    ch.init_channel_memory(mem, 0, 25.0, 25.0)
+    spoke = []
+    for k in range(z.size):
+        ch.gnss_update(mem, 0, z[k], 0.05, a[k] + 0.3, 0.05, 0.1 if k else 0.0)  # an accelerometer 0.3 off
+        spoke.append(np.isfinite(ch.reference_speed(mem, 0, 0.0, 1.5, v[k], 0.0, 10.0)[0]))
+    spoke = np.array(spoke)
+    assert spoke[10:40].all() and not spoke[60:100].any()
+    assert not spoke[100 : 100 + ch.CONFIRM_FIXES].any() and spoke[110:].all()
+
+
+def test_axle_forces_from_the_channels_and_else_from_the_accelerometer():
+    out = np.empty(4)
+    fz_f, fz_r = 9000.0, 6000.0
+    assert ch.axle_forces(out, 0.0, 6000.0, 1500.0, -4.0, 0.2, fz_f, fz_r, 1.0, 0.7, 0.01)
+    assert out[0] == pytest.approx(-0.7 * 6000.0 / fz_f) and out[1] == pytest.approx(-0.3 * 6000.0 / fz_r)
+    assert not ch.axle_forces(out, np.nan, np.nan, 1500.0, 1.0, 0.2, fz_f, fz_r, 1.0, 0.7, 0.01)
+    # front-wheel drive: the rear axle only rolls, the front carries the car's force and the rear's resistance
+    assert out[1] == pytest.approx(-0.01) and out[0] == pytest.approx((1500.0 + 0.01 * fz_r) / fz_f)
+
+
+def _snow_braking():
+    """The paper SUV cruising, braking gently (0.35 of a snow road's limit, mu 0.3: the slip line's range, where the
+    slip tells the stiffness), then firmly (0.85 of it), below ABS: without a reference speed (every wheel brakes)
+    the base channels see no slip; GNSS gives one."""
+    scenario = Scenario(
+        run_id="snow-braking",
+        path=Path.straight(800.0),
+        mu=MuProfile.uniform(0.3),
+        speed=SpeedProfile([0.0, 8.0, 11.0, 14.0, 17.2, 20.0], [20.0, 20.0, 17.0, 17.0, 9.0, 9.0]),
+        vehicle=PAPER_SUV,
+        duration_s=20.0,
+        seed=11,
+        effects=ProductionEffects.production().with_channels(),
+    )
+    return simulate([scenario])
+
+
+def _blank(table):
+    for name in CHANNEL_NAMES:
+        table = table.set_column(table.column_names.index(name), name, pa.nulls(table.num_rows, pa.float64()))
+    return table
+
+
+def test_gnss_speed_narrows_mu_while_braking_on_snow_and_keeps_the_truth_inside():
+    table = _snow_braking()
+    assert not table["abs_active"].to_numpy().any()
+    t_s = table["t_s"].to_numpy()
+    late = (t_s > 15.5) & (t_s < 17.0)  # braking firmly, the lines calibrated before
+    uppers = {}
+    for name, data in (("base", _blank(table)), ("gnss", table)):
+        out = PMFEstimator().estimate_batch(data, np.zeros(data.num_rows, dtype=np.int64), PAPER_SUV)
+        lower, upper = out["mu_lower"].to_numpy()[late], out["mu_upper"].to_numpy()[late]
+        uppers[name] = float(np.mean(upper))
+        assert ((lower <= 0.3) & (upper >= 0.3)).mean() >= 0.9
+    # the bound proves the lower end alike; the slip's bend against the force brings the upper end down
+    assert uppers["gnss"] < uppers["base"] - 0.1, uppers
+
+
+def test_a_state_saved_before_the_channels_continues_with_a_fresh_channel_block():
+    table = _snow_braking()
+    samples = [
+        {k: v for k, v in row.items() if k not in CHANNEL_NAMES} | {"vehicle_id": "v1"}
+        for row in table.to_pylist()[:80]
+    ]
+    est = PMFEstimator()
+    state = est.start(PAPER_SUV)
+    for sample in samples:
+        est.update(state, sample)
+    saved = est.state_to_dict(state)
+    saved["memory"] = saved["memory"][:N_MEM_V1]  # as pmf saved it before issue 26
+    restored = est.state_from_dict(saved)
+    assert restored.mem.shape == (N_MEM,)
+    np.testing.assert_array_equal(restored.mem[:N_MEM_V1], state.mem[:N_MEM_V1])
+    fresh = np.zeros(N_MEM)
+    ch.init_channel_memory(fresh, K_CH, restored.q[-3], restored.q[-2])
+    np.testing.assert_array_equal(restored.mem[K_CH:], fresh[K_CH:])
+    with pytest.raises(ValueError, match="memory must hold"):
+        est.state_from_dict(saved | {"memory": saved["memory"][:-1]})
