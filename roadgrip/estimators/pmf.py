@@ -478,6 +478,17 @@ def _quantile(pm, level):
     return MU_GRID[NM - 1] + 0.5 * step
 
 
+def mu_quantile(pm, level: float) -> float:
+    """The level-quantile of a mu marginal over MU_GRID, read as pmf reads its own intervals (the prior baseline of
+    evaluation/baseline.py reads the prior through this: one rule)."""
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"mu_quantile: level must lie in (0, 1), got {level!r}")
+    pm = np.asarray(pm, dtype=np.float64)
+    if pm.shape != (NM,) or not (pm >= 0.0).all() or abs(pm.sum() - 1.0) > 1e-9:
+        raise ValueError(f"mu_quantile: pm must be {NM} non-negative weights summing to 1 over MU_GRID")
+    return float(_quantile(pm, level))
+
+
 @njit(cache=True)
 def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
     """The speed over ground along its heading at which each wheel (fl, fr, rl, rr) rolls without slip, as
