@@ -101,19 +101,20 @@ def test_mu_quantile_by_hand():
         mu_quantile(2.0 * pm, 0.5)
 
 
-def test_prior_baseline_is_what_pmf_answers_from_its_prior():
-    """The baseline is pmf's prior read by pmf's own rule: with the prior as its whole posterior, pmf's output is the
-    baseline to the last digit (one owner of the quantile rule)."""
+def test_prior_baseline_is_pmfs_prior_read_by_pmfs_rule():
+    """The baseline is pmf's prior read by pmf's own quantile rule: with the prior as its whole posterior, pmf's median
+    and upper end are the baseline's to the last digit (one owner of the quantile rule); its lower end is wider, the
+    grid's lowest cell, since no evidence excludes ice there."""
     from roadgrip.estimators.pmf import N_MEM, N_OUT, O_LOWER, O_MU, O_UPPER, _output, _start
 
     base = prior_baseline()
     mem, out = np.zeros(N_MEM), np.zeros(N_OUT)
     _start(mem, False)  # a segment's start: the prior, before any sample
     _output(mem, 0.0, 0.0, True, out)
-    assert (base.mu_median, base.mu_lower, base.mu_upper) == pytest.approx(
-        (out[O_MU], out[O_LOWER], out[O_UPPER]), abs=1e-12
-    )
-    assert mu_quantile(PRIOR, 0.05) < 0.25 and mu_quantile(PRIOR, 0.95) > 1.0, "wide: ice to dry asphalt"
+    assert (base.mu_median, base.mu_upper) == pytest.approx((out[O_MU], out[O_UPPER]), abs=1e-12)
+    assert base.mu_lower == pytest.approx(mu_quantile(PRIOR, 0.05), abs=1e-12)
+    assert out[O_LOWER] == pytest.approx(MU_GRID[0] - 0.5 * (MU_GRID[1] - MU_GRID[0]))
+    assert out[O_LOWER] < 0.1 < base.mu_lower
 
 
 def test_catalogue_profile_keeps_the_entrys_nominal_values_and_the_drawn_drive_layout():
