@@ -53,8 +53,11 @@ but the lateral bias calibration takes a long crossfall for bias).
 
 An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
-The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles, excited where the sample's own
-utilisation u / mu is at least 0.5 (CONTRACTS 4), a controller acts, or the interval is narrower than EXCITED_WIDTH.
+The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles with the lower end widened to
+every mu the evidence does not exclude (the likelihood-ratio interval of the evidence alone, `_evidence_lower`: the
+prior is about roads in general, so its low tail excludes the car that is on ice; where the evidence is silent the
+lower end is the grid's lowest cell), excited where the sample's own utilisation u / mu is at least 0.5 (CONTRACTS 4),
+a controller acts, or the posterior's own interval is narrower than EXCITED_WIDTH.
 
 Kinematics before slip: in a turn the wheels roll at different speeds without slipping (the outer faster than the
 inner by track / R, 17 % at R = 10 m; the front axle on a larger radius than the rear). Every slip term first takes out
@@ -176,6 +179,11 @@ LAT_SLOPE_MIN_AY_MPS2 = 0.3  # the slope from |v r| above 7 x the gyro's noise t
 LAT_STEADY_YAW_ACCEL = 0.05  # ... in a steady turn: I_z r' / (m g l) under 0.005 per load (the line is K_us a_y)
 LAT_SLOPE_RANGE = (0.5, 2.0)  # the tires' cornering compliance against the profile's: new summer to worn winter tires
 INCONSISTENT = 1e-3
+# The interval's lower end also reaches every mu the evidence itself does not exclude (Wilks's 90 % likelihood-ratio
+# interval: the evidence's ratio posterior / prior within exp(-chi2_1(0.90) / 2) of its largest). The prior is a
+# statement about roads in general (most are dry), so its low tail, which the posterior keeps where the evidence is
+# silent, excludes the car that is on ice (the prior's 5 % quantile is 0.19): per road, its interval does not cover.
+LR_INTERVAL_RATIO = exp(-0.5 * 2.705543)
 EXCITED_WIDTH = 0.25
 MAX_STEP_S = 0.5
 
@@ -495,6 +503,17 @@ def _quantile(pm, level):
             return MU_GRID[i] - 0.5 * step + frac * step
         acc += pm[i]
     return MU_GRID[NM - 1] + 0.5 * step
+
+
+def mu_quantile(pm, level: float) -> float:
+    """The level-quantile of a mu marginal over MU_GRID, read as pmf reads its own intervals (the prior baseline of
+    evaluation/baseline.py reads the prior through this: one rule)."""
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"mu_quantile: level must lie in (0, 1), got {level!r}")
+    pm = np.asarray(pm, dtype=np.float64)
+    if pm.shape != (NM,) or not (pm >= 0.0).all() or abs(pm.sum() - 1.0) > 1e-9:
+        raise ValueError(f"mu_quantile: pm must be {NM} non-negative weights summing to 1 over MU_GRID")
+    return float(_quantile(pm, level))
 
 
 @njit(cache=True)
@@ -857,6 +876,22 @@ def pmf_step(mem, q, smp, t_prev, out):
 
 
 @njit(cache=True)
+def _evidence_lower(pm, lower):
+    """lower, widened down to the lowest grid cell whose evidence ratio pm / PRIOR is within LR_INTERVAL_RATIO of the
+    largest (the cell read as a bin of one step, as _quantile reads it): where the evidence is silent about the low
+    end, or has aged back into the prior, that is the grid's lowest cell, ice included. Only the lower end: at the
+    upper end the prior falls steeply above 1.1, where the random walk, which does not keep the prior's shape, lifts
+    the ratio without evidence (docs/ESTIMATORS.md)."""
+    best = 0.0
+    for i in range(NM):
+        best = max(best, pm[i] / PRIOR[i])
+    for i in range(NM):
+        if pm[i] / PRIOR[i] >= LR_INTERVAL_RATIO * best:
+            return min(lower, MU_GRID[i] - 0.5 * (MU_GRID[1] - MU_GRID[0]))
+    return lower
+
+
+@njit(cache=True)
 def _output(mem, u, s_u, ok, out):
     if mem[K_STARTED] == 0.0:
         out[O_VALID] = 0.0
@@ -868,6 +903,7 @@ def _output(mem, u, s_u, ok, out):
     lower = _quantile(pm, 0.05)
     mu = _quantile(pm, 0.5)
     upper = _quantile(pm, 0.95)
+    excited = u >= 0.5 * mu or mem[K_LIMIT] > 0.0 or upper - lower <= EXCITED_WIDTH
     if mem[K_U_SEEN] >= 0.5 * mu:
         # the car works its tires hard: the truth may lie right at the proven bound (the driver asked for more than
         # the road gave), which the posterior's smooth lower tail understates
@@ -875,10 +911,9 @@ def _output(mem, u, s_u, ok, out):
     if mem[K_LIMIT] > 0.0:  # likewise at a controller's or a sliding wheel's limit, for the acting axle
         lower = min(lower, mem[K_U_LIMIT] - 2.0 * s_u)
     out[O_MU] = mu
-    out[O_LOWER] = max(lower, 0.0)
-    mem[K_MU_LO] = out[O_LOWER]
+    mem[K_MU_LO] = max(lower, 0.0)  # the friction the car is taken to have (the lateral calibration's calm share)
+    out[O_LOWER] = max(_evidence_lower(pm, lower), 0.0)  # what the evidence does not exclude, reported
     out[O_UPPER] = upper
-    excited = u >= 0.5 * mu or mem[K_LIMIT] > 0.0 or upper - lower <= EXCITED_WIDTH
     out[O_EXCITED] = 1.0 if (ok and excited) else 0.0
     out[O_VALID] = 1.0
 

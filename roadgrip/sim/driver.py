@@ -9,7 +9,10 @@
   front brakes grows slowly and stays below 15 % of a full brake (yaw-moment build-up delay), as production systems do
   on split mu.
 - Traction and stability control: cut drive torque while a driven wheel's slip exceeds 0.05 or the body's sideslip angle
-  exceeds 3 degrees (the engine-intervention half of ESC), restore it below 0.02 and 2 degrees.
+  beyond the kinematic one, atan(v_y / v_x) - atan(l_r r / v_x), exceeds 3 degrees (the engine-intervention half of
+  ESC), restore it below 0.02 and 2 degrees. The kinematic sideslip is what the car has without a skid (the rear axle
+  rolling without a slip angle): 8 degrees in a 10 m radius turn at any low speed, where a raw 3-degree threshold fired
+  without a skid; a production ESC compares against its reference model the same way.
 At the friction limit nothing here can make the car follow its profile: the tires saturate and the car slides.
 """
 
@@ -180,7 +183,8 @@ def abs_step(mode, brake_torque, demand, slip, speed_mps, enabled, rate_nmps, dt
 
 @njit(cache=True)
 def traction_control(factor, max_driven_slip, sideslip_rad, dt):
-    """Drive torque factor in [0, 1] after one step of traction and stability control."""
+    """Drive torque factor in [0, 1] after one step of traction and stability control; sideslip_rad is the body's
+    sideslip beyond the kinematic one (the integrator's)."""
     if max_driven_slip > TCS_CUT_SLIP or abs(sideslip_rad) > ESC_CUT_SIDESLIP_RAD:
         return max(factor - TCS_CUT_PER_S * dt, 0.0)
     if max_driven_slip < TCS_RESTORE_SLIP and abs(sideslip_rad) < ESC_RESTORE_SIDESLIP_RAD:

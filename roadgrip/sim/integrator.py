@@ -132,7 +132,7 @@ N_CH = len(CHANNELS)
 # ax_mps2 is the specific force of the tire and drag forces (what a level accelerometer reads; dv_x/dt - r v_y + g sin(grade));
 # brake_active: the driver asked for brake torque at the sample (the brake-light switch); tcs_active / esc_active: during
 # the 100 ms before the sample, traction control cut drive torque that the driver asked for, triggered by a driven
-# wheel's slip (TCS) or by the body's sideslip (the engine intervention of ESC).
+# wheel's slip (TCS) or by the body's sideslip beyond the kinematic atan(l_r r / v_x) (the engine intervention of ESC).
 
 
 @njit(cache=True)
@@ -271,7 +271,10 @@ def simulate_one(
             brake_t[0] = min(brake_t[0], low + yaw_limit)
             brake_t[1] = min(brake_t[1], low + yaw_limit)
         if tcs_on:
-            sideslip = math.atan2(x[VY], max(abs(x[VX]), 1.0))
+            # the body's sideslip beyond the kinematic one (the rear axle rolling without a slip angle: v_y = l_r r),
+            # as a production ESC compares it against its reference model: a slow tight turn is no skid
+            speed_floor = max(abs(x[VX]), 1.0)
+            sideslip = math.atan2(x[VY], speed_floor) - math.atan2(vp[P_LR] * x[R], speed_floor)
             tcs_factor = traction_control(tcs_factor, driven_slip, sideslip, dt)
             # which half of the controller cut the torque, until it is fully restored
             tcs_cause = tcs_factor < 1.0 and (tcs_cause or driven_slip > TCS_CUT_SLIP)

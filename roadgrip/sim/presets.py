@@ -346,6 +346,30 @@ PHYSICS_MANOEUVRES = ("braking_abs", "acceleration", "ramp_steer", "sine_steer",
 PHYSICS_UTILIZATION = (0.5, 0.9)  # share of mu g the steering manoeuvres and the tight turns ask for
 PHYSICS_LIMIT_UTILIZATION = (0.7, 1.4)  # share of mu g braking and accelerating ask for: most reach ABS or TCS
 PHYSICS_DURATION_S = 30.0
+PHYSICS_TIGHT_RADIUS_M = (10.0, 25.0)  # junction turns and roundabouts
+ROUNDABOUT_ARC_RAD = 1.5 * math.pi  # entering right, leaving by the third exit: three quarters around (left)
+ROUNDABOUT_GAP_M = 30.0  # straight road between one roundabout's exit and the next one's entry
+
+
+def roundabouts(radius_m: float, length_m: float, segment_m: float = 2.0) -> Path:
+    """A road through roundabouts of the given radius, one after another: ROUNDABOUT_GAP_M straight, three quarters of
+    a circle to the left (driving on the right), ROUNDABOUT_GAP_M straight, and so on until length_m."""
+    heading, x, y = 0.0, 0.0, 0.0
+    points = [(x, y)]
+    travelled = 0.0
+    while travelled < length_m:
+        x, y = x + ROUNDABOUT_GAP_M * math.cos(heading), y + ROUNDABOUT_GAP_M * math.sin(heading)
+        points.append((x, y))
+        n = max(math.ceil(ROUNDABOUT_ARC_RAD * radius_m / segment_m), 2)
+        cx, cy = x - radius_m * math.sin(heading), y + radius_m * math.cos(heading)  # centre on the left
+        for theta in np.linspace(0.0, ROUNDABOUT_ARC_RAD, n + 1)[1:]:
+            a = heading - math.pi / 2 + theta
+            points.append((cx + radius_m * math.cos(a), cy + radius_m * math.sin(a)))
+        heading += ROUNDABOUT_ARC_RAD
+        x, y = points[-1]
+        travelled += ROUNDABOUT_GAP_M + ROUNDABOUT_ARC_RAD * radius_m
+    points.append((x + ROUNDABOUT_GAP_M * math.cos(heading), y + ROUNDABOUT_GAP_M * math.sin(heading)))
+    return Path(np.array(points))
 
 
 @dataclass(frozen=True)
@@ -373,8 +397,8 @@ def physics_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: floa
 
     Every manoeuvre is sized by the road's mu (a driver who knows the road): braking and accelerating ask 0.7-1.4 mu g
     (ABS on most stops, traction control on most starts), steering 0.5-0.9 mu g (steering: the neutral-steer angle L a_y / v^2 for it; a ramp steer
-    is the first half of a slow sine, up and back down over the run), low-speed tight turns (radius 12-25 m) reach
-    0.5-0.9 mu g at their end speed."""
+    is the first half of a slow sine, up and back down over the run), low-speed tight turns (radius 10-25 m, half of
+    them on a circle, half through roundabouts) reach 0.5-0.9 mu g at their end speed."""
     u = rng.uniform(*PHYSICS_UTILIZATION)
     if manoeuvre == "braking_abs":
         v = rng.uniform(15.0, 30.0)
@@ -404,9 +428,11 @@ def physics_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: floa
         speed, build_path, _, _ = random_manoeuvre(rng, "cruise", duration_s, mu)
         return speed, build_path, None
     if manoeuvre == "tight_turn":
-        radius = rng.uniform(12.0, 25.0)
+        radius = rng.uniform(*PHYSICS_TIGHT_RADIUS_M)
         v_end = min(math.sqrt(u * mu * G_MPS2 * radius), 15.0)
         speed = SpeedProfile([0.0, 0.6 * duration_s, duration_s], [min(2.0, v_end), v_end, v_end])
+        if rng.random() < 0.5:
+            return speed, (lambda length: roundabouts(radius, length)), None
         return speed, (lambda length: Path.circle(radius, length)), None
     raise ValueError(f"physics_manoeuvre: manoeuvre must be one of {PHYSICS_MANOEUVRES}, got {manoeuvre!r}")
 

@@ -123,3 +123,38 @@ def test_calm_straight_driving_keeps_the_prior(surface):
         assert calm.sum() >= 50, run_id
         assert run["upper"][calm].min() >= 0.9, run_id
         assert (run["upper"][calm] - run["lower"][calm]).min() >= 0.5, run_id
+
+
+@pytest.mark.parametrize("left", [True, False])
+def test_the_simulators_steering_sign_is_the_lateral_channels(left):
+    """ISO 8855 on both sides of the wire: in a steady dry turn to the left the simulator's telemetry has the steering
+    wheel angle, the yaw rate and the lateral acceleration positive (to the right all negative), and lateral.py's
+    reference yaw rate from that steering angle has the measured yaw rate's sign and size, and its axle forces the
+    steer's sign: a flipped sign on either side would read every turn as a car sliding."""
+    from roadgrip.sim.driver import SpeedProfile
+    from roadgrip.sim.roads import MuProfile, Path
+    from roadgrip.sim.scenario import Scenario
+    from roadgrip.sim.simulate import simulate
+
+    p = MIDSIZE_SEDAN
+    run = Scenario(
+        "turn", Path.circle(60.0, 500.0, left=left), MuProfile.uniform(0.9), SpeedProfile([0.0], [12.0]), vehicle=p
+    )
+    table = simulate([run.replace(duration_s=20.0)])
+    col = {c: table[c].to_numpy()[100:] for c in ("steering_wheel_angle_rad", "yaw_rate_radps", "accel_lat_mps2")}
+    sign = 1.0 if left else -1.0
+    assert (sign * col["steering_wheel_angle_rad"] > 0.0).all()
+    assert (sign * col["yaw_rate_radps"] > 0.0).all() and (sign * col["accel_lat_mps2"] > 0.0).all()
+    delta = col["steering_wheel_angle_rad"] / p.steering_ratio
+    k_us = understeer_gradient(
+        p.tire_front.cornering_stiffness_per_load_per_rad, p.tire_rear.cornering_stiffness_per_load_per_rad
+    )
+    r_ref = np.array([reference_yaw_rate(12.0, d, p.wheelbase_m, k_us) for d in delta])
+    assert np.median(r_ref / col["yaw_rate_radps"]) == pytest.approx(1.0, abs=0.15)
+    fz_f, fz_r = p.static_axle_loads_n
+    lf, lr = p.cg_to_front_axle_m, p.cg_to_rear_axle_m
+    f_front = [
+        axle_lateral_per_load(p.mass_kg, lf, lr, p.yaw_inertia_kgm2, a, 0.0, fz_f, fz_r)[0]
+        for a in col["accel_lat_mps2"]
+    ]
+    assert (sign * np.array(f_front) > 0.0).all()

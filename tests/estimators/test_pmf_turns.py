@@ -5,13 +5,12 @@ On a dry road (mu 0.9) the turns' wheel-speed spread is kinematics, not slip: no
 ice (mu 0.15-0.2) the same turns make the cars slide, and each drive ends braking to a stop with ABS: the estimator
 must still see it.
 
-On the dry road the simulator's traction and stability control is off (`tcs_enabled=False`): its ESC half cuts the
-engine on a body sideslip above 3 degrees, and a slow tight turn has that much without any skid (the kinematic
-sideslip atan(b / R), 9 degrees at R = 10 m), so on the dry 4 m/s slalom it flags ESC on 384 of 550 samples, which pmf
-rightly takes as a car at its limit; a production ESC compares the yaw rate and sideslip with what the steering asks
-and does not act there. On ice it stays on, as on every production car: without it the SUV's driver, asking for the
-profile's speed after a spin, turns all four wheels up to 2,000 m/s (the simulator has no engine speed limit), which
-no estimator without a ground speed can follow. ABS is on throughout."""
+Traction and stability control are on, as on every production car. The simulator's ESC compares the body's
+sideslip with the kinematic one, atan(l_r r / v) (9 degrees at R = 10 m at any low speed), as a production ESC compares
+it with its reference model; before it did (issue 23), it cut the engine on the raw sideslip above 3 degrees and
+flagged ESC on 384 of the dry 4 m/s slalom's 550 samples, which pmf rightly took as a car at its limit. On ice it
+matters too: without it the SUV's driver, asking for the profile's speed after a spin, turns all four wheels up to
+2,000 m/s (the simulator has no engine speed limit), which no estimator without a ground speed can follow. ABS is on throughout."""
 
 from __future__ import annotations
 
@@ -111,7 +110,7 @@ def _estimated(surface: str) -> dict[str, dict[str, np.ndarray]]:
     """Per run: the truth (mu, true speed, ABS) and pmf's estimates."""
     if surface == "dry":
         scenarios = [
-            _scenario(d, v, 0.9, 100 + 10 * i + j, False) for i, d in enumerate(DRIVES) for j, v in enumerate(VEHICLES)
+            _scenario(d, v, 0.9, 100 + 10 * i + j, True) for i, d in enumerate(DRIVES) for j, v in enumerate(VEHICLES)
         ]
     else:
         scenarios = [

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from roadgrip.estimators.pmf import MU_GRID, PRIOR
-from roadgrip.evaluation.baseline import grid_quantile, prior_baseline, skill
+from roadgrip.estimators.pmf import MU_GRID, PRIOR, mu_quantile
+from roadgrip.evaluation.baseline import prior_baseline, skill
 from roadgrip.evaluation.bins import ABS_BIN, binned_metrics, catalogue_profile, utilization_bin
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import COMPACT_HATCHBACK, TireParams
@@ -86,23 +86,35 @@ def test_skill_is_nan_where_the_prior_is_exact():
     assert skill(0.3, 0.2) == pytest.approx(-0.5)
 
 
-def test_grid_quantile_by_hand():
-    grid, weights = [1.0, 2.0, 3.0, 4.0], [1.0, 1.0, 1.0, 1.0]  # cumulative 0.25, 0.5, 0.75, 1
-    assert grid_quantile(grid, weights, 0.05) == 1.0
-    assert grid_quantile(grid, weights, 0.5) == 2.0
-    assert grid_quantile(grid, weights, 0.51) == 3.0
-    assert grid_quantile(grid, weights, 0.95) == 4.0
-    with pytest.raises(ValueError, match="q must lie in"):
-        grid_quantile(grid, weights, 1.0)
+def test_mu_quantile_by_hand():
+    """pmf's quantile rule, which the baseline reads the prior by: each grid cell a bin of one step around its value,
+    linear within it."""
+    step = MU_GRID[1] - MU_GRID[0]
+    pm = np.zeros(MU_GRID.size)
+    pm[10], pm[30] = 0.5, 0.5  # half the mass in the bin around MU_GRID[10], half around MU_GRID[30]
+    assert mu_quantile(pm, 0.25) == pytest.approx(MU_GRID[10])
+    assert mu_quantile(pm, 0.05) == pytest.approx(MU_GRID[10] - 0.4 * step)
+    assert mu_quantile(pm, 0.95) == pytest.approx(MU_GRID[30] + 0.4 * step)
+    with pytest.raises(ValueError, match="level must lie in"):
+        mu_quantile(pm, 1.0)
+    with pytest.raises(ValueError, match="summing to 1"):
+        mu_quantile(2.0 * pm, 0.5)
 
 
-def test_prior_baseline_is_pmfs_prior_median_and_90_percent_interval():
+def test_prior_baseline_is_pmfs_prior_read_by_pmfs_rule():
+    """The baseline is pmf's prior read by pmf's own quantile rule: with the prior as its whole posterior, pmf's median
+    and upper end are the baseline's to the last digit (one owner of the quantile rule); its lower end is wider, the
+    grid's lowest cell, since no evidence excludes ice there."""
+    from roadgrip.estimators.pmf import N_MEM, N_OUT, O_LOWER, O_MU, O_UPPER, _output, _start
+
     base = prior_baseline()
-    mass_below = lambda mu: float(PRIOR[MU_GRID < mu - 1e-9].sum())
-    assert mass_below(base.mu_median) < 0.5 <= mass_below(base.mu_median + 0.01)
-    assert mass_below(base.mu_lower) < 0.05 <= mass_below(base.mu_lower + 0.01)
-    assert mass_below(base.mu_upper) < 0.95 <= mass_below(base.mu_upper + 0.01)
-    assert (base.mu_median, base.mu_lower, base.mu_upper) == (0.775, 0.2, 1.075)  # today's prior, worked out by hand
+    mem, out = np.zeros(N_MEM), np.zeros(N_OUT)
+    _start(mem, False)  # a segment's start: the prior, before any sample
+    _output(mem, 0.0, 0.0, True, out)
+    assert (base.mu_median, base.mu_upper) == pytest.approx((out[O_MU], out[O_UPPER]), abs=1e-12)
+    assert base.mu_lower == pytest.approx(mu_quantile(PRIOR, 0.05), abs=1e-12)
+    assert out[O_LOWER] == pytest.approx(MU_GRID[0] - 0.5 * (MU_GRID[1] - MU_GRID[0]))
+    assert out[O_LOWER] < 0.1 < base.mu_lower
 
 
 def test_catalogue_profile_keeps_the_entrys_nominal_values_and_the_drawn_drive_layout():

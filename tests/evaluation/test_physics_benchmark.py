@@ -110,7 +110,7 @@ def test_skill_and_coverage_of_one_cell_by_hand(spied_run):
     truth, mu, lower, upper = (np.concatenate(a) for a in (truth, mu, lower, upper))
     assert truth.max() <= 0.2  # the first four runs are on ice: the <= 0.3 band is every sample
     rmse_est = math.sqrt(np.mean((mu - truth) ** 2))
-    rmse_prior = math.sqrt(np.mean((0.775 - truth) ** 2))
+    rmse_prior = math.sqrt(np.mean((prior_baseline().mu_median - truth) ** 2))
     key = ("pmf", "all", "<= 0.3", "all")
     cell = next(r for r in rows if (r["estimator"], r["manoeuvre"], r["band"], r["bin"]) == key)
     assert cell["n"] == truth.size

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pyarrow.compute as pc
 import pytest
@@ -127,3 +129,37 @@ def test_generalization_presets_hold_out_mu_bands_and_a_vehicle():
         assert all(in_bands(m, GENERALIZATION_TEST_MU_BANDS) for m in np.r_[s.mu.mu_left, s.mu.mu_right])
     assert {round(s.vehicle.wheelbase_m / 2.55, 1) for s in test} == {1.0}, "all around the compact hatchback"
     assert not {s.run_id for s in train} & {s.run_id for s in test}
+
+
+def test_roundabouts_are_three_quarter_circles_between_straights():
+    from roadgrip.sim.presets import ROUNDABOUT_ARC_RAD, ROUNDABOUT_GAP_M, roundabouts
+
+    path = roundabouts(12.0, 300.0)
+    pts = path.points_m
+    assert path.length_m >= 300.0
+    heading = np.unwrap(np.arctan2(*np.diff(pts, axis=0)[:, ::-1].T))
+    per_roundabout = ROUNDABOUT_GAP_M + ROUNDABOUT_ARC_RAD * 12.0
+    turned = heading[-1] - heading[0]
+    assert turned == pytest.approx(math.ceil(300.0 / per_roundabout) * ROUNDABOUT_ARC_RAD, abs=0.1), "left turns only"
+    # the ring: every point of the first arc 12 m from its centre (left of the entry)
+    ring = pts[2 : 2 + 10]
+    assert np.hypot(ring[:, 0] - ROUNDABOUT_GAP_M, ring[:, 1] - 12.0) == pytest.approx(12.0, abs=1e-9)
+
+
+def test_physics_tight_turns_span_junctions_and_roundabouts():
+    from roadgrip.sim.presets import physics_benchmark_runs
+
+    for split in ("validation", "test"):
+        turns = [s for s, _ in physics_benchmark_runs(split) if s.manoeuvre == "tight_turn"]
+        assert len(turns) == 40
+        curvature = []
+        kinds = set()
+        for s in turns:
+            d = np.diff(s.path.points_m, axis=0)
+            h = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+            k = np.abs(np.diff(h)) / np.minimum(np.hypot(*d[1:].T), np.hypot(*d[:-1].T))
+            curvature.append(k.max())
+            kinds.add("roundabout" if np.hypot(*d.T).max() > 20.0 else "circle")  # straights between the rings
+        radius = 1.0 / np.array(curvature)
+        assert kinds == {"roundabout", "circle"}, split
+        assert radius.min() >= 9.9 and radius.max() <= 25.5 and radius.min() < 12.0, split
