@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from roadgrip.data.schema import TELEMETRY_COLUMNS
+from roadgrip.data.schema import CHANNEL_NAMES, TELEMETRY_COLUMNS
 from roadgrip.estimators.guard import (
     PRIOR_MU,
     PRIOR_UPPER_MU,
@@ -105,6 +105,17 @@ def _random_telemetry(draw, n):
     }
     for k, w in enumerate(("fl", "fr", "rl", "rr")):
         cols[f"wheel_speed_{w}_radps"] = np.maximum(wheel * (1.0 + slip[k]), 0.0)
+    # the optional channels (CONTRACTS 3.1): each absent (null) or sent with arbitrary errors
+    channels = {
+        "gnss_speed_mps": np.abs(speed + rng.normal(0.0, 2.0, n)),
+        "gnss_speed_accuracy_mps": rng.uniform(0.01, 3.0, n),
+        "drive_force_n": rng.uniform(0.0, 15_000.0, n),
+        "brake_force_n": rng.uniform(0.0, 30_000.0, n),
+        "steering_torque_nm": rng.normal(0.0, 5.0, n),
+        "eps_assist_torque_nm": rng.normal(0.0, 10.0, n),
+    }
+    for name in CHANNEL_NAMES:
+        cols[name] = channels[name] if draw(st.booleans()) else np.full(n, np.nan)
     return pa.table({c: cols[c] for c in TELEMETRY_COLUMNS})
 
 
