@@ -28,10 +28,18 @@ def test_the_commands_are_listed_in_their_order():
         "worker",
         "api",
         "demo",
+        "edge",
         "bench",
         "cluster",
     ]
-    assert group.get_command(ctx, "bench").list_commands(ctx) == ["estimate", "ingest", "cluster", "sim"]
+    assert group.get_command(ctx, "bench").list_commands(ctx) == [
+        "estimate",
+        "ingest",
+        "cluster",
+        "failover",
+        "sim",
+        "uplink",
+    ]
     assert group.get_command(ctx, "cluster").list_commands(ctx) == ["up"]
 
 
