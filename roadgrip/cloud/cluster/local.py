@@ -21,9 +21,10 @@ cluster's process holds, ends every process of the cluster within REAP_GRACE_S.
 
 Supervision (`supervise`, called about once a second by `roadgrip cluster up`): a worker or API replica that exits is
 started again with the same arguments after RESTART_FIRST_S, doubling up to RESTART_MAX_S for each restart of the
-same process, at most RESTART_LIMIT times (then it stays down, logged); a RabbitMQ node whose server exits is started
-again the same way with its data (`RabbitCluster.restart`: it rejoins the cluster and its quorum queue members catch up
-from the leaders). PostgreSQL, which pg_ctl detaches, is not supervised.
+same process, at most RESTART_LIMIT times (roadgrip/cloud/cluster/children.py; then it stays down, logged); a
+RabbitMQ node whose server exits is started again the same way with its data (`RabbitCluster.restart`: it rejoins
+the cluster and its quorum queue members catch up from the leaders). PostgreSQL, which pg_ctl detaches, is not
+supervised.
 
 Secrets, each in a file of the data directory readable by its owner only: `admin-secret` (the API's admin, which
 registers vehicles) and `broker-secret` (the RabbitMQ service user `svc`, the workers' and the APIs' login). The
@@ -43,7 +44,6 @@ import json
 import logging
 import os
 import secrets
-import signal
 import subprocess
 import sys
 import time
@@ -53,6 +53,7 @@ from typing import Self
 
 import httpx
 
+from roadgrip.cloud.cluster.children import RESTART_LIMIT, Child, Restarts, stop_children
 from roadgrip.cloud.cluster.reaper import REAP_GRACE_S, TAG, reap
 from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.storage.local_postgres import LocalPostgres
@@ -64,98 +65,12 @@ DATABASE = "roadgrip"
 DESCRIPTION = "cluster.json"  # what runs where, written once the cluster is ready
 WORKER_STOP_S = 60.0  # a worker's clean stop stores what it took and every vehicle's state
 API_STOP_S = 15.0
-KILLED_WAIT_S = (
-    10.0  # a process killed with SIGKILL is waited for this long (longer: stuck in the kernel; reaped after)
-)
 POLL_S = 0.25
-RESTART_FIRST_S = 1.0  # the first restart of a process that exited waits this long ...
-RESTART_MAX_S = 30.0  # ... doubling with each restart of it, up to this
-RESTART_LIMIT = 5  # restarts of one process; then it stays down
 
 
 class ClusterError(RuntimeError):
     """A process of the local cluster did not start or did not become healthy (the message says which, and where its
     log is)."""
-
-
-class Child:
-    """A `roadgrip` command in a process of its own session, its output appended to `log_path`."""
-
-    def __init__(self, name: str, args: list[str], log_path: Path, env: dict[str, str], url: str | None = None):
-        self.name = name
-        self.args = args
-        self.log_path = log_path
-        self.env = env
-        self.url = url
-        self.proc: subprocess.Popen | None = None
-
-    def start(self) -> None:
-        with open(self.log_path, "ab") as out:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "roadgrip", *self.args],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=self.env,
-                start_new_session=True,
-            )
-
-    @property
-    def pid(self) -> int | None:
-        return None if self.proc is None else self.proc.pid
-
-    @property
-    def returncode(self) -> int | None:
-        """None while it runs (or before it started), else its exit status."""
-        return None if self.proc is None else self.proc.poll()
-
-    def log_tail(self, chars: int = 3000) -> str:
-        return self.log_path.read_text(errors="replace")[-chars:] if self.log_path.exists() else ""
-
-    def stop(self, grace_s: float) -> None:
-        """SIGTERM, then SIGKILL to its process group after `grace_s`."""
-        stop_children([self], grace_s)
-
-
-def stop_children(children: list[Child], grace_s: float) -> None:
-    """SIGTERM to each child, then SIGKILL to the process group of each that has not ended `grace_s` later (and to
-    what is left in the group of each that has: a process of its own that it started)."""
-    running = [c for c in children if c.proc is not None and c.proc.poll() is None]
-    for child in running:
-        child.proc.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + grace_s
-    for child in running:
-        try:
-            child.proc.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            log.warning("%s (pid %d) did not stop within %.0f s: killed", child.name, child.proc.pid, grace_s)
-    for child in children:
-        if child.proc is None:
-            continue
-        try:
-            os.killpg(child.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass  # the group is empty: nothing of it left
-        try:
-            child.proc.wait(KILLED_WAIT_S)
-        except subprocess.TimeoutExpired:
-            log.error("%s (pid %d) still there %.0f s after SIGKILL", child.name, child.proc.pid, KILLED_WAIT_S)
-
-
-class _Restarts:
-    """When a process that exited is started again (module docstring, "Supervision")."""
-
-    def __init__(self):
-        self.count = 0  # restarts done
-        self.due: float | None = None  # when the next one is (monotonic s), while the process is down
-
-    def schedule(self, now: float) -> float | None:
-        """The process was found down at `now`: the delay before its restart, None when it is not restarted."""
-        if self.count >= RESTART_LIMIT:
-            return None
-        delay = min(RESTART_MAX_S, RESTART_FIRST_S * 2**self.count)
-        self.due = now + delay
-        return delay
 
 
 class LocalCluster:
@@ -211,7 +126,7 @@ class LocalCluster:
         self.started_s: float | None = None
         self._reaper: subprocess.Popen | None = None
         self._reaper_pipe: int | None = None  # the pipe's writing end: closed when this process ends
-        self._restarts: dict[str, _Restarts] = {}  # by process name (module docstring, "Supervision")
+        self._restarts: dict[str, Restarts] = {}  # by process name (module docstring, "Supervision")
 
     # -------------------------------------------------------------------------------------------- where things are
     @property
@@ -344,7 +259,7 @@ class LocalCluster:
         said = []
         down = [(c.name, c) for c in self.exited()] + [(f"RabbitMQ node {i}", i) for i in self.nodes_down()]
         for name, what in down:
-            restarts = self._restarts.setdefault(name, _Restarts())
+            restarts = self._restarts.setdefault(name, Restarts())
             if restarts.due is None:
                 status = what.returncode if isinstance(what, Child) else self.rabbit.procs[what].returncode
                 delay = restarts.schedule(now)
