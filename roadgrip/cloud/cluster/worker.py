@@ -6,9 +6,9 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 - Ownership: every worker registers a consumer on every partition queue; single-active-consumer makes one of them
   active per queue, and when its channel or connection dies (the worker killed, its broker node killed) RabbitMQ makes
   another registered consumer active. The first worker to register is active on every partition; the others wait.
-- Spreading partitions (`_watch`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
+- Spreading partitions (`_beat`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
   (consumer priorities do not choose the single active consumer of a quorum queue there), so workers hand partitions
-  over themselves. Live workers are counted in PostgreSQL (`_beat`, a thread of its own): every WATCH_S a worker
+  over themselves. Live workers are counted in PostgreSQL: every WATCH_S a worker
   raises its heartbeat counter and reads everyone's (roadgrip/cloud/cluster/spread.py `Liveness`: live while it
   moved within a lease), not from the broker, whose consumer counts a dead node leaves stale (issue 25). The rule of
   spread.py (`Spread`: more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S, no move
