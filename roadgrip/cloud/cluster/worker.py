@@ -11,8 +11,8 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   over themselves. Live workers are counted in PostgreSQL: every WATCH_S a worker
   raises its heartbeat counter and reads everyone's (roadgrip/cloud/cluster/spread.py `Liveness`: live while it
   moved within a lease), not from the broker, whose consumer counts a dead node leaves stale (issue 25). The rule of
-  spread.py (`Spread`: more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S, no move
-  again while a released partition came back) picks the partition to release,
+  spread.py (`Spread`: more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S, none of a
+  partition taken lately, none again while a released partition came back) picks the partition to release,
   the one it took last: the worker stops handing that queue's deliveries to the pipeline, waits until what it handed
   over is stored and acknowledged, lets the pipeline store those vehicles' states and forget them
   (`Pipeline.hand_over`), closes that connection (the next waiting consumer becomes active; what was delivered and
