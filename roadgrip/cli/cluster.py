@@ -30,7 +30,8 @@ def up(
     ),
 ):
     """A local cluster on 127.0.0.1: RabbitMQ nodes joined into one cluster, PostgreSQL, workers and API replicas,
-    each waited for until healthy; runs until Ctrl-C or SIGTERM, then stops everything it started."""
+    each waited for until healthy; restarts a worker, API replica or node that exits (with a backoff and a limit);
+    runs until Ctrl-C or SIGTERM, then stops everything it started (docs/CLUSTER.md, "Local cluster")."""
     import logging
     import signal
     import tempfile
@@ -43,40 +44,34 @@ def up(
         data_dir, nodes=nodes, workers=workers, apis=apis, partitions=partitions, api_port=api_port, config=config
     )
 
-    def interrupt(signum, _frame):
-        raise KeyboardInterrupt(signal.Signals(signum).name)
+    stopping = []
 
-    signal.signal(signal.SIGTERM, interrupt)  # SIGINT (Ctrl-C) raises KeyboardInterrupt already
+    def interrupt(signum, _frame):
+        if not stopping:  # the first signal stops the cluster; a second one must not cut that stop short
+            stopping.append(signum)
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    # Both installed here: a process started in the background of a shell script inherits SIGINT ignored, and Python
+    # then installs no KeyboardInterrupt for it (the cause of the Ctrl-C test's flake, issue 25)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, interrupt)
     try:
         with console.status("starting the local cluster") as status:
             cluster.start(progress=lambda step: status.update(f"starting the local cluster: {step}..."))
         _print_cluster(cluster)
-        reported: set[str] = set()
         while True:
             time.sleep(1.0)
-            for child in cluster.exited():
-                if child.name not in reported:
-                    reported.add(child.name)
-                    console.print(
-                        f"[bold red]{child.name} exited[/] with status {child.returncode}: see {child.log_path}"
-                    )
-            for node in cluster.nodes_down():
-                if f"node {node}" not in reported:
-                    reported.add(f"node {node}")
-                    console.print(
-                        f"[bold red]RabbitMQ node {cluster.rabbit.node_name(node)} exited[/]: see "
-                        f"{cluster.data_dir / 'rabbitmq' / f'rg{node}'}"
-                    )
+            for line in cluster.supervise(time.monotonic()):
+                console.print(f"[bold red]{line}[/]" if "exited" in line else line)
     except KeyboardInterrupt:
         pass
     except ClusterError as err:
         console.print(f"[bold red]error:[/] {err}")
         raise typer.Exit(1) from err
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the stop short
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        with console.status("stopping the local cluster (the workers store what they took)..."):
-            cluster.stop()
+        stopping.append("stop")
+        console.print("stopping the local cluster (the workers store what they took)...")
+        cluster.stop()
         console.print(f"local cluster stopped; its data and logs stay in {cluster.data_dir}")
 
 

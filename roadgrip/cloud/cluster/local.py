@@ -11,8 +11,20 @@ order.
 
 The workers and the API replicas run in sessions of their own: Ctrl-C in a terminal reaches only the process that runs
 the cluster, which stops them in order (API replicas, then workers, which store what they took and checkpoint their
-vehicles' states while the broker and the database still run, then the RabbitMQ nodes, then PostgreSQL). A child that
-does not stop within its grace period is killed with its whole process group.
+vehicles' states while the broker and the database still run, then the RabbitMQ nodes, then PostgreSQL), the
+processes of one kind together. A child that does not stop within its grace period is killed with its whole process
+group; then whatever is left of the cluster (roadgrip/cloud/cluster/reaper.py: every process whose environment
+carries the cluster's tag) is killed too, so a stop ends within API_STOP_S + WORKER_STOP_S + RabbitCluster's
+NODE_STOP_S + PostgreSQL's stop + REAP_GRACE_S, whatever state the processes are in. When the process that runs the
+cluster is itself killed (SIGKILL included), its reaper, a process of its own session watching a pipe only the
+cluster's process holds, ends every process of the cluster within REAP_GRACE_S.
+
+Supervision (`supervise`, called about once a second by `roadgrip cluster up`): a worker or API replica that exits is
+started again with the same arguments after RESTART_FIRST_S, doubling up to RESTART_MAX_S for each restart of the
+same process, at most RESTART_LIMIT times (roadgrip/cloud/cluster/children.py; then it stays down, logged); a
+RabbitMQ node whose server exits is started again the same way with its data (`RabbitCluster.restart`: it rejoins
+the cluster and its quorum queue members catch up from the leaders). PostgreSQL, which pg_ctl detaches, is not
+supervised.
 
 Secrets, each in a file of the data directory readable by its owner only: `admin-secret` (the API's admin, which
 registers vehicles) and `broker-secret` (the RabbitMQ service user `svc`, the workers' and the APIs' login). The
@@ -32,7 +44,6 @@ import json
 import logging
 import os
 import secrets
-import signal
 import subprocess
 import sys
 import time
@@ -42,6 +53,8 @@ from typing import Self
 
 import httpx
 
+from roadgrip.cloud.cluster.children import RESTART_LIMIT, Child, Restarts, stop_children
+from roadgrip.cloud.cluster.reaper import REAP_GRACE_S, TAG, reap
 from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.storage.local_postgres import LocalPostgres
 from roadgrip.cloud.transport.amqp import HOST, SERVICE_USER, RabbitCluster, partition_queue
@@ -58,58 +71,6 @@ POLL_S = 0.25
 class ClusterError(RuntimeError):
     """A process of the local cluster did not start or did not become healthy (the message says which, and where its
     log is)."""
-
-
-class Child:
-    """A `roadgrip` command in a process of its own session, its output appended to `log_path`."""
-
-    def __init__(self, name: str, args: list[str], log_path: Path, env: dict[str, str], url: str | None = None):
-        self.name = name
-        self.args = args
-        self.log_path = log_path
-        self.env = env
-        self.url = url
-        self.proc: subprocess.Popen | None = None
-
-    def start(self) -> None:
-        with open(self.log_path, "ab") as out:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "roadgrip", *self.args],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=self.env,
-                start_new_session=True,
-            )
-
-    @property
-    def pid(self) -> int | None:
-        return None if self.proc is None else self.proc.pid
-
-    @property
-    def returncode(self) -> int | None:
-        """None while it runs (or before it started), else its exit status."""
-        return None if self.proc is None else self.proc.poll()
-
-    def log_tail(self, chars: int = 3000) -> str:
-        return self.log_path.read_text(errors="replace")[-chars:] if self.log_path.exists() else ""
-
-    def stop(self, grace_s: float) -> None:
-        """SIGTERM, then SIGKILL to its process group after `grace_s`; whatever else is left in its group is killed
-        too."""
-        if self.proc is None:
-            return
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(grace_s)
-            except subprocess.TimeoutExpired:
-                log.warning("%s (pid %d) did not stop within %.0f s: killed", self.name, self.proc.pid, grace_s)
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass  # the group is empty: nothing of it left
-        self.proc.wait()
 
 
 class LocalCluster:
@@ -163,11 +124,18 @@ class LocalCluster:
         self.workers: list[Child] = []
         self.apis: list[Child] = []
         self.started_s: float | None = None
+        self._reaper: subprocess.Popen | None = None
+        self._reaper_pipe: int | None = None  # the pipe's writing end: closed when this process ends
+        self._restarts: dict[str, Restarts] = {}  # by process name (module docstring, "Supervision")
 
     # -------------------------------------------------------------------------------------------- where things are
     @property
     def logs_dir(self) -> Path:
         return self.data_dir / "logs"
+
+    @property
+    def _postmaster_pid(self) -> Path:
+        return self.data_dir / "postgres" / "data" / "postmaster.pid"
 
     @property
     def admin_secret_file(self) -> Path:
@@ -198,6 +166,7 @@ class LocalCluster:
         started = time.monotonic()
         self._make_data_dir()
         try:
+            self._start_reaper()
             say("PostgreSQL")
             self._start_postgres()
             say(f"RabbitMQ: {self.nodes} node(s) joined into one cluster (the slowest step)")
@@ -216,22 +185,58 @@ class LocalCluster:
         log.info("local cluster ready in %.0f s: %s", self.started_s, self.data_dir / DESCRIPTION)
 
     def stop(self) -> None:
-        """Stop everything started, in order (module docstring), each step even when an earlier one failed.
-        Idempotent; the data directory is kept."""
+        """Stop everything started, in order (module docstring), each step even when an earlier one failed, then
+        kill whatever process of the cluster is left. Idempotent; the data directory is kept."""
         try:
             try:
-                for child in (*reversed(self.apis), *reversed(self.workers)):
-                    try:
-                        child.stop(API_STOP_S if child in self.apis else WORKER_STOP_S)
-                    except OSError:
-                        log.exception("stopping %s failed", child.name)
+                try:
+                    stop_children(list(reversed(self.apis)), API_STOP_S)
+                finally:
+                    stop_children(list(reversed(self.workers)), WORKER_STOP_S)
             finally:
                 if self.rabbit is not None:
                     self.rabbit.stop()
         finally:
-            pg = self.postgres
-            if pg is not None and pg.root is not None and (pg.root / "data" / "postmaster.pid").exists():
-                pg.stop()
+            try:
+                pg = self.postgres
+                if pg is not None and pg.root is not None and (pg.root / "data" / "postmaster.pid").exists():
+                    pg.stop()
+            finally:
+                self._stop_reaper()
+
+    def _start_reaper(self) -> None:
+        """The cluster's reaper (roadgrip/cloud/cluster/reaper.py), and the tag in this process's environment, which
+        every process started from now on inherits."""
+        os.environ[TAG] = str(self.data_dir)
+        read_end, self._reaper_pipe = os.pipe()
+        try:
+            self._reaper = subprocess.Popen(
+                [sys.executable, "-m", "roadgrip.cloud.cluster.reaper", str(self.data_dir), str(self._postmaster_pid)],
+                stdin=read_end,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                start_new_session=True,  # neither Ctrl-C nor a kill of this process group reaches it
+            )
+        finally:
+            os.close(read_end)
+
+    def _stop_reaper(self) -> None:
+        """Kill what is left of the cluster, then let the reaper go (it finds nothing more) and drop the tag."""
+        if self._reaper_pipe is None:
+            return
+        left = reap(str(self.data_dir), REAP_GRACE_S, frozenset({os.getpid()}), (self._postmaster_pid,))
+        if left:
+            log.warning("processes of the cluster left after its stop, killed: %s", sorted(left))
+        os.close(self._reaper_pipe)
+        self._reaper_pipe = None
+        if self._reaper is not None:
+            try:
+                self._reaper.wait(REAP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                self._reaper.kill()
+                self._reaper.wait()
+        if os.environ.get(TAG) == str(self.data_dir):
+            del os.environ[TAG]
 
     def __enter__(self) -> Self:
         self.start()
@@ -247,6 +252,42 @@ class LocalCluster:
     def nodes_down(self) -> list[int]:
         """RabbitMQ nodes whose server process has ended."""
         return [i for i, proc in enumerate(self.rabbit.procs) if proc is not None and proc.poll() is not None]
+
+    def supervise(self, now: float) -> list[str]:
+        """Start again the workers, API replicas and RabbitMQ nodes that exited, when their restart is due (module
+        docstring, "Supervision"); `now`: monotonic s. Returns what it found and did, a line each (also logged)."""
+        said = []
+        down = [(c.name, c) for c in self.exited()] + [(f"RabbitMQ node {i}", i) for i in self.nodes_down()]
+        for name, what in down:
+            restarts = self._restarts.setdefault(name, Restarts())
+            if restarts.due is None:
+                status = what.returncode if isinstance(what, Child) else self.rabbit.procs[what].returncode
+                delay = restarts.schedule(now)
+                if delay is None:
+                    said.append(f"{name} exited (status {status}); restarted {restarts.count} times already: left down")
+                    restarts.due = float("inf")
+                else:
+                    said.append(
+                        f"{name} exited (status {status}); restart {restarts.count + 1} of {RESTART_LIMIT} in "
+                        f"{delay:.0f} s"
+                    )
+            elif now >= restarts.due:
+                restarts.count += 1
+                restarts.due = None
+                try:
+                    if isinstance(what, Child):
+                        what.start()
+                        said.append(f"{name} started again (pid {what.pid})")
+                    else:
+                        self.rabbit.restart(what)
+                        said.append(f"{name} started again (pid {self.rabbit.pid(what)})")
+                except (OSError, subprocess.SubprocessError, TimeoutError) as exc:
+                    said.append(f"{name} did not start again: {exc}")  # still down: found so at the next call
+                    continue
+                (self.data_dir / DESCRIPTION).write_text(json.dumps(self.describe(), indent=1) + "\n")
+        for line in said:
+            log.warning("%s", line)
+        return said
 
     def _make_data_dir(self) -> None:
         if self.data_dir.exists() and any(self.data_dir.iterdir()):

@@ -6,12 +6,13 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
 - Ownership: every worker registers a consumer on every partition queue; single-active-consumer makes one of them
   active per queue, and when its channel or connection dies (the worker killed, its broker node killed) RabbitMQ makes
   another registered consumer active. The first worker to register is active on every partition; the others wait.
-- Spreading partitions (`_watch`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
+- Spreading partitions (`_beat`, a thread of its own): RabbitMQ 3.10 gives a queue to the first consumer registered
   (consumer priorities do not choose the single active consumer of a quorum queue there), so workers hand partitions
-  over themselves. Live workers are counted by the broker: each worker holds a consumer on the quorum queue
-  WORKERS_QUEUE (nothing is ever published to it), whose consumer count a passive declare returns (a queue with
-  single-active-consumer counts only its active consumer). The rule of roadgrip/cloud/cluster/spread.py (`Spread`:
-  more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S) picks the partition to release,
+  over themselves. Live workers are counted in PostgreSQL: every WATCH_S a worker
+  raises its heartbeat counter and reads everyone's (roadgrip/cloud/cluster/spread.py `Liveness`: live while it
+  moved within a lease), not from the broker, whose consumer counts a dead node leaves stale (issue 25). The rule of
+  spread.py (`Spread`: more than its share of the partitions, the settle time, one move a MOVE_INTERVAL_S, none of a
+  partition taken lately, none again while a released partition came back) picks the partition to release,
   the one it took last: the worker stops handing that queue's deliveries to the pipeline, waits until what it handed
   over is stored and acknowledged, lets the pipeline store those vehicles' states and forget them
   (`Pipeline.hand_over`), closes that connection (the next waiting consumer becomes active; what was delivered and
@@ -67,7 +68,7 @@ import pika
 import pika.exceptions
 
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
-from roadgrip.cloud.cluster.spread import Spread
+from roadgrip.cloud.cluster.spread import Liveness, Spread
 from roadgrip.cloud.cluster.worker_metrics import serve_metrics
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
@@ -87,8 +88,7 @@ log = logging.getLogger(__name__)
 DEFAULT_PREFETCH = 100
 FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowledges what was stored
 STATS_S = 10.0  # how often the worker logs its counters
-WORKERS_QUEUE = "rg.workers"  # every worker holds a consumer on it: its consumer count is the live workers
-WATCH_S = 1.0  # how often a worker reads the queues (live workers, depth) and checks its share of partitions
+WATCH_S = 1.0  # how often a worker beats, counts the live workers and checks its share; and reads the queues' depth
 MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
 HANDOVER_TIMEOUT_S = 30.0  # a release not done by then (storage down) gives the partition up unacknowledged
 
@@ -164,7 +164,6 @@ class _Watcher:
 
     def ended(self, exc: BaseException | None, broker: int) -> None:
         if exc is not None:
-            self.worker.live_workers = None
             log.warning("watcher: connection through broker %d lost: %r", broker, exc)
 
 
@@ -264,7 +263,8 @@ class Worker:
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
         self.fenced = 0  # rounds' writes that found a partition taken by another worker
-        self.live_workers: int | None = None  # consumers of WORKERS_QUEUE (this one included), read every WATCH_S
+        self.live_workers: int | None = None  # by their heartbeats (this one included), read every WATCH_S
+        self.liveness = Liveness()
         self.messages_ready: list[int | None] = [None] * partitions  # each partition queue's, read every WATCH_S
         self.latency_histogram = BatchHistogram(LATENCY_BUCKETS_S)  # sample time to stored estimate (metrics)
         self.owner = f"{socket.gethostname()}:{os.getpid()}"  # its name in partition_owners
@@ -307,9 +307,10 @@ class Worker:
                 raise TimeoutError(
                     f"not every partition consumer registered within {ready_timeout_s} s: {self.connected}"
                 )
-        watcher = threading.Thread(target=self._watch, name="watch", daemon=True)
-        watcher.start()
-        self._threads.append(watcher)
+        for target, name in ((self._watch, "watch"), (self._beat, "heartbeat")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
         self.regions = RegionOwners(
             self.brokers,
             s,
@@ -352,6 +353,10 @@ class Worker:
             self.regions.stop()
         log.info("worker stopped: %s", json.dumps(self.stats()))
         if self.storage is not None:
+            try:
+                self.storage.end_heartbeat(self.owner)  # counted dead at once by the others
+            except StorageUnavailable as exc:
+                log.warning("heartbeat not deleted (counted dead a lease later): %s", exc)
             self.storage.close()
             self.storage = None
 
@@ -521,21 +526,33 @@ class Worker:
 
     # ------------------------------------------------------------------------------------------------- spreading
     def _watch(self) -> None:
-        """Hold a consumer on WORKERS_QUEUE (this worker counts as live while it has it); every WATCH_S read the live
-        workers and the partition queues' depth, and release a partition when this worker holds more than its share
-        (`_balance`). After a failure, the same through the next broker."""
+        """Every WATCH_S read the partition queues' depth (metrics). After a failure, the same through the next
+        broker."""
         consume(self.brokers, 0, self._closing, functools.partial(_Watcher, self), "watcher")
 
     def _watch_through(self, connection: pika.BlockingConnection) -> None:
         channel = connection.channel()
-        channel.queue_declare(WORKERS_QUEUE, durable=True, arguments={"x-queue-type": "quorum"})
-        channel.basic_consume(WORKERS_QUEUE, lambda *_: None, auto_ack=True)  # nothing is published there
         while not self._closing.is_set():
-            self.live_workers = channel.queue_declare(WORKERS_QUEUE, passive=True).method.consumer_count
             for p in range(self.partitions):
                 self.messages_ready[p] = channel.queue_declare(partition_queue(p), passive=True).method.message_count
-            self._balance(time.monotonic())
             connection.process_data_events(time_limit=WATCH_S)
+
+    def _beat(self) -> None:
+        """Every WATCH_S raise this worker's heartbeat, count the live workers by theirs (spread.py `Liveness`) and
+        release a partition when this worker holds more than its share (`_balance`). The database down: the count
+        is not known (None), and nothing moves."""
+        while not self._closing.is_set():
+            now = time.monotonic()
+            try:
+                self.storage.heartbeat(self.owner)
+                self.live_workers = self.liveness.count(now, self.storage.worker_heartbeats())
+                for owner, beats in self.liveness.dead_rows(now).items():
+                    self.storage.end_heartbeat(owner, beats)
+            except StorageUnavailable as exc:
+                self.live_workers = None
+                log.warning("heartbeat: %s", exc)
+            self._balance(now)
+            self._closing.wait(WATCH_S)
 
     def _balance(self, now: float) -> None:
         """Release the partition taken last if this worker holds more than its share (roadgrip/cloud/cluster/

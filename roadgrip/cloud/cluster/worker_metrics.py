@@ -84,7 +84,7 @@ class WorkerCollector(Collector):
         if worker.live_workers is not None:
             yield gauge(
                 "roadgrip_workers_live",
-                "Workers consuming the partitions, as the broker counts them",
+                "Live workers, as their heartbeats in PostgreSQL count them",
                 [([], worker.live_workers)],
             )
         yield counter(

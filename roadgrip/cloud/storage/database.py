@@ -14,7 +14,7 @@ is upgraded, keeping its rows) and returns a `Storage`, whose methods are safe t
 | credentials.py | credentials | add_credential, credential, credentials, revoke_credential, set_secret_hash |
 | vehicles.py | vehicles (+ credentials) | put_vehicle, register_vehicles, vehicle_profile, vehicle_ids |
 | telemetry.py | telemetry, estimates | write_batch, estimates, estimates_since, latest_estimates, telemetry, counts, telemetry_extent, latest_timestamps |
-| partitions.py | partition_owners | take_partition, partition_owners (and the fences of write_batch, put_estimator_states) |
+| partitions.py | partition_owners, counters (workers' heartbeats) | take_partition, partition_owners, heartbeat, worker_heartbeats, end_heartbeat (and the fences of write_batch, put_estimator_states) |
 | estimator_states.py | estimator_states | put_estimator_states, estimator_states, estimator_state_rows |
 | observations.py | observations, heartbeats | put_observations, observations_since, put_heartbeats, latest_heartbeats |
 | stations.py | station_reports | put_station_reports, latest_station_reports, station_reports_of, station_reports_since |
@@ -190,6 +190,15 @@ class Storage:
 
     def partition_owners(self) -> dict[int, str]:
         return self._partitions.partition_owners()
+
+    def heartbeat(self, owner: str) -> None:
+        self._partitions.heartbeat(owner)
+
+    def worker_heartbeats(self) -> dict[str, int]:
+        return self._partitions.worker_heartbeats()
+
+    def end_heartbeat(self, owner: str, beats: int | None = None) -> None:
+        self._partitions.end_heartbeat(owner, beats)
 
     def estimates(
         self, vehicle_id: str, start_ms: int | None = None, end_ms: int | None = None, limit: int = 10000

@@ -12,7 +12,7 @@ query and the Alembic migrations (storage/migrations/) bring every database to.
 | partition_owners | partition_id | cluster mode: epoch, owner, taken_ms of each partition (fencing of telemetry, estimates, estimator states) |
 | map_cells | cell | cluster mode: region (its H3 parent), last_ms (its newest evidence), updated_ms, state (JSON: `FrictionMap.cell_states`), written by the region's owner (roadgrip/cloud/cluster/regions.py) |
 | region_owners | region_queue | cluster mode: epoch, owner, taken_ms of each region queue (fencing, as partition_owners) |
-| counters | name | value: cluster mode's shared counters (`action_sequence_number`: the regions' DENM ActionIDs) |
+| counters | name | value: cluster mode's shared counters (`action_sequence_number`: the regions' DENM ActionIDs; `worker:OWNER`: a worker's heartbeat, storage/partitions.py) |
 | observations | vehicle_id, last_ms | the columns of `roadgrip.data.schema.OBSERVATION` (an edge vehicle's pass through a cell, CONTRACTS 3.7; evidence and channels as JSON lists), received_ms |
 | heartbeats | vehicle_id, timestamp_ms | the columns of `roadgrip.data.schema.HEARTBEAT`, received_ms |
 | station_reports | station_id, timestamp_ms | a roadside station's report (roadgrip/cloud/domain/stations.py: position, surface_state, surface_temperature_c, water_film_thickness_mm, friction, friction_uncertainty), the evidence it gave (mu, mu_lower, mu_upper; null for none) and its covered cells (JSON list), received_ms |

@@ -27,6 +27,7 @@ import os
 import secrets
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 from roadgrip.cloud.localhost import free_ports, wait_port
@@ -38,6 +39,8 @@ TELEMETRY_EXCHANGE = "rg.telemetry"
 TELEMETRY_BINDING = "roadgrip.v1.vehicles.*.telemetry"
 ESTIMATES_EXCHANGE = "rg.estimates"
 REGION_QUEUES = 4  # M, the region queues, unless the settings say otherwise (Settings.region_queues)
+NODE_STOP_S = 30.0  # RabbitCluster.stop: a node's clean stop, before SIGKILL
+KILLED_WAIT_S = 5.0  # a process signalled at the end of a stop is waited for this long
 
 
 def partition_queue(partition: int) -> str:
@@ -347,16 +350,25 @@ class RabbitCluster:
         wait_port(self.management_ports[i], 60)
 
     def stop(self) -> None:
-        for i, p in enumerate(self.procs):
-            if p is not None and p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in self.procs:
-            if p is not None:
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    os.killpg(p.pid, signal.SIGKILL)
-                    p.wait()
-        if self.epmd is not None:
-            self.epmd.terminate()
-            self.epmd.wait()
+        """SIGTERM to every node's process group (the server script, beam.smp and its helpers), SIGKILL to those
+        left after NODE_STOP_S; then epmd. Ends within NODE_STOP_S + 2 KILLED_WAIT_S whatever state they are in."""
+        running = [p for p in self.procs if p is not None and p.poll() is None]
+        for p in running:
+            os.killpg(p.pid, signal.SIGTERM)
+        deadline = time.monotonic() + NODE_STOP_S
+        for p in running:
+            try:
+                p.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+        for p in [*self.procs, self.epmd]:
+            if p is None:
+                continue
+            try:
+                os.killpg(p.pid, signal.SIGTERM if p is self.epmd else signal.SIGKILL)
+            except ProcessLookupError:
+                continue  # nothing left of its group
+            try:
+                p.wait(KILLED_WAIT_S)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)

@@ -24,6 +24,7 @@ from typer.testing import CliRunner
 
 from roadgrip.cli import app
 from roadgrip.cloud.cluster.local import DESCRIPTION, LocalCluster
+from roadgrip.cloud.cluster.reaper import tagged
 from roadgrip.cloud.transport.amqp import RabbitCluster
 
 pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
@@ -187,40 +188,42 @@ def test_a_fleet_drives_against_the_local_cluster_and_nothing_is_left_after_it_s
     assert not remaining, "left running:\n" + "\n".join(command_lines(remaining))
 
 
+def cluster_up(data_dir: Path, out: Path, *options: str, sigint_ignored: bool = False) -> subprocess.Popen:
+    """`roadgrip cluster up` in a process group of its own, as a terminal's job, its output in `out`; with
+    `sigint_ignored`, started with SIGINT ignored, as a shell script's background job starts it (and the test suite
+    run that way: the cause of issue 25's flake)."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if sigint_ignored else None
+    try:
+        with open(out, "wb") as log:
+            return subprocess.Popen(
+                [sys.executable, "-m", "roadgrip", "cluster", "up", "--data-dir", str(data_dir), *options],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "COLUMNS": "200"},
+                start_new_session=True,
+            )
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def wait_for_text(proc: subprocess.Popen, out: Path, text: str, timeout_s: float = 300) -> None:
+    deadline = time.monotonic() + timeout_s
+    while text not in out.read_text():
+        assert proc.poll() is None and time.monotonic() < deadline, out.read_text()
+        time.sleep(0.5)
+
+
 @pytest.mark.parametrize("stop", ["sigterm", "ctrl-c"])
 def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, stop):
     """SIGTERM to the command (a service manager), or SIGINT to its whole process group (Ctrl-C in a terminal
-    reaches every process of the foreground job: the ones the command runs in sessions of their own do not get it)."""
+    reaches every process of the foreground job: the ones the command runs in sessions of their own do not get it),
+    the command started with SIGINT ignored (a background job of a script, as the full suite may be)."""
     out = data_dir.parent / f"{data_dir.name}.out"
-    with open(out, "wb") as log:
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "roadgrip",
-                "cluster",
-                "up",
-                "--data-dir",
-                str(data_dir),
-                "--nodes",
-                "2",
-                "--workers",
-                "1",
-                "--apis",
-                "1",
-                "--partitions",
-                "2",
-            ],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env={**os.environ, "COLUMNS": "200"},
-            start_new_session=True,
-        )  # its own process group, as a terminal's job
+    options = ["--nodes", "2", "--workers", "1", "--apis", "1", "--partitions", "2"]
+    proc = cluster_up(data_dir, out, *options, sigint_ignored=stop == "ctrl-c")
     try:
-        deadline = time.monotonic() + 300
-        while "local cluster ready" not in out.read_text():
-            assert proc.poll() is None and time.monotonic() < deadline, out.read_text()
-            time.sleep(0.5)
+        wait_for_text(proc, out, "local cluster ready")
         described = json.loads((data_dir / DESCRIPTION).read_text())
         assert len(described["rabbitmq"]) == 2
         started = below(proc.pid, described["postgres"]["pid"], *[node["pid"] for node in described["rabbitmq"]])
@@ -239,5 +242,47 @@ def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, 
             proc.kill()
             proc.wait()
         out.unlink(missing_ok=True)
-    remaining = left(started)
+    remaining = left(started) | {(pid, 0) for pid in tagged(str(data_dir))}
     assert not remaining, "left running:\n" + "\n".join(command_lines(remaining))
+
+
+def test_cluster_up_restarts_a_killed_worker_and_when_killed_itself_leaves_nothing_behind(data_dir):
+    """kill -9 of the worker: started again (the same metrics port answers from a new pid); then kill -9 of `cluster
+    up` itself: its reaper ends every process of the cluster, PostgreSQL's included, within 30 s."""
+    out = data_dir.parent / f"{data_dir.name}.out"
+    proc = cluster_up(data_dir, out, "--nodes", "1", "--workers", "1", "--apis", "0", "--partitions", "1")
+    try:
+        wait_for_text(proc, out, "local cluster ready")
+        described = json.loads((data_dir / DESCRIPTION).read_text())
+        started = below(proc.pid, described["postgres"]["pid"], described["rabbitmq"][0]["pid"])
+        worker = described["workers"][0]
+        os.kill(worker["pid"], signal.SIGKILL)
+        wait_for_text(proc, out, "worker 0 started again", timeout_s=60)
+        restarted = json.loads((data_dir / DESCRIPTION).read_text())["workers"][0]
+        assert restarted["pid"] != worker["pid"]
+        deadline = time.monotonic() + 90
+        while not _answers(restarted["metrics"]):
+            assert time.monotonic() < deadline, (data_dir / "logs" / "worker-0.log").read_text()[-3000:]
+            time.sleep(0.5)
+        started |= below(proc.pid)
+        proc.kill()
+        proc.wait()
+        killed = time.monotonic()
+        while remaining := left(started) | {(pid, 0) for pid in tagged(str(data_dir))}:
+            assert time.monotonic() - killed < 30, "left running:\n" + "\n".join(command_lines(remaining))
+            time.sleep(0.5)
+        print(
+            f"\nkill -9 of cluster up: none of its {len(started)} processes left {time.monotonic() - killed:.1f} s after"
+        )
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        out.unlink(missing_ok=True)
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=5.0).status_code == 200
+    except httpx.HTTPError:
+        return False

@@ -25,6 +25,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.engine import make_url
 
 from roadgrip.cloud.cluster.map_cells import new_friction_map
+from roadgrip.cloud.cluster.spread import FRESH_S, WORKERS_SETTLE_S
 from roadgrip.cloud.cluster.worker import Worker, _Acks, _FencedStorage
 from roadgrip.cloud.localhost import free_ports
 from roadgrip.cloud.pipeline.fanout import Fanout, new_warning_engine
@@ -472,16 +473,23 @@ def test_broker_node_killed_partitions_served_again(cluster, postgres_database_u
     """Kill -9 of node 0 mid-stream: the MQTT connections of the vehicles on it, worker a's consumers of partitions 0
     and 3 and worker b's of partition 2 (each worker reaches partition p through the (p mod 3)-th node of its list)
     and the queue leaders there die. Vehicles reconnect to the next node of their list (as a load balancer in front
-    of the nodes would send them to a live one)."""
+    of the nodes would send them to a live one). The workers count 2 live workers throughout (their heartbeats in
+    PostgreSQL: a dead node left RabbitMQ's consumer count stale, issue 25) and, with that count unchanged, move at
+    most the partitions the failover put above a worker's share (2 of 4 at most), then none."""
     vehicles = vehicles_of("c")
     killed = 0
     first, second = start_workers(cluster, postgres_database_url, tmp_path)
     db = Database(postgres_database_url)
     fleet = Fleet(cluster, vehicles)
     try:
-        publisher = threading.Thread(target=fleet.run, args=(16.0,))
+        publisher = threading.Thread(target=fleet.run, args=(600.0,))
         publisher.start()
-        time.sleep(8.0)
+        deadline = time.monotonic() + SPREAD_LIMIT_S  # each counts the other, and the partitions have settled
+        while not all(w.log().rsplit("live workers: ", 1)[-1].startswith("2") for w in (first, second)):
+            assert time.monotonic() < deadline, broker_evidence(cluster, 1, fleet, vehicles, first, second)
+            time.sleep(0.2)
+        time.sleep(FRESH_S + WORKERS_SETTLE_S)
+        logs_at_kill = {w: len(w.log()) for w in (first, second)}
         cluster.kill(killed)
         killed_at = time.monotonic()
         for v in vehicles:
@@ -492,16 +500,45 @@ def test_broker_node_killed_partitions_served_again(cluster, postgres_database_u
             pytest.fail(f"{exc}\n{broker_evidence(cluster, 1, fleet, vehicles, first, second)}", pytrace=False)
         print(f"\nbroker node kill: every vehicle stored again {took_s:.2f} s after the kill")
         assert took_s < FAILOVER_LIMIT_S
+        time.sleep(max(0.0, killed_at + 25.0 - time.monotonic()))  # the settle time, moves, a thrash's 1 move a second
+        fleet.stop_publishing()
         publisher.join()
         acked = fleet.finish()
         db.wait_stored(acked)
         assert_stored_exactly_once(db, acked, vehicles)
         assert db.estimates_out_of_order() == 0
+        after = {w: w.log()[logs_at_kill[w] :] for w in (first, second)}
+        counts = [
+            line.rsplit(": ", 1)[1] for text in after.values() for line in text.splitlines() if "live workers: " in line
+        ]
+        assert set(counts) <= {"2"}, counts
+        moves = [line for text in after.values() for line in text.splitlines() if "releasing partition" in line]
+        print(f"partition moves after the node kill: {len(moves)}")
+        assert len(moves) <= 2, "\n".join(moves)
     finally:
+        fleet.stop_publishing()
         stop_running(first, second)
         db.close()
         cluster.start_node(killed)
         cluster.ctl(killed, "wait", str(cluster.root / f"rg{killed}" / "pid"), "--timeout", "120", timeout_s=150)
+
+
+def test_heartbeats_counted_deleted_at_a_clean_stop_and_a_dead_row_only_with_its_count(postgres_database_url):
+    storage = open_storage(postgres_database_url)
+    try:
+        storage.heartbeat("h:1")
+        storage.heartbeat("h:1")
+        storage.heartbeat("h:2")
+        assert storage.worker_heartbeats() == {"h:1": 1, "h:2": 0}
+        storage.end_heartbeat("h:2", beats=5)  # it beat since it was judged dead: kept
+        storage.end_heartbeat("h:1")
+        assert storage.worker_heartbeats() == {"h:2": 0}
+        storage.end_heartbeat("h:2", beats=0)
+        assert storage.worker_heartbeats() == {}
+        assert storage.next_action_sequence_number() == 0  # the other counters are not heartbeats
+        assert storage.worker_heartbeats() == {}
+    finally:
+        storage.close()
 
 
 def telemetry_row(vehicle: str, timestamp_ms: int) -> dict:
