@@ -48,8 +48,10 @@ def test_an_edge_vehicle_over_mqtt_reaches_the_map_and_raises_a_warning(tmp_path
         assert summary.pending == 0 and summary.observations > 0 and uplink.refused == 0
         # PUBACK comes from the broker before the service has stored the message: wait for every one
         wait_until(
-            lambda: len(service.storage.observations_since(0)) >= summary.observations
-            and service.storage.latest_heartbeats(),
+            lambda: (
+                len(service.storage.observations_since(0)) >= summary.observations
+                and service.storage.latest_heartbeats()
+            ),
             what="observations and the heartbeat stored",
         )
         assert len(service.storage.observations_since(0)) == summary.observations
