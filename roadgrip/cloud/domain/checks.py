@@ -8,6 +8,7 @@ caller keeps it (a float for a number, the int for an integer)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 
@@ -73,3 +74,38 @@ def finite_bounds(what: str, lower, upper) -> None:
     """A record's bounds, finite (in either order)."""
     if not (math.isfinite(lower) and math.isfinite(upper)):
         raise ValueError(f"{what}: mu_lower {lower!r} and mu_upper {upper!r} must be finite")
+
+
+class PayloadError(ValueError):
+    """A payload of JSON messages refused: `index` (the message in an array; 0 for one object), `field` (None for the
+    payload or the message as a whole) and the reason; `status` the HTTP status to answer. A subclass names its
+    messages (NOUN: "report", "message")."""
+
+    NOUN = "message"
+
+    def __init__(self, reason: str, *, index: int | None = None, field: str | None = None, status: int = 422):
+        where = " ".join(p for p in (f"{self.NOUN} {index}" if index is not None else "", field or "") if p)
+        super().__init__(f"{where}: {reason}" if where else reason)
+        self.index, self.field, self.reason, self.status = index, field, reason, status
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "field": self.field, "reason": self.reason}
+
+
+def json_items(body: bytes, *, max_bytes: int, max_items: int, error: type[PayloadError]) -> list:
+    """The messages of an HTTP body or MQTT message: a JSON object, or an array of 1..max_items; `error` (413 for a
+    payload too large, 400 for one that is not JSON, 422 otherwise) for the first fault."""
+    if len(body) > max_bytes:
+        raise error(f"payload of {len(body)} bytes exceeds the limit of {max_bytes}", status=413)
+    try:
+        document = json.loads(body)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise error(f"not JSON: {exc}", status=400) from None
+    except RecursionError:
+        raise error("not JSON: nested too deeply", status=400) from None
+    items = document if isinstance(document, list) else [document]
+    if not items:
+        raise error(f"an empty array holds no {error.NOUN}")
+    if len(items) > max_items:
+        raise error(f"{len(items)} {error.NOUN}s in one payload, at most {max_items}", status=413)
+    return items

@@ -64,7 +64,6 @@ report says nothing about grip (surface_state unknown and no friction).
 from __future__ import annotations
 
 import difflib
-import json
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -73,6 +72,7 @@ import h3
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from roadgrip.cloud.domain.cells import cell_of
+from roadgrip.cloud.domain.checks import PayloadError, json_items
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 
 SURFACE_STATES = ("dry", "moist", "wet", "ice", "snow", "unknown")
@@ -126,17 +126,11 @@ class StationReport(BaseModel):
         return value
 
 
-class ReportError(ValueError):
+class ReportError(PayloadError):
     """A payload of station reports refused: `index` (the report in an array; 0 for one object), `field` (None for
     the payload or the report as a whole) and the reason. `status` is the HTTP status to answer."""
 
-    def __init__(self, reason: str, *, index: int | None = None, field: str | None = None, status: int = 422):
-        where = " ".join(p for p in (f"report {index}" if index is not None else "", field or "") if p)
-        super().__init__(f"{where}: {reason}" if where else reason)
-        self.index, self.field, self.reason, self.status = index, field, reason, status
-
-    def to_dict(self) -> dict:
-        return {"index": self.index, "field": self.field, "reason": self.reason}
+    NOUN = "report"
 
 
 def _field_error(index: int, exc: ValidationError) -> ReportError:
@@ -156,19 +150,7 @@ def parse_reports(
 ) -> list[StationReport]:
     """The reports of an HTTP body or MQTT message (a JSON object, or an array of 1..MAX_REPORTS_PER_PAYLOAD), each
     checked (module docstring) and of `station_id`; ReportError for the first fault, nothing taken then."""
-    if len(body) > max_bytes:
-        raise ReportError(f"payload of {len(body)} bytes exceeds the limit of {max_bytes}", status=413)
-    try:
-        document = json.loads(body)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ReportError(f"not JSON: {exc}", status=400) from None
-    except RecursionError:
-        raise ReportError("not JSON: nested too deeply", status=400) from None
-    items = document if isinstance(document, list) else [document]
-    if not items:
-        raise ReportError("an empty array holds no report")
-    if len(items) > MAX_REPORTS_PER_PAYLOAD:
-        raise ReportError(f"{len(items)} reports in one payload, at most {MAX_REPORTS_PER_PAYLOAD}", status=413)
+    items = json_items(body, max_bytes=max_bytes, max_items=MAX_REPORTS_PER_PAYLOAD, error=ReportError)
     reports = []
     for index, item in enumerate(items):
         if not isinstance(item, dict):

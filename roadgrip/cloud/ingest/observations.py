@@ -17,12 +17,12 @@ JSON, 413 too large, 422 a message breaks the format). Rules beyond each field's
 from __future__ import annotations
 
 import difflib
-import json
 
 import h3
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from roadgrip.cloud.domain.cells import cell_of
+from roadgrip.cloud.domain.checks import PayloadError, json_items
 from roadgrip.cloud.domain.friction_map import MU_MAX
 from roadgrip.data.schema import EVIDENCE_KINDS, TELEMETRY
 from roadgrip.data.telemetry import VEHICLE_ID_RE
@@ -71,17 +71,11 @@ class Heartbeat(_Strict):
     outbox_dropped: int = Field(ge=0)
 
 
-class ObservationError(ValueError):
+class ObservationError(PayloadError):
     """A payload of an edge vehicle refused: `index` (the message in an array; 0 for one object), `field` (None for
     the payload or the message as a whole) and the reason; `status` the HTTP status to answer."""
 
-    def __init__(self, reason: str, *, index: int | None = None, field: str | None = None, status: int = 422):
-        where = " ".join(p for p in (f"message {index}" if index is not None else "", field or "") if p)
-        super().__init__(f"{where}: {reason}" if where else reason)
-        self.index, self.field, self.reason, self.status = index, field, reason, status
-
-    def to_dict(self) -> dict:
-        return {"index": self.index, "field": self.field, "reason": self.reason}
+    NOUN = "message"
 
 
 def _field_error(index: int, exc: ValidationError, model: type[BaseModel]) -> ObservationError:
@@ -97,20 +91,7 @@ def _field_error(index: int, exc: ValidationError, model: type[BaseModel]) -> Ob
 
 
 def _items(body: bytes, max_bytes: int) -> list:
-    if len(body) > max_bytes:
-        raise ObservationError(f"payload of {len(body)} bytes exceeds the limit of {max_bytes}", status=413)
-    try:
-        document = json.loads(body)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ObservationError(f"not JSON: {exc}", status=400) from None
-    except RecursionError:
-        raise ObservationError("not JSON: nested too deeply", status=400) from None
-    items = document if isinstance(document, list) else [document]
-    if not items:
-        raise ObservationError("an empty array holds no message")
-    if len(items) > MAX_PER_PAYLOAD:
-        raise ObservationError(f"{len(items)} messages in one payload, at most {MAX_PER_PAYLOAD}", status=413)
-    return items
+    return json_items(body, max_bytes=max_bytes, max_items=MAX_PER_PAYLOAD, error=ObservationError)
 
 
 def _validated(model: type[BaseModel], index: int, item, integers: tuple[str, ...], vehicle_id: str):
