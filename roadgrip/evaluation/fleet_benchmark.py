@@ -42,7 +42,9 @@ replayed without the station rounds (EngineRecorder, roadgrip/evaluation/fleet_s
 Service: a CloudService (SQLite in a temporary folder, MQTT off, map_clock "data", no per-vehicle rate limit: the fleet
 is sent faster than real time) with the product's defaults otherwise (estimator pmf, warning and map settings). Every
 vehicle's samples go in timestamp order, one second (10 samples) a message, through `parse_payload` and
-`service.ingest.submit`: what the HTTP route does after authentication. The map is read at `snapshot_every_s`.
+`service.ingest.submit`: what the HTTP route does after authentication. The map is read at `snapshot_every_s`. In
+edge mode (`run_service(mode="edge")`) each vehicle estimates on board instead and its friction observations reach
+the service (roadgrip/evaluation/fleet_edge.py).
 
 Definitions (docs/RESULTS.md, "The fleet benchmark"):
 - pass: a vehicle's consecutive samples on a patch (inside its disc) while the patch is there (the simulator's true mu
