@@ -42,10 +42,31 @@ def ingest(
         0, min=0, help="the service's ingest processes (0: ingest in the service's own process; docs/CLOUD.md)"
     ),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
+    mode: str = typer.Option(
+        "raw",
+        help="raw (vehicles send telemetry) | edge (vehicles send friction observations over MQTT, "
+        "roadgrip/bench/ingest_edge.py: the service's CPU per stored observation)",
+    ),
+    edge_rate: float = typer.Option(1.0, min=0.01, help="edge mode: observations per vehicle per second"),
 ):
     """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
-    acknowledged and stored; beside it the broker and the database alone, measured in the same run."""
+    acknowledged and stored; beside it the broker and the database alone, measured in the same run. Mode edge:
+    observations instead, and the service's CPU per stored one (docs/EDGE.md)."""
     import json
+
+    if mode not in ("raw", "edge"):
+        raise ValueError(f"--mode must be raw or edge, got {mode!r}")
+    if mode == "edge":
+        from roadgrip.bench.ingest_edge import format_edge_case, observation_templates, run_edge_case
+
+        with console.status("the vehicle end on the fleet benchmark's drives..."):
+            templates = observation_templates()
+        with console.status(f"edge: {vehicles} vehicles for {seconds:.0f} s..."):
+            row = run_edge_case(vehicles, seconds, edge_rate, templates, progress=lambda m: None)
+        console.print(format_edge_case(row))
+        if out is not None:
+            out.write_text(json.dumps(row, indent=1))
+        return
 
     from roadgrip.bench.ingest import (
         IngestCase,

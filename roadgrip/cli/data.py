@@ -192,6 +192,11 @@ def evaluate(
         "its settings: tradeoff.csv, tradeoff.png (roadgrip/evaluation/"
         "fleet_sweep.py)",
     ),
+    mode: str = typer.Option(
+        "raw",
+        help="fleet benchmark: the vehicles send raw telemetry (raw) or friction observations made on board (edge, "
+        "docs/EDGE.md)",
+    ),
     split: str = typer.Option(
         "validation",
         help="physics benchmark: validation (choose constants here) | test (held out: run once per release of the "
@@ -218,7 +223,8 @@ def evaluate(
     if benchmark == "physics":
         paths = _evaluate_physics(out, split, seed, channels, tuple(estimator), runs)
     elif benchmark == "fleet":
-        paths = _evaluate_fleet(out, seed, seeds, sweep)
+        check_choice("evaluate", "mode", mode, {"raw", "edge"})
+        paths = _evaluate_fleet(out, seed, seeds, sweep, mode)
     elif benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
     elif benchmark == "real-vehicle":
@@ -257,7 +263,7 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
     return write_report(metrics, predictions, out)
 
 
-def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False) -> dict:
+def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False, mode: str = "raw") -> dict:
     from roadgrip.evaluation.fleet_report import run_fleet_benchmark
     from roadgrip.evaluation.fleet_sweep import GRID
 
@@ -275,6 +281,7 @@ def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False) -> di
             seeds,
             progress=lambda message, fraction: progress.update(task, completed=fraction, description=message),
             sweep=GRID if sweep else None,
+            mode=mode,
         )
     return result["paths"]
 

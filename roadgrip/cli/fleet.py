@@ -75,19 +75,30 @@ def fleet(
         help="MQTT: messages a vehicle keeps until PUBACKed; beyond, new ones are dropped and counted lost",
     ),
     ack_timeout: float = typer.Option(60.0, min=0.0, help="MQTT: seconds to wait for the last PUBACKs after the drive"),
+    mode: str = typer.Option(
+        "raw",
+        help="raw (vehicles send their 10 Hz telemetry) | edge (each runs `roadgrip edge` on its samples and sends "
+        "friction observations and heartbeats over MQTT) | mixed (every other vehicle edge)",
+    ),
+    edge_state_dir: Path | None = typer.Option(
+        None, help="edge vehicles' outboxes and estimator states, a folder each (default: a temporary folder)"
+    ),
 ):
     """Drive simulated vehicles (or replay a log) against a running cloud: each vehicle registers, then sends its
-    telemetry at 10 Hz with its own credentials. Over MQTT each vehicle fails over to the next broker when its
-    connection is lost (docs/FLEET.md, "Failover"). Ends with what was sent, acknowledged and lost; exit status 1
-    when samples were lost (or the fleet could not start)."""
+    telemetry at 10 Hz with its own credentials, or in edge mode its friction observations (docs/EDGE.md). Over MQTT
+    each raw vehicle fails over to the next broker when its connection is lost (docs/FLEET.md, "Failover"). Ends with
+    what was sent, acknowledged and lost; exit status 1 when samples or observations were lost (or the fleet could
+    not start)."""
     import math
     import os
 
+    from roadgrip.fleet.edge_vehicles import EdgeTerminals, edge_vehicle_ids
     from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
     from roadgrip.fleet.network import generated_network, network_from_geojson
     from roadgrip.fleet.replay import replay
     from roadgrip.fleet.transport import HttpTerminals, MqttTerminals, read_back, register_fleet
 
+    edge_ids = edge_vehicle_ids([], mode)  # checks the mode before anything starts
     if transport not in ("auto", "mqtt", "http"):
         raise ValueError(f"--transport must be auto, mqtt or http, got {transport!r}")
     if mqtt_protocol not in ("auto", "5", "3.1.1"):
@@ -110,26 +121,41 @@ def fleet(
             )
             samples = simulate_fleet(plans, network)
         profiles = {p.vehicle_id: p.vehicle.name for p in plans}
+    edge_ids = edge_vehicle_ids(list(profiles), mode)
     secrets, mqtt_url = register_fleet(url, secret, list(profiles.items()))
     brokers = mqtt_urls or ([mqtt_url] if mqtt_url is not None else [])
     use_mqtt = transport == "mqtt" or (transport == "auto" and bool(brokers))
-    if use_mqtt and not brokers:
-        raise ValueError("--transport mqtt, but the cloud runs without a broker (and no --mqtt was given)")
-    terminals = (
-        MqttTerminals(brokers, secrets, mqtt_protocol, buffer_messages=buffer_messages)
-        if use_mqtt
-        else HttpTerminals(url, secrets)
-    )
+    if (use_mqtt or edge_ids) and not brokers:
+        raise ValueError(
+            f"{'--transport mqtt' if use_mqtt else f'--mode {mode}'} needs a broker, but the cloud runs without one "
+            "(and no --mqtt was given): edge vehicles send over MQTT"
+        )
+    raw_secrets = {vid: s for vid, s in secrets.items() if vid not in edge_ids}
+    terminals = None
+    if raw_secrets:
+        terminals = (
+            MqttTerminals(brokers, raw_secrets, mqtt_protocol, buffer_messages=buffer_messages)
+            if use_mqtt
+            else HttpTerminals(url, raw_secrets)
+        )
+    edge = None
+    if edge_ids:
+        edge = EdgeTerminals(
+            brokers,
+            {vid: s for vid, s in secrets.items() if vid in edge_ids},
+            {vid: profiles[vid] for vid in edge_ids},
+            state_dir=edge_state_dir,
+        )
     total = sum(len(run) for run in samples.values())
     with Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
     ) as bar:
-        task = bar.add_task(
-            f"{len(samples)} vehicles over {'MQTT' if use_mqtt else 'HTTP'} at {speed:g}x (samples)", total=total
-        )
+        kinds = f"{len(raw_secrets)} raw over {'MQTT' if use_mqtt else 'HTTP'}, {len(edge_ids)} edge over MQTT"
+        task = bar.add_task(f"{len(samples)} vehicles ({kinds}) at {speed:g}x (samples)", total=total)
 
         def send(batch: list[dict]) -> None:
-            terminals.send(batch[0]["vehicle_id"], batch)
+            vehicle_id = batch[0]["vehicle_id"]
+            (edge if vehicle_id in edge_ids else terminals).send(vehicle_id, batch)
             bar.advance(task, len(batch))
 
         try:
@@ -141,18 +167,25 @@ def fleet(
             )
         finally:
             bar.update(task, description="waiting for the last acknowledgements")
-            if use_mqtt:
+            if edge is not None:
+                edge.close(ack_timeout)
+            if terminals is not None and use_mqtt:
                 terminals.close(ack_timeout)
-            else:
+            elif terminals is not None:
                 terminals.close()
     console.print(
-        f"sent {result.samples:,} samples in {result.batches:,} messages over {result.wall_s:.1f} s "
+        f"replayed {result.samples:,} samples in {result.batches:,} batches over {result.wall_s:.1f} s "
         f"({result.late_batches} late)"
     )
-    lost = _report(terminals, len(brokers)) if use_mqtt else _report_http(terminals)
-    if read_url is not None:
+    lost = 0
+    if terminals is not None:
+        lost += _report(terminals, len(brokers)) if use_mqtt else _report_http(terminals)
+    if edge is not None:
+        lost += _report_edge(edge)
+    raw_ids = [vid for vid in samples if vid not in edge_ids]
+    if read_url is not None and raw_ids:
         with console.status(f"reading the estimates and the map back from {read_url}..."):
-            stored = read_back(read_url, secret, list(samples))
+            stored = read_back(read_url, secret, raw_ids)
         counts = stored["estimates"]
         console.print(
             f"read back from {read_url}: {sum(counts.values()):,} estimates of "
@@ -196,6 +229,22 @@ def _report(terminals, brokers: int) -> int:
         f"another broker, longest outage {longest:.1f} s"
     )
     return lost
+
+
+def _report_edge(edge) -> int:
+    """Print what the edge vehicles made and sent; return the messages lost."""
+    counts = edge.counts.values()
+    total = {
+        f: sum(getattr(c, f) for c in counts)
+        for f in ("samples", "observations", "heartbeats", "sent", "pending", "dropped", "refused")
+    }
+    console.print(
+        f"edge vehicles over MQTT: {len(edge.counts)} estimated {total['samples']:,} samples on board and made "
+        f"{total['observations']:,} observations and {total['heartbeats']:,} heartbeats; {total['sent']:,} messages "
+        f"sent, lost {edge.lost:,} (still in the outboxes {total['pending']:,}, dropped at the outbox limit "
+        f"{total['dropped']:,}, refused {total['refused']:,})"
+    )
+    return edge.lost
 
 
 def _report_http(terminals) -> int:
@@ -281,6 +330,9 @@ def demo(
     data_dir: Path | None = typer.Option(None, help="keep the cloud's data here (default: a temporary folder)"),
     port: int = typer.Option(0, help="HTTP port (0: a free one)"),
     keep_serving: bool = typer.Option(False, help="leave the cloud running after the summary (Ctrl-C stops it)"),
+    mode: str = typer.Option(
+        "raw", help="raw (vehicles send telemetry) | edge (vehicles estimate on board and send observations over MQTT)"
+    ),
 ):
     """The main job end to end: start the cloud (and a broker when Mosquitto is installed), drive a small fleet over a
     road network with icy, snowy and wet patches, and summarise the estimates and warnings the cloud produced."""
@@ -303,20 +355,32 @@ def demo(
             data_dir=data_dir,
             port=port,
             mqtt=mqtt,
+            mode=mode,
             on_ready=ready,
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )
     try:
-        summary = Table(title=f"roadgrip demo: {report.vehicles} vehicles over {report.transport.upper()}")
+        edge = report.mode == "edge"
+        summary = Table(
+            title=f"roadgrip demo: {report.vehicles} {'edge ' if edge else ''}vehicles over {report.transport.upper()}"
+        )
         summary.add_column("what")
         summary.add_column("value", justify="right")
-        for name, value in (
-            ("samples sent", f"{report.samples_sent:,}"),
-            ("telemetry stored", f"{report.telemetry_stored:,}"),
-            ("estimates stored", f"{report.estimates_stored:,}"),
-            ("share judged excited", f"{report.excited_share:.0%}"),
-            ("streaming wall time", f"{report.stream_wall_s:.1f} s"),
-        ):
+        rows = (
+            (
+                ("samples estimated on board", f"{report.samples_sent:,}"),
+                ("observations stored", f"{report.observations_stored:,}"),
+                ("vehicles with a heartbeat", f"{report.heartbeats_stored:,}"),
+            )
+            if edge
+            else (
+                ("samples sent", f"{report.samples_sent:,}"),
+                ("telemetry stored", f"{report.telemetry_stored:,}"),
+                ("estimates stored", f"{report.estimates_stored:,}"),
+                ("share judged excited", f"{report.excited_share:.0%}"),
+            )
+        )
+        for name, value in (*rows, ("streaming wall time", f"{report.stream_wall_s:.1f} s")):
             summary.add_row(name, value)
         console.print(summary)
         warnings = Table(title=f"slippery-road warnings ({len(report.warnings)})")

@@ -96,7 +96,7 @@ class EdgeAgent:
         self._heartbeat_topic = heartbeat_topic(vehicle_id)
         self.passes = Passes(pass_gap_s, ObservationPass, self._pass_ended)
         self.channels: set[str] = set()
-        self.samples = self.estimates = self.observations = self.skipped = 0
+        self.samples = self.estimates = self.observations = self.heartbeats = self.skipped = 0
         self.restored = False
         self.state = self._restored_state()
         self._last_ms: int | None = None
@@ -175,6 +175,7 @@ class EdgeAgent:
             "outbox_dropped": self.outbox.dropped,
         }
         self.outbox.put(self._heartbeat_topic, orjson.dumps(message), now_ms=self._last_ms)
+        self.heartbeats += 1
         self._since_heartbeat = [0, 0]
         self._heartbeat_at = self._last_ms + self.heartbeat_ms
 

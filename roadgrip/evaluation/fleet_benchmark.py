@@ -42,7 +42,9 @@ replayed without the station rounds (EngineRecorder, roadgrip/evaluation/fleet_s
 Service: a CloudService (SQLite in a temporary folder, MQTT off, map_clock "data", no per-vehicle rate limit: the fleet
 is sent faster than real time) with the product's defaults otherwise (estimator pmf, warning and map settings). Every
 vehicle's samples go in timestamp order, one second (10 samples) a message, through `parse_payload` and
-`service.ingest.submit`: what the HTTP route does after authentication. The map is read at `snapshot_every_s`.
+`service.ingest.submit`: what the HTTP route does after authentication. The map is read at `snapshot_every_s`. In
+edge mode (`run_service(mode="edge")`) each vehicle estimates on board instead and its friction observations reach
+the service (roadgrip/evaluation/fleet_edge.py).
 
 Definitions (docs/RESULTS.md, "The fleet benchmark"):
 - pass: a vehicle's consecutive samples on a patch (inside its disc) while the patch is there (the simulator's true mu
@@ -88,6 +90,7 @@ from roadgrip.cloud.ingest.wire import parse_payload
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.data.schema import TELEMETRY_COLUMNS
+from roadgrip.evaluation.fleet_edge import EdgeFleet
 from roadgrip.fleet.fleet import _speed_profile, planned_arrival
 from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road, generated_network, points_at
 from roadgrip.sim.presets import random_grade
@@ -552,10 +555,15 @@ def run_service(
     *,
     max_backlog: int = 20_000,
     progress: Callable[[float], None] | None = None,
+    mode: str = "raw",
     **settings,
 ) -> ServiceRun:
     """Feed the drives to a CloudService through its ingest path (parse_payload, then ingest.submit, as the HTTP
-    route does), one second of every vehicle a message, in timestamp order; read the map at each snapshot instant."""
+    route does), one second of every vehicle a message, in timestamp order; read the map at each snapshot instant.
+    Mode edge: each vehicle's second of samples goes into its own agent instead, and its observations and
+    heartbeats to the service (roadgrip/evaluation/fleet_edge.py)."""
+    if mode not in ("raw", "edge"):
+        raise ValueError(f"mode must be raw or edge, got {mode!r}")
     settings = Settings(
         **{
             "data_dir": data_dir,
@@ -576,6 +584,7 @@ def run_service(
     recorder = service.warning_engine = EngineRecorder(service.warning_engine)  # before start: Fanout takes it there
     with service:
         service.register_vehicles(sorted(scenario.kinds.items()))
+        edge = EdgeFleet(scenario, data_dir / "edge", service.settings) if mode == "edge" else None
         for station in stations:
             service.register_station(station.station_id)
         s = service.settings
@@ -593,6 +602,14 @@ def run_service(
             for row in chunk_rows[a - chunk_start : b - chunk_start]:
                 by_vehicle.setdefault(row["vehicle_id"], []).append(row)
             now_ms = int(time.time() * 1000)
+            t_end = float(second[a] + 1)
+            if edge is not None:
+                for vehicle_id, rows in by_vehicle.items():
+                    edge.feed(vehicle_id, rows)
+                    sent += len(rows)
+                edge.ignition_off(t_end)
+                edge.deliver(service)
+                by_vehicle = {}
             for vehicle_id, rows in by_vehicle.items():
                 samples, errors = parse_payload(
                     orjson.dumps(rows),
@@ -606,7 +623,6 @@ def run_service(
                 rejected += len(errors)
                 sent += len(rows)
                 futures.append(service.ingest.submit(vehicle_id, samples, len(samples) + len(errors)))
-            t_end = float(second[a] + 1)
             while reports and reports[0][0] < t_end:  # as the HTTP route does: parse, then store and fan out
                 _, report = reports.pop(0)
                 service.station_reports(
@@ -624,6 +640,9 @@ def run_service(
                 futures = [f for f in futures if not f.done() or f.exception() is not None]
             if progress is not None:
                 progress(t_end)
+        if edge is not None:
+            edge.finish(service)
+            rejected += edge.rejected
         _wait_idle(service)
         for instant in instants:
             snapshots[instant] = service.friction_map.cells(drives.start_ms + int(instant * 1000))

@@ -101,8 +101,11 @@ def patch_truth(scenario: FleetScenario, drives) -> PatchTruth:
     return PatchTruth(tuple(network.patches), cells, passes, after, seen)
 
 
-def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], None] | None = None) -> SeedResult:
-    """One seed end to end: scenario, simulation, the service, the scores."""
+def run_seed(
+    seed: int, config: FleetConfig, progress: Callable[[str, float], None] | None = None, mode: str = "raw"
+) -> SeedResult:
+    """One seed end to end: scenario, simulation, the service (the vehicles in `mode`: raw telemetry, or edge:
+    friction observations, roadgrip/evaluation/fleet_edge.py), the scores."""
     say = progress or (lambda message, fraction: None)
     say(f"seed {seed}: simulating", 0.0)
     scenario = make_scenario(seed, config)
@@ -115,6 +118,7 @@ def run_seed(seed: int, config: FleetConfig, progress: Callable[[str, float], No
             scenario,
             drives,
             Path(tmp),
+            mode=mode,
             progress=lambda t: say(
                 f"seed {seed}: the service at {t / 60:.0f} of {config.duration_s / 60:.0f} min", t / config.duration_s
             ),
@@ -201,9 +205,11 @@ def run_fleet_benchmark(
     progress: Callable[[str, float], None] | None = None,
     sweep: dict | None = None,
     tuning_seeds: tuple[int, ...] = TUNING_SEEDS,
+    mode: str = "raw",
 ) -> dict:
     """Every report seed (seed, seed + 1, ...), pooled scores, the files (with DIR/estimates_seed{S}.parquet: what the
-    warning engine took, fleet_benchmark.EngineRecorder). `sweep`: a grid of warning-engine parameters
+    warning engine took, fleet_benchmark.EngineRecorder). `mode`: the vehicles send raw telemetry, or (edge) friction
+    observations made on board (fleet_edge.py). `sweep`: a grid of warning-engine parameters
     (fleet_sweep.GRID) to replay the estimates of `tuning_seeds` with (run for that, never a report seed):
     DIR/tradeoff.csv and DIR/tradeoff.png. Returns the paths written and the metrics rows."""
     out = Path(out)
@@ -223,8 +229,8 @@ def run_fleet_benchmark(
     logger.setLevel(logging.INFO)
     started = time.perf_counter()
     try:
-        results = [run_seed(s, config, progress) for s in report_seeds]
-        tuning = [run_seed(s, config, progress) for s in tuning_seeds] if sweep is not None else []
+        results = [run_seed(s, config, progress, mode) for s in report_seeds]
+        tuning = [run_seed(s, config, progress, mode) for s in tuning_seeds] if sweep is not None else []
     finally:
         logger.handlers, logger.level, logger.propagate = saved
         handler.close()
@@ -282,7 +288,11 @@ def run_fleet_benchmark(
     }
     for res in results:
         paths[f"estimates_seed{res.seed}"] = out / f"estimates_seed{res.seed}.parquet"
-    report = fleet_markdown(rows, patch_rows, results, config, wall_s) + "\n" + stations_markdown(station_rows, results)
+    report = (
+        fleet_markdown(rows, patch_rows, results, config, wall_s, mode)
+        + "\n"
+        + stations_markdown(station_rows, results)
+    )
     if sweep_rows is not None:
         from roadgrip.evaluation.fleet_plots import plot_tradeoff
 
@@ -386,17 +396,23 @@ def _minutes(value) -> str:
 
 
 def fleet_markdown(
-    rows: list[dict], patch_rows: list[dict], results: list[SeedResult], config: FleetConfig, wall_s: float
+    rows: list[dict],
+    patch_rows: list[dict],
+    results: list[SeedResult],
+    config: FleetConfig,
+    wall_s: float,
+    mode: str = "raw",
 ) -> str:
     seeds = ", ".join(str(r.seed) for r in results)
     timing = (
         f"Wall time {wall_s:.0f} s (simulation {sum(r.simulate_s for r in results):.0f} s, the service "
         f"{sum(r.run.wall_s for r in results):.0f} s); samples through the service "
-        f"{sum(r.run.samples_sent for r in results):,}, rejected {sum(r.run.rejected for r in results)}."
+        f"{sum(r.run.samples_sent for r in results):,}{' (estimated on board)' if mode == 'edge' else ''}, "
+        f"rejected {sum(r.run.rejected for r in results)}."
     )
     title = (
         f"# Fleet benchmark: {config.vehicles} vehicles, {config.duration_s / 60:.0f} simulated minutes, report seeds "
-        f"{seeds}"
+        f"{seeds}; vehicles in {mode} mode"
     )
     lines = [
         title,

@@ -1,6 +1,10 @@
 """`roadgrip demo`, the main job end to end on one machine: the cloud (with its own Mosquitto when installed, else HTTP
 only), a small fleet that drives the generated network through its icy and snowy patches, and a summary of what the
-cloud made of it: samples, estimates, warnings and where, and the dashboard's URL."""
+cloud made of it: samples, estimates, warnings and where, and the dashboard's URL.
+
+Mode raw (the default): the vehicles stream their telemetry and the cloud estimates. Mode edge: each vehicle runs the
+vehicle end on its samples (roadgrip/fleet/edge_vehicles.py, roadgrip/edge/) and sends friction observations over
+MQTT: it needs the broker (Mosquitto installed)."""
 
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ from roadgrip.cloud.api.app import create_app
 from roadgrip.cloud.localhost import free_port
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
+from roadgrip.fleet.edge_vehicles import EdgeTerminals
 from roadgrip.fleet.fleet import plan_fleet, simulate_fleet, timeline
 from roadgrip.fleet.network import Network, generated_network
 from roadgrip.fleet.replay import replay
@@ -35,6 +40,9 @@ class DemoReport:
     estimates_stored: int
     excited_share: float
     stream_wall_s: float
+    mode: str = "raw"
+    observations_stored: int = 0
+    heartbeats_stored: int = 0
     warnings: list[dict] = field(default_factory=list)
     patches: list[dict] = field(default_factory=list)
 
@@ -72,6 +80,15 @@ def settle(service: CloudService, timeout_s: float = 30.0) -> None:
     time.sleep(service.settings.reorder_window_s + 2 * service.settings.flush_interval_s)
 
 
+def wait_observations(service: CloudService, made: int, timeout_s: float = 30.0) -> int:
+    """Wait until the service has stored `made` observations (the broker PUBACKs an edge vehicle before the service
+    has taken the message), or `timeout_s`; how many it holds."""
+    deadline = time.time() + timeout_s
+    while (stored := len(service.storage.observations_since(0))) < made and time.time() < deadline:
+        time.sleep(0.05)
+    return stored
+
+
 def run_demo(
     *,
     vehicles: int = 12,
@@ -81,11 +98,15 @@ def run_demo(
     data_dir: Path | None = None,
     port: int = 0,
     mqtt: str = "auto",
+    mode: str = "raw",
     network: Network | None = None,
     progress=None,
     on_ready=None,
 ) -> tuple[DemoReport, LocalCloud]:
-    """Start the cloud, drive the fleet, return the report and the still running cloud (the caller stops it)."""
+    """Start the cloud, drive the fleet (`mode` raw or edge), return the report and the still running cloud (the
+    caller stops it)."""
+    if mode not in ("raw", "edge"):
+        raise ValueError(f"demo mode must be raw or edge, got {mode!r}")
     network = network or generated_network()
     data_dir = Path(tempfile.mkdtemp(prefix="roadgrip-demo-")) if data_dir is None else data_dir
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -114,7 +135,12 @@ def run_demo(
         dashboard = f"{cloud.url}/dashboard#{reader}:{reader_secret}"
         if on_ready is not None:
             on_ready(cloud.url, dashboard)
-        terminals = MqttTerminals(mqtt_url, secrets) if mqtt_url else HttpTerminals(cloud.url, secrets)
+        if mode == "edge" and not mqtt_url:
+            raise RuntimeError("demo --mode edge needs the broker: install Mosquitto (scripts/install_system_deps.sh)")
+        if mode == "edge":
+            terminals = EdgeTerminals(mqtt_url, secrets, {p.vehicle_id: p.vehicle for p in plans})
+        else:
+            terminals = MqttTerminals(mqtt_url, secrets) if mqtt_url else HttpTerminals(cloud.url, secrets)
         total, sent = sum(len(run) for run in samples.values()), [0]
 
         def send(batch: list[dict]) -> None:
@@ -125,6 +151,8 @@ def run_demo(
 
         result = replay(timeline(samples, speed, time.time()), send, speed=speed, batch=1 if mqtt_url else 10)
         terminals.close()
+        if mode == "edge":
+            wait_observations(cloud.service, sum(c.observations for c in terminals.counts.values()))
         settle(cloud.service)
         storage = cloud.service.storage
         rows = [r for p in plans for r in storage.estimates(p.vehicle_id, limit=100_000)]
@@ -139,6 +167,9 @@ def run_demo(
             estimates_stored=len(rows),
             excited_share=sum(r["excited"] for r in rows) / max(1, len(rows)),
             stream_wall_s=result.wall_s,
+            mode=mode,
+            observations_stored=len(storage.observations_since(0)),
+            heartbeats_stored=len(storage.latest_heartbeats()),
             warnings=[_where(w["message"]["event"], network) for w in storage.warnings(active_only=False)],
             patches=[
                 {
