@@ -181,9 +181,9 @@ def failover(
     data_dir: Path = typer.Option(..., help="a new or empty folder for the local cluster (kept, with its logs)"),
     vehicles: int = typer.Option(20, min=1, max=300, help="simulated vehicles at real time over MQTT 3.1.1"),
     duration: float = typer.Option(100.0, min=10.0, help="seconds of driving"),
-    worker_kill: float = typer.Option(15.0, help="seconds into the drive: worker 0 killed (SIGKILL)"),
-    node_kill: float = typer.Option(35.0, help="seconds into the drive: RabbitMQ node --node killed (SIGKILL)"),
-    node_restart: float = typer.Option(60.0, help="seconds into the drive: that node started again"),
+    worker_kill: float = typer.Option(30.0, help="seconds into the drive: worker 0 killed (SIGKILL)"),
+    node_kill: float = typer.Option(50.0, help="seconds into the drive: RabbitMQ node --node killed (SIGKILL)"),
+    node_restart: float = typer.Option(70.0, help="seconds into the drive: that node started again"),
     node: int = typer.Option(1, min=0, max=2, help="the RabbitMQ node killed"),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
 ):
@@ -203,8 +203,15 @@ def failover(
         f"sent {s['sent']:,}, PUBACKed {s['pubacked']:,}, stored {s['stored']:,}, lost by the client "
         f"{s['lost_by_client']:,}, PUBACKed not stored {s['pubacked_not_stored']:,}; {s['vehicles_on_killed_node']} "
         f"vehicles on the killed node, slowest to resume {s['slowest_resume_s']} s; longest stall "
-        f"{s['longest_stall_s']:.1f} s; partitions taken {s['partitions_taken']}, released "
-        f"{s['partitions_released']} after the drive started ({result['partition_moves']})"
+        f"{s['longest_stall_s']:.1f} s"
+    )
+    m = result["partition_moves"]
+    console.print(
+        f"partition moves (spread releases) {m['released_before_worker_kill']} before the worker kill, "
+        f"{m['released_from_worker_kill']} from it on; owner changes {m['owner_changes']} "
+        f"({m['owner_changes_from_worker_kill']} from the kill on), retakes by the same worker "
+        f"{m['retakes_by_the_same_worker']}, partition connections lost {m['lost_connections']}; live workers as "
+        f"each worker saw them change: {m['live_workers_seen']}"
     )
     console.print("targets: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in s["targets"].items()))
     console.print(f"cluster started in {result['cluster_start_s']:.0f} s; {result['elapsed_s']:.0f} s in all")

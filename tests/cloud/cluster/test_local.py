@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 from roadgrip.cli import app
 from roadgrip.cloud.cluster.local import DESCRIPTION, LocalCluster
 from roadgrip.cloud.cluster.reaper import tagged
-from roadgrip.cloud.transport.amqp import RabbitCluster
+from roadgrip.cloud.transport.amqp import SERVICE_USER, RabbitCluster, partition_queue
 
 pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 VEHICLES = 3
@@ -246,9 +246,11 @@ def test_roadgrip_cluster_up_runs_until_stopped_then_stops_everything(data_dir, 
     assert not remaining, "left running:\n" + "\n".join(command_lines(remaining))
 
 
-def test_cluster_up_restarts_a_killed_worker_and_when_killed_itself_leaves_nothing_behind(data_dir):
-    """kill -9 of the worker: started again (the same metrics port answers from a new pid); then kill -9 of `cluster
-    up` itself: its reaper ends every process of the cluster, PostgreSQL's included, within 30 s."""
+def test_cluster_up_restarts_a_killed_worker_and_node_and_when_killed_itself_leaves_nothing_behind(data_dir):
+    """kill -9 of the worker: started again (the same metrics port answers from a new pid); kill -9 of the RabbitMQ
+    node's server: started again with its data (a new pid; the partition queue is back and the worker consumes it
+    again); then kill -9 of `cluster up` itself: its reaper ends every process of the cluster, PostgreSQL's
+    included, within 30 s."""
     out = data_dir.parent / f"{data_dir.name}.out"
     proc = cluster_up(data_dir, out, "--nodes", "1", "--workers", "1", "--apis", "0", "--partitions", "1")
     try:
@@ -264,6 +266,18 @@ def test_cluster_up_restarts_a_killed_worker_and_when_killed_itself_leaves_nothi
         while not _answers(restarted["metrics"]):
             assert time.monotonic() < deadline, (data_dir / "logs" / "worker-0.log").read_text()[-3000:]
             time.sleep(0.5)
+
+        node = described["rabbitmq"][0]
+        os.kill(node["pid"], signal.SIGKILL)
+        wait_for_text(proc, out, "RabbitMQ node 0 started again", timeout_s=240)
+        assert json.loads((data_dir / DESCRIPTION).read_text())["rabbitmq"][0]["pid"] != node["pid"]
+        queue = f"{node['management']}/api/queues/%2F/{partition_queue(0)}"
+        auth = (SERVICE_USER, (data_dir / "broker-secret").read_text().strip())
+        deadline = time.monotonic() + 90
+        while _consumers(queue, auth) < 1:
+            assert time.monotonic() < deadline, (data_dir / "logs" / "worker-0.log").read_text()[-3000:]
+            time.sleep(0.5)
+
         started |= below(proc.pid)
         proc.kill()
         proc.wait()
@@ -279,6 +293,14 @@ def test_cluster_up_restarts_a_killed_worker_and_when_killed_itself_leaves_nothi
             proc.kill()
             proc.wait()
         out.unlink(missing_ok=True)
+
+
+def _consumers(queue_url: str, auth: tuple[str, str]) -> int:
+    """The queue's consumers as the management API counts them (0 while it does not answer)."""
+    try:
+        return httpx.get(queue_url, auth=auth, timeout=5.0).json().get("consumers", 0)
+    except (httpx.HTTPError, ValueError):
+        return 0
 
 
 def _answers(url: str) -> bool:

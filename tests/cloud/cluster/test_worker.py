@@ -43,6 +43,11 @@ PARTITIONS = 4
 VEHICLES_PER_TEST = 8
 GROUPS = ("a", "b", "c", "d", "e")  # one set of vehicles per test (their users exist from the cluster's start)
 FAILOVER_LIMIT_S = 10.0
+# data time starts this long before the clock and runs ten times faster: it reaches the workers' max_future_s ahead of
+# the clock, where they refuse samples (acknowledged all the same), after (1,800 + 60) / 9 = 207 s of publishing
+DATA_START_BEHIND_MS = 1_800_000
+STORED_QUIET_S = 60.0  # waiting for the PUBACKed samples to be stored: fail once no row came for this long
+STORED_LIMIT_S = 300.0  # ... or after this in all
 SPREAD_LIMIT_S = 45.0  # from a change in the live workers to the partitions spread (settle 5 s, moves, hand-overs)
 
 
@@ -76,7 +81,9 @@ class Fleet:
 
     def __init__(self, cluster: RabbitCluster, vehicles: list[str]):
         self.vehicles = vehicles
-        self.start_ms = int(time.time() * 1000) - 600_000  # data time runs ten times faster than the clock
+        self.start_ms = int(time.time() * 1000) - DATA_START_BEHIND_MS  # data time runs ten times the clock
+        self.max_ahead_ms = Settings().max_future_s * 1000 - 1000  # a message's last sample, 1 s of margin
+        self.ran_ahead = False  # run() stopped: its next message would have been refused as from the future
         self.clients, self.sent, self.acked_mids = {}, {}, {}
         self.events: dict[str, list[tuple[float, str]]] = {v: [] for v in vehicles}  # paho's connection changes
         self._stop = threading.Event()
@@ -135,6 +142,9 @@ class Fleet:
         started = time.monotonic()
         message = 0
         while time.monotonic() - started < seconds and not self._stop.is_set():
+            if self.start_ms + 1000 * message + 900 > time.time() * 1000 + self.max_ahead_ms:
+                self.ran_ahead = True
+                return
             for v in self.vehicles:
                 info = self.clients[v].publish(telemetry_topic(v), json.dumps(self.samples(v, message)), qos=1)
                 self.sent[v].append((message, info.mid))
@@ -146,6 +156,10 @@ class Fleet:
 
     def finish(self, timeout_s: float = 30.0) -> set[tuple[str, int]]:
         """Wait for the last PUBACKs; the (vehicle_id, timestamp_ms) of every PUBACKed sample."""
+        assert not self.ran_ahead, (
+            f"the fleet stopped publishing: its data time came within {self.max_ahead_ms / 1000:.0f} s of the "
+            "workers' max_future_s ahead of the clock (the test ran too long for DATA_START_BEHIND_MS)"
+        )
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and any(len(self.acked_mids[v]) < len(self.sent[v]) for v in self.vehicles):
             time.sleep(0.1)
@@ -196,21 +210,41 @@ class Database:
             newest[vehicle] = max(last_ms, newest.get(vehicle, -1))
         return bad
 
-    def wait_stored(self, acked: set[tuple[str, int]], timeout_s: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while sum(self.counts().values()) < len(acked) and time.monotonic() < deadline:
+    def wait_stored(self, acked: set[tuple[str, int]]) -> None:
+        """Until every PUBACKed sample is stored; a backlog the workers are still storing is waited out, up to
+        STORED_LIMIT_S, and the wait ends (for the caller's assertion to fail) once no row came for STORED_QUIET_S."""
+        started = grew_at = time.monotonic()
+        rows = -1
+        while time.monotonic() - started < STORED_LIMIT_S and time.monotonic() - grew_at < STORED_QUIET_S:
+            keys = self.telemetry_keys()
+            if acked.issubset(keys):
+                return
+            if len(keys) > rows:
+                rows, grew_at = len(keys), time.monotonic()
             time.sleep(0.5)
-        time.sleep(1.0)  # what arrives late would show as a row beyond the PUBACKed ones: none expected
 
     def close(self) -> None:
         self.conn.close()
 
 
-def assert_stored_exactly_once(db: Database, acked: set[tuple[str, int]], vehicles: list[str]) -> None:
+def assert_stored_exactly_once(
+    db: Database, acked: set[tuple[str, int]], vehicles: list[str], *workers: WorkerProcess
+) -> None:
+    """Each PUBACKed sample stored once; on failure, which vehicles miss what, and the `workers`' rejections (a
+    sample refused is acknowledged too: refused, not lost)."""
     keys = db.telemetry_keys()
     assert len(keys) == len(set(keys))
     missing = acked - set(keys)
-    assert not missing, f"{len(missing)} PUBACKed samples not stored, e.g. {sorted(missing)[:5]}"
+    if missing:
+        by_vehicle = {v: sorted(ts for w, ts in missing if w == v) for v in sorted({v for v, _ in missing})}
+        rejected = [line for w in workers for line in w.log().splitlines() if " rejected " in line]
+        pytest.fail(
+            f"{len(missing)} PUBACKed samples not stored: "
+            + ", ".join(f"{v} {len(ts)} ({ts[0]}..{ts[-1]})" for v, ts in by_vehicle.items())
+            + f"; the workers logged {len(rejected)} rejections"
+            + (f", the last: {rejected[-1]}" if rejected else ""),
+            pytrace=False,
+        )
     assert {v for v, _ in acked} == set(vehicles)
 
 
@@ -255,7 +289,7 @@ def test_two_workers_store_every_acknowledged_sample_once(cluster, postgres_data
         fleet.run(6.0)
         acked = fleet.finish()
         db.wait_stored(acked)
-        assert_stored_exactly_once(db, acked, vehicles)
+        assert_stored_exactly_once(db, acked, vehicles, first, second)
         assert db.estimates_out_of_order() == 0
         stats = [first.stop(), second.stop()]
         assert sum(sum(s["deliveries"]) for s in stats) >= len(acked) // 10
@@ -285,7 +319,7 @@ def test_worker_killed_partitions_taken_over_with_state(cluster, postgres_databa
         publisher.join()
         acked = fleet.finish()
         db.wait_stored(acked)
-        assert_stored_exactly_once(db, acked, vehicles)
+        assert_stored_exactly_once(db, acked, vehicles, first, second)
         assert db.estimates_out_of_order() == 0
         stats = second.stop()
         assert set(checkpointed) == set(vehicles)  # 80 s of data each before the kill: checkpointed
@@ -359,7 +393,7 @@ def test_partitions_spread_over_workers(cluster, postgres_database_url, tmp_path
         publisher.join()
         acked = fleet.finish()
         db.wait_stored(acked)
-        assert_stored_exactly_once(db, acked, vehicles)
+        assert_stored_exactly_once(db, acked, vehicles, *workers.values())
         assert db.estimates_out_of_order() == 0
         stats |= {k: workers[k].stop() for k in ("b", "c")}
         assert sum(s["late"] for s in stats.values()) == 0, stats
@@ -505,7 +539,7 @@ def test_broker_node_killed_partitions_served_again(cluster, postgres_database_u
         publisher.join()
         acked = fleet.finish()
         db.wait_stored(acked)
-        assert_stored_exactly_once(db, acked, vehicles)
+        assert_stored_exactly_once(db, acked, vehicles, first, second)
         assert db.estimates_out_of_order() == 0
         after = {w: w.log()[logs_at_kill[w] :] for w in (first, second)}
         counts = [
