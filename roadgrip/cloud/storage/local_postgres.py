@@ -49,6 +49,9 @@ def drop_database(url: str, name: str) -> None:
         conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
+PORT_ATTEMPTS = 3  # starts on a freshly chosen port when the previous one was taken meanwhile
+
+
 class LocalPostgres:
     """`start()` creates the server's files (initdb) the first time and starts it; `stop()` stops it (`pg_ctl stop -m
     fast`: clients are disconnected at once) and keeps its files, so that `start()` starts it again on the same port;
@@ -60,6 +63,7 @@ class LocalPostgres:
 
     def __init__(self, port: int | None = None, root: Path | None = None):
         self.port = port or free_port()
+        self._port_free_to_change = port is None  # until the first start: a port taken meanwhile is chosen again
         self.root: Path | None = None
         self._given_root = root
         self._as_postgres: list[str] = []
@@ -107,12 +111,34 @@ class LocalPostgres:
         (self.root / "data" / "pg_hba.conf").write_text("local all all trust\nhost all all 127.0.0.1/32 trust\n")
 
     def start(self) -> None:
+        """Start the server; on its first start on a port it chose itself, a port another process bound between the
+        choice and the start is replaced by a new free one (up to PORT_ATTEMPTS times); later starts keep the port."""
         if self.root is None:
             self._init()
-        options = f"-c listen_addresses=127.0.0.1 -c port={self.port} -k {self.root} -c fsync=on"
-        self._pg(
-            PG_BIN / "pg_ctl", "start", "-w", "-D", self.root / "data", "-l", self.root / "server.log", "-o", options
-        )
+        for attempt in range(1, PORT_ATTEMPTS + 1):
+            options = f"-c listen_addresses=127.0.0.1 -c port={self.port} -k {self.root} -c fsync=on"
+            try:
+                self._pg(
+                    PG_BIN / "pg_ctl",
+                    "start",
+                    "-w",
+                    "-D",
+                    self.root / "data",
+                    "-l",
+                    self.root / "server.log",
+                    "-o",
+                    options,
+                )
+                break
+            except PostgresUnavailable as exc:
+                if (
+                    not self._port_free_to_change
+                    or "Address already in use" not in str(exc)
+                    or attempt == PORT_ATTEMPTS
+                ):
+                    raise
+                self.port = free_port()
+        self._port_free_to_change = False
 
     def stop(self) -> None:
         self._pg(PG_BIN / "pg_ctl", "stop", "-w", "-m", "fast", "-D", self.root / "data")

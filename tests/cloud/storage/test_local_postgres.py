@@ -39,3 +39,27 @@ def test_as_root_a_folder_postgres_cannot_reach_is_named(tmp_path):
     closed.mkdir(mode=0o700)
     with pytest.raises(PostgresUnavailable, match="cannot reach .*closed/pg"):
         LocalPostgres(root=closed / "pg").start()
+
+
+def test_a_chosen_port_taken_before_the_start_is_chosen_again(monkeypatch):
+    """Another process binds the port LocalPostgres chose before its server starts (servers of parallel tests): the
+    first start moves to a new free port instead of failing."""
+    import socket
+
+    from roadgrip.cloud.localhost import free_port
+    from roadgrip.cloud.storage import local_postgres
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        taken_port = taken.getsockname()[1]
+        monkeypatch.setattr(local_postgres, "free_port", lambda: taken_port)
+        server = LocalPostgres()
+        monkeypatch.setattr(local_postgres, "free_port", free_port)
+        try:
+            server.start()
+            assert server.port != taken_port
+            with psycopg.connect(f"host=127.0.0.1 port={server.port} user=postgres dbname=postgres") as conn:
+                assert conn.execute("SELECT 1").fetchone() == (1,)
+        finally:
+            server.close()
