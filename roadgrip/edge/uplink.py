@@ -5,9 +5,9 @@
   off; the broker keeps the session as long as it keeps any): RabbitMQ 3.10's MQTT plugin, the cluster mode's broker,
   speaks nothing newer.
 - Client id `{vehicle_id}-{8 hex}` (`edge_client_id`), the same on every run (a persistent session is the client
-  id's), the hex from a hash of the vehicle's secret: RabbitMQ lets a login touch only the session queues of its
-  own name with such a suffix (roadgrip/cloud/transport/rabbit_users.py), and a client id in use is taken over by
-  whoever connects with it, so it is not one another vehicle can work out.
+  id's), the hex from a hash of the vehicle's secret: a client id in use is taken over by whoever connects with it
+  (docs/CLUSTER.md), so it is not one another vehicle can work out; and RabbitMQ lets a login touch only the
+  subscription queues of its own name with such a suffix (roadgrip/cloud/transport/rabbit_users.py).
 - `pump()` hands paho the oldest waiting messages, at most `max_inflight` unacknowledged at once; a message leaves
   the outbox only when its PUBACK comes back with success. A PUBACK with a failure reason code (MQTT 5: 0x87 Not
   authorized, a topic outside the vehicle's ACL) would fail again: the message is removed, counted in `refused` and

@@ -32,7 +32,9 @@ from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import PAPER_SUV
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
-START_MS = int(time.time() * 1000) - 600_000
+DRIVEN_AGO_MS = (
+    60_000  # the drives end 30 s before now: well within a warning's validity (VALIDITY_S) on the wall clock
+)
 NORTH_DEG = 0.02  # the HTTP vehicle's copy of the drive, about 2.2 km north of the MQTT vehicle's
 WAIT_S = 60.0
 runner = CliRunner()
@@ -74,7 +76,8 @@ def register(cluster: LocalCluster, vehicle_id: str) -> dict:
 
 
 def drive(vehicle_id: str, north_deg: float = 0.0) -> list[dict]:
-    samples = wire_samples(patch_drive(0.2, 1), vehicle_id, START_MS)
+    """The icy patch drive (30 s), begun a minute ago, `north_deg` north of the test road."""
+    samples = wire_samples(patch_drive(0.2, 1), vehicle_id, int(time.time() * 1000) - DRIVEN_AGO_MS)
     return [{**s, "latitude_deg": s["latitude_deg"] + north_deg} for s in samples]
 
 
@@ -160,7 +163,7 @@ def test_a_vehicle_cannot_publish_another_vehicles_observations(cluster, storage
     with UserClient(owner["mqtt_url"], "edge-own", owner["secret"], protocol="3.1.1").connect() as car:
         beat = {
             "vehicle_id": "edge-own",
-            "timestamp_ms": START_MS,
+            "timestamp_ms": int(time.time() * 1000),
             "latitude_deg": None,
             "longitude_deg": None,
             "n_samples": 0,

@@ -34,7 +34,7 @@ def test_a_vehicle_publishes_its_own_telemetry_observations_and_heartbeat_only()
     assert all(re.match(topic["write"], routing_key(t)) for t in own)
     for t in (observations_topic("car-2"), heartbeat_topic("car-10"), friction_topic("car-1"), WARNINGS_TOPIC):
         assert not re.match(topic["write"], routing_key(t)), t
-    # the edge uplink's persistent session: RabbitMQ declares the session queue of its client id at the CONNECT
+    # the edge uplink's client id: a subscription of its session would have a queue within the vehicle's permission
     queue = f"mqtt-subscription-{edge_client_id('car-1', 'secret')}qos1"
     assert re.match(permission["configure"], queue)
     assert not re.match(permission["configure"], f"mqtt-subscription-{edge_client_id('car-2', 'secret')}qos1")
