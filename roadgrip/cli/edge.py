@@ -25,6 +25,9 @@ def edge(
     ),
     estimator: str = typer.Option("pmf", help="the estimator on board (a name or model file, as `serve` takes it)"),
     mqtt: str = typer.Option(None, help="the cloud's broker, mqtt://host:port; none: observations stay in the outbox"),
+    mqtt_protocol: str = typer.Option(
+        "5", help="MQTT version: 5 (Mosquitto, `roadgrip serve`) or 3.1.1 (RabbitMQ, `roadgrip cluster up`)"
+    ),
     password: str = typer.Option(None, envvar="ROADGRIP_EDGE_PASSWORD", help="this vehicle's secret"),
     state_dir: Path = typer.Option(Path("edge-state"), help="estimator state and outbox (kept across runs)"),
     h3_resolution: int = typer.Option(10, help="the map's H3 resolution (the cloud's h3_resolution)"),
@@ -78,7 +81,7 @@ def edge(
     if mqtt is not None:
         if not password:
             raise ValueError("--mqtt needs this vehicle's secret: --password or ROADGRIP_EDGE_PASSWORD")
-        uplink = Uplink(mqtt, vehicle_id, password, outbox, client_id=f"roadgrip-edge-{vehicle_id}")
+        uplink = Uplink(mqtt, vehicle_id, password, outbox, protocol=mqtt_protocol)
         uplink.start()
     try:
         summary = run_agent(agent, samples, uplink, drain_s)

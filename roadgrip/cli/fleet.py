@@ -144,6 +144,7 @@ def fleet(
             brokers,
             {vid: s for vid, s in secrets.items() if vid in edge_ids},
             {vid: profiles[vid] for vid in edge_ids},
+            protocol=mqtt_protocol,
             state_dir=edge_state_dir,
         )
     total = sum(len(run) for run in samples.values())
@@ -242,7 +243,7 @@ def _report_edge(edge) -> int:
         f"edge vehicles over MQTT: {len(edge.counts)} estimated {total['samples']:,} samples on board and made "
         f"{total['observations']:,} observations and {total['heartbeats']:,} heartbeats; {total['sent']:,} messages "
         f"sent, lost {edge.lost:,} (still in the outboxes {total['pending']:,}, dropped at the outbox limit "
-        f"{total['dropped']:,}, refused {total['refused']:,})"
+        f"{total['dropped']:,}, refused {total['refused']:,}); MQTT {edge.protocol}"
     )
     return edge.lost
 

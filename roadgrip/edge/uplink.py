@@ -1,11 +1,18 @@
 """The vehicle's MQTT uplink: the outbox (roadgrip/edge/outbox.py) sent to the cloud's broker, QoS 1, with paho-mqtt.
 
-- MQTT 5, a persistent session (clean start off, a session expiry of `session_expiry_s`, client id
-  `roadgrip-edge-{vehicle_id}`), the vehicle's own credentials (the same as its telemetry's, CONTRACTS 3.6).
+- MQTT 5, a persistent session (clean start off, a session expiry of `session_expiry_s`), the vehicle's own
+  credentials (the same as its telemetry's, CONTRACTS 3.6). MQTT 3.1.1 when asked (`protocol="3.1.1"`: clean session
+  off; the broker keeps the session as long as it keeps any): RabbitMQ 3.10's MQTT plugin, the cluster mode's broker,
+  speaks nothing newer.
+- Client id `{vehicle_id}-{8 hex}` (`edge_client_id`), the same on every run (a persistent session is the client
+  id's), the hex from a hash of the vehicle's secret: a client id in use is taken over by whoever connects with it
+  (docs/CLUSTER.md), so it is not one another vehicle can work out; and RabbitMQ lets a login touch only the
+  subscription queues of its own name with such a suffix (roadgrip/cloud/transport/rabbit_users.py).
 - `pump()` hands paho the oldest waiting messages, at most `max_inflight` unacknowledged at once; a message leaves
   the outbox only when its PUBACK comes back with success. A PUBACK with a failure reason code (MQTT 5: 0x87 Not
   authorized, a topic outside the vehicle's ACL) would fail again: the message is removed, counted in `refused` and
-  logged.
+  logged. Under MQTT 3.1.1 a PUBACK carries no reason code: Mosquitto PUBACKs and drops a refused publish (removed
+  as sent), RabbitMQ closes the connection (kept, and sent again after the reconnect).
 - The agent need not be connected to run: it starts (`start`) with a non-blocking connect and paho's network thread
   reconnects after every drop (from RECONNECT_MIN_DELAY_S doubling up to RECONNECT_MAX_DELAY_S). Messages handed to
   paho before a drop are sent again by paho after the reconnect; messages of a killed agent are still in the outbox
@@ -15,6 +22,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 
@@ -23,13 +31,25 @@ from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from roadgrip.cloud.transport.mqtt import QOS, RECONNECT_MAX_DELAY_S, RECONNECT_MIN_DELAY_S, parse_url
+from roadgrip.cloud.transport.mqtt import (
+    MQTT_PROTOCOLS,
+    QOS,
+    RECONNECT_MAX_DELAY_S,
+    RECONNECT_MIN_DELAY_S,
+    check_vehicle_id,
+    parse_url,
+)
 from roadgrip.edge.outbox import Outbox
 
 log = logging.getLogger(__name__)
 
 SESSION_EXPIRY_S = 7 * 86_400  # the broker keeps the vehicle's session through a week off the air
 MAX_INFLIGHT = 20  # Mosquitto's default Receive Maximum
+
+
+def edge_client_id(vehicle_id: str, secret: str) -> str:
+    """The uplink's MQTT client id (module docstring): the vehicle id, '-' and 8 hex digits of a hash of its secret."""
+    return f"{check_vehicle_id(vehicle_id)}-{hashlib.sha256(b'roadgrip-edge:' + secret.encode()).hexdigest()[:8]}"
 
 
 class Uplink:
@@ -42,13 +62,18 @@ class Uplink:
         password: str,
         outbox: Outbox,
         *,
-        client_id: str,
+        client_id: str | None = None,
+        protocol: str = "5",
         max_inflight: int = MAX_INFLIGHT,
         session_expiry_s: int = SESSION_EXPIRY_S,
         keepalive_s: int = 30,
     ):
+        if protocol not in MQTT_PROTOCOLS:
+            raise ValueError(f"protocol must be one of {list(MQTT_PROTOCOLS)}, got {protocol!r}")
         self.host, self.port = parse_url(url)
         self.url = url
+        self.protocol = protocol
+        self.client_id = client_id or edge_client_id(username, password)
         self.outbox = outbox
         self.max_inflight = max_inflight
         self.refused = 0  # messages the broker refused (PUBACK reason code >= 0x80)
@@ -59,15 +84,23 @@ class Uplink:
         self._early: dict[int, object] = {}  # mid -> reason code of a PUBACK that came before its mid was registered
         self._newest_inflight = 0  # highest outbox id handed to paho
         self._connected = threading.Event()
-        self._client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id, protocol=paho.MQTTv5)
+        v5 = protocol == "5"
+        self._client = paho.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=self.client_id,
+            protocol=MQTT_PROTOCOLS[protocol],
+            clean_session=None if v5 else False,
+        )
         self._client.username_pw_set(username, password)
         self._client.max_inflight_messages_set(max_inflight)
         self._client.reconnect_delay_set(RECONNECT_MIN_DELAY_S, RECONNECT_MAX_DELAY_S)
         self._client.on_connect = self._on_connect
         self._client.on_disconnect = self._on_disconnect
         self._client.on_publish = self._on_publish
-        self._properties = Properties(PacketTypes.CONNECT)
-        self._properties.SessionExpiryInterval = session_expiry_s
+        self._properties = None
+        if v5:
+            self._properties = Properties(PacketTypes.CONNECT)
+            self._properties.SessionExpiryInterval = session_expiry_s
         self._keepalive_s = keepalive_s
 
     @property
@@ -80,9 +113,12 @@ class Uplink:
 
     def start(self) -> None:
         """Connect in the background (the broker may be out of reach; paho keeps trying)."""
-        self._client.connect_async(
-            self.host, self.port, keepalive=self._keepalive_s, clean_start=False, properties=self._properties
-        )
+        if self._properties is None:  # MQTT 3.1.1: clean session off, set in the client
+            self._client.connect_async(self.host, self.port, keepalive=self._keepalive_s)
+        else:
+            self._client.connect_async(
+                self.host, self.port, keepalive=self._keepalive_s, clean_start=False, properties=self._properties
+            )
         self._client.loop_start()
 
     def wait_connected(self, timeout_s: float) -> bool:

@@ -22,7 +22,7 @@ from roadgrip.edge.agent import EdgeAgent
 from roadgrip.edge.outbox import Outbox
 from roadgrip.edge.uplink import Uplink
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.fleet.transport import CONNECT_TIMEOUT_S, MAX_MQTT_VEHICLES, FleetError
+from roadgrip.fleet.transport import CONNECT_TIMEOUT_S, MAX_MQTT_VEHICLES, FleetError, protocol_of
 from roadgrip.vehicle.params import VEHICLES, VehicleParams
 
 DRAIN_STEP_S = 0.01
@@ -60,7 +60,9 @@ def profile_of(profile: str | dict | VehicleParams) -> VehicleParams:
 
 class EdgeTerminals:
     """Edge vehicles (module docstring). `mqtt_url`: one broker or a list (vehicle k uses the (k mod n)-th: the
-    edge uplink keeps one broker, its persistent session lives there). `profiles`: vehicle_id -> profile.
+    edge uplink keeps one broker, its persistent session lives there). `protocol`: "5", "3.1.1" or "auto" (MQTT 5,
+    else 3.1.1 when the broker does not take 5: RabbitMQ 3.10), found once with the first vehicle's login, as
+    roadgrip/fleet/transport.py `MqttTerminals` does. `profiles`: vehicle_id -> profile.
     `state_dir`: where each vehicle keeps its outbox and estimator state (a temporary folder, removed at `close`,
     when None). Returns once every uplink has connected (FleetError otherwise)."""
 
@@ -71,6 +73,7 @@ class EdgeTerminals:
         profiles: dict,
         *,
         estimator: str = "pmf",
+        protocol: str = "5",
         resolution: int = 10,
         state_dir: Path | None = None,
         connect_timeout_s: float = CONNECT_TIMEOUT_S,
@@ -80,6 +83,9 @@ class EdgeTerminals:
         urls = [mqtt_url] if isinstance(mqtt_url, str) else list(mqtt_url)
         if not urls:
             raise ValueError("mqtt_url must name at least one broker, got an empty list")
+        if protocol == "auto" and secrets:
+            protocol = protocol_of(urls, *next(iter(secrets.items())))
+        self.protocol = protocol
         self._scratch = state_dir is None
         self.state_dir = Path(tempfile.mkdtemp(prefix="roadgrip-edge-fleet-")) if state_dir is None else state_dir
         self.agents: dict[str, EdgeAgent] = {}
@@ -97,7 +103,7 @@ class EdgeTerminals:
                 state_path=folder / "estimator-state.json",
                 resolution=resolution,
             )
-            uplink = Uplink(urls[k % len(urls)], vid, secret, outbox, client_id=f"roadgrip-edge-{vid}")
+            uplink = Uplink(urls[k % len(urls)], vid, secret, outbox, protocol=protocol)
             uplink.start()
             self.uplinks[vid] = uplink
         deadline = time.monotonic() + connect_timeout_s

@@ -395,7 +395,7 @@ class MqttTerminals:
         if not urls:
             raise ValueError("mqtt_url must name at least one broker, got an empty list")
         if protocol == "auto" and secrets:
-            protocol = _protocol_of(urls, *next(iter(secrets.items())))
+            protocol = protocol_of(urls, *next(iter(secrets.items())))
         self.protocol = protocol
         self.urls = urls
         rng = rng or random.Random()
@@ -452,7 +452,7 @@ class MqttTerminals:
         return sum(c.lost for c in self.counts.values())
 
 
-def _protocol_of(urls: list[str], vehicle_id: str, secret: str) -> str:
+def protocol_of(urls: list[str], vehicle_id: str, secret: str) -> str:
     """The MQTT version the brokers take ("5" or "3.1.1"), asked of the first that answers, as `vehicle_id`."""
     failures = []
     for url in urls:

@@ -39,11 +39,10 @@ from roadgrip.cloud.cluster.publisher import (
 from roadgrip.cloud.cluster.regions import (
     RegionPublisher,
     check_region_resolution,
+    publish_observations,
     publish_station_evidence,
-    region_messages,
 )
 from roadgrip.cloud.domain.friction_map import FrictionMap
-from roadgrip.cloud.domain.observations import pass_rows
 from roadgrip.cloud.domain.stations import StationReport, stored_evidence_rows, stored_rows
 from roadgrip.cloud.ingest.admission import RateLimited
 from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
@@ -299,16 +298,11 @@ class ClusterBackend:
         """Store validated observations of edge vehicles (once per vehicle_id and last_ms), then hand the rows of the
         passes of every observation of the payload (a duplicate's too: sending again is how a caller retries) to the
         owners of their regions, as the workers hand a round's estimates (roadgrip/cloud/cluster/regions.py
-        `region_messages`: one confirmed message per region). BrokerUnavailable (503) when the broker does not confirm
+        `publish_observations`: one confirmed message per region). BrokerUnavailable (503) when the broker does not confirm
         within PUBLISH_DEADLINE_S, with the observations stored; a region applies a vehicle's rows once."""
         new = self.storage.put_observations(observations)
-        rows = [row for o in sorted(observations, key=lambda o: o["last_ms"]) for row in pass_rows(o)]
-        newest = max(o["last_ms"] for o in observations)
-        started = time.monotonic()
         try:
-            for region, message in region_messages(rows, newest, self.region_resolution).items():
-                left_s = PUBLISH_DEADLINE_S - (time.monotonic() - started)
-                self.region_publisher.publish_region(region, orjson.dumps(message), left_s)
+            publish_observations(self.region_publisher, observations, self.region_resolution, PUBLISH_DEADLINE_S)
         except TimeoutError as exc:
             raise BrokerUnavailable(
                 f"{len(new)} new observation(s) of {len(observations)} stored, but not handed to the map ({exc}); "

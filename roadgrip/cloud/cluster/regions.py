@@ -64,6 +64,7 @@ import pika
 from roadgrip.cloud.cluster.map_cells import cell_rows, restore_region
 from roadgrip.cloud.cluster.spread import Spread
 from roadgrip.cloud.domain.cells import region_of
+from roadgrip.cloud.domain.observations import pass_rows
 from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.pipeline.fanout import (
     WARNING_CHANGES,
@@ -137,6 +138,26 @@ def publish_station_evidence(
         left_s = None if deadline_s is None else deadline_s - (time.monotonic() - started)
         publisher.publish_region(region, orjson.dumps({"stations": group}), left_s)
     return len(by_region)
+
+
+def publish_observations(
+    publisher: RegionPublisher, observations: list[dict], region_resolution: int, deadline_s: float | None = None
+) -> int:
+    """Hand the rows of the passes of edge vehicles' observations (roadgrip/cloud/domain/observations.py `pass_rows`,
+    oldest observation first) to the owners of their regions as a round's estimates go (`region_messages`): one
+    confirmed message per region, all within `deadline_s` of the call (TimeoutError, as
+    RegionPublisher.publish_region). A region applies a vehicle's rows once (`Regions.apply`), so observations
+    handed on again (stored before, a redelivery) count once. Returns the messages published. Callers: the API's
+    observations route (roadgrip/cloud/cluster/api_backend.py), the MQTT consumer (roadgrip/cloud/cluster/edge.py)."""
+    if not observations:
+        return 0
+    started = time.monotonic()
+    rows = [row for o in sorted(observations, key=lambda o: o["last_ms"]) for row in pass_rows(o)]
+    messages = region_messages(rows, max(o["last_ms"] for o in observations), region_resolution)
+    for region, message in messages.items():
+        left_s = None if deadline_s is None else deadline_s - (time.monotonic() - started)
+        publisher.publish_region(region, orjson.dumps(message), left_s)
+    return len(messages)
 
 
 def region_messages(rows: list[dict], newest_data_ms: int, region_resolution: int) -> dict[str, dict]:

@@ -46,7 +46,8 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   then closes its connections: what it did not take goes back to the queues, in order, for the next owner.
 - After a round is stored, its estimates go out on the vehicles' friction topics and to the region stage, and the
   round's deliveries are acknowledged only once its region messages are confirmed (roadgrip/cloud/cluster/regions.py
-  `WorkerFanout`); every worker also consumes the region queues (`RegionOwners`: the map and the warnings by region).
+  `WorkerFanout`); every worker also consumes the region queues (`RegionOwners`: the map and the warnings by region)
+  and the edge vehicles' queue (roadgrip/cloud/cluster/edge.py `EdgeConsumer`).
 - Rejected samples are published, as serve does, on the vehicle's MQTT errors topic (through amq.topic).
 
 Size: over 500 lines because the docstring states the ownership, acknowledgement and fencing protocol the code
@@ -67,6 +68,7 @@ import time
 import pika
 import pika.exceptions
 
+from roadgrip.cloud.cluster.edge import EdgeConsumer
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.cluster.spread import Liveness, Spread
 from roadgrip.cloud.cluster.worker_metrics import serve_metrics
@@ -258,6 +260,7 @@ class Worker:
         self.ingest: Ingest | None = None
         self.fanout: WorkerFanout | None = None
         self.regions: RegionOwners | None = None
+        self.edge: EdgeConsumer | None = None
         self.rejected = 0
         self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
         self.connected = [False] * partitions  # a consumer registered, per partition
@@ -319,6 +322,8 @@ class Worker:
             live_workers=lambda: self.live_workers,
         )
         self.regions.start(max(1.0, deadline - time.monotonic()))
+        self.edge = EdgeConsumer(self.brokers, s, self.storage)  # edge vehicles' MQTT messages (edge.py)
+        self.edge.start(max(1.0, deadline - time.monotonic()))
         log.info(
             "worker consuming %d partitions through %d broker(s), estimator %s, storage %s",
             self.partitions,
@@ -351,6 +356,8 @@ class Worker:
         self._threads = []
         if self.regions is not None:
             self.regions.stop()
+        if self.edge is not None:
+            self.edge.stop()
         log.info("worker stopped: %s", json.dumps(self.stats()))
         if self.storage is not None:
             try:
@@ -372,6 +379,7 @@ class Worker:
             "rejected": self.rejected,
             **(self.fanout.stats() if self.fanout is not None else {}),
             **(self.regions.stats() if self.regions is not None else {}),
+            **(self.edge.stats() if self.edge is not None else {}),
             **(self.ingest.stats() if self.ingest is not None else {}),
         }
 

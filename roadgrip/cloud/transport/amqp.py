@@ -12,6 +12,8 @@ The topology (`topology`, declared idempotently by `declare_topology`):
 | rg.telemetry.p0 .. pN-1 | quorum queues, x-single-active-consumer | one partition each, weight 1: every message of a vehicle in one queue, in order; one consumer of a queue active at a time |
 | rg.estimates | x-consistent-hash exchange | the second keyed stage (issue 17 item 3): workers publish stored estimates and station evidence there, routing key the region (H3 parent cell), spread by a hash of it |
 | rg.estimates.r0 .. rM-1 | quorum queues, x-single-active-consumer | one region queue each, weight 1: every message of a region in one queue; its active consumer owns those regions' map and warnings (roadgrip/cloud/cluster/regions.py) |
+| amq.topic -> rg.edge | bindings, keys `roadgrip.v1.vehicles.*.observations` and `roadgrip.v1.vehicles.*.heartbeat` | edge vehicles' MQTT messages (CONTRACTS 3.7) |
+| rg.edge | quorum queue, x-single-active-consumer | every edge vehicle's observations and heartbeats, in order; its active consumer stores them and hands their passes to the region stage (roadgrip/cloud/cluster/edge.py) |
 
 N and M are fixed when the queues are first declared: another N re-hashes part of the vehicles onto other queues,
 another M part of the regions (do it only with the workers drained). Declaring a queue that exists with other
@@ -38,6 +40,8 @@ MQTT_EXCHANGE = "amq.topic"
 TELEMETRY_EXCHANGE = "rg.telemetry"
 TELEMETRY_BINDING = "roadgrip.v1.vehicles.*.telemetry"
 ESTIMATES_EXCHANGE = "rg.estimates"
+EDGE_QUEUE = "rg.edge"
+EDGE_BINDINGS = ("roadgrip.v1.vehicles.*.observations", "roadgrip.v1.vehicles.*.heartbeat")
 REGION_QUEUES = 4  # M, the region queues, unless the settings say otherwise (Settings.region_queues)
 NODE_STOP_S = 30.0  # RabbitCluster.stop: a node's clean stop, before SIGKILL
 KILLED_WAIT_S = 5.0  # a process signalled at the end of a stop is waited for this long
@@ -56,18 +60,20 @@ def mqtt_routing_key(topic: str) -> str:
     return topic.translate(str.maketrans("./", "/."))
 
 
+def _ordered_queue(name: str) -> dict:
+    """A quorum queue with single-active-consumer: replicated, delivered in order to one consumer at a time."""
+    return {
+        "name": name,
+        "vhost": "/",
+        "durable": True,
+        "auto_delete": False,
+        "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True},
+    }
+
+
 def _keyed_queues(exchange: str, names: list[str]) -> tuple[list[dict], list[dict], dict]:
     """Quorum queues with single-active-consumer behind a consistent-hash exchange, weight 1 each."""
-    queues = [
-        {
-            "name": name,
-            "vhost": "/",
-            "durable": True,
-            "auto_delete": False,
-            "arguments": {"x-queue-type": "quorum", "x-single-active-consumer": True},
-        }
-        for name in names
-    ]
+    queues = [_ordered_queue(name) for name in names]
     bindings = [
         {
             "source": exchange,
@@ -113,10 +119,21 @@ def topology(partitions: int, region_queues: int = REGION_QUEUES) -> dict:
     region_qs, region_bindings, estimates = _keyed_queues(
         ESTIMATES_EXCHANGE, [region_queue(r) for r in range(region_queues)]
     )
+    edge = [
+        {
+            "source": MQTT_EXCHANGE,
+            "vhost": "/",
+            "destination": EDGE_QUEUE,
+            "destination_type": "queue",
+            "routing_key": key,
+            "arguments": {},
+        }
+        for key in EDGE_BINDINGS
+    ]
     return {
         "exchanges": [telemetry, estimates],
-        "queues": queues + region_qs,
-        "bindings": [forward, *bindings, *region_bindings],
+        "queues": queues + region_qs + [_ordered_queue(EDGE_QUEUE)],
+        "bindings": [forward, *bindings, *region_bindings, *edge],
     }
 
 
@@ -152,8 +169,9 @@ class RabbitCluster:
     api` manages vehicles' broker users: roadgrip/cloud/transport/rabbit_users.py; a listener per node on 127.0.0.1,
     `management_url`). MQTT publishes land in amq.topic (routing key: the topic with
     '/' as '.'); an exchange-to-exchange binding forwards telemetry to a consistent-hash exchange that spreads it, by a
-    hash of the routing key (hence of the vehicle id), over N quorum queues with single-active-consumer. A vehicle may
-    publish only its own telemetry topic (topic permissions on amq.topic)."""
+    hash of the routing key (hence of the vehicle id), over N quorum queues with single-active-consumer; edge vehicles'
+    observations and heartbeats go to the queue rg.edge. A vehicle may publish only its own telemetry, observations
+    and heartbeat topics (topic permissions on amq.topic)."""
 
     name = "rabbitmq"
     bin_dir = Path("/usr/lib/rabbitmq/bin")
@@ -293,7 +311,7 @@ class RabbitCluster:
                     "user": v,
                     "vhost": "/",
                     "exchange": "amq.topic",
-                    "write": f"^roadgrip\\.v1\\.vehicles\\.{v}\\.telemetry$",
+                    "write": f"^roadgrip\\.v1\\.vehicles\\.{v}\\.(telemetry|observations|heartbeat)$",
                     "read": "^$",
                 }
             )

@@ -18,7 +18,7 @@ whatever the login (measured, docs/CLUSTER.md "Stateless API"), so a bare vehicl
 
 | role | publish (topic write) | subscribe (topic read) |
 | --- | --- | --- |
-| vehicle | its own telemetry | its own friction and errors topics, the warnings |
+| vehicle | its own telemetry, observations and heartbeat | its own friction and errors topics, the warnings |
 | reader | nothing | every vehicle's friction topic, the warnings |
 
 Stations and the admin get no broker login in the cluster: stations report over HTTP there (nothing consumes their
@@ -51,6 +51,8 @@ from roadgrip.cloud.transport.mqtt import (
     check_vehicle_id,
     errors_topic,
     friction_topic,
+    heartbeat_topic,
+    observations_topic,
     telemetry_topic,
 )
 
@@ -82,7 +84,7 @@ def permissions(name: str, role: str, vhost: str = "/") -> tuple[dict, dict]:
     check_vehicle_id(name)  # the same rule names every login
     queues = f"mqtt-subscription-{re.escape(name)}(-[0-9a-f]{{8}})?qos[01]"
     if role == "vehicle":
-        write = _key_pattern(telemetry_topic(name))
+        write = _key_pattern(telemetry_topic(name), observations_topic(name), heartbeat_topic(name))
         read = _key_pattern(friction_topic(name), errors_topic(name), WARNINGS_TOPIC, WARNINGS_UPER_TOPIC)
     elif role == "reader":
         write = "^$"
