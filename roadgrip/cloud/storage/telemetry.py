@@ -20,7 +20,7 @@ import sqlalchemy as sa
 from sqlalchemy import Table, func, select
 from sqlalchemy.engine import Connection
 
-from roadgrip.cloud.storage.base import Database, check_limit, checked_rows
+from roadgrip.cloud.storage.base import Database, StorageUnavailable, check_limit, checked_rows
 from roadgrip.cloud.storage.partitions import check_fences
 from roadgrip.cloud.storage.schema import KEY, estimates_table, telemetry_table, vehicles_table, warnings_table
 from roadgrip.data.schema import ESTIMATE, TELEMETRY
@@ -123,6 +123,10 @@ class Telemetry:
                 copy.write(sink.getvalue())
         except psycopg.errors.UniqueViolation:
             return None
+        except (psycopg.IntegrityError, psycopg.DataError) as err:  # what `reported` says of an INSERT's
+            raise ValueError(f"rejected by database {self._db.where}: {err}") from err
+        except (psycopg.OperationalError, psycopg.InterfaceError) as err:
+            raise StorageUnavailable(f"database {self._db.where} unavailable: {err}") from err
         return len(rows)
 
     def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
