@@ -82,6 +82,7 @@ class ClusterBench:
     workers: tuple[int, ...] = (1, 2, 4)
     partitions: int = 8
     rate: float = 1.0  # messages a second per vehicle in the worker cases (0: as fast as PUBACKs allow)
+    payload: str = "json"  # how the vehicles encode a message: json, or arrow (an Arrow IPC stream, CONTRACTS 3.1)
 
     def __post_init__(self):
         if self.vehicles < 1:
@@ -94,6 +95,8 @@ class ClusterBench:
             raise ValueError(f"partitions must be at least 1, got {self.partitions}")
         if self.rate < 0:
             raise ValueError(f"rate must be 0 (as fast as PUBACKs allow) or positive, got {self.rate}")
+        if self.payload not in ("json", "arrow"):
+            raise ValueError(f"payload must be json or arrow, got {self.payload!r}")
 
 
 @dataclass
@@ -132,6 +135,7 @@ def _drive(
     rate: float,
     counters,
     stop,
+    payload: str = "json",
 ) -> None:
     """One load-generator process (module docstring). Its vehicles connect; then, until `stop`, with `rate` 0 each
     keeps IN_FLIGHT messages unacknowledged (the next leaves when a PUBACK comes), else each publishes `rate`
@@ -145,8 +149,24 @@ def _drive(
     counts = {"sent": 0, "acked": 0, "connected": 0, "held_back": 0}
     fleet = []
 
-    def message(k: int, vehicle: str, run: list[str]) -> str:
+    parsed: dict[int, list[dict]] = {}  # Arrow: each run's samples as dicts, parsed once
+
+    def message(k: int, vehicle: str, run: list[str]) -> str | bytes:
         first = k * SAMPLES_PER_MESSAGE
+        if payload == "arrow":
+            from roadgrip.cloud.ingest.wire import arrow_payload
+
+            rows = parsed.setdefault(id(run), [json.loads("{" + fragment + "}") for fragment in run])
+            return arrow_payload(
+                [
+                    {
+                        "vehicle_id": vehicle,
+                        "timestamp_ms": start_ms + (first + j) * SAMPLE_PERIOD_MS,
+                        **rows[(first + j) % len(rows)],
+                    }
+                    for j in range(SAMPLES_PER_MESSAGE)
+                ]
+            )
         return (
             "["
             + ",".join(
@@ -226,7 +246,9 @@ def _drive(
         client.loop_stop()
 
 
-def _start_load(cluster: RabbitCluster, vehicles: list[str], bodies: list[list[str]], rate: float) -> _Load:
+def _start_load(
+    cluster: RabbitCluster, vehicles: list[str], bodies: list[list[str]], rate: float, payload: str = "json"
+) -> _Load:
     ctx = mp.get_context("spawn")
     n = math.ceil(len(vehicles) / VEHICLES_PER_GENERATOR)
     load = _Load(counters=ctx.Array("q", 3 * n, lock=False), stop=ctx.Event())
@@ -245,6 +267,7 @@ def _start_load(cluster: RabbitCluster, vehicles: list[str], bodies: list[list[s
                 rate,
                 load.counters,
                 load.stop,
+                payload,
             ),
             daemon=True,
         )
@@ -351,6 +374,16 @@ class _Workers:
     def pids(self) -> set[str]:
         return {str(p.pid) for p in self.procs}
 
+    def cpu_s(self) -> float:
+        """CPU seconds (user + system) the worker processes have used so far, from /proc (Linux)."""
+        ticks = os.sysconf("SC_CLK_TCK")
+        total = 0
+        for proc in self.procs:
+            # the fields after the command's name, which is in parentheses: utime and stime are the 12th and 13th
+            fields = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])
+        return total / ticks
+
     def stop(self) -> None:
         for proc in self.procs:
             if proc.poll() is None:
@@ -452,7 +485,7 @@ def run_cluster_bench(bench: ClusterBench, progress: Progress = lambda message, 
 
             progress("the broker alone: vehicles connecting", fraction(0, 0))
             consumers = _AckOnly(cluster, bench.partitions)
-            load = _start_load(cluster, vehicles, bodies, rate=0.0)
+            load = _start_load(cluster, vehicles, bodies, rate=0.0, payload=bench.payload)
             try:
                 time.sleep(WARM_UP_S)
                 (acked0, consumed0), (acked1, consumed1), took = _window(
@@ -511,7 +544,7 @@ def _worker_case(
     try:
         workers.wait_ready()
         progress(f"{name}: vehicles connecting", 0.0)
-        load = _start_load(cluster, vehicles, bodies, bench.rate)
+        load = _start_load(cluster, vehicles, bodies, bench.rate, bench.payload)
         waited = time.monotonic()
         spread_s = None
         while time.monotonic() - waited < SPREAD_WAIT_S:
@@ -522,9 +555,9 @@ def _worker_case(
             time.sleep(0.5)
         time.sleep(WARM_UP_S)
         ready0 = _ready_messages(cluster, bench.partitions)
-        (stored0, acked0, held0), (stored1, acked1, held1), took = _window(
+        (stored0, acked0, held0, cpu0), (stored1, acked1, held1, cpu1), took = _window(
             bench.seconds,
-            lambda: (db.stored(), load.acked_messages(), load.held_back()),
+            lambda: (db.stored(), load.acked_messages(), load.held_back(), workers.cpu_s()),
             lambda f: progress(f"{name}: measuring", f),
         )
         ready1 = _ready_messages(cluster, bench.partitions)
@@ -537,6 +570,9 @@ def _worker_case(
     return {
         "workers": count,
         "stored_samples_per_s": (stored1 - stored0) / took,
+        "worker_cpu_s": cpu1 - cpu0,
+        # stored samples per second of the workers' own CPU time: samples/s per worker core
+        "stored_samples_per_worker_cpu_s": (stored1 - stored0) / max(cpu1 - cpu0, 1e-9),
         "offered_samples_per_s": None if not bench.rate else SAMPLES_PER_MESSAGE * bench.rate * bench.vehicles,
         "pubacked_samples_per_s": SAMPLES_PER_MESSAGE * (acked1 - acked0) / took,
         "held_back_messages": held1 - held0,
@@ -560,7 +596,8 @@ def format_cluster_bench(result: dict):
         caption="samples/s, except the queue (messages ready at "
         "the window's start and end) and held back (messages vehicles skipped: 10 unacknowledged)",
     )
-    for column in ("case", "offered", "PUBACKed", "stored", "queue", "held back", "partitions", "spread"):
+    columns = ("case", "offered", "PUBACKed", "stored", "per worker core", "queue", "held back", "partitions", "spread")
+    for column in columns:
         table.add_column(column, justify="left" if column == "case" else "right")
     broker = result["broker"]
     table.add_row(
@@ -568,6 +605,7 @@ def format_cluster_bench(result: dict):
         "max",
         f"{broker['pubacked_samples_per_s']:,.0f}",
         f"{SAMPLES_PER_MESSAGE * broker['consumed_messages_per_s']:,.0f} acked",
+        "",
         "",
         "",
         "",
@@ -581,6 +619,7 @@ def format_cluster_bench(result: dict):
             offered,
             f"{case['pubacked_samples_per_s']:,.0f}",
             f"{case['stored_samples_per_s']:,.0f}",
+            f"{case['stored_samples_per_worker_cpu_s']:,.0f}",
             f"{case['ready_messages_start']:,} > {case['ready_messages_end']:,}",
             f"{case['held_back_messages']:,}",
             "/".join(map(str, case["partitions_held"])),

@@ -121,6 +121,7 @@ def cluster(
         help="messages of 10 samples a second per vehicle in the worker cases "
         "(1: a terminal; 0: as fast as PUBACKs allow)",
     ),
+    payload: str = typer.Option("json", help="the vehicles' messages: json | arrow (an Arrow IPC stream)"),
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
 ):
     """Cluster mode's capacity on this machine (docs/CLUSTER.md, "Capacity"): 3 RabbitMQ nodes and PostgreSQL on
@@ -135,7 +136,7 @@ def cluster(
         counts = tuple(int(w) for w in workers.split(","))
     except ValueError:
         raise ValueError(f"--workers must be comma-separated counts like 1,2,4, got {workers!r}") from None
-    bench = ClusterBench(vehicles, seconds, counts, partitions, rate)
+    bench = ClusterBench(vehicles, seconds, counts, partitions, rate, payload)
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("starting", total=1.0)
         result = run_cluster_bench(

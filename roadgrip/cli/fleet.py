@@ -39,6 +39,9 @@ def fleet(
     ),
     vehicles: int = typer.Option(10, min=1, help="simulated vehicles"),
     transport: str = typer.Option("auto", help="auto (MQTT when the cloud has a broker) | mqtt | http"),
+    payload: str = typer.Option(
+        "json", help="raw vehicles' samples as json | arrow (an Arrow IPC stream, CONTRACTS 3.1)"
+    ),
     speed: float = typer.Option(1.0, min=0.01, help="times real time"),
     duration: float = typer.Option(120.0, min=1.0, help="simulated seconds of driving"),
     seed: int = typer.Option(0, help="seed of the plan and the sensors"),
@@ -101,6 +104,8 @@ def fleet(
     edge_ids = edge_vehicle_ids([], mode)  # checks the mode before anything starts
     if transport not in ("auto", "mqtt", "http"):
         raise ValueError(f"--transport must be auto, mqtt or http, got {transport!r}")
+    if payload not in ("json", "arrow"):
+        raise ValueError(f"--payload must be json or arrow, got {payload!r}")
     if mqtt_protocol not in ("auto", "5", "3.1.1"):
         raise ValueError(f"--mqtt-protocol must be auto, 5 or 3.1.1, got {mqtt_protocol!r}")
     secret = os.environ.get("ROADGRIP_ADMIN_SECRET") or (
@@ -134,9 +139,9 @@ def fleet(
     terminals = None
     if raw_secrets:
         terminals = (
-            MqttTerminals(brokers, raw_secrets, mqtt_protocol, buffer_messages=buffer_messages)
+            MqttTerminals(brokers, raw_secrets, mqtt_protocol, buffer_messages=buffer_messages, payload=payload)
             if use_mqtt
-            else HttpTerminals(url, raw_secrets)
+            else HttpTerminals(url, raw_secrets, payload=payload)
         )
     edge = None
     if edge_ids:

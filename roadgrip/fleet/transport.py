@@ -36,6 +36,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 
+from roadgrip.cloud.ingest.wire import arrow_payload
 from roadgrip.cloud.transport.mqtt import MQTT_PROTOCOLS, QOS, UserClient, parse_url, telemetry_topic
 
 log = logging.getLogger(__name__)
@@ -64,13 +65,24 @@ def register_fleet(
     return {c["name"]: c["secret"] for c in issued}, issued[0]["mqtt_url"]
 
 
+PAYLOADS = ("json", "arrow")  # how raw terminals encode their samples (CONTRACTS 3.1)
+ARROW_CONTENT_TYPE = "application/vnd.apache.arrow.stream"
+
+
+def _checked_payload(payload: str) -> str:
+    if payload not in PAYLOADS:
+        raise ValueError(f"payload must be one of {PAYLOADS}, got {payload!r}")
+    return payload
+
+
 class HttpTerminals:
     """Every vehicle posts its own batches; requests run on a small thread pool so that one slow answer does not hold
     the 10 Hz timeline. `close()` waits for the answers and counts them, in samples: `sent`, `stored` (the cloud's
     answer), `rejected` (refused by validation), `lost` (a request that failed or was answered with an error: the
     first such error is in `error`). It raises nothing for a failed request."""
 
-    def __init__(self, base_url: str, secrets: dict[str, str], workers: int = 8):
+    def __init__(self, base_url: str, secrets: dict[str, str], workers: int = 8, payload: str = "json"):
+        self.payload = _checked_payload(payload)
         self.secrets = secrets
         self.client = httpx.Client(base_url=base_url, timeout=60.0)
         self.pool = ThreadPoolExecutor(workers)
@@ -79,7 +91,10 @@ class HttpTerminals:
         self.error: str | None = None
 
     def send(self, vehicle_id: str, samples: list[dict]) -> None:
-        body = "\n".join(json.dumps(s) for s in samples)
+        if self.payload == "arrow":
+            body, content_type = arrow_payload(samples), ARROW_CONTENT_TYPE
+        else:
+            body, content_type = "\n".join(json.dumps(s) for s in samples), "application/x-ndjson"
         self.sent += len(samples)
         self.futures.append(
             (
@@ -89,7 +104,7 @@ class HttpTerminals:
                     "/v1/telemetry",
                     content=body,
                     auth=(vehicle_id, self.secrets[vehicle_id]),
-                    headers={"content-type": "application/x-ndjson"},
+                    headers={"content-type": content_type},
                 ),
             )
         )
@@ -385,7 +400,9 @@ class MqttTerminals:
         connect_timeout_s: float = CONNECT_TIMEOUT_S,
         clock=time.monotonic,
         rng: random.Random | None = None,
+        payload: str = "json",
     ):
+        self.payload = _checked_payload(payload)
         if len(secrets) > MAX_MQTT_VEHICLES:
             raise ValueError(
                 f"at most {MAX_MQTT_VEHICLES} MQTT vehicles in one process (paho uses select()), got "
@@ -426,7 +443,10 @@ class MqttTerminals:
                 raise FleetError(f"{vid} reached none of the brokers {urls} within {connect_timeout_s:.0f} s")
 
     def send(self, vehicle_id: str, samples: list[dict]) -> None:
-        payload = json.dumps(samples[0] if len(samples) == 1 else samples)
+        if self.payload == "arrow":
+            payload = arrow_payload(samples)
+        else:
+            payload = json.dumps(samples[0] if len(samples) == 1 else samples)
         self.connections[vehicle_id].publish(payload, len(samples))
 
     def close(self, timeout_s: float = 60.0) -> None:

@@ -12,6 +12,11 @@ The payload (`PayloadError` when a rule fails):
   tabs, CR) ignored; parameters such as `; charset=utf-8` are ignored; any other type is refused (415). No content type
   (MQTT): an array when the first non-blank character is `[`, else one object when the whole body parses as one, else
   NDJSON;
+- content type `application/vnd.apache.arrow.stream` (`ARROW_TYPES`), or no content type and a first byte 0xFF
+  (`is_arrow`): an Arrow IPC stream of wire columns (CONTRACTS 3.1), checked column by column on numpy arrays
+  (`_arrow_table`): refused whole when it cannot be read, names a column that is not a wire field, gives one a type of
+  another kind, lacks a required column or holds no row; then each row by the rules below (the same messages), a null
+  in a required column refusing its row. `arrow_payload` writes such a stream;
 - a JSON document that does not parse or is neither an object nor an array is refused (we cannot tell where its samples
   start); in NDJSON a bad line is a `SampleError` for that line and the other lines are kept;
 - at least one sample (an empty body, only blank lines or `[]` are refused) and at most `max_samples` (413: the payload
@@ -41,7 +46,7 @@ Each sample (`SampleError`, with its first fault; `index` is its array index, or
 Not this module's business: duplicates inside a payload are kept (the pipeline and storage handle them); a key repeated
 inside one JSON object keeps its last value, as `json.loads` does.
 
-Size: over 500 lines because the wire format's one parser: JSON, NDJSON and VSS keys, per-sample checks and the
+Size: over 500 lines because the wire format's one parser: JSON, NDJSON, Arrow and VSS keys, per-sample checks and the
 rejection report, each rule once.
 """
 
@@ -55,14 +60,16 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 import orjson
 import pyarrow as pa
 
 from roadgrip.data.schema import TELEMETRY
-from roadgrip.data.telemetry import RANGES, VEHICLE_ID_RE
+from roadgrip.data.telemetry import RANGES, TELEMETRY_SCHEMA, VEHICLE_ID_RE
 from roadgrip.units import deg_to_rad, kmh_to_mps, mps_to_kmh, rad_to_deg
 
 JSON_TYPES = frozenset({"application/json"})
+ARROW_TYPES = frozenset({"application/vnd.apache.arrow.stream"})  # the IANA-registered type of the IPC stream
 NDJSON_TYPES = frozenset(
     {
         "application/x-ndjson",
@@ -166,6 +173,9 @@ def parse_payload(
     if len(body) > max_bytes:
         raise PayloadError(f"payload of {len(body)} bytes exceeds the limit of {max_bytes} bytes", status=413)
     kind = _kind(content_type)
+    if kind == "arrow" or (kind is None and is_arrow(body)):
+        table, errors = _arrow_table(bytes(body), max_samples, int(now_ms), int(max_future_ms), vehicle_id)
+        return table.to_pylist(), errors
     try:
         text = body.decode("utf-8")
     except UnicodeDecodeError as e:
@@ -209,7 +219,7 @@ def _check_options(body, max_bytes, max_samples, now_ms, max_future_ms, vehicle_
 
 
 def _kind(content_type: str | None) -> str | None:
-    """'json', 'ndjson', or None (detect) from a Content-Type value."""
+    """'json', 'ndjson', 'arrow', or None (detect) from a Content-Type value."""
     if content_type is None or not content_type.strip():
         return None
     media = content_type.split(";", 1)[0].strip().lower()
@@ -217,9 +227,12 @@ def _kind(content_type: str | None) -> str | None:
         return "json"
     if media in NDJSON_TYPES:
         return "ndjson"
+    if media in ARROW_TYPES:
+        return "arrow"
     raise PayloadError(
         f"content type {_clip(content_type)!r} is not accepted: send application/json (an object or an "
-        "array) or application/x-ndjson (one object per line)",
+        "array), application/x-ndjson (one object per line) or application/vnd.apache.arrow.stream (an Arrow IPC "
+        "stream of wire columns)",
         status=415,
         field="content_type",
     )
@@ -551,6 +564,169 @@ def _identity(doc, vehicle_id: str | None) -> tuple[str | None, int | None]:
     if type(ts) is float and ts.is_integer():
         ts = int(ts)
     return vid, ts if type(ts) is int and 0 <= ts < 2**63 else None
+
+
+# ------------------------------------------------------------------------------------------------- Arrow payloads
+
+
+def arrow_payload(samples: list[dict]) -> bytes:
+    """Samples in wire format v1 (dicts with wire names; absent optional fields are null) as an Arrow IPC stream of
+    TELEMETRY_SCHEMA, one record batch: what a terminal sends as application/vnd.apache.arrow.stream."""
+    table = pa.Table.from_pylist(samples, schema=TELEMETRY_SCHEMA)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, TELEMETRY_SCHEMA) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def is_arrow(body: bytes) -> bool:
+    """Whether an MQTT payload (no content type) is an Arrow IPC stream: its first byte is 0xFF, the first of the
+    continuation marker that begins every message of the stream format; 0xFF never begins UTF-8 text, so never JSON."""
+    return body[:1] == b"\xff"
+
+
+def _arrow_table(
+    body: bytes, max_samples: int, now_ms: int, max_future_ms: int, vehicle_id: str | None
+) -> tuple[pa.Table, list[SampleError]]:
+    """An Arrow IPC stream of wire format v1 columns: (the valid rows in TELEMETRY_SCHEMA, one SampleError per refused
+    row); PayloadError when the stream cannot be read, names a column that is not a wire field, gives a column a type
+    that is not its wire type's kind, lacks a required column, or holds no rows or more than `max_samples`. The checks
+    run on whole columns (numpy); a message is built for each refused row only."""
+    try:
+        batches = list(pa.ipc.open_stream(pa.py_buffer(body)))
+    except (pa.ArrowException, OSError, ValueError) as e:
+        raise PayloadError(f"payload is not an Arrow IPC stream: {_first_line(e)}") from None
+    if len(batches) == 1:
+        table = batches[0]  # the usual stream: one record batch, its columns used as they are
+    else:
+        try:
+            table = pa.Table.from_batches(batches).combine_chunks()
+        except (pa.ArrowException, ValueError):  # no batch at all: the schema only
+            raise PayloadError("empty payload: the Arrow stream holds no rows") from None
+    names = table.schema.names
+    for name in names:
+        if name not in _WIRE_KEYS:
+            raise PayloadError(f"Arrow payload: {_unknown(name, _WIRE_KEYS)}", field=_clip(name))
+    if len(set(names)) != len(names):
+        twice = next(n for n in names if names.count(n) > 1)
+        raise PayloadError(f"Arrow payload: column '{twice}' appears more than once", field=twice)
+    for name in _REQUIRED:
+        if name not in names and not (name == "vehicle_id" and vehicle_id is not None):
+            raise PayloadError(f"Arrow payload: missing required column '{name}'", field=name)
+    if table.num_rows > max_samples:
+        raise PayloadError(f"payload holds {table.num_rows} samples, more than the limit of {max_samples}", status=413)
+    if table.num_rows == 0:
+        raise PayloadError("empty payload: the Arrow stream holds no rows")
+    n = table.num_rows
+    columns = {}
+    for name, column in zip(names, table.columns):
+        columns[name] = _arrow_column(name, column)
+    if "vehicle_id" not in columns:
+        columns["vehicle_id"] = pa.array([vehicle_id] * n, pa.string())
+
+    bad = _arrow_faults(columns, n, now_ms + max_future_ms, vehicle_id)  # (fields in _ARROW_ORDER, rows) or None
+    full = pa.table({c.name: columns.get(c.name, pa.nulls(n, c.type)) for c in TELEMETRY}, schema=TELEMETRY_SCHEMA)
+    if bad is None:
+        return full, []
+    faulty = bad.any(axis=0)
+    first = bad.argmax(axis=0)  # per row, its first faulty field
+    errors = [
+        _arrow_error(int(i), _ARROW_ORDER[first[i]], columns, now_ms, max_future_ms, vehicle_id)
+        for i in np.flatnonzero(faulty)
+    ]
+    return full.filter(pa.array(~faulty)), errors
+
+
+_ARROW_ORDER = ("vehicle_id", "timestamp_ms", *(f[0] for f in _FIELDS))  # the order of the JSON checks
+_ARROW_INDEX = {name: k for k, name in enumerate(_ARROW_ORDER)}
+_LOW = np.array([low for _, low, _, _ in _NUMBERS])
+_HIGH = np.array([high for _, _, high, _ in _NUMBERS])
+
+
+def _arrow_column(name: str, column: pa.Array | pa.ChunkedArray) -> pa.Array:
+    """The column as its wire type: strings, integers and floats of any width, as their kind allows; else
+    PayloadError naming the column and both types."""
+    want = _SPEC[name].type
+    have = column.type
+    if pa.types.is_dictionary(have):
+        have = have.value_type
+    ok = (
+        (pa.types.is_string(want) and (pa.types.is_string(have) or pa.types.is_large_string(have)))
+        or (pa.types.is_int64(want) and pa.types.is_integer(have))
+        or (pa.types.is_floating(want) and (pa.types.is_floating(have) or pa.types.is_integer(have)))
+        or (pa.types.is_boolean(want) and pa.types.is_boolean(have))
+        or pa.types.is_null(have)
+    )
+    if not ok:
+        raise PayloadError(
+            f"Arrow payload: column '{name}' has type {column.type}, the wire format's is {want}", field=name
+        )
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks()
+    if column.type == want:
+        return column
+    try:
+        return column.cast(want)
+    except pa.ArrowInvalid as e:  # an unsigned 64-bit timestamp beyond int64
+        raise PayloadError(f"Arrow payload: column '{name}': {_first_line(e)}", field=name) from None
+
+
+def _arrow_faults(columns: dict, n: int, latest_ms: int, vehicle_id: str | None) -> np.ndarray | None:
+    """A boolean array (the fields of _ARROW_ORDER, rows): which field of which row breaks its rule (module
+    docstring, "Each sample"), or None when every row is valid. The numbers are checked as one matrix."""
+    bad = np.zeros((len(_ARROW_ORDER), n), dtype=bool)
+    ids = columns["vehicle_id"]
+    values = set(ids.unique().to_pylist())
+    wrong = {v for v in values if v is None or not (VEHICLE_ID_RE.fullmatch(v) and v == (vehicle_id or v))}
+    if wrong:
+        bad[0] = np.isin(ids.fill_null("").to_numpy(zero_copy_only=False), [v or "" for v in wrong])
+    ts = columns["timestamp_ms"]
+    times = ts.fill_null(-1).to_numpy() if ts.null_count else ts.to_numpy()
+    bad[1] = (times < 0) | (times > latest_ms)
+    present = [k for k, (name, *_) in enumerate(_NUMBERS) if name in columns]
+    if present:
+        matrix = np.empty((len(present), n))
+        for row, k in enumerate(present):
+            matrix[row] = columns[_NUMBERS[k][0]].to_numpy(zero_copy_only=False)  # nulls as NaN
+        with np.errstate(invalid="ignore"):
+            out = ~((matrix >= _LOW[present, None]) & (matrix <= _HIGH[present, None]))
+        for row, k in enumerate(present):
+            name, _, _, required = _NUMBERS[k]
+            column = columns[name]
+            if column.null_count and not required:
+                out[row] &= ~column.is_null().to_numpy(zero_copy_only=False)
+            bad[_ARROW_INDEX[name]] = out[row]
+    for name, required in _BOOLS:
+        column = columns.get(name)
+        if required and column is not None and column.null_count:
+            bad[_ARROW_INDEX[name]] = column.is_null().to_numpy(zero_copy_only=False)
+    return bad if bad.any() else None
+
+
+def _arrow_error(i: int, name: str, columns: dict, now_ms: int, max_future_ms: int, vehicle_id: str | None):
+    """The SampleError of row i, whose first fault is in `name`, worded as the JSON checks word it."""
+    vid = columns["vehicle_id"][i].as_py()
+    ts = columns["timestamp_ms"][i].as_py()
+    value = columns[name][i].as_py()
+    checker = _Checker(now_ms, max_future_ms, vehicle_id)
+    try:
+        if value is None:
+            raise _Refused(name, f"{name} must not be null: the field is required")
+        if name == "vehicle_id":
+            checker._vehicle(value, None)
+        elif name == "timestamp_ms":
+            checker._timestamp(value)
+        _field_fault(name, value, None, {})
+    except _Refused as e:
+        ok_vid = vid if type(vid) is str and VEHICLE_ID_RE.fullmatch(vid) else None
+        return SampleError(i, e.field, e.reason, ok_vid, ts if ts is not None and ts >= 0 else None)
+    raise AssertionError(f"row {i} refused by the column checks but not by {name}'s")
+
+
+def _first_line(e: Exception) -> str:
+    """The first line of an exception's message (Arrow's run over several), cut to 160 characters."""
+    line = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return line if len(line) <= 160 else line[:157] + "..."
 
 
 # ------------------------------------------------------------------------------------------------- messages

@@ -1,5 +1,10 @@
 """The telemetry and estimates tables: `write_batch`, the ingest's hot path (both tables in one transaction,
-idempotent, fenced by partition in cluster mode), and the queries of what was stored."""
+idempotent, fenced by partition in cluster mode), and the queries of what was stored.
+
+On PostgreSQL the rows go in by COPY (`_copy_new`): the rows become an Arrow table, written as CSV by pyarrow's C++
+writer and streamed through psycopg's `cursor.copy`, with no per-row SQL parameters; COPY cannot skip stored keys, so
+it runs in a savepoint and a repeat (a unique violation) rolls it back and falls back to the INSERT path. SQLite (no
+COPY) takes the multi-row INSERTs."""
 
 from __future__ import annotations
 
@@ -8,13 +13,24 @@ import operator
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import psycopg
+import pyarrow as pa
+import pyarrow.csv
 import sqlalchemy as sa
 from sqlalchemy import Table, func, select
 from sqlalchemy.engine import Connection
 
-from roadgrip.cloud.storage.base import Database, check_limit, checked_rows
+from roadgrip.cloud.storage.base import Database, StorageUnavailable, check_limit, checked_rows
 from roadgrip.cloud.storage.partitions import check_fences
 from roadgrip.cloud.storage.schema import KEY, estimates_table, telemetry_table, vehicles_table, warnings_table
+from roadgrip.data.schema import ESTIMATE, TELEMETRY
+
+# the Arrow schema of each table's rows, from the one schema its columns come from (roadgrip/data/schema.py)
+_ARROW = {
+    "telemetry": pa.schema([pa.field(c.name, c.type) for c in TELEMETRY]),
+    "estimates": pa.schema([pa.field(c.name, c.type) for c in ESTIMATE]),
+}
+_CSV = pyarrow.csv.WriteOptions(include_header=False)
 
 # rows per INSERT statement, largest first: 1,024 x 17 parameters fit SQLite's limit (32,766) and PostgreSQL's (65,535)
 INSERT_SIZES = tuple(2**k for k in range(10, -1, -1))
@@ -38,6 +54,7 @@ class Telemetry:
 
     def __init__(self, db: Database):
         self._db = db
+        self.use_copy = db.dialect == "postgresql"  # COPY on the hot path; else (SQLite) multi-row INSERTs
         self._insert_sqls: dict[tuple[str, int, bool], str] = {}  # (table, rows, RETURNING) -> multi-row INSERT
 
     def write_batch(
@@ -64,6 +81,13 @@ class Telemetry:
         try:
             with self._db.transaction() as conn:
                 check_fences(conn, fences)
+                if self.use_copy:
+                    if self._copy_new(conn, telemetry_table, telemetry) is None:
+                        raise _Repeats
+                    stored = self._copy_new(conn, estimates_table, estimates)
+                    if stored is None:
+                        stored = self._insert_new(conn, estimates_table, estimates)
+                    return Written(len(telemetry), stored, frozenset())
                 stored = self._insert_new(conn, telemetry_table, telemetry)
                 if stored < len(telemetry):
                     raise _Repeats
@@ -80,6 +104,30 @@ class Telemetry:
                     key for row in telemetry if (key := (row["vehicle_id"], row["timestamp_ms"])) not in inserted
                 ),
             )
+
+    def _copy_new(self, conn: Connection, table: Table, rows: list[dict]) -> int | None:
+        """PostgreSQL: COPY `rows` into `table` in a savepoint: the number stored (all of them), or None when one of
+        them was stored already or came twice (the savepoint rolled back, nothing of them stored)."""
+        if not rows:
+            return 0
+        arrow = pa.Table.from_pylist(rows, schema=_ARROW[table.name])
+        sink = pa.BufferOutputStream()
+        pyarrow.csv.write_csv(arrow, sink, _CSV)
+        columns = ", ".join(arrow.column_names)
+        try:
+            with (
+                conn.begin_nested(),
+                conn.connection.driver_connection.cursor() as cursor,
+                cursor.copy(f"COPY {table.name} ({columns}) FROM STDIN (FORMAT csv)") as copy,
+            ):
+                copy.write(sink.getvalue())
+        except psycopg.errors.UniqueViolation:
+            return None
+        except (psycopg.IntegrityError, psycopg.DataError) as err:  # what `reported` says of an INSERT's
+            raise ValueError(f"rejected by database {self._db.where}: {err}") from err
+        except (psycopg.OperationalError, psycopg.InterfaceError) as err:
+            raise StorageUnavailable(f"database {self._db.where} unavailable: {err}") from err
+        return len(rows)
 
     def _insert_new(self, conn: Connection, table: Table, rows: list[dict], returning: bool = False):
         """Insert `rows`, skipping keys stored already: the number inserted, or with `returning` the keys inserted.

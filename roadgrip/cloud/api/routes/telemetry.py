@@ -80,6 +80,7 @@ class NoValidSample(IngestAnswer):
             "required": True,
             "content": {
                 "application/x-ndjson": {"schema": {"type": "string"}},
+                "application/vnd.apache.arrow.stream": {"schema": {"type": "string", "format": "binary"}},
                 "application/json": {
                     "schema": {"oneOf": [{"type": "object"}, {"type": "array", "items": {"type": "object"}}]}
                 },
