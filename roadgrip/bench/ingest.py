@@ -47,9 +47,11 @@ from roadgrip.fleet.terminal import wire_samples
 
 SAMPLE_PERIOD_MS = 100
 MEMORY_FLAT_FRACTION = 0.05  # a soak's memory is flat when RSS grows by at most this over the run's second half
-# paho-mqtt waits on its sockets with select(), which fails for file descriptors above 1023; each client holds three
-# (its socket and a wake-up pair), so one load-generator process drives at most this many MQTT vehicles.
-MQTT_CLIENTS_PER_PROCESS = 250
+# A load-generator process drives its MQTT vehicles' paho clients from one thread on one epoll selector (`_MqttFleet`):
+# a thread per client (paho's loop_start) cost the 5,000 vehicles of docs/EDGE.md's soak both of this machine's cores
+# (20 processes of 250 threads, a load average over 300). Each client holds three descriptors (its socket and paho's
+# wake-up pair), so this many per process stays well under a ulimit of 20,000.
+MQTT_CLIENTS_PER_PROCESS = 2_500
 
 
 @dataclass(frozen=True)
@@ -153,9 +155,7 @@ def _drive(
     sent = acked = refused = 0
     lag_s = 0.0  # how late the most belated message left: the generator itself falling behind
     if case.transport == "mqtt":
-        from roadgrip.cloud.transport.mqtt import UserClient
-
-        clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
+        fleet = _MqttFleet(target["mqtt_url"], vehicles)
         topics = [messages.topic(vid) for vid, _ in vehicles]
         infos = []  # (MQTTMessageInfo, lines)
     else:
@@ -187,28 +187,26 @@ def _drive(
             if due != last_due:
                 last_due = due
                 wait = due - time.time()
-                if wait > 0:
+                lag_s = max(lag_s, -wait)
+                if case.transport == "mqtt":
+                    fleet.run_until(due)  # reading PUBACKs meanwhile (at least once when late)
+                elif wait > 0:
                     time.sleep(wait)
-                else:
-                    lag_s = max(lag_s, -wait)
             lines = messages.lines(vid, offset + i, tick, base_ms)
             if case.transport == "mqtt":
                 payload = lines[0] if len(lines) == 1 else ("[" + ",".join(lines) + "]")
-                infos.append((clients[i].publish_nowait(topics[i], payload), len(lines)))
+                infos.append((fleet.clients[i].publish(topics[i], payload, qos=1), len(lines)))
             else:
                 futures.append((pool.submit(post, vid, secret, "\n".join(lines)), len(lines)))
             sent += len(lines)
     if case.transport == "mqtt":
         deadline = time.time() + 60
-        for info, n in infos:
-            info.wait_for_publish(max(0.0, deadline - time.time()))
-            if info.is_published():
-                acked += n
-        refused = sum(c.refused for c in clients)
-        refused_lines = refused * case.batch
-        for c in clients:
-            c.close()
-        acked -= refused_lines
+        while time.time() < deadline and not all(info.is_published() for info, _ in infos):
+            fleet.run_until(time.time() + 0.5)
+        acked = sum(n for info, n in infos if info.is_published())
+        refused = fleet.refused
+        acked -= refused * case.batch
+        fleet.close()
     else:
         for f, n in futures:
             answer = f.result()
@@ -220,6 +218,65 @@ def _drive(
         http.close()
     done_at = time.time()  # the last acknowledgement is in
     results.put((sent, acked, refused, done_at, lag_s))
+
+
+class _MqttFleet:
+    """A load generator's vehicles: one paho client each (MQTT 5, clean start, its own login), all driven from the
+    calling thread through paho's external-loop calls (loop_read on what the epoll selector finds readable; a publish
+    is written at once; loop_write and loop_misc, keepalive included, every second for every client)."""
+
+    def __init__(self, url: str, vehicles: list[tuple[str, str]], timeout_s: float = 120.0):
+        import selectors
+
+        import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        from roadgrip.cloud.transport.mqtt import parse_url
+
+        host, port = parse_url(url)
+        self.refused = 0  # PUBACKs with a failure reason code
+        self.selector = selectors.DefaultSelector()
+        self.clients = []
+        for vehicle_id, secret in vehicles:
+            client = paho.Client(
+                CallbackAPIVersion.VERSION2, client_id=f"{vehicle_id}-{secrets.token_hex(4)}", protocol=paho.MQTTv5
+            )
+            client.username_pw_set(vehicle_id, secret)
+            client.on_publish = self._on_publish
+            client.connect(host, port, keepalive=60)
+            self.selector.register(client.socket(), selectors.EVENT_READ, client)
+            self.clients.append(client)
+        self._swept = 0.0
+        deadline = time.time() + timeout_s
+        while not all(c.is_connected() for c in self.clients):
+            if time.time() > deadline:
+                missing = sum(not c.is_connected() for c in self.clients)
+                raise TimeoutError(f"{missing} of {len(self.clients)} MQTT vehicles not connected in {timeout_s} s")
+            self.run_until(time.time() + 0.2)
+
+    def _on_publish(self, _client, _userdata, _mid, reason_code, _properties):
+        if reason_code.is_failure:
+            self.refused += 1
+
+    def run_until(self, until: float) -> None:
+        """Read what arrives (CONNACKs, PUBACKs) until `until` (s since the epoch); at least once, even when it has
+        passed."""
+        while True:
+            for key, _ in self.selector.select(max(0.0, min(until - time.time(), 0.5))):
+                key.data.loop_read()
+            if time.time() - self._swept >= 1.0:
+                self._swept = time.time()
+                for client in self.clients:
+                    if client.want_write():
+                        client.loop_write()
+                    client.loop_misc()
+            if time.time() >= until:
+                return
+
+    def close(self) -> None:
+        for client in self.clients:
+            client.disconnect()
+        self.selector.close()
 
 
 def _generate(
