@@ -3,7 +3,9 @@ lost, and beside it the ceilings of the broker and the database alone, measured 
 
 Layout on one machine: the service runs as its own process (`roadgrip serve`, with its managed Mosquitto for MQTT);
 `workers` load-generator processes (this module's `_drive`) play the vehicles, each vehicle with its own credentials,
-sending a sample every 100 ms of wall-clock time (or `batch` samples every batch x 100 ms: a terminal that buffers);
+connected before the start, sending a sample every 100 ms of wall-clock time (or `batch` samples every batch x 100 ms:
+a terminal that buffers; what is sent is a `Messages`: `TelemetryMessages` here, edge vehicles' observations in
+roadgrip/bench/ingest_edge.py);
 the bench then waits until the service has stored everything it acknowledged and reads the counts from the database.
 The load generators share the machine's cores with the service, so the figures are a floor for a service alone.
 
@@ -35,6 +37,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import httpx
 
@@ -44,9 +47,11 @@ from roadgrip.fleet.terminal import wire_samples
 
 SAMPLE_PERIOD_MS = 100
 MEMORY_FLAT_FRACTION = 0.05  # a soak's memory is flat when RSS grows by at most this over the run's second half
-# paho-mqtt waits on its sockets with select(), which fails for file descriptors above 1023; each client holds three
-# (its socket and a wake-up pair), so one load-generator process drives at most this many MQTT vehicles.
-MQTT_CLIENTS_PER_PROCESS = 250
+# A load-generator process drives its MQTT vehicles' paho clients from one thread on one epoll selector (`_MqttFleet`):
+# a thread per client (paho's loop_start) cost the 5,000 vehicles of docs/EDGE.md's soak both of this machine's cores
+# (20 processes of 250 threads, a load average over 300). Each client holds three descriptors (its socket and paho's
+# wake-up pair), so this many per process stays well under a ulimit of 20,000.
+MQTT_CLIENTS_PER_PROCESS = 2_500
 
 
 @dataclass(frozen=True)
@@ -87,28 +92,72 @@ def _message(vehicle_id: str, timestamp_ms: int, body: str) -> str:
     return f'{{"vehicle_id":"{vehicle_id}","timestamp_ms":{timestamp_ms},{body}}}'
 
 
+class Messages(Protocol):
+    """What the load generator sends: vehicle k's message number `tick` is due `due_s(k, tick)` after the start (due
+    times of a vehicle increase with tick, those of one tick by k's order at tick 0), holds `lines(...)` (the
+    messages, one JSON object each: one MQTT message of them, an array when several) and goes to `topic(...)`.
+    Picklable: it travels to each load-generator process."""
+
+    def ticks(self, seconds: float) -> int: ...
+
+    def due_s(self, k: int, tick: int) -> float: ...
+
+    def topic(self, vehicle_id: str) -> str: ...
+
+    def lines(self, vehicle_id: str, k: int, tick: int, base_ms: int) -> list[str]: ...
+
+
+@dataclass(frozen=True)
+class TelemetryMessages:
+    """Raw telemetry: `batch` samples a message, every batch x 100 ms, all vehicles at once; vehicle k loops run k of
+    `bodies` with live timestamps (sample j at the start + j x 100 ms)."""
+
+    bodies: list[list[str]]
+    batch: int
+
+    def ticks(self, seconds: float) -> int:
+        return int(seconds * 1000 / SAMPLE_PERIOD_MS) // self.batch
+
+    def due_s(self, k: int, tick: int) -> float:
+        # a batch leaves when its last sample has been measured (timestamps are never ahead of the clock)
+        return ((tick + 1) * self.batch - 1) * SAMPLE_PERIOD_MS / 1000
+
+    def topic(self, vehicle_id: str) -> str:
+        from roadgrip.cloud.transport.mqtt import telemetry_topic
+
+        return telemetry_topic(vehicle_id)
+
+    def lines(self, vehicle_id: str, k: int, tick: int, base_ms: int) -> list[str]:
+        run = self.bodies[k % len(self.bodies)]
+        first = tick * self.batch
+        return [
+            _message(vehicle_id, base_ms + (first + j) * SAMPLE_PERIOD_MS, run[(first + j) % len(run)])
+            for j in range(self.batch)
+        ]
+
+
 # ------------------------------------------------------------------------------------------------- load generator
 def _drive(
     case: IngestCase,
     target: dict,
     vehicles: list[tuple[str, str]],
-    bodies: list[list[str]],
-    start_wall: float,
-    base_ms: int,
+    messages: Messages,
     offset: int,
+    ready,
+    go,
+    start,
     results,
 ) -> None:
-    """One load-generator process: its vehicles send `case.batch` samples each every batch x 100 ms until
-    case.seconds have passed; puts (sent, acknowledged, refused) on `results`."""
-    n_ticks = int(case.seconds * 1000 / SAMPLE_PERIOD_MS) // case.batch
+    """One load-generator process: connects its vehicles (MQTT), says so on `ready`, waits for `go`, reads the start
+    (s since the epoch) from `start`, then sends `messages` for case.seconds; puts (sent, acknowledged, refused, when
+    the last acknowledgement came, worst lag) on `results`, counting the lines of the messages."""
+    n_ticks = messages.ticks(case.seconds)
     sent = acked = refused = 0
-    lag_s = 0.0  # how late the most belated batch left: the generator itself falling behind
+    lag_s = 0.0  # how late the most belated message left: the generator itself falling behind
     if case.transport == "mqtt":
-        from roadgrip.cloud.transport.mqtt import UserClient, telemetry_topic
-
-        clients = [UserClient(target["mqtt_url"], vid, secret).connect() for vid, secret in vehicles]
-        topics = [telemetry_topic(vid) for vid, _ in vehicles]
-        infos = []
+        fleet = _MqttFleet(target["mqtt_url"], vehicles)
+        topics = [messages.topic(vid) for vid, _ in vehicles]
+        infos = []  # (MQTTMessageInfo, lines)
     else:
         from concurrent.futures import ThreadPoolExecutor
 
@@ -125,71 +174,144 @@ def _drive(
                 "/v1/telemetry", content=body, auth=(vid, secret), headers={"content-type": "application/x-ndjson"}
             )
 
+    ready.put(len(vehicles))
+    go.wait()
+    start_wall = start.value
+    base_ms = int(start_wall * 1000)
+    order = sorted(range(len(vehicles)), key=lambda i: messages.due_s(offset + i, 0))
     for tick in range(n_ticks):
-        # a batch leaves when its last sample has been measured (timestamps are never ahead of the clock)
-        wait = start_wall + ((tick + 1) * case.batch - 1) * SAMPLE_PERIOD_MS / 1000 - time.time()
-        if wait > 0:
-            time.sleep(wait)
-        else:
-            lag_s = max(lag_s, -wait)
-        for i, (vid, secret) in enumerate(vehicles):
-            run = bodies[(offset + i) % len(bodies)]
-            first = tick * case.batch
-            lines = [
-                _message(vid, base_ms + (first + j) * SAMPLE_PERIOD_MS, run[(first + j) % len(run)])
-                for j in range(case.batch)
-            ]
-            payload = lines[0] if case.batch == 1 else ("[" + ",".join(lines) + "]")
+        last_due = None
+        for i in order:
+            vid, secret = vehicles[i]
+            due = start_wall + messages.due_s(offset + i, tick)
+            if due != last_due:
+                last_due = due
+                wait = due - time.time()
+                lag_s = max(lag_s, -wait)
+                if case.transport == "mqtt":
+                    fleet.run_until(due)  # reading PUBACKs meanwhile (at least once when late)
+                elif wait > 0:
+                    time.sleep(wait)
+            lines = messages.lines(vid, offset + i, tick, base_ms)
             if case.transport == "mqtt":
-                infos.append(clients[i].publish_nowait(topics[i], payload))
+                payload = lines[0] if len(lines) == 1 else ("[" + ",".join(lines) + "]")
+                infos.append((fleet.clients[i].publish(topics[i], payload, qos=1), len(lines)))
             else:
-                futures.append(pool.submit(post, vid, secret, "\n".join(lines)))
-            sent += case.batch
+                futures.append((pool.submit(post, vid, secret, "\n".join(lines)), len(lines)))
+            sent += len(lines)
     if case.transport == "mqtt":
         deadline = time.time() + 60
-        for info in infos:
-            info.wait_for_publish(max(0.0, deadline - time.time()))
-            if info.is_published():
-                acked += case.batch
-        refused = sum(c.refused for c in clients)
-        for c in clients:
-            c.close()
+        while time.time() < deadline and not all(info.is_published() for info, _ in infos):
+            fleet.run_until(time.time() + 0.5)
+        acked = sum(n for info, n in infos if info.is_published())
+        refused = fleet.refused
+        acked -= refused * case.batch
+        fleet.close()
     else:
-        for f in futures:
+        for f, n in futures:
             answer = f.result()
             if answer.status_code == 200:
                 acked += answer.json()["accepted"]
             else:
-                refused += case.batch
+                refused += n
         pool.shutdown()
         http.close()
     done_at = time.time()  # the last acknowledgement is in
-    if case.transport == "mqtt":
-        acked -= refused * case.batch
     results.put((sent, acked, refused, done_at, lag_s))
 
 
+class _MqttFleet:
+    """A load generator's vehicles: one paho client each (MQTT 5, clean start, its own login), all driven from the
+    calling thread through paho's external-loop calls (loop_read on what the epoll selector finds readable; a publish
+    is written at once; loop_write and loop_misc, keepalive included, every second for every client)."""
+
+    def __init__(self, url: str, vehicles: list[tuple[str, str]], timeout_s: float = 120.0):
+        import selectors
+
+        import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        from roadgrip.cloud.transport.mqtt import parse_url
+
+        host, port = parse_url(url)
+        self.refused = 0  # PUBACKs with a failure reason code
+        self.selector = selectors.DefaultSelector()
+        self.clients = []
+        for vehicle_id, secret in vehicles:
+            client = paho.Client(
+                CallbackAPIVersion.VERSION2, client_id=f"{vehicle_id}-{secrets.token_hex(4)}", protocol=paho.MQTTv5
+            )
+            client.username_pw_set(vehicle_id, secret)
+            client.on_publish = self._on_publish
+            client.connect(host, port, keepalive=60)
+            self.selector.register(client.socket(), selectors.EVENT_READ, client)
+            self.clients.append(client)
+        self._swept = 0.0
+        deadline = time.time() + timeout_s
+        while not all(c.is_connected() for c in self.clients):
+            if time.time() > deadline:
+                missing = sum(not c.is_connected() for c in self.clients)
+                raise TimeoutError(f"{missing} of {len(self.clients)} MQTT vehicles not connected in {timeout_s} s")
+            self.run_until(time.time() + 0.2)
+
+    def _on_publish(self, _client, _userdata, _mid, reason_code, _properties):
+        if reason_code.is_failure:
+            self.refused += 1
+
+    def run_until(self, until: float) -> None:
+        """Read what arrives (CONNACKs, PUBACKs) until `until` (s since the epoch); at least once, even when it has
+        passed."""
+        while True:
+            for key, _ in self.selector.select(max(0.0, min(until - time.time(), 0.5))):
+                key.data.loop_read()
+            if time.time() - self._swept >= 1.0:
+                self._swept = time.time()
+                for client in self.clients:
+                    if client.want_write():
+                        client.loop_write()
+                    client.loop_misc()
+            if time.time() >= until:
+                return
+
+    def close(self) -> None:
+        for client in self.clients:
+            client.disconnect()
+        self.selector.close()
+
+
 def _generate(
-    case: IngestCase, target: dict, vehicles: list[tuple[str, str]], bodies: list[list[str]], on_tick=None
+    case: IngestCase, target: dict, vehicles: list[tuple[str, str]], messages: Messages, on_tick=None
 ) -> dict:
-    """Run the load generators; counts of samples sent, acknowledged and refused, when sending started, and how long
-    until the last acknowledgement (longer than case.seconds when the generators or the service could not keep the
-    pace)."""
+    """Run the load generators; counts of lines (samples or observations) sent, acknowledged and refused, when sending
+    started (once every generator had connected its vehicles, plus a second) and how long until the last
+    acknowledgement (longer than case.seconds when the generators or the service could not keep the pace)."""
     ctx = mp.get_context("spawn")
-    results = ctx.Queue()
-    start_wall = time.time() + 3.0 + case.vehicles / 250  # time for every generator to connect first
-    base_ms = int(start_wall * 1000)  # live timestamps: sample k is due at start + k x 100 ms
+    results, ready = ctx.Queue(), ctx.Queue()
+    go, start = ctx.Event(), ctx.Value("d", 0.0)
     share = -(-len(vehicles) // case.workers)
     procs = [
         ctx.Process(
             target=_drive,
-            args=(case, target, vehicles[k * share : (k + 1) * share], bodies, start_wall, base_ms, k * share, results),
+            args=(case, target, vehicles[k * share : (k + 1) * share], messages, k * share, ready, go, start, results),
         )
         for k in range(case.workers)
         if vehicles[k * share : (k + 1) * share]
     ]
     for p in procs:
         p.start()
+    connected, deadline = 0, time.time() + 120 + len(vehicles) / 25
+    while connected < len(vehicles):
+        try:
+            connected += ready.get(timeout=5.0)
+        except queue.Empty:
+            if time.time() > deadline or any(p.exitcode is not None for p in procs):
+                for p in procs:
+                    p.kill()
+                raise TimeoutError(f"the load generators connected {connected} of {len(vehicles)} vehicles") from None
+            if on_tick is not None:
+                on_tick()
+    start.value = start_wall = time.time() + 1.0
+    go.set()
     deadline = start_wall + case.seconds + 300
     totals = []
     while len(totals) < len(procs):
@@ -207,7 +329,7 @@ def _generate(
         "acknowledged": sum(t[1] for t in totals),
         "refused": sum(t[2] for t in totals),
         "start_wall": start_wall,
-        "base_ms": base_ms,
+        "base_ms": int(start_wall * 1000),
         "generator_lag_max_s": max(t[4] for t in totals),
         "acked_s": max(t[3] for t in totals) - start_wall,
     }
@@ -320,7 +442,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                     }
                 )
 
-            load = _generate(case, target, vehicles, bodies, on_tick=record)
+            load = _generate(case, target, vehicles, TelemetryMessages(bodies, case.batch), on_tick=record)
             ended = time.time()
             while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
                 pipeline = service.health()["pipeline"]
@@ -449,7 +571,7 @@ def broker_ceiling(bodies: list[list[str]], vehicles: int, seconds: float, batch
         )
         counter.connect()
         case = IngestCase("mqtt", vehicles, seconds, batch, workers)
-        load = _generate(case, {"mqtt_url": broker.url}, logins, bodies)
+        load = _generate(case, {"mqtt_url": broker.url}, logins, TelemetryMessages(bodies, batch))
         deadline = time.time() + 60
         while received[0] * batch < load["acknowledged"] and time.time() < deadline:
             time.sleep(0.05)

@@ -44,14 +44,17 @@ def ingest(
     out: Path | None = typer.Option(None, help="write the results as JSON here"),
     mode: str = typer.Option(
         "raw",
-        help="raw (vehicles send telemetry) | edge (vehicles send friction observations over MQTT, "
-        "roadgrip/bench/ingest_edge.py: the service's CPU per stored observation)",
+        help="raw (vehicles send telemetry) | edge (vehicles send friction observations over MQTT, each its own "
+        "login, roadgrip/bench/ingest_edge.py: exactly once, map latency, memory, CPU per stored observation)",
     ),
-    edge_rate: float = typer.Option(1.0, min=0.01, help="edge mode: observations per vehicle per second"),
+    edge_rate: float = typer.Option(
+        1.0, min=0.001, help="edge mode: observations per vehicle per second (the agent's: 0.035, docs/EDGE.md)"
+    ),
 ):
     """Vehicles at 10 Hz end to end (ingest, estimate, stored) over MQTT and HTTP, counting what was sent,
     acknowledged and stored; beside it the broker and the database alone, measured in the same run. Mode edge:
-    observations instead, and the service's CPU per stored one (docs/EDGE.md)."""
+    observations instead, a soak: stored exactly once, the map's latency, the service's memory over time and its CPU
+    per stored observation (docs/EDGE.md)."""
     import json
 
     if mode not in ("raw", "edge"):
@@ -61,7 +64,7 @@ def ingest(
 
         with console.status("the vehicle end on the fleet benchmark's drives..."):
             templates = observation_templates()
-        with console.status(f"edge: {vehicles} vehicles for {seconds:.0f} s..."):
+        with console.status(f"edge: {vehicles} vehicles x {edge_rate:g} observations/s for {seconds:.0f} s..."):
             row = run_edge_case(vehicles, seconds, edge_rate, templates, progress=lambda m: None)
         console.print(format_edge_case(row))
         if out is not None:

@@ -261,6 +261,8 @@ class Fanout:
         clocks = {} if clock is None else {"clock": clock}
         self.region = RegionFanout(storage, settings, friction_map, warning_engine, publish, **clocks)
         self.vehicles = VehicleFanout(settings, self.region, publish, **clocks)
+        # edge vehicles' observations: from the end of the pass (last_ms; a vehicle sends it then) to the map updated
+        self.observation_latency = LatencyRecorder()
         self._lock = threading.Lock()
 
     @property
@@ -311,9 +313,13 @@ class Fanout:
 
     def observations(self, observations: list[dict]) -> None:
         """Newly stored friction observations of edge vehicles (CONTRACTS 3.7) into the map and the warning engine as
-        the passes they stand for (roadgrip/cloud/domain/observations.py), under the lock, like a round's estimates."""
+        the passes they stand for (roadgrip/cloud/domain/observations.py), under the lock, like a round's estimates: a
+        batch of them in one call. Then each one's latency from its last_ms to the map updated (the region's clock;
+        health: `observation_latency`)."""
         if not observations:
             return
         rows = [row for o in observations for row in pass_rows(o)]
+        last_ms = np.fromiter((o["last_ms"] for o in observations), float, len(observations))
         with self._lock:
-            self.region.estimates(rows, max(o["last_ms"] for o in observations))
+            self.region.estimates(rows, int(last_ms.max()))
+            self.observation_latency.add(self.region.clock() * 1000.0 - last_ms)

@@ -3,9 +3,10 @@ storage; in this process, or sharded over `ingest_processes`), the fan-out (map,
 (a broker given by URL, or a Mosquitto started here), and the HTTP API.
 
 Edge vehicles' observations and heartbeats (CONTRACTS 3.7, roadgrip/cloud/ingest/observations.py) do not either:
-`observations` stores the new ones (once per vehicle_id and last_ms) and hands them to the fan-out, which feeds the map
-and the warnings the passes they stand for; from the HTTP route, or from the MQTT handler on the station worker
-thread (an edge vehicle sends a few messages a minute).
+`edge_messages` stores the new ones (once per vehicle_id and last_ms, or timestamp_ms) in one transaction and hands
+the new observations to the fan-out in one call, which feeds the map and the warnings the passes they stand for; from
+the HTTP routes (`observations`, `heartbeats`: a request at a time), or from the MQTT intake, which queues the
+messages and stores them in batches (roadgrip/cloud/serve/edge_intake.py: its bound, backpressure and exactly once).
 
 Roadside stations (roadgrip/cloud/domain/stations.py) do not go through the vehicles' pipeline: `station_reports` stores a
 station's validated reports (idempotent on station_id and timestamp_ms) and hands the evidence of the new ones to the
@@ -36,11 +37,11 @@ from roadgrip.cloud.domain.stations import ReportError, StationReport, parse_rep
 from roadgrip.cloud.domain.warnings import WarningEvent
 from roadgrip.cloud.ingest.admission import Ingest
 from roadgrip.cloud.ingest.auth import ADMIN_NAME, Authenticator, hash_token, new_secret
-from roadgrip.cloud.ingest.observations import ObservationError, parse_heartbeats, parse_observations
 from roadgrip.cloud.metrics import ServiceCollector
 from roadgrip.cloud.pipeline.fanout import Fanout, new_friction_map, new_warning_engine
 from roadgrip.cloud.pipeline.pipeline import Pipeline
 from roadgrip.cloud.process import rss_mb, warm_up
+from roadgrip.cloud.serve.edge_intake import EdgeIntake
 from roadgrip.cloud.serve.shards import IngestShards
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable, open_storage
@@ -75,6 +76,7 @@ class CloudService:
         self.estimate_messages_dropped = 0
         self.http_payloads_rejected = 0  # telemetry requests refused whole: 400, 413, 415 (metrics)
         self._station_worker: ThreadPoolExecutor | None = None  # MQTT station reports, off paho's network thread
+        self.edge_intake: EdgeIntake | None = None  # edge vehicles' MQTT messages, in batches
 
     # ------------------------------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -109,6 +111,9 @@ class CloudService:
         if self._station_worker is not None:
             self._station_worker.shutdown(wait=True)
             self._station_worker = None
+        if self.edge_intake is not None:
+            self.edge_intake.stop()
+            self.edge_intake = None
         if self.ingest is not None:
             self.ingest.stop()
             self.ingest = None
@@ -182,6 +187,8 @@ class CloudService:
             username, password = s.mqtt_username, s.mqtt_password
         # a broker of our own allows MAX_INFLIGHT_MESSAGES; another one, Mosquitto's default
         self._station_worker = ThreadPoolExecutor(1, thread_name_prefix="station-reports")
+        self.edge_intake = EdgeIntake(s, self.edge_messages, self._reject_mqtt)
+        self.edge_intake.start()
         self.mqtt = MqttClient(
             self.mqtt_url,
             username,
@@ -189,7 +196,7 @@ class CloudService:
             client_id="roadgrip-cloud",
             on_telemetry=self.ingest.mqtt_message,
             on_station_report=self._station_message,
-            on_edge=self._edge_message,
+            on_edge=self.edge_intake.submit,
             max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT,
         )
         self.mqtt.connect()
@@ -255,56 +262,27 @@ class CloudService:
         ack()
 
     # ------------------------------------------------------------------------------------------------- edge vehicles
-    def observations(self, observations: list[dict]) -> EdgeIngest:
-        """Store validated observations (roadgrip/cloud/ingest/observations.py) and hand the new ones to the map and
-        the warning engine. StorageUnavailable when the database is down (nothing stored)."""
-        new = self.storage.put_observations(observations)
-        fresh = [o for o in observations if (o["vehicle_id"], o["last_ms"]) in new]
+    def edge_messages(self, observations: list[dict], heartbeats: list[dict]) -> tuple[EdgeIngest, EdgeIngest]:
+        """Store validated observations and heartbeats (roadgrip/cloud/ingest/observations.py) in one transaction,
+        the first of each key, and hand the new observations to the map and the warning engine in one call.
+        StorageUnavailable when the database is down (nothing stored)."""
+        unique = list({(o["vehicle_id"], o["last_ms"]): o for o in reversed(observations)}.values())[::-1]
+        beats = list({(h["vehicle_id"], h["timestamp_ms"]): h for h in reversed(heartbeats)}.values())
+        new, stored_beats = self.storage.put_edge(unique, beats)
+        fresh = [o for o in unique if (o["vehicle_id"], o["last_ms"]) in new]
         self.fanout.observations(fresh)
-        return EdgeIngest(len(observations), len(fresh), len(observations) - len(fresh))
+        return (
+            EdgeIngest(len(observations), len(fresh), len(observations) - len(fresh)),
+            EdgeIngest(len(heartbeats), stored_beats, len(heartbeats) - stored_beats),
+        )
+
+    def observations(self, observations: list[dict]) -> EdgeIngest:
+        """Store validated observations and hand the new ones to the map and the warning engine (`edge_messages`)."""
+        return self.edge_messages(observations, [])[0]
 
     def heartbeats(self, heartbeats: list[dict]) -> EdgeIngest:
-        """Store validated heartbeats. StorageUnavailable when the database is down."""
-        stored = self.storage.put_heartbeats(heartbeats)
-        return EdgeIngest(len(heartbeats), stored, len(heartbeats) - stored)
-
-    def _edge_message(self, vehicle_id: str, kind: str, payload: bytes, ack) -> None:
-        """An MQTT message on an edge vehicle's observations or heartbeat topic (the ACL made sure it is that
-        vehicle's): handled on the station worker thread, as a station's report is; rejections go to the vehicle's
-        errors topic. Acknowledged once stored, or at once when refused (it would never pass)."""
-        self._station_worker.submit(self._handle_edge_message, vehicle_id, kind, payload, ack)
-
-    def _handle_edge_message(self, vehicle_id: str, kind: str, payload: bytes, ack) -> None:
-        s = self.settings
-        now_ms, max_future_ms = int(time.time() * 1000), int(s.max_future_s * 1000)
-        try:
-            if kind == "observations":
-                parsed = parse_observations(
-                    payload,
-                    vehicle_id=vehicle_id,
-                    resolution=s.h3_resolution,
-                    now_ms=now_ms,
-                    max_future_ms=max_future_ms,
-                    max_bytes=s.max_payload_bytes,
-                )
-            else:
-                parsed = parse_heartbeats(
-                    payload,
-                    vehicle_id=vehicle_id,
-                    now_ms=now_ms,
-                    max_future_ms=max_future_ms,
-                    max_bytes=s.max_payload_bytes,
-                )
-        except ObservationError as exc:
-            self._reject_mqtt(vehicle_id, [exc.to_dict()])
-            ack()
-            return
-        try:
-            (self.observations if kind == "observations" else self.heartbeats)(parsed)
-        except StorageUnavailable as exc:
-            log.warning("vehicle %s: storage unavailable, its %s left unacknowledged: %s", vehicle_id, kind, exc)
-            return
-        ack()
+        """Store validated heartbeats (`edge_messages`)."""
+        return self.edge_messages([], heartbeats)[1]
 
     # ------------------------------------------------------------------------------------------------- registration
     def register_vehicles(self, vehicles: list[tuple[str, VehicleParams]]) -> list[str]:
@@ -390,6 +368,9 @@ class CloudService:
             "estimate_messages_dropped": self.estimate_messages_dropped,
             "latency": self.fanout.latency.recent(),
             "latency_since_start": self.fanout.latency.since_start(),
+            "edge": None if self.edge_intake is None else self.edge_intake.stats(),
+            "observation_latency": self.fanout.observation_latency.recent(),
+            "observation_latency_since_start": self.fanout.observation_latency.since_start(),
         }
         # the service's processes together: this one and its ingest processes
         own = rss_mb()

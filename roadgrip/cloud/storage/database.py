@@ -16,7 +16,7 @@ is upgraded, keeping its rows) and returns a `Storage`, whose methods are safe t
 | telemetry.py | telemetry, estimates | write_batch, estimates, estimates_since, latest_estimates, telemetry, counts, telemetry_extent, latest_timestamps |
 | partitions.py | partition_owners, counters (workers' heartbeats) | take_partition, partition_owners, heartbeat, worker_heartbeats, end_heartbeat (and the fences of write_batch, put_estimator_states) |
 | estimator_states.py | estimator_states | put_estimator_states, estimator_states, estimator_state_rows |
-| observations.py | observations, heartbeats | put_observations, observations_since, put_heartbeats, latest_heartbeats |
+| observations.py | observations, heartbeats | put_edge, put_observations, observations_since, observation_extent, put_heartbeats, latest_heartbeats |
 | stations.py | station_reports | put_station_reports, latest_station_reports, station_reports_of, station_reports_since |
 | map_warnings.py | warnings, map_cells, region_owners, counters | put_warnings, put_region_output, map_cells, delete_map_cells, next_action_sequence_number, region_owners, take_region_queue, warnings |
 
@@ -252,11 +252,17 @@ class Storage:
 
     # ------------------------------------------------------------------------------------ observations.py
 
+    def put_edge(self, observations: list[dict], heartbeats: list[dict]) -> tuple[set[tuple[str, int]], int]:
+        return self._observations.put_edge(observations, heartbeats)
+
     def put_observations(self, rows: list[dict]) -> set[tuple[str, int]]:
         return self._observations.put_observations(rows)
 
     def observations_since(self, since_ms: int, limit: int = 1_000_000) -> list[dict]:
         return self._observations.observations_since(since_ms, limit)
+
+    def observation_extent(self) -> dict[str, tuple[int, int, int]]:
+        return self._observations.observation_extent()
 
     def put_heartbeats(self, rows: list[dict]) -> int:
         return self._observations.put_heartbeats(rows)

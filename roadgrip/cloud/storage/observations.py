@@ -1,6 +1,7 @@
 """The observations and heartbeats tables: edge vehicles' friction observations and heartbeats (CONTRACTS 3.7,
 roadgrip/cloud/ingest/observations.py), as validated. A repeat of a stored one (same key) is skipped: an edge vehicle
-sends again what it has no PUBACK for (roadgrip/edge/uplink.py), and it is stored once."""
+sends again what it has no PUBACK for (roadgrip/edge/uplink.py), and it is stored once. `put_edge` stores a batch of
+both kinds in one transaction (serve's MQTT intake, roadgrip/cloud/serve/edge_intake.py)."""
 
 from __future__ import annotations
 
@@ -16,17 +17,33 @@ class Observations:
     def __init__(self, db: Database):
         self._db = db
 
-    def put_observations(self, rows: list[dict]) -> set[tuple[str, int]]:
-        """Store observations in one transaction (received_ms defaults to now); those whose (vehicle_id, last_ms) is
-        stored already are skipped. The keys newly stored."""
+    def put_edge(self, observations: list[dict], heartbeats: list[dict]) -> tuple[set[tuple[str, int]], int]:
+        """Store observations and heartbeats in one transaction (received_ms defaults to now): a batch of edge
+        messages. A row whose key is stored already, or came earlier in the same call, is skipped. The observation
+        keys (vehicle_id, last_ms) newly stored, and how many heartbeats were new."""
         received_ms = now_ms()
-        rows = checked_rows("observation", [{"received_ms": received_ms, **row} for row in rows], observations_table)
-        if not rows:
-            return set()
-        c = observations_table.c
-        insert = self._db.insert(observations_table).on_conflict_do_nothing().returning(c.vehicle_id, c.last_ms)
+        observations = checked_rows(
+            "observation", [{"received_ms": received_ms, **row} for row in observations], observations_table
+        )
+        heartbeats = checked_rows(
+            "heartbeat", [{"received_ms": received_ms, **row} for row in heartbeats], heartbeats_table
+        )
+        new, beats = set(), 0
+        if not observations and not heartbeats:
+            return new, beats
+        o, h = observations_table.c, heartbeats_table.c
         with self._db.transaction() as conn:
-            return {(row[0], row[1]) for row in conn.execute(insert, rows)}
+            if observations:
+                insert = self._db.insert(observations_table).on_conflict_do_nothing().returning(o.vehicle_id, o.last_ms)
+                new = {(row[0], row[1]) for row in conn.execute(insert, observations)}
+            if heartbeats:
+                insert = self._db.insert(heartbeats_table).on_conflict_do_nothing().returning(h.vehicle_id)
+                beats = len(conn.execute(insert, heartbeats).all())
+        return new, beats
+
+    def put_observations(self, rows: list[dict]) -> set[tuple[str, int]]:
+        """Store observations in one transaction (put_edge); the keys newly stored."""
+        return self.put_edge(rows, [])[0]
 
     def observations_since(self, since_ms: int, limit: int = 1_000_000) -> list[dict]:
         """The observations with last_ms >= since_ms, oldest first, at most `limit`."""
@@ -35,16 +52,18 @@ class Observations:
         query = select(observations_table).where(c.last_ms >= since_ms).order_by(c.last_ms, c.vehicle_id)
         return [_observation(row) for row in self._db.all(query.limit(limit))]
 
+    def observation_extent(self) -> dict[str, tuple[int, int, int]]:
+        """vehicle_id -> (rows, first last_ms, last last_ms) of its stored observations."""
+        c = observations_table.c
+        query = select(
+            c.vehicle_id, func.count().label("n"), func.min(c.last_ms).label("first"), func.max(c.last_ms).label("last")
+        )
+        rows = self._db.all(query.group_by(c.vehicle_id))
+        return {row["vehicle_id"]: (row["n"], row["first"], row["last"]) for row in rows}
+
     def put_heartbeats(self, rows: list[dict]) -> int:
-        """Store heartbeats in one transaction, repeats skipped; how many were new."""
-        received_ms = now_ms()
-        rows = checked_rows("heartbeat", [{"received_ms": received_ms, **row} for row in rows], heartbeats_table)
-        if not rows:
-            return 0
-        c = heartbeats_table.c
-        insert = self._db.insert(heartbeats_table).on_conflict_do_nothing().returning(c.vehicle_id)
-        with self._db.transaction() as conn:
-            return len(conn.execute(insert, rows).all())
+        """Store heartbeats in one transaction (put_edge), repeats skipped; how many were new."""
+        return self.put_edge([], rows)[1]
 
     def latest_heartbeats(self) -> list[dict]:
         """The newest heartbeat of every edge vehicle, by vehicle_id."""
