@@ -30,10 +30,7 @@ load f on a road of friction mu and a tire of cornering stiffness per load c:
 
 so an axle's slip angle grows faster than f / c as it nears its limit: the understeer angle bends away from its line
 K_us a_y where the front axle nears its limit (understeer), and towards zero or below where the rear does (oversteer).
-That bend, on the calibrated line, is the evidence over mu. Before the line is calibrated the
-profile's (catalogue) stiffnesses stand in with each axle's own spread (var_axle): below the limit the bend is then
-within that spread and the term says little; an axle at its limit (on ice the understeer angle grows several times its
-line) is seen without calibration. An axle also driven or braked has less left for the side
+That bend, on the calibrated line, is the evidence over mu. An axle also driven or braked has less left for the side
 (the friction ellipse, Pacejka section 3.2.4): mu_y = sqrt(mu^2 - f_x^2).
 """
 
@@ -107,15 +104,13 @@ def normal_cdf(x):
 
 @njit(cache=True)
 def lateral_likelihood(
-    mu_grid, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, slope, var_axle, var0, sf, temper, out
+    mu_grid, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, slope, var0, sf, temper, out
 ):
     """The likelihood over mu (out, one value per grid mu) of a measured understeer angle (rad, the calibrated offset
     taken out), raised to `temper`; f_*: the axles' lateral, fx_*: their longitudinal forces per load.
 
-    slope: the calibrated factor on the profile's slip angles (1 / the tires' stiffness factor); var_axle: the relative
-    variance of each axle's own compliance around it (tires and loads vary axle by axle: each axle's predicted slip
-    angle, linear or near its limit, is uncertain by that share, independently), so that an uncalibrated car's
-    response is a spread, not a point; var0: the variance of the measurement and of the calibration's offset; sf: the force per load's standard deviation (the
+    slope: the calibrated factor on the profile's slip angles (1 / the tires' stiffness factor); var0: the variance of
+    the measurement and of the calibration (offset and slope); sf: the force per load's standard deviation (the
     lateral accelerometer's remaining bias over g), carried through the brush model's slope. An axle at its limit
     (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then one-sided, and uninformative where both
     axles are: there the likelihood is the nearest cell's with an axle that holds (from above), so that a sample the
@@ -131,12 +126,7 @@ def lateral_likelihood(
         d_slope = slope * (
             brush_slip_angle_slope(f_front, mu_f, c_front) - brush_slip_angle_slope(f_rear, mu_r, c_rear)
         )
-        sig = sqrt(
-            var0
-            + var_axle * slope * slope * (a_f * a_f + a_r * a_r)
-            + (LATERAL_MODEL_SHARE * (pred - lin)) ** 2
-            + (sf * d_slope) ** 2
-        )
+        sig = sqrt(var0 + (LATERAL_MODEL_SHARE * (pred - lin)) ** 2 + (sf * d_slope) ** 2)
         if sat_f and sat_r:
             out[i] = out[i + 1] if i + 1 < mu_grid.size else 1.0
         elif sat_f:  # the front slides: the understeer angle is at least (in the force's direction) the prediction

@@ -9,7 +9,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
-| the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit; before the line is calibrated (to LAT_SLOPE_CALIBRATED) each axle's slip angle also uncertain by the slope's remaining spread (+-LAT_SLOPE_SIGMA0 fresh) |
+| the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -165,13 +165,10 @@ LAT_MAX_STEER_RAD = 0.15  # the single-track model's small angles: cos delta wit
 LAT_OFFSET_SIGMA0_RAD = 0.001  # an uncalibrated offset: steering bias 0.5 deg / ratio, gyro bias 0.002 rad/s x L / v
 LAT_OFFSET_FLOOR_RAD = 0.0003  # what its calibration leaves: the gyro bias's L b_r / v at another speed (11 vs 20 m/s)
 LAT_SLOPE_FLOOR = 0.05  # ... and of the slope: the tires' stiffness with their temperature and the road's texture
-# The tires' cornering stiffness against the profile's: worn, winter, inflation, loads (+-30 %). Until the line is
-# calibrated (its slope known to LAT_SLOPE_CALIBRATED, 1 sigma, a third of the brush model's bend at 60 % of the limit)
-# the term speaks with the slope's remaining spread carried on each axle's own slip angle as well (lateral.py
-# var_axle: the axles' tires and loads differ, and the errors are the same at every sample, so they widen the term
-# rather than average out); the calibrated line holds the axles' linear split, and only its common slope is carried
-LAT_SLOPE_SIGMA0 = 0.3
+# The line's errors are the same at every sample, not noise that averages out: the term speaks only once the slope is
+# known to this (1 sigma), a third of the brush model's bend at 60 % of the limit (1.32 x the line)
 LAT_SLOPE_CALIBRATED = 0.1
+LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: worn, winter, inflation (+-30 %)
 LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
 LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
 LAT_BIAS_FLOOR_MPS2 = 0.1  # what calibration leaves: crossfall varying by 1 % around the one it learned
@@ -634,7 +631,9 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
         + rate * rate
         + (mem[K_LAT_S] * s_racc) ** 2
     )
-    if not at_limit:  # a wheel locked or spinning: its axle's forces are not the brush model's; the limit term speaks
+    if (
+        not at_limit and mem[K_LP11] <= LAT_SLOPE_CALIBRATED**2
+    ):  # a wheel locked or spinning: its axle's forces are not the brush model's; the limit term speaks
         # each axle's longitudinal force per load (braking by the brake share, driving by the driven axle's)
         fx_f = fx_r = atx / G_MPS2  # all-wheel drive: each axle by its load
         if atx < 0.0:
@@ -655,10 +654,7 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
         bias_y_var = LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2
         sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var) / G_MPS2
         lk = np.empty(NM)
-        var_axle = mem[K_LP11] if mem[K_LP11] > LAT_SLOPE_CALIBRATED**2 else 0.0
-        lateral_likelihood(
-            MU_GRID, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, mem[K_LAT_S], var_axle, var0, sf, TEMPER, lk
-        )
+        lateral_likelihood(MU_GRID, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, mem[K_LAT_S], var0, sf, TEMPER, lk)
         for i in range(NM):
             for j in range(NC):
                 like[i, j] = lk[i]
