@@ -20,7 +20,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from roadgrip.cloud.ingest.observations import ObservationError, parse_heartbeats, parse_observations
+from roadgrip.cloud.ingest.observations import ObservationError, parse_edge_message
 from roadgrip.edge.agent import EdgeAgent
 from roadgrip.edge.outbox import Outbox
 from roadgrip.estimators.learned import load_estimator
@@ -59,7 +59,7 @@ class EdgeFleet:
     def deliver(self, service) -> None:
         """Every waiting message of every outbox to the service, as its MQTT handler takes it; emptied outboxes."""
         s = self.settings
-        now_ms, max_future_ms = int(time.time() * 1000), int(s.max_future_s * 1000)
+        now_ms = int(time.time() * 1000)
         for vehicle_id, agent in self.agents.items():
             outbox = agent.outbox
             if not outbox.pending:
@@ -68,23 +68,14 @@ class EdgeFleet:
             for message_id, topic, payload in outbox.oldest(outbox.pending):
                 self.payload_bytes += len(payload)
                 try:
-                    if topic.endswith("/observations"):
-                        observations += parse_observations(
-                            payload,
-                            vehicle_id=vehicle_id,
-                            resolution=s.h3_resolution,
-                            now_ms=now_ms,
-                            max_future_ms=max_future_ms,
-                            max_bytes=s.max_payload_bytes,
-                        )
-                    else:
-                        heartbeats += parse_heartbeats(
-                            payload,
-                            vehicle_id=vehicle_id,
-                            now_ms=now_ms,
-                            max_future_ms=max_future_ms,
-                            max_bytes=s.max_payload_bytes,
-                        )
+                    parsed = parse_edge_message(
+                        "observations" if topic.endswith("/observations") else "heartbeat",
+                        payload,
+                        vehicle_id=vehicle_id,
+                        settings=s,
+                        now_ms=now_ms,
+                    )
+                    (observations if topic.endswith("/observations") else heartbeats).extend(parsed)
                 except ObservationError:
                     self.rejected += 1
                 outbox.remove(message_id)

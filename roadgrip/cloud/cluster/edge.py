@@ -38,7 +38,7 @@ import pika
 
 from roadgrip.cloud.cluster.publisher import PUBLISH_DEADLINE_S
 from roadgrip.cloud.cluster.regions import RegionPublisher, check_region_resolution, publish_observations
-from roadgrip.cloud.ingest.observations import ObservationError, parse_heartbeats, parse_observations
+from roadgrip.cloud.ingest.observations import ObservationError, parse_edge_message
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable
 from roadgrip.cloud.transport.amqp import EDGE_QUEUE, MQTT_EXCHANGE, mqtt_routing_key
@@ -144,7 +144,7 @@ class EdgeConsumer:
         """Parse, store, hand on (module docstring). StorageUnavailable, or TimeoutError (an OSError) from the
         region publish, when that could not be done: nothing is acknowledged then."""
         s = self.settings
-        now_ms, max_future_ms = int(time.time() * 1000), int(s.max_future_s * 1000)
+        now_ms = int(time.time() * 1000)
         observations: list[dict] = []
         heartbeats: list[dict] = []
         for key, _tag, body in deliveries:
@@ -154,23 +154,8 @@ class EdgeConsumer:
                 log.warning("edge queue: a message with routing key %r is no edge vehicle's; dropped", key)
                 continue
             try:
-                if kind == "observations":
-                    observations += parse_observations(
-                        body,
-                        vehicle_id=vehicle_id,
-                        resolution=s.h3_resolution,
-                        now_ms=now_ms,
-                        max_future_ms=max_future_ms,
-                        max_bytes=s.max_payload_bytes,
-                    )
-                else:
-                    heartbeats += parse_heartbeats(
-                        body,
-                        vehicle_id=vehicle_id,
-                        now_ms=now_ms,
-                        max_future_ms=max_future_ms,
-                        max_bytes=s.max_payload_bytes,
-                    )
+                parsed = parse_edge_message(kind, body, vehicle_id=vehicle_id, settings=s, now_ms=now_ms)
+                (observations if kind == "observations" else heartbeats).extend(parsed)
             except ObservationError as exc:
                 self._reject(channel, vehicle_id, kind, exc)
         if observations:

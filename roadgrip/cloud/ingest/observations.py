@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from roadgrip.cloud.domain.cells import cell_of
 from roadgrip.cloud.domain.checks import PayloadError, json_items
 from roadgrip.cloud.domain.friction_map import MU_MAX
+from roadgrip.cloud.settings import Settings
 from roadgrip.data.schema import EVIDENCE_KINDS, TELEMETRY
 from roadgrip.data.telemetry import VEHICLE_ID_RE
 
@@ -168,3 +169,16 @@ def parse_heartbeats(
         _future(h.timestamp_ms, now_ms, max_future_ms, index, "timestamp_ms")
         out.append(h.model_dump())
     return out
+
+
+def parse_edge_message(kind: str, body: bytes, *, vehicle_id: str, settings: Settings, now_ms: int) -> list[dict]:
+    """The observations (kind "observations") or heartbeats (kind "heartbeat") of one message of `vehicle_id`, checked
+    with the service's settings (H3 resolution, max_future_s, max_payload_bytes); ObservationError for the first fault."""
+    limits = {
+        "now_ms": now_ms,
+        "max_future_ms": int(settings.max_future_s * 1000),
+        "max_bytes": settings.max_payload_bytes,
+    }
+    if kind == "observations":
+        return parse_observations(body, vehicle_id=vehicle_id, resolution=settings.h3_resolution, **limits)
+    return parse_heartbeats(body, vehicle_id=vehicle_id, **limits)

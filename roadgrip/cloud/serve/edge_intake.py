@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 
 from roadgrip.cloud.api.backend import EdgeIngest
-from roadgrip.cloud.ingest.observations import ObservationError, parse_heartbeats, parse_observations
+from roadgrip.cloud.ingest.observations import ObservationError, parse_edge_message
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import StorageUnavailable
 
@@ -138,27 +138,12 @@ class EdgeIntake:
 
     def _handle(self, batch: list[tuple]) -> None:
         s = self.settings
-        now_ms, max_future_ms = int(self.clock() * 1000), int(s.max_future_s * 1000)
+        now_ms = int(self.clock() * 1000)
         observations, heartbeats, acks = [], [], []
         for vehicle_id, kind, payload, ack in batch:
             try:
-                if kind == "observations":
-                    observations += parse_observations(
-                        payload,
-                        vehicle_id=vehicle_id,
-                        resolution=s.h3_resolution,
-                        now_ms=now_ms,
-                        max_future_ms=max_future_ms,
-                        max_bytes=s.max_payload_bytes,
-                    )
-                else:
-                    heartbeats += parse_heartbeats(
-                        payload,
-                        vehicle_id=vehicle_id,
-                        now_ms=now_ms,
-                        max_future_ms=max_future_ms,
-                        max_bytes=s.max_payload_bytes,
-                    )
+                parsed = parse_edge_message(kind, payload, vehicle_id=vehicle_id, settings=s, now_ms=now_ms)
+                (observations if kind == "observations" else heartbeats).extend(parsed)
             except ObservationError as exc:
                 self.counts["messages_rejected"] += 1
                 self.reject(vehicle_id, [exc.to_dict()])
