@@ -55,8 +55,9 @@ Definitions (docs/RESULTS.md, "The fleet benchmark"):
   dried; otherwise it is false. Warnings on control (wet, mu 0.80) patches are false;
 - detected: a warning on the patch; time to first warning: its detection time less the patch's appearance;
   passes to first warning: the passes that entered the patch up to the detection time;
-- linger: how long after the patch dried the last of its warnings ended (cancelled or expired; a warning still active at
-  the end counts to the end and is flagged censored);
+- linger: how long after the last ice the fleet drove on the last of the patch's warnings ended (cancelled or expired;
+  a warning still active at the end counts to the end and is flagged censored); the last ice is the patch's drying
+  time, or later when a trip that planned to reach it before then drove it after (fleet_metrics.patch_outcome);
 - dry road: road whose true mu under the vehicle is at least 0.6 (fleet_metrics.DRY_MU: dry asphalt, or a wet control
   patch); false warnings per 100 km of dry road = false warnings / (km driven on dry road / 100);
 - map error at an instant: for each cell with recent excited evidence (status measured), the distance from the map's mu

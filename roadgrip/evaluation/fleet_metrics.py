@@ -84,11 +84,16 @@ def patch_outcome(
     attributed to it (classify); `passes_after_dry`: passes over its place within TARGET_LINGER_S after it dried;
     `observable_passes`: the passes whose manoeuvre made mu observable (fleet_benchmark.observable).
     `cancelled_while_there`: its warnings on it that a dry pass cancelled ("recovered") before it dried, the patch
-    unchanged: the warning engine read grip where the ice still was, or grip elsewhere as grip here."""
+    unchanged: the warning engine read grip where the ice still was, or grip elsewhere as grip here.
+    `last_low_s`: the last moment a vehicle drove on the patch's mu, at least its drying time: the simulator's mu is a
+    function of the station, so a trip that planned to reach the patch before it dried drives it after (network.py),
+    and its low reading then is true evidence of ice under its tires. The linger is counted from there: how long its
+    warnings outlived the last ice the fleet drove on."""
     passes = sorted(passes, key=lambda p: p[1])
     vehicles = {p[0] for p in passes}
     warnings = [*on, *beside]
     first = min((w.detection_s for w in on), default=None)
+    last_low_s = max([patch.dry_s, *(p[2] for p in passes)])
     row = {
         "patch": patch.name,
         "band": band_of(patch.mu),
@@ -105,13 +110,14 @@ def patch_outcome(
         "warnings": len(warnings),
         "cancelled_while_there": sum(w.reason == RECOVERED and w.end_s < patch.dry_s for w in on),
         "dried_in_run": patch.dry_s < run_end_s,
+        "last_low_s": last_low_s,
         "passes_after_dry": passes_after_dry,
         "linger_s": None,
         "censored": False,
     }
-    if warnings and patch.dry_s < run_end_s:
+    if warnings and last_low_s < run_end_s:
         ends = [run_end_s if w.end_s is None else w.end_s for w in warnings]
-        row["linger_s"] = max(0.0, max(ends) - patch.dry_s)
+        row["linger_s"] = max(0.0, max(ends) - last_low_s)
         row["censored"] = any(w.end_s is None for w in warnings)
     return row
 

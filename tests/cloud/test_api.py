@@ -306,10 +306,16 @@ def test_a_slippery_patch_raises_a_warning_there_only_and_dry_passes_cancel_it(c
         f["properties"]["cell"]: f["properties"] for f in geo["features"] if f["properties"]["status"] == "measured"
     }
     assert measured and ET.fromstring(client.get("/v1/map/datex2", auth=ADMIN).content) is not None
-    # later again, a vehicle brakes on the patch's far half too: the evidence has recovered in every warned cell
-    auth = register(client, "suv-d", "paper-suv")
-    post(client, auth, wire_samples(patch_drive(0.9, 3, "paper-suv", brake_s=13.0), "suv-d", later + 120_000), chunk=20)
-    settle(service)
+    # later again, vehicles brake on the patch's middle and far end too: grip is proven wherever the ice was read (the
+    # low readings of the first two ran on over the whole patch, 250-400 m), and every warned cell on it has recovered
+    for vehicle_id, profile, seed, brake_s, k in (
+        ("suv-d", "paper-suv", 3, 13.0, 1),
+        ("sedan-d", "midsize-sedan", 5, 15.0, 2),
+    ):
+        auth = register(client, vehicle_id, profile)
+        drive = patch_drive(0.9, seed, profile, brake_s=brake_s)
+        post(client, auth, wire_samples(drive, vehicle_id, later + 120_000 * k), chunk=20)
+        settle(service)
     left = {w["roadgrip"]["cell"] for w in client.get("/v1/warnings", auth=ADMIN).json()["warnings"]}
     assert not left & patch_cells(), "dry passes did not cancel the warnings on the patch"
     assert left <= on_or_beside_the_patch() - patch_cells()  # beside it, where nobody braked again: it will expire

@@ -63,6 +63,16 @@ def test_a_warning_outliving_its_patch_by_five_minutes():
     assert summary["lingering"] == 1 and summary["linger_over_10min"] == 0 and summary["linger_max_s"] == 300.0
 
 
+def test_linger_counts_from_the_last_ice_a_vehicle_drove_on():
+    """ICE dries at 60 s, but a trip planned before drives it until 75 s (the simulator's mu is the patch as the trip
+    planned to reach it): its low reading is true ice, and the warning's linger counts from 75 s, not 60 s."""
+    warned = Warning("cell", 30.0, 75.0 + 600.0, "expired")
+    row = patch_outcome(ICE, [("a", 25.0, 28.0), ("late", 70.0, 75.0)], [warned], [], run_end_s=3600.0)
+    assert row["last_low_s"] == pytest.approx(75.0) and row["linger_s"] == pytest.approx(600.0)
+    on_time = patch_outcome(ICE, [("a", 25.0, 28.0)], [warned], [], run_end_s=3600.0)
+    assert on_time["last_low_s"] == pytest.approx(ICE.dry_s) and on_time["linger_s"] == pytest.approx(615.0)
+
+
 def test_a_warning_cancelled_while_its_patch_persists_is_counted():
     """ICE is there from 20 s to 60 s: a dry pass that cancels its warning at 40 s read grip where the ice still was
     (or grip elsewhere in the cell); an expiry, or a cancellation after it dried, is not counted."""

@@ -9,18 +9,20 @@ keeps, per cell, the *spots* of its low evidence:
   (excited, mu_upper below the threshold) in a low pass. A roadside station's low report speaks for the stretch of road
   its station stands for (roadgrip/cloud/domain/stations.py, COVERAGE_RADIUS_M), not a point: its spot is the whole cell
   (the spot's key is the cell itself).
-- A vehicle's dry pass speaks of the place when one of its estimates that proved grip (excited with mu_lower at or
-  above the threshold, or mu_proven at or above it) lies on one of the spots or one of their six neighbours
-  (SPOT_RING 1): within about 15-30 m of a low reading, which allows for GNSS error (a few metres) and for an
-  estimate's window (pmf reads the last second or so of driving, 10-30 m at road speeds). A vehicle's pass never speaks
-  for a station's whole-cell spot (it proved grip along its own track only), and a station's dry report speaks only
-  of a place a station read low (the whole-cell spot): the evidence row of a report holds the cell, not where the
-  station stands, and a station up to COVERAGE_RADIUS_M away says nothing of where a vehicle read ice.
-- One such pass speaks for the whole place, not only for the spots it touched: an estimator's low readings go on for
-  a while after the braking that measured them (pmf's posterior carries the ice along: in
-  tests/cloud/test_api.py a 46 m braking on a 150 m patch read low over all 150 m), while grip is proven only where a
-  vehicle brakes or turns hard enough, so asking for every spot to be proven dry would keep nearly every warning to its
-  expiry. What the place rules out is grip proven elsewhere in the cell.
+- A vehicle's dry pass shows a spot dry when one of its estimates that proved grip (excited with mu_lower at or above
+  the threshold, or mu_proven at or above it) lies on the spot or one of its six neighbours (SPOT_RING 1): within
+  about 15-30 m, which allows for GNSS error (a few metres) and for an estimate's window (pmf reads the last second or
+  so of driving, 10-30 m at road speeds). Grip proves friction only where the tires were worked, so a pass shows dry
+  only the spots it reaches, and never a spot where the same pass read low (a pass that crosses a patch's edge reads
+  low on it and proves grip past it: its grip says nothing of where it read ice). A vehicle's pass never speaks for a
+  station's whole-cell spot (it proved grip along its own track only), and a station's dry report speaks only of a
+  place a station read low (the whole-cell spot): the evidence row of a report holds the cell, not where the station
+  stands, and a station up to COVERAGE_RADIUS_M away says nothing of where a vehicle read ice.
+- The place is shown dry when every spot is: grip proven on it (or beside it) after its last low reading. Until then
+  a warning stays, and ends by expiry if nobody proves the rest dry. Grip at one end of the place (a vehicle that
+  braked where the patch begins, or skirted its edge) is not the patch drying: in the fleet benchmark's tuning seeds
+  (issue 23) both warnings cancelled while their patch was there were of that kind: grip proven at the patch's edge or
+  past it while the place held low readings 30-60 m further in (docs/RESULTS.md, "Warnings that last").
 - UNKNOWN_PLACE: a warning restored from an event stored before warnings kept their place (no `spots` in the event);
   any dry pass in the cell speaks of it, the rule before places were kept.
 
@@ -53,12 +55,14 @@ def reach(spots: Iterable[str]) -> set[str]:
 
 
 class Place:
-    """The spots of one cell's low evidence (module docstring): spot key -> the time of its last low reading."""
+    """The spots of one cell's low evidence (module docstring): spot key -> [the time of its last low reading, the time
+    of the last grip proven on it or beside it]. A spot is shown dry when grip was proven there after its last low
+    reading; the place is shown dry when every spot is."""
 
     __slots__ = ("spots",)
 
     def __init__(self):
-        self.spots: dict[str, int] = {}
+        self.spots: dict[str, list[int]] = {}
 
     def __bool__(self) -> bool:
         return bool(self.spots)
@@ -66,21 +70,31 @@ class Place:
     def low(self, keys: Iterable[str], t: int) -> None:
         """Low readings at `keys` at time t."""
         for key in keys:
-            if t > self.spots.get(key, _NEVER):
-                self.spots[key] = t
+            times = self.spots.setdefault(key, [_NEVER, _NEVER])
+            times[0] = max(times[0], t)
 
-    def spoken_of(self, grip: set[str]) -> bool:
-        """Whether a dry pass whose grip reaches `grip` (a vehicle's: the reach of its grip spots; a station's: its
-        cell, the whole-cell spot) touches a spot of the place."""
-        return any(k in grip or k == UNKNOWN_PLACE for k in self.spots)
+    def dry(self, grip: set[str], t: int) -> bool:
+        """Grip proven at time t on `grip` (a vehicle's: the reach of its grip spots less the spots where the same pass
+        read low; a station's: its cell, the whole-cell spot): marks the spots it touches, and says whether it touched
+        any (whether the pass speaks of the place)."""
+        touched = False
+        for key, times in self.spots.items():
+            if key in grip or key == UNKNOWN_PLACE:
+                times[1] = max(times[1], t)
+                touched = True
+        return touched
+
+    def shown_dry(self) -> bool:
+        """Whether grip was proven on every spot after its last low reading."""
+        return all(dry_ms > low_ms for low_ms, dry_ms in self.spots.values())
 
     def keys(self) -> tuple[str, ...]:
-        """The spots, sorted (what a warning's event carries)."""
-        return tuple(sorted(self.spots))
+        """The spots not yet shown dry, sorted (what a warning's event carries)."""
+        return tuple(sorted(k for k, (low_ms, dry_ms) in self.spots.items() if dry_ms <= low_ms))
 
     def forget(self, horizon_ms: float, *, inclusive: bool = False) -> None:
         """Forget the spots whose last low reading is older than horizon_ms (or at it, when inclusive)."""
-        for key in [k for k, t in self.spots.items() if t < horizon_ms or (inclusive and t == horizon_ms)]:
+        for key in [k for k, (t, _) in self.spots.items() if t < horizon_ms or (inclusive and t == horizon_ms)]:
             del self.spots[key]
 
     def clear(self) -> None:

@@ -36,8 +36,9 @@ Rules
    than pass_gap_s apart count once (`_Evidence`): GNSS noise along a cell border splits one visit into several
    passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
-6. Cancel ("recovered"): min_dry_passes dry passes over its place (rule 9) later than the detection cancel it. A dry
-   pass elsewhere in the cell neither cancels nor refreshes it. A dry pass over the place also clears the cell's
+6. Cancel ("recovered"): it ends when its place is shown dry (rule 9: grip proven on every spot of it after the spot's
+   last low reading) and at least min_dry_passes dry passes later than the detection spoke of the place. A dry pass
+   elsewhere in the cell neither cancels nor refreshes it. The pass that shows the place dry also clears the cell's
    earlier low passes (rule 4 counts only low passes after the last such dry pass).
 7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
    validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
@@ -53,14 +54,16 @@ Rules
    A station stands for a stretch of road (stations.py): its low report's place is the whole cell, which only a
    station's dry report speaks of; its dry report says nothing of where vehicles read low (rule 9).
 9. Places (places.py). A low pass marks the spots (H3 resolution-12 cells, about 19 m across) of its estimates that
-   read low (excited, mu_upper < threshold_mu); the cell's place is its spots since the last dry pass over it. A dry
-   pass speaks of the place only when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
-   mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m); a dry pass that does not
-   changes nothing in the cell. A vehicle's dry pass that begins within pass_gap_s of its own low pass in the cell is
-   the rest of that visit (GNSS noise along a cell border splits a visit; rule 2 judges a visit that read low as low:
-   grip proven just past a patch's edge on the way out is not the patch drying). The event carries the place
-   (`spots`), which restore() takes back; an event stored without it restores a place any dry pass in the cell speaks
-   of.
+   read low (excited, mu_upper < threshold_mu); the cell's place is its spots since it was last shown dry. A dry pass
+   speaks of the place when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
+   mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m), and shows dry the spots it
+   so reaches, except those where the same pass read low (a pass across a patch's edge read ice on it and grip past
+   it); a dry pass that touches no spot changes nothing in the cell. The place is shown dry when every spot is (rule 6).
+   A vehicle's dry pass that begins within pass_gap_s of its own low pass in the cell is the rest of that visit (GNSS
+   noise along a cell border splits a visit; rule 2 judges a visit that read low as low: grip proven just past a
+   patch's edge on the way out is not the patch drying). The event carries the place not yet shown dry (`spots`, as
+   of its last event), which restore() takes back; an event stored without it restores a place any dry pass in the
+   cell speaks of.
 
 Events: every raise, refresh, cancellation and expiry is a WarningEvent (frozen). warning_id = f"{cell}-{detection_ms}"
 is stable for a warning's life; sequence_number counts its events (0 when raised); action_sequence_number is the
@@ -430,20 +433,25 @@ class WarningEngine:
             warning = None
         place = state.place
         if verdict == DRY:
-            if not place or not place.spoken_of({finished.cell} if station else reach(spots_of(finished.grip_at))):
-                return  # no low evidence here, or grip proven elsewhere in the cell: nothing of its place (rule 9)
+            if not place:
+                return  # no low evidence here
             own_low = state.low_passes.last_of(finished.vehicle_id)
             if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
                 return  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
+            grip = {finished.cell} if station else reach(spots_of(finished.grip_at)) - spots_of(finished.low_at)
+            if not place.dry(grip, t):
+                return  # grip proven elsewhere in the cell: nothing of its place (rule 9)
+            if warning is not None and t > warning.detection_ms:
+                warning.dry_passes += 1
+            if not place.shown_dry():
+                return  # part of the place shown dry; the rest may still be ice (rule 9)
+            if warning is not None and warning.dry_passes < self.min_dry_passes:
+                return
             state.last_dry_ms = max(state.last_dry_ms, t)
             state.low_passes.drop_older(t, inclusive=True)
-            if warning is None:
-                place.forget(t, inclusive=True)  # the low evidence it held is cleared (rule 6)
-            elif t > warning.detection_ms:
-                warning.dry_passes += 1
-                if warning.dry_passes >= self.min_dry_passes:
-                    self._end(finished.cell, state, RECOVERED, t, now_ms, events)
-                    place.forget(t, inclusive=True)
+            if warning is not None and t > warning.detection_ms:
+                self._end(finished.cell, state, RECOVERED, t, now_ms, events)
+            place.forget(t, inclusive=True)  # the low evidence it held is cleared (rule 6)
             return
         if t <= state.last_dry_ms:
             return  # superseded by a later dry pass over its place (rules 4, 9)

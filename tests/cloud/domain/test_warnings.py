@@ -388,17 +388,64 @@ def test_a_dry_pass_over_the_low_spot_cancels():
     assert event.spots == raised_event.spots and engine.active() == []
 
 
-def test_grip_beside_a_low_spot_speaks_for_the_whole_place():
-    """A neighbouring spot (within about 15-30 m) counts, and one dry pass over part of the place cancels: an
-    estimator's low readings run on after the braking that measured them (places.py)."""
+def _spot_beside(spot_latlng):
+    """A resolution-12 neighbour of the spot of `spot_latlng`, inside CELL (about 19 m away)."""
+    spot = h3.latlng_to_cell(*spot_latlng, 12)
+    return h3.cell_to_latlng(
+        next(c for c in h3.grid_ring(spot, 1) if h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL)
+    )
+
+
+def test_grip_beside_a_low_spot_shows_that_spot_dry_and_the_warning_ends_when_every_spot_is():
+    """Low read at two places of the cell 80+ m apart: grip proven beside one of them (within about 15-30 m: GNSS error,
+    an estimate's window) shows that one dry, not the other; the warning ends when grip is proven at the other too."""
     engine = WarningEngine()
-    ice = h3.latlng_to_cell(*ICE_SPOT, 12)
-    beside = next(c for c in h3.grid_ring(ice, 1) if h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL)
     stream(engine, at("a", T0_MS, ICE_SPOT, low=True) + at("b", T0_MS + 5_000, OTHER_SPOT, low=True))
     assert len(engine.active()[0].spots) == 2
-    (event,) = stream(engine, at("c", T0_MS + 120_000, h3.cell_to_latlng(beside), low=False))
+    assert stream(engine, at("c", T0_MS + 120_000, _spot_beside(ICE_SPOT), low=False)) == []
+    assert engine.cell_states_[CELL].place.keys() == (h3.latlng_to_cell(*OTHER_SPOT, 12),)  # not yet shown dry
+    (event,) = stream(engine, at("d", T0_MS + 240_000, OTHER_SPOT, low=False))
     assert event.reason == "recovered"
-    assert h3.great_circle_distance(h3.cell_to_latlng(beside), OTHER_SPOT, "m") > 60.0
+
+
+def test_a_pass_skirting_the_low_place_does_not_cancel_and_one_over_it_does():
+    """Synthetic passes along a line through CELL: a vehicle reads low over 40 m (three spots in a row); a later one
+    proves grip only at one end of that stretch (it braked where the patch begins and was calm over it): the rest of the
+    place is not shown dry and the warning stays; a vehicle braking over the whole stretch ends it."""
+    engine = WarningEngine()
+    first = h3.latlng_to_cell(*ICE_SPOT, 12)
+    row = [first]
+    while len(row) < 4:  # four spots in a line of neighbours, all in CELL, away from OTHER_SPOT
+        row.append(
+            next(
+                c
+                for c in h3.grid_ring(row[-1], 1)
+                if c not in row
+                and h3.latlng_to_cell(*h3.cell_to_latlng(c), 10) == CELL
+                and all(h3.grid_distance(c, r) >= 2 for r in row[:-1])
+            )
+        )
+    positions = [h3.cell_to_latlng(c) for c in row]
+    low = [r for k, p in enumerate(positions) for r in at("a", T0_MS + 2_000 * k, p, low=True, n=10)]
+    stream(engine, low)
+    assert len(engine.active()[0].spots) == 4
+    assert stream(engine, at("b", T0_MS + 120_000, positions[0], low=False)) == []  # grip at one end only
+    assert engine.active(), "grip proven at the place's edge ended the warning"
+    over = [r for k, p in enumerate(positions) for r in at("c", T0_MS + 240_000 + 2_000 * k, p, low=False, n=10)]
+    (event,) = stream(engine, over)
+    assert event.reason == "recovered"
+
+
+def test_a_pass_that_reads_low_on_the_place_and_grip_beyond_it_does_not_cancel():
+    """A pass that crosses the patch's edge: low readings on the place, then grip on the dry road past it, more of
+    them than the low ones (its verdict by the medians is dry). Its grip beside the place says nothing of where the
+    same pass read low."""
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    beside = _spot_beside(ICE_SPOT)
+    crossing = at("b", T0_MS + 120_000, ICE_SPOT, low=True, n=8) + at("b", T0_MS + 121_000, beside, low=False, n=20)
+    assert stream(engine, crossing) == []
+    assert engine.active(), "grip past the edge cancelled a place the same pass read low"
 
 
 def test_one_dry_pass_over_the_place_does_not_cancel_when_two_are_needed():
