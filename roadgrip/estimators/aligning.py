@@ -27,11 +27,12 @@ car's own driving. A gain g on the profile's trail, M = g (t0 (1 - |f| / mu)^(1/
 recursive least squares with forgetting (RLS_TAU_S, as pmf's other lines), one gain for each mu of pmf's grid: in calm
 driving (|f| well under every plausible mu) the trail is t0 under every hypothesis and all of them learn the same gain,
 the car's calibration; nearer the limit each hypothesis reads the trail under its own mu, so a car on ice does not
-learn its shrunken trail as its tire's (one shared gain, learned where the posterior's mean says "calm", did: on a
-30 s ramp steer on ice it saw 0.4 s of calm driving and never spoke). The likelihood of a sample under a mu is the
-prediction of that mu's line before the sample (mean g h, variance h^2 P_g + the sample's own), so the product over
-samples is each hypothesis's marginal likelihood with its gain integrated out: a gain that must keep moving to follow
-the data (the trail shrinking under a hypothesis that says it should not) pays at every sample. A hypothesis learns
+learn its shrunken trail as its tire's, and no calm phase is needed (a single gain learned only where the posterior
+called the driving calm, the first design, saw 0.4 s of calm cornering on a 30 s ice ramp steer and never spoke).
+The likelihood of a sample under a mu is the prediction of that mu's line before the sample (mean g h, variance
+h^2 P_g + the sample's own), so the product over samples is each hypothesis's marginal likelihood with its gain
+integrated out: a gain that must keep moving to follow the data (the trail shrinking under a hypothesis that says it
+should not) pays at every sample. A hypothesis learns
 only below CALIBRATION_MAX_X of its limit (where its trail is not near zero) and at |f| >= CALIBRATION_MIN_F (below
 it the regressor is mostly its own noise, which would pull the gain towards zero).
 

@@ -84,8 +84,8 @@ def test_calm_driving_calibrates_the_cars_own_torque_scale():
 def test_a_shrinking_trail_points_to_ice_and_a_full_one_to_grip():
     """After calm driving, a ramp steer: on ice (mu 0.2) the front axle's force per load rising to 0.15 (0.75 of the
     limit), the trail shrinking as the brush model's: the likelihood (tempered, 6 s) favours mu near 0.2 over dry
-    asphalt's 0.9 by a factor above e^1.5. On dry asphalt (mu 0.9), f rising to 0.45 with the trail hardly shrinking: it favours
-    0.9 over 0.5, under which the same forces would bring the axle near its limit."""
+    asphalt's 0.9 by a factor above e^1.5. On dry asphalt (mu 0.9), f rising to 0.45 with the trail hardly
+    shrinking: it favours 0.9 over 0.5, under which the same forces would bring the axle near its limit."""
     rng = np.random.default_rng(2)
     for mu, f_max, other in ((0.2, 0.15, 0.9), (0.9, 0.45, 0.5)):
         mem = _fresh()
