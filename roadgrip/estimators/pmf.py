@@ -10,6 +10,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
+| the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -88,6 +89,7 @@ import numpy as np
 import pyarrow as pa
 from numba import njit
 
+from roadgrip.estimators import aligning as al
 from roadgrip.estimators import slip_slope as ch
 from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
 from roadgrip.estimators.guard import drag_per_mass
@@ -200,16 +202,19 @@ SAMPLE_COLUMNS = (
     "abs_active",
     "tcs_active",
     "esc_active",
-    # the optional channels (CONTRACTS 3.1; slip_slope.py reads the first four): absent or null is NaN, not sent
+    # the optional channels (CONTRACTS 3.1; slip_slope.py reads the first four, aligning.py the torques): absent or
+    # null is NaN, not sent
     "gnss_speed_mps",
     "gnss_speed_accuracy_mps",
     "drive_force_n",
     "brake_force_n",
+    "steering_torque_nm",
+    "eps_assist_torque_nm",
 )
 OPTIONAL_COLUMNS = ("tcs_active", "esc_active")  # absent: not reported, taken as not acting
 CHANNEL_COLUMNS = SAMPLE_COLUMNS[12:]
 S_T, S_W0, S_SWA, S_AX, S_AY, S_R, S_ABS, S_TCS, S_ESC = 0, 1, 5, 6, 7, 8, 9, 10, 11
-S_GNSS, S_GNSS_ACC, S_DRIVE, S_BRAKE = 12, 13, 14, 15
+S_GNSS, S_GNSS_ACC, S_DRIVE, S_BRAKE, S_STEER_T, S_EPS_T = 12, 13, 14, 15, 16, 17
 N_BASE = 12  # the columns a sample must have finite
 N_S = len(SAMPLE_COLUMNS)
 
@@ -235,8 +240,10 @@ N_S = len(SAMPLE_COLUMNS)
     Q_C0_FRONT,
     Q_C0_REAR,
     Q_FRONT_DRIVE,
-) = range(20)
-N_Q = 20
+    Q_TRAIL_T0,
+    Q_TRAIL_MECH,
+) = range(22)
+N_Q = 22
 DRIVE_CODES = {"fwd": 0.0, "rwd": 1.0, "awd": 2.0}
 
 # Memory: the grid, then calibration and bookkeeping
@@ -280,7 +287,11 @@ K_T = NM * NC
 # read with the block at its start (state_from_dict)
 K_CH = K_T + 33
 N_MEM_V1 = K_CH
-N_MEM = K_CH + ch.N_CHANNEL_MEM
+# the steering torques' block (aligning.py), appended after it: a state saved before (N_MEM_V2 numbers) loads with the
+# block fresh
+K_AL = K_CH + ch.N_CHANNEL_MEM
+N_MEM_V2 = K_AL
+N_MEM = K_AL + al.memory_size(NM)
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -323,6 +334,8 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
     q[Q_C0_FRONT] = vehicle.tire_front.longitudinal_stiffness_per_load
     q[Q_C0_REAR] = vehicle.tire_rear.longitudinal_stiffness_per_load
     q[Q_FRONT_DRIVE] = vehicle.drive_split[0]
+    q[Q_TRAIL_T0] = vehicle.tire_front.pneumatic_trail_m
+    q[Q_TRAIL_MECH] = vehicle.mechanical_trail_m
     return q
 
 
@@ -597,6 +610,7 @@ def init_memory(mem, q):
     mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
     mem[K_LP11] = LAT_SLOPE_SIGMA0**2
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
+    al.init_aligning_memory(mem, K_AL, NM)
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -859,6 +873,36 @@ def pmf_step(mem, q, smp, t_prev, out):
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
+    # the steering torques (aligning.py): the front axle's pneumatic trail against the brush model's at its force
+    if al.torques_sent(smp[S_STEER_T], smp[S_EPS_T]) and dt > 0.0 and mem[K_V_PREV] >= 0.0:
+        bias_y_sd = sqrt(LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2)
+        f_al, _ = axle_lateral_per_load(
+            m, lf, lr, q[Q_IZ], aty - mem[K_BIAS_Y], (smp[S_R] - mem[K_R_PREV]) / dt, fz_front, fz_rear
+        )
+        lk = np.empty(NM)
+        if al.aligning_step(
+            mem,
+            K_AL,
+            smp[S_STEER_T],
+            smp[S_EPS_T],
+            dt,
+            (smp[S_SWA] / q[Q_STEER_RATIO] - mem[K_D_PREV]) / dt,
+            f_al,
+            fx[0],
+            fz_front,
+            sqrt(ACCEL_NOISE_MPS2**2 + bias_y_sd**2) / G_MPS2,
+            q[Q_STEER_RATIO],
+            q[Q_TRAIL_T0],
+            q[Q_TRAIL_MECH],
+            limit or smp[S_ABS] + smp[S_ESC] > 0.0 or v < SLIP_MIN_SPEED_MPS,
+            MU_GRID,
+            TEMPER,
+            lk,
+        ):
+            for i in range(NM):
+                for j in range(NC):
+                    like[i, j] = lk[i]
+            _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
     _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving)
     if dt > 0.0 and not controller and v >= SLIP_MIN_SPEED_MPS and straight:
         # the lateral accelerometer's bias: a_y - v r over straight driving (mounting roll; a road's crossfall too),
@@ -1019,14 +1063,16 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) == N_MEM_V1:
-            # saved before the optional channels' block: everything kept, the block (GNSS lock, latency, the slip
-            # lines against GNSS) starts afresh, as for a new car
+        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2):
+            # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh) or
+            # before the steering torques' (V2: the trail's gain at the profile's): everything kept, each missing
+            # block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
             ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
-            data = {**data, "memory": list(memory) + block[K_CH:].tolist()}
+            al.init_aligning_memory(block, K_AL, NM)
+            data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))
 

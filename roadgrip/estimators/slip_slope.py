@@ -33,7 +33,7 @@ at low utilization the brush slip is f / C whatever mu (its excess over the line
 tells the stiffness, not mu; and the stiffness is the tire's and the surface's together (Gustafsson's slope-mu
 correlation is empirical, per tire), so the slope is never mapped to mu directly: the grid marginalises C, and only the
 bend of slip against force near the limit (braking, accelerating, where the wheels have no reference of their own)
-narrows mu. Not read: the steering torques (carried on the wire, see docs/ESTIMATORS.md 9).
+narrows mu. The steering torques are aligning.py's (docs/ESTIMATORS.md 9).
 """
 
 from __future__ import annotations

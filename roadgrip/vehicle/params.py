@@ -29,6 +29,9 @@ class TireParams:
 
     longitudinal_stiffness_per_load: float = field(default=25.0, metadata=bounded(1.0, 100.0))
     cornering_stiffness_per_load_per_rad: float = field(default=16.0, metadata=bounded(1.0, 60.0))
+    # the pneumatic trail at zero slip, t0 = a / 3 of the brush model (a the contact patch's half-length: 0.06-0.1 m
+    # on car tires, Pacejka, Tyre and Vehicle Dynamics, 3.2): nominal, calibrated per car by pmf (aligning.py)
+    pneumatic_trail_m: float = field(default=0.04, metadata=bounded(0.0, 0.2))
 
     def __post_init__(self):
         check_bounds(self)
@@ -68,8 +71,11 @@ class VehicleParams:
     width_m: float = field(default=1.989, metadata=bounded(0.5, 3.0))
     height_m: float = field(default=1.778, metadata=bounded(0.5, 5.0))
     ground_clearance_m: float = field(default=0.190, metadata=bounded(0.0, 1.0))
-    tire_front: TireParams = TireParams(25.0, 14.0)
-    tire_rear: TireParams = TireParams(25.0, 20.0)
+    # the caster's mechanical trail at the front wheels, nominal (10-30 mm on passenger cars; the paper SUV's 25 mm
+    # a heavy car's larger caster, the catalogue's 18-25 mm: docs/VEHICLES.md)
+    mechanical_trail_m: float = field(default=0.025, metadata=bounded(0.0, 0.1))
+    tire_front: TireParams = TireParams(25.0, 14.0, 0.045)
+    tire_rear: TireParams = TireParams(25.0, 20.0, 0.045)
 
     def __post_init__(self):
         check_bounds(self)
@@ -170,8 +176,9 @@ MIDSIZE_SEDAN = VehicleParams(
     width_m=1.84,
     height_m=1.45,
     ground_clearance_m=0.14,
-    tire_front=TireParams(22.0, 15.0),
-    tire_rear=TireParams(22.0, 21.0),
+    mechanical_trail_m=0.02,
+    tire_front=TireParams(22.0, 15.0, 0.04),
+    tire_rear=TireParams(22.0, 21.0, 0.04),
 )
 
 COMPACT_HATCHBACK = VehicleParams(
@@ -205,8 +212,9 @@ COMPACT_HATCHBACK = VehicleParams(
     width_m=1.79,
     height_m=1.46,
     ground_clearance_m=0.14,
-    tire_front=TireParams(21.0, 15.0),
-    tire_rear=TireParams(21.0, 20.0),
+    mechanical_trail_m=0.018,
+    tire_front=TireParams(21.0, 15.0, 0.035),
+    tire_rear=TireParams(21.0, 20.0, 0.035),
 )
 
 VEHICLES = {v.name: v for v in (PAPER_SUV, MIDSIZE_SEDAN, COMPACT_HATCHBACK)}
