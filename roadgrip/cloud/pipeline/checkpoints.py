@@ -25,9 +25,9 @@ what the estimator keeps across gaps (pmf: the calibration and the stiffness mar
 (which keep only their counters across a gap) and the learned models (whose window empties), restoring is harmless
 and changes no estimate.
 
-Encoding (`pack_state`): JSON, with every list of at least PACK_MIN_FLOATS floats (pmf's memory of 704 numbers, the
+Encoding (`pack_state`): JSON, with every list of at least PACK_MIN_FLOATS floats (pmf's memory of 825 numbers, the
 Kalman filters' memory) as the base64 of its little-endian float64 bytes: lossless (rounding would move the slip
-line's covariance, of order 1e-7), 9.6 kB for a pmf state against 17.6 kB as JSON numbers (zlib would save 5 % more:
+line's covariance, of order 1e-7), 10.0 kB for a pmf state against 17.0 kB as JSON numbers (zlib would save 5 % more:
 a posterior's mantissas do not compress), and no NaN or infinity in the JSON (PostgreSQL's jsonb refuses them; a
 non-finite number outside such a list makes that vehicle's state unwritable, logged). Measured cost: docs/CLOUD.md,
 "Estimator state checkpoints" (its benchmark: bench/checkpoints.py).
