@@ -83,13 +83,21 @@ docstring is its derivation.
 from __future__ import annotations
 
 from math import cos, exp, sin, sqrt
+from operator import itemgetter
 
 import numpy as np
 import pyarrow as pa
 from numba import njit
 
 from roadgrip.estimators import slip_slope as ch
-from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
+from roadgrip.estimators.base import (
+    Estimate,
+    EstimateRun,
+    Estimator,
+    estimate_table,
+    memory_state,
+    profile_of_call,
+)
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
@@ -938,20 +946,44 @@ class PMFState:
         self.vehicle, self.q, self.mem, self.t_prev = vehicle, q, mem, t_prev
 
 
-def _sample_vector(sample: dict) -> np.ndarray:
-    smp = np.empty(N_S)
-    for k, column in enumerate(SAMPLE_COLUMNS):
-        if column not in sample:
-            if column in OPTIONAL_COLUMNS or column in CHANNEL_COLUMNS:
-                smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
-                continue
-            raise ValueError(f"pmf: telemetry sample lacks the field {column!r}")
-        value = sample[column]
-        if value is None:  # not reported: an optional flag is taken as not acting, as in the batch path
-            smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
-        else:
-            smp[k] = float(value)
+@njit(cache=True)
+def step_rows(mem, q, samples, t_prev, out):
+    """The step kernel over a run of one vehicle's rows from its state (`update_many`); the last accepted time (ms)."""
+    for k in range(samples.shape[0]):
+        t_prev = pmf_step(mem, q, samples[k], t_prev, out[k])
+    return t_prev
+
+
+_REQUIRED_COLUMNS = frozenset(c for c in SAMPLE_COLUMNS if c not in OPTIONAL_COLUMNS and c not in CHANNEL_COLUMNS)
+_ALL_COLUMNS = frozenset(SAMPLE_COLUMNS)
+_OPTIONAL_AT = [SAMPLE_COLUMNS.index(c) for c in OPTIONAL_COLUMNS]
+_ROW = itemgetter(*SAMPLE_COLUMNS)
+
+
+def _sample_matrix(samples) -> np.ndarray:
+    """The rows step_rows and pmf_step read, one per sample (wire format v1 dicts): floats of SAMPLE_COLUMNS; an
+    optional flag absent or null is 0 (not acting, as in the batch path), a channel absent or null NaN (not sent), a
+    required field null NaN (the step rejects the sample); a sample lacking a required field is a ValueError."""
+    rows = []
+    for sample in samples:
+        keys = sample.keys()
+        if _ALL_COLUMNS <= keys:  # the wire's samples: every name, None where not sent
+            rows.append(_ROW(sample))
+            continue
+        if not _REQUIRED_COLUMNS <= keys:
+            missing = next(c for c in SAMPLE_COLUMNS if c in _REQUIRED_COLUMNS and c not in keys)
+            raise ValueError(f"pmf: telemetry sample lacks the field {missing!r}")
+        rows.append(tuple(sample.get(c) for c in SAMPLE_COLUMNS))
+    smp = np.array(rows, dtype=np.float64)  # None is NaN
+    for i in np.flatnonzero(np.isnan(smp[:, _OPTIONAL_AT]).any(axis=1)).tolist():
+        for k in _OPTIONAL_AT:
+            if rows[i][k] is None:
+                smp[i, k] = 0.0
     return smp
+
+
+def _sample_vector(sample: dict) -> np.ndarray:
+    return _sample_matrix((sample,))[0]
 
 
 class PMFEstimator(Estimator):
@@ -988,6 +1020,27 @@ class PMFEstimator(Estimator):
             float(out[O_UPPER]),
             bool(out[O_EXCITED]),
             self.name,
+        )
+
+    def update_many(self, state: PMFState, samples) -> EstimateRun:
+        """`update` over a run in one kernel call (step_rows): the same state and estimates; a sample lacking a
+        required field refuses the run before any of it is fed."""
+        if not len(samples):
+            return EstimateRun.of(())
+        smp = _sample_matrix(samples)
+        out = np.zeros((len(samples), N_OUT))
+        state.t_prev = step_rows(state.mem, state.q, smp, state.t_prev, out)
+        index = np.flatnonzero((out[:, O_VALID] != 0.0) & np.isfinite(smp[:, S_T]))
+        judged = out[index]
+        return EstimateRun(
+            index,
+            [str(samples[k]["vehicle_id"]) for k in index.tolist()],
+            smp[index, S_T].astype(np.int64),
+            judged[:, O_MU],
+            judged[:, O_LOWER],
+            judged[:, O_UPPER],
+            judged[:, O_EXCITED] != 0.0,
+            [self.name] * len(index),
         )
 
     def reset(self, state: PMFState) -> None:
