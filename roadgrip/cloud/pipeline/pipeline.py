@@ -336,15 +336,18 @@ class Pipeline:
         for sub in inbox:
             stream = self._streams[sub.vehicle_id]
             seen_now: set[int] = set()
+            stored, pending, seq = stream.stored, stream.pending, self._seq
             for sample in sub.samples:
                 ts = sample["timestamp_ms"]
-                if ts in stream.stored or ts in seen_now:
+                if ts in stored or ts in seen_now:
                     continue
                 seen_now.add(ts)
                 new_rows.append(sample)
-                self._seq += 1
-                heapq.heappush(stream.pending, (ts, self._seq, sample))
-                stream.newest_ms = max(stream.newest_ms, ts)
+                seq += 1
+                heapq.heappush(pending, (ts, seq, sample))
+            if seq > self._seq:  # new samples: the vehicle's newest and when it was last heard
+                self._seq = seq
+                stream.newest_ms = max(stream.newest_ms, max(seen_now))
                 stream.last_arrival_s = now_s
             touched.add(sub.vehicle_id)
             results.append((sub, list(seen_now)))
