@@ -956,34 +956,34 @@ def step_rows(mem, q, samples, t_prev, out):
 
 _REQUIRED_COLUMNS = frozenset(c for c in SAMPLE_COLUMNS if c not in OPTIONAL_COLUMNS and c not in CHANNEL_COLUMNS)
 _ALL_COLUMNS = frozenset(SAMPLE_COLUMNS)
-_OPTIONAL_AT = [SAMPLE_COLUMNS.index(c) for c in OPTIONAL_COLUMNS]
 _ROW = itemgetter(*SAMPLE_COLUMNS)
 
 
+def _sample_values(sample: dict) -> tuple:
+    """The values of SAMPLE_COLUMNS of one sample (a wire format v1 dict), None where not sent: an optional flag absent
+    or null is 0 (not acting, as in the batch path), a channel absent or null None (NaN in the vector: not sent), a
+    required field null None (NaN: the step rejects the sample); a sample lacking a required field is a ValueError."""
+    keys = sample.keys()
+    if _ALL_COLUMNS <= keys:  # the wire's samples: every name, None where not sent
+        values = _ROW(sample)
+    elif _REQUIRED_COLUMNS <= keys:
+        values = tuple(sample.get(c) for c in SAMPLE_COLUMNS)
+    else:
+        missing = next(c for c in SAMPLE_COLUMNS if c in _REQUIRED_COLUMNS and c not in keys)
+        raise ValueError(f"pmf: telemetry sample lacks the field {missing!r}")
+    if values[S_TCS] is None or values[S_ESC] is None:
+        values = (*values[:S_TCS], *(0.0 if v is None else v for v in values[S_TCS : S_ESC + 1]), *values[S_ESC + 1 :])
+    return values
+
+
 def _sample_matrix(samples) -> np.ndarray:
-    """The rows step_rows and pmf_step read, one per sample (wire format v1 dicts): floats of SAMPLE_COLUMNS; an
-    optional flag absent or null is 0 (not acting, as in the batch path), a channel absent or null NaN (not sent), a
-    required field null NaN (the step rejects the sample); a sample lacking a required field is a ValueError."""
-    rows = []
-    for sample in samples:
-        keys = sample.keys()
-        if _ALL_COLUMNS <= keys:  # the wire's samples: every name, None where not sent
-            rows.append(_ROW(sample))
-            continue
-        if not _REQUIRED_COLUMNS <= keys:
-            missing = next(c for c in SAMPLE_COLUMNS if c in _REQUIRED_COLUMNS and c not in keys)
-            raise ValueError(f"pmf: telemetry sample lacks the field {missing!r}")
-        rows.append(tuple(sample.get(c) for c in SAMPLE_COLUMNS))
-    smp = np.array(rows, dtype=np.float64)  # None is NaN
-    for i in np.flatnonzero(np.isnan(smp[:, _OPTIONAL_AT]).any(axis=1)).tolist():
-        for k in _OPTIONAL_AT:
-            if rows[i][k] is None:
-                smp[i, k] = 0.0
-    return smp
+    """The rows step_rows reads, one per sample (_sample_values; None is NaN)."""
+    return np.array([_sample_values(s) for s in samples], dtype=np.float64)
 
 
 def _sample_vector(sample: dict) -> np.ndarray:
-    return _sample_matrix((sample,))[0]
+    """The row pmf_step reads for one sample (_sample_values; None is NaN)."""
+    return np.array(_sample_values(sample), dtype=np.float64)
 
 
 class PMFEstimator(Estimator):
