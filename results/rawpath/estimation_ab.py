@@ -6,6 +6,7 @@ wire.py as the worker receives it; prints the process CPU seconds of each pass a
 give the same rows.
 
     python results/rawpath/estimation_ab.py --vehicles 200 --seconds 20 --passes 3
+    PYTHONPATH=<a checkout of main> python results/rawpath/estimation_ab.py ... --modes per_sample   (the code before)
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import json
 import time
 
 from roadgrip.bench.cluster import SAMPLE_PERIOD_MS, SAMPLES_PER_MESSAGE, sample_bodies
-from roadgrip.cloud.domain.cells import cell_of, cells_of
+from roadgrip.cloud.domain.cells import cell_of
 from roadgrip.cloud.ingest.wire import parse_payload
 from roadgrip.cloud.process import warm_up
 from roadgrip.estimators.learned import load_estimator
@@ -64,6 +65,8 @@ def per_sample(estimator, data) -> list[dict]:
 
 
 def per_run(estimator, data) -> list[dict]:
+    from roadgrip.cloud.domain.cells import cells_of  # not in the code before issue 27's batch step
+
     states = [estimator.start(PAPER_SUV) for _ in data[0]]
     rows = []
     for second in data:
@@ -83,15 +86,19 @@ def main() -> None:
     parser.add_argument("--vehicles", type=int, default=200)
     parser.add_argument("--seconds", type=int, default=20)
     parser.add_argument("--passes", type=int, default=3)
+    parser.add_argument("--modes", default="per_sample,per_run", help="per_sample alone runs on the code before too")
     args = parser.parse_args()
     data = rounds(args.vehicles, args.seconds, int(time.time() * 1000) - 86_400_000)
     n = sum(len(s) for second in data for s in second)
     estimator = load_estimator("pmf")
     warm_up(estimator)
-    results = {"per_sample": [], "per_run": []}
+    modes = args.modes.split(",")
+    results = {name: [] for name in modes}
     reference = None
     for _ in range(args.passes):
         for name, run in (("per_sample", per_sample), ("per_run", per_run)):
+            if name not in modes:
+                continue
             cpu0 = time.process_time()
             rows = run(estimator, data)
             results[name].append(time.process_time() - cpu0)
