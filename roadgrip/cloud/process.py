@@ -99,3 +99,4 @@ def warm_up(estimator) -> None:
     }
     for k in range(12):  # a learned model's window fills before it estimates
         estimator.update(state, {**sample, "timestamp_ms": 100 * k})
+    estimator.update_many(state, [{**sample, "timestamp_ms": 100 * k} for k in range(12, 14)])  # the pipeline's step

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from roadgrip.estimators.base import Estimate, Estimator, estimate_table, profile_of_call
+from roadgrip.estimators.base import Estimate, EstimateRun, Estimator, estimate_table, profile_of_call
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
 from roadgrip.validation import bounded, check_bounds
@@ -77,11 +77,24 @@ def tire_force_bound(
     vehicle: VehicleParams, accel_lon_mps2, accel_lat_mps2, speed_mps, settings: GuardSettings = GuardSettings()
 ) -> np.ndarray:
     """The lower bound on mu that the measured acceleration proves: (|a_road| - k sigma_a) / g, at least 0."""
-    ax, ay = road_acceleration(vehicle, accel_lon_mps2, accel_lat_mps2, speed_mps)
-    margin = settings.k_sigma * settings.accel_sigma_mps2
+    return _bound(
+        accel_lon_mps2,
+        accel_lat_mps2,
+        speed_mps,
+        drag_per_mass(vehicle),
+        1.0 + G_MPS2 * roll_per_lateral_accel(vehicle),
+        settings.k_sigma * settings.accel_sigma_mps2,
+    )
+
+
+def _bound(accel_lon_mps2, accel_lat_mps2, speed_mps, drag: float, roll: float, margin_mps2: float) -> np.ndarray:
+    """tire_force_bound with the vehicle's constants: drag per mass (drag_per_mass), the rolled accelerometer's
+    factor (road_acceleration) and the margin k sigma_a."""
+    ax = np.asarray(accel_lon_mps2, dtype=np.float64) + drag * np.square(speed_mps)
+    ay = np.asarray(accel_lat_mps2, dtype=np.float64) / roll
     # sqrt(x^2 + y^2), not hypot: the streaming path's math.hypot and np.hypot differ in the last bit on 0.5 % of
     # samples; IEEE sqrt, products and sums are the same in numpy and in Python floats (batch = streaming, exactly)
-    return np.maximum((np.sqrt(ax * ax + ay * ay) - margin) / G_MPS2, 0.0)
+    return np.maximum((np.sqrt(ax * ax + ay * ay) - margin_mps2) / G_MPS2, 0.0)
 
 
 def apply_bound_scalar(mu: float, lower: float, upper: float, excited: bool, bound: float):
@@ -114,6 +127,15 @@ def _speed(sample_or_table_speed, wheel_speeds, radius_m):
 
 
 WHEELS = ("wheel_speed_fl_radps", "wheel_speed_fr_radps", "wheel_speed_rl_radps", "wheel_speed_rr_radps")
+
+
+def _sample_speed(sample: dict, vehicle: VehicleParams) -> float:
+    """The speed for drag of one streamed sample: the reported one, or the mean wheel speed where none is reported
+    (as _speed for a table, in the same order of operations)."""
+    speed = sample.get("speed_mps")
+    if speed is None or not math.isfinite(float(speed)):
+        return sum(float(sample[w]) for w in WHEELS) / 4.0 * vehicle.wheel_radius_m
+    return float(speed)
 
 
 class GuardedEstimator(Estimator):
@@ -153,10 +175,8 @@ class GuardedEstimator(Estimator):
         est = self.inner.update(state["inner"], sample)
         if est is None:
             return None
-        speed = sample.get("speed_mps")
-        if speed is None or not math.isfinite(float(speed)):
-            speed = sum(float(sample[w]) for w in WHEELS) / 4.0 * state["vehicle"].wheel_radius_m
-        ax = float(sample["accel_lon_mps2"]) + state["drag"] * float(speed) ** 2
+        speed = _sample_speed(sample, state["vehicle"])
+        ax = float(sample["accel_lon_mps2"]) + state["drag"] * speed**2
         ay = float(sample["accel_lat_mps2"]) / state["roll"]
         road = math.sqrt(ax * ax + ay * ay)  # as tire_force_bound computes it, to the last bit
         bound = max((road - state["margin"]) / G_MPS2, 0.0)
@@ -171,6 +191,27 @@ class GuardedEstimator(Estimator):
             est.estimator,
             bound,
         )
+
+    def update_many(self, state, samples) -> EstimateRun:
+        """The inner estimator's run, guarded: the bound with numpy (_bound), the estimates already physical kept as
+        `update` keeps them, the others through apply_bound_scalar as `update` does; the same numbers to the last bit
+        (IEEE products, sums and sqrt are numpy's and Python's alike)."""
+        run = self.inner.update_many(state["inner"], samples)
+        judged = [samples[k] for k in run.index.tolist()]
+        vehicle = state["vehicle"]
+        speed = np.array([_sample_speed(s, vehicle) for s in judged], dtype=np.float64)
+        ax = np.array([s["accel_lon_mps2"] for s in judged], dtype=np.float64)
+        ay = np.array([s["accel_lat_mps2"] for s in judged], dtype=np.float64)
+        bound = _bound(ax, ay, speed, state["drag"], state["roll"], state["margin"])
+        mu, lower, upper, excited = run.mu, run.mu_lower, run.mu_upper, run.excited
+        physical = (bound <= lower) & (lower <= mu) & (mu <= upper)
+        if not physical.all():
+            mu, lower, upper, excited = mu.copy(), lower.copy(), upper.copy(), excited.copy()
+            for k in np.flatnonzero(~physical).tolist():
+                mu[k], lower[k], upper[k], excited[k] = apply_bound_scalar(
+                    float(mu[k]), float(lower[k]), float(upper[k]), bool(excited[k]), float(bound[k])
+                )
+        return EstimateRun(run.index, run.vehicle_id, run.timestamp_ms, mu, lower, upper, excited, run.estimator, bound)
 
     def reset(self, state) -> None:
         self.inner.reset(state["inner"])

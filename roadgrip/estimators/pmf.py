@@ -84,6 +84,7 @@ docstring is its derivation.
 from __future__ import annotations
 
 from math import cos, exp, sin, sqrt
+from operator import itemgetter
 
 import numpy as np
 import pyarrow as pa
@@ -91,7 +92,14 @@ from numba import njit
 
 from roadgrip.estimators import aligning as al
 from roadgrip.estimators import slip_slope as ch
-from roadgrip.estimators.base import Estimate, Estimator, estimate_table, memory_state, profile_of_call
+from roadgrip.estimators.base import (
+    Estimate,
+    EstimateRun,
+    Estimator,
+    estimate_table,
+    memory_state,
+    profile_of_call,
+)
 from roadgrip.estimators.guard import drag_per_mass
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
@@ -982,20 +990,44 @@ class PMFState:
         self.vehicle, self.q, self.mem, self.t_prev = vehicle, q, mem, t_prev
 
 
+@njit(cache=True)
+def step_rows(mem, q, samples, t_prev, out):
+    """The step kernel over a run of one vehicle's rows from its state (`update_many`); the last accepted time (ms)."""
+    for k in range(samples.shape[0]):
+        t_prev = pmf_step(mem, q, samples[k], t_prev, out[k])
+    return t_prev
+
+
+_REQUIRED_COLUMNS = frozenset(c for c in SAMPLE_COLUMNS if c not in OPTIONAL_COLUMNS and c not in CHANNEL_COLUMNS)
+_ALL_COLUMNS = frozenset(SAMPLE_COLUMNS)
+_ROW = itemgetter(*SAMPLE_COLUMNS)
+
+
+def _sample_values(sample: dict) -> tuple:
+    """The values of SAMPLE_COLUMNS of one sample (a wire format v1 dict), None where not sent: an optional flag absent
+    or null is 0 (not acting, as in the batch path), a channel absent or null None (NaN in the vector: not sent), a
+    required field null None (NaN: the step rejects the sample); a sample lacking a required field is a ValueError."""
+    keys = sample.keys()
+    if _ALL_COLUMNS <= keys:  # the wire's samples: every name, None where not sent
+        values = _ROW(sample)
+    elif _REQUIRED_COLUMNS <= keys:
+        values = tuple(sample.get(c) for c in SAMPLE_COLUMNS)
+    else:
+        missing = next(c for c in SAMPLE_COLUMNS if c in _REQUIRED_COLUMNS and c not in keys)
+        raise ValueError(f"pmf: telemetry sample lacks the field {missing!r}")
+    if values[S_TCS] is None or values[S_ESC] is None:
+        values = (*values[:S_TCS], *(0.0 if v is None else v for v in values[S_TCS : S_ESC + 1]), *values[S_ESC + 1 :])
+    return values
+
+
+def _sample_matrix(samples) -> np.ndarray:
+    """The rows step_rows reads, one per sample (_sample_values; None is NaN)."""
+    return np.array([_sample_values(s) for s in samples], dtype=np.float64)
+
+
 def _sample_vector(sample: dict) -> np.ndarray:
-    smp = np.empty(N_S)
-    for k, column in enumerate(SAMPLE_COLUMNS):
-        if column not in sample:
-            if column in OPTIONAL_COLUMNS or column in CHANNEL_COLUMNS:
-                smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
-                continue
-            raise ValueError(f"pmf: telemetry sample lacks the field {column!r}")
-        value = sample[column]
-        if value is None:  # not reported: an optional flag is taken as not acting, as in the batch path
-            smp[k] = 0.0 if column in OPTIONAL_COLUMNS else np.nan
-        else:
-            smp[k] = float(value)
-    return smp
+    """The row pmf_step reads for one sample (_sample_values; None is NaN)."""
+    return np.array(_sample_values(sample), dtype=np.float64)
 
 
 class PMFEstimator(Estimator):
@@ -1032,6 +1064,27 @@ class PMFEstimator(Estimator):
             float(out[O_UPPER]),
             bool(out[O_EXCITED]),
             self.name,
+        )
+
+    def update_many(self, state: PMFState, samples) -> EstimateRun:
+        """`update` over a run in one kernel call (step_rows): the same state and estimates; a sample lacking a
+        required field refuses the run before any of it is fed."""
+        if not len(samples):
+            return EstimateRun.of(())
+        smp = _sample_matrix(samples)
+        out = np.zeros((len(samples), N_OUT))
+        state.t_prev = step_rows(state.mem, state.q, smp, state.t_prev, out)
+        index = np.flatnonzero((out[:, O_VALID] != 0.0) & np.isfinite(smp[:, S_T]))
+        judged = out[index]
+        return EstimateRun(
+            index,
+            [str(samples[k]["vehicle_id"]) for k in index.tolist()],
+            smp[index, S_T].astype(np.int64),
+            judged[:, O_MU],
+            judged[:, O_LOWER],
+            judged[:, O_UPPER],
+            judged[:, O_EXCITED] != 0.0,
+            [self.name] * len(index),
         )
 
     def reset(self, state: PMFState) -> None:

@@ -1,5 +1,5 @@
 """The H3 cells the cloud keys its friction map, warnings, stations, stored estimates and cluster regions by: which cell
-a position lies in (`cell_of`), which region a cell belongs to (`region_of`), and what a resolution may be
+a position lies in (`cell_of`, `cells_of` for many), which region a cell belongs to (`region_of`), and what a resolution may be
 (`validate_resolution`). Everything that computes a cell of a position or a region of a cell uses these, so the map,
 the warning engine, the stations' coverage, the stored estimates' h3_cell and the regions of cluster mode always
 agree."""
@@ -21,6 +21,16 @@ def cell_of(latitude_deg: float | None, longitude_deg: float | None, resolution:
     if latitude_deg is None or longitude_deg is None:
         return None
     return h3.latlng_to_cell(latitude_deg, longitude_deg, resolution)
+
+
+def cells_of(latitudes_deg, longitudes_deg, resolution: int) -> list[str | None]:
+    """cell_of for many positions (sequences of floats or None), in order. h3-py v4 has no vectorised point lookup
+    (uber/h3-py issue 341): one call each, without cell_of's own call."""
+    latlng_to_cell = h3.latlng_to_cell
+    return [
+        None if lat is None or lon is None else latlng_to_cell(lat, lon, resolution)
+        for lat, lon in zip(latitudes_deg, longitudes_deg)
+    ]
 
 
 def region_of(cell: str, region_resolution: int) -> str:

@@ -11,8 +11,10 @@ up to MAX_ROUND_SAMPLES (the rest goes in the next round, at once), and:
    the vehicle's newest by `reorder_window_s` (all of them once the vehicle has been silent that long): a sample that
    arrives out of order within the window is estimated in its place;
 3. feeds the released samples to the vehicle's estimator (`roadgrip.estimators.base.Estimator`, the interface the offline
-   tools use). A gap longer than `max_gap_s` restarts the estimator (`reset`) rather than bridging it. A sample older
-   than one already estimated (later than the reorder window allowed) is stored but not estimated: counted as `late`;
+   tools use), each vehicle's in one `update_many` (the estimates `update` gives sample by sample, without the
+   per-sample Python where the estimator has its own). A gap longer than `max_gap_s` restarts the estimator (`reset`)
+   rather than bridging it. A sample older than one already estimated (later than the reorder window allowed) is
+   stored but not estimated: counted as `late`;
 4. writes the round's new telemetry and its estimates in one transaction, idempotent on (vehicle_id, timestamp_ms):
    the database skips an older repeat, or one stored before a restart, and names the rows it had already;
 5. only then resolves the submitters' futures (HTTP answers, MQTT acks) with those counts: an acknowledged sample is
@@ -46,7 +48,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from roadgrip.cloud.domain.cells import cell_of
+from roadgrip.cloud.domain.cells import cells_of
 from roadgrip.cloud.metrics import ESTIMATOR_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.checkpoints import Checkpoints
 from roadgrip.cloud.settings import Settings
@@ -334,15 +336,18 @@ class Pipeline:
         for sub in inbox:
             stream = self._streams[sub.vehicle_id]
             seen_now: set[int] = set()
+            stored, pending, seq = stream.stored, stream.pending, self._seq
             for sample in sub.samples:
                 ts = sample["timestamp_ms"]
-                if ts in stream.stored or ts in seen_now:
+                if ts in stored or ts in seen_now:
                     continue
                 seen_now.add(ts)
                 new_rows.append(sample)
-                self._seq += 1
-                heapq.heappush(stream.pending, (ts, self._seq, sample))
-                stream.newest_ms = max(stream.newest_ms, ts)
+                seq += 1
+                heapq.heappush(pending, (ts, seq, sample))
+            if seq > self._seq:  # new samples: the vehicle's newest and when it was last heard
+                self._seq = seq
+                stream.newest_ms = max(stream.newest_ms, max(seen_now))
                 stream.last_arrival_s = now_s
             touched.add(sub.vehicle_id)
             results.append((sub, list(seen_now)))
@@ -473,38 +478,49 @@ class Pipeline:
             stream.stored = {t for t in stream.stored if t >= horizon}
 
     def _release(self, now_s: float, final: bool, late: list[tuple[str, int]]) -> list[dict]:
-        """Estimate what the reorder buffers release; the samples behind what was estimated go to `late`."""
+        """Estimate what the reorder buffers release, each vehicle's released samples in one `update_many` per run
+        between gaps; the samples behind what was estimated go to `late`. The estimates' cells are looked up for the
+        round at once (cells_of)."""
         window_ms = self.settings.reorder_window_s * 1000.0
         gap_ms = self.settings.max_gap_s * 1000.0
-        resolution = self.settings.h3_resolution
         estimates: list[dict] = []
-        update_s: list[float] = []  # each update's time, into estimator_time once for the round
+        positions: list[dict] = []  # the sample of each estimate, for its position
+        update_s: list[float] = []  # each sample's share of its run's time, into estimator_time once for the round
         for vehicle_id, stream in self._streams.items():
             if not stream.pending:
                 continue
             quiet = final or now_s - stream.last_arrival_s >= self.settings.reorder_window_s
             limit = stream.newest_ms if quiet else stream.newest_ms - window_ms
-            while stream.pending and stream.pending[0][0] <= limit:
-                ts, _, sample = heapq.heappop(stream.pending)
-                last = stream.last_estimated_ms
+            runs: list[list[dict]] = [[]]  # released samples, split where a gap restarts the estimator
+            last = stream.last_estimated_ms
+            pending = stream.pending
+            while pending and pending[0][0] <= limit:
+                ts, _, sample = heapq.heappop(pending)
                 if last is not None and ts <= last:
                     late.append((sample["vehicle_id"], ts))
                     continue
                 if last is not None and ts - last > gap_ms:
+                    runs.append([])
+                last = ts
+                runs[-1].append(sample)
+            stream.last_estimated_ms = last
+            for k, run in enumerate(runs):
+                if k:
                     self.estimator.reset(stream.state)
                     self.counters.restarts += 1
-                stream.last_estimated_ms = ts
-                started = time.perf_counter()
-                estimate = self.estimator.update(stream.state, sample)
-                update_s.append(time.perf_counter() - started)
-                if estimate is None:
+                if not run:
                     continue
-                row = estimate.to_dict()
-                lat, lon = sample.get("latitude_deg"), sample.get("longitude_deg")
-                row["latitude_deg"], row["longitude_deg"] = lat, lon
-                row["h3_cell"] = cell_of(lat, lon, resolution)
-                estimates.append(row)
-            if stream.last_estimated_ms is not None and stream.last_estimated_ms >= stream.checkpoint_at_ms:
+                started = time.perf_counter()
+                found = self.estimator.update_many(stream.state, run)
+                update_s += [(time.perf_counter() - started) / len(run)] * len(run)
+                estimates += found.rows()
+                positions += [run[i] for i in found.index.tolist()]
+            if last is not None and last >= stream.checkpoint_at_ms:
                 self.checkpoints.due(vehicle_id, stream)
         self.estimator_time.add(update_s)
+        latitudes = [sample.get("latitude_deg") for sample in positions]
+        longitudes = [sample.get("longitude_deg") for sample in positions]
+        cells = cells_of(latitudes, longitudes, self.settings.h3_resolution)
+        for row, lat, lon, cell in zip(estimates, latitudes, longitudes, cells):
+            row["latitude_deg"], row["longitude_deg"], row["h3_cell"] = lat, lon, cell
         return estimates
