@@ -331,7 +331,9 @@ class MqttClient:
         self.deferred = 0  # messages a handler had no room for (Busy), all connections together
         self.drops = 0  # connections lost, not closed by this client
         self.redeliveries = 0  # reconnects to have deferred messages delivered again
-        self._redelivery: threading.Thread | None = None
+        self._redelivery: threading.Thread | None = None  # the one redelivery thread, while it runs
+        self._pending = False  # a message was deferred since the last redelivery
+        self._redelivering = False  # its disconnect is not a drop
         self._closed = threading.Event()
         self._password = password
         self._client: paho.Client | None = None
@@ -490,7 +492,7 @@ class MqttClient:
             self._unacknowledged -= 1
 
     def _on_disconnect(self, client, _userdata, _flags, reason_code, _properties):
-        if self._client is client:  # not our own close()
+        if self._client is client and not self._redelivering:  # not our own close() or redelivery
             self.drops += 1
             log.warning("%s: disconnected from %s (%s); reconnecting", self.client_id, self.url, reason_code)
 
@@ -501,9 +503,10 @@ class MqttClient:
             self._defer()
 
     def _defer(self) -> None:
-        """A handler had no room (Busy): count it and make sure a redelivery thread waits for room."""
+        """A handler had no room (Busy): count it and make sure the redelivery thread (one at a time) runs."""
         with self._lock:
             self.deferred += 1
+            self._pending = True
             if self._redelivery is not None or self._closed.is_set():
                 return
             self._redelivery = threading.Thread(target=self._redeliver, name="mqtt-redelivery", daemon=True)
@@ -511,30 +514,43 @@ class MqttClient:
         self._redelivery.start()
 
     def _redeliver(self) -> None:
-        """Once `room()`, reconnect: the broker delivers the unacknowledged messages again (class docstring)."""
-        delay_s = self.reconnect_min_delay_s
+        """Once `room()`, reconnect: the broker delivers the unacknowledged messages again (class docstring); again
+        while messages were deferred since."""
         while not self._closed.wait(self.redelivery_poll_s):
             if not self.room():
                 continue
             with self._lock:
-                self._redelivery = None  # from here, a Busy starts a thread of its own
-            self._disconnect()
-            while not self._closed.is_set():
-                try:
-                    self._connect(RECONNECT_MAX_DELAY_S)
-                except (OSError, TimeoutError) as exc:
-                    log.warning(
-                        "%s: reconnect for redelivery failed (%s); again in %.1f s", self.client_id, exc, delay_s
-                    )
-                    self._closed.wait(delay_s)
-                    delay_s = min(2 * delay_s, self.reconnect_max_delay_s)
-                    continue
-                self.redeliveries += 1
-                log.info("%s: reconnected for the redelivery of deferred messages", self.client_id)
-                return
-            return
+                self._pending = False
+                self._generation += 1  # acks of this connection are void: its messages come again
+            self._reconnect_same_client()
+            with self._lock:
+                if not self._pending:
+                    self._redelivery = None
+                    return
         with self._lock:
             self._redelivery = None
+
+    def _reconnect_same_client(self) -> None:
+        """Disconnect and connect the same paho client (what it holds to publish stays queued in it)."""
+        client = self._client
+        if client is None:
+            return
+        self._redelivering = True
+        client.disconnect()  # queued after the PUBACKs already handed to paho: they go out first
+        client.loop_stop()
+        delay_s = self.reconnect_min_delay_s
+        while not self._closed.is_set():
+            try:
+                client.reconnect()
+                break
+            except OSError as exc:
+                log.warning("%s: reconnect for redelivery failed (%s); again in %.1f s", self.client_id, exc, delay_s)
+                self._closed.wait(delay_s)
+                delay_s = min(2 * delay_s, self.reconnect_max_delay_s)
+        self._redelivering = False
+        client.loop_start()  # paho's network thread again: it reconnects by itself from here should this one fail
+        self.redeliveries += 1
+        log.info("%s: reconnected for the redelivery of deferred messages", self.client_id)
 
     def _dispatch(self, client, message) -> None:
         """Hand a message to its handler; Busy goes through to `_on_message`."""
