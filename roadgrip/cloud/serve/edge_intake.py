@@ -5,8 +5,10 @@ worker thread that stores them in group transactions and hands the new observati
   queue holds MAX_EDGE_BACKLOG messages, ten times the service's Receive Maximum (SERVICE_RECEIVE_MAXIMUM,
   roadgrip/cloud/transport/mqtt.py): a broker that keeps to it never fills the queue, even with what a dropped
   connection left in it. One that does not (Mosquitto 2.0.11 after the first PUBACK) can: the handler then raises
-  `Busy` and the message stays unacknowledged in the broker; once the queue is down to half (`has_room`) the MQTT
-  client reconnects and the broker delivers it again. paho's thread goes on reading and answering pings meanwhile.
+  `Busy` and the message stays unacknowledged in the broker, as does every message after it until all that waited is
+  stored and acknowledged (`has_room`); then the MQTT client reconnects and the broker delivers the deferred ones
+  again (few duplicates: what waited was acknowledged first; a PUBACK still unwritten at the reconnect, or one that
+  raced it, makes its message come twice, stored once). paho's thread goes on reading and answering pings meanwhile.
   Memory is bounded by the queue (a message is under `max_payload_bytes`; an observation about 0.5 kB) and a batch.
 - The worker takes what waits, up to MAX_EDGE_BATCH messages (it does not wait to fill a batch: alone, a message is
   stored at once; under load, what came in while the previous batch was stored forms the next), parses each (a
@@ -70,6 +72,8 @@ class EdgeIntake:
         self.clock = clock
         self._queue: queue.Queue = queue.Queue(max_backlog)
         self._thread: threading.Thread | None = None
+        self._deferring = False  # the queue was full: every message is deferred until has_room()
+        self._in_hand = False  # the worker holds a batch not yet acknowledged
         # counted by the worker alone (health: pipeline.edge)
         self.counts = dict.fromkeys(
             (
@@ -102,14 +106,24 @@ class EdgeIntake:
     def submit(self, vehicle_id: str, kind: str, payload: bytes, ack: Callable[[], None]) -> None:
         """An MQTT message on an edge vehicle's observations or heartbeat topic (the broker's ACL made sure it is that
         vehicle's). Raises Busy when the queue is full (backpressure, module docstring); never waits."""
+        if self._deferring:
+            raise Busy("edge intake: deferring until what waits is stored")
         try:
             self._queue.put_nowait((vehicle_id, kind, payload, ack))
         except queue.Full:
+            self._deferring = True
             raise Busy(f"edge intake: {self._queue.maxsize} messages wait") from None
 
     def has_room(self) -> bool:
-        """Whether deferred messages may come again: the queue at most half full."""
-        return self._queue.qsize() <= self._queue.maxsize // 2
+        """Whether deferred messages may come again: once the queue was full, only when all that waited is stored and
+        acknowledged (so the reconnect brings back only the deferred messages, no duplicates); the handler takes
+        messages again from then on."""
+        if not self._deferring:
+            return True
+        if self._queue.qsize() or self._in_hand:
+            return False
+        self._deferring = False
+        return True
 
     @property
     def backlog(self) -> int:
@@ -123,6 +137,7 @@ class EdgeIntake:
         stopping = False
         while not stopping:
             batch = [self._queue.get()]
+            self._in_hand = True
             while len(batch) < self.max_batch:
                 try:
                     batch.append(self._queue.get_nowait())
@@ -138,6 +153,7 @@ class EdgeIntake:
                 except Exception:  # the worker must outlive one bad batch: it stays unacknowledged
                     self.counts["batches_failed"] += 1
                     log.exception("edge intake: a batch of %d messages failed; left unacknowledged", len(batch))
+            self._in_hand = False
 
     def _drain(self) -> list:
         rest = []

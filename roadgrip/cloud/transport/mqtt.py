@@ -334,6 +334,7 @@ class MqttClient:
         self._redelivery: threading.Thread | None = None  # the one redelivery thread, while it runs
         self._pending = False  # a message was deferred since the last redelivery
         self._redelivering = False  # its disconnect is not a drop
+        self._redelivery_disconnected = threading.Event()
         self._closed = threading.Event()
         self._password = password
         self._client: paho.Client | None = None
@@ -492,7 +493,10 @@ class MqttClient:
             self._unacknowledged -= 1
 
     def _on_disconnect(self, client, _userdata, _flags, reason_code, _properties):
-        if self._client is client and not self._redelivering:  # not our own close() or redelivery
+        if self._redelivering:
+            self._redelivery_disconnected.set()
+            return
+        if self._client is client:  # not our own close()
             self.drops += 1
             log.warning("%s: disconnected from %s (%s); reconnecting", self.client_id, self.url, reason_code)
 
@@ -536,7 +540,9 @@ class MqttClient:
         if client is None:
             return
         self._redelivering = True
+        self._redelivery_disconnected.clear()
         client.disconnect()  # queued after the PUBACKs already handed to paho: they go out first
+        self._redelivery_disconnected.wait(RECONNECT_MAX_DELAY_S)  # written: those PUBACKs are out
         client.loop_stop()
         delay_s = self.reconnect_min_delay_s
         while not self._closed.is_set():
@@ -604,7 +610,10 @@ class MqttClient:
                 if done or generation != self._generation:
                     return
                 done = True
-            client.ack(mid, qos)
+            try:
+                client.ack(mid, qos)
+            except OSError:  # paho's wake-up socket closed by a reconnect meanwhile: the message comes again
+                log.debug("%s: PUBACK of message %d lost to a reconnect", self.client_id, mid)
 
         return ack
 
