@@ -134,6 +134,7 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
                         "largest_batch": p["edge"]["largest_batch"],
                         "rss_mb": h["memory_rss_mb"],
                         "mqtt_unacknowledged": p["mqtt_unacknowledged"],
+                        **(p.get("mqtt_flow") or {}),
                         **p["observation_latency"],
                     }
                 )
@@ -142,6 +143,7 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
             children_before = resource.getrusage(resource.RUSAGE_CHILDREN)
             load_before = os.getloadavg()
             load = _generate(case, {"mqtt_url": mqtt_url}, registered, messages, on_tick=record)
+            record()
             ended = time.time()
             while True:  # drain: everything acknowledged is stored and nothing waits in the intake
                 edge = service.health()["pipeline"]["edge"]
@@ -181,6 +183,8 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
         "seconds": seconds,
         "rate_per_vehicle_s": rate_per_s,
         "offered_per_s": vehicles * rate_per_s,
+        "complete": load["generators_finished"] == load["generators"],
+        "generators_finished": f"{load['generators_finished']} of {load['generators']}",
         "sent": load["sent"],
         "acknowledged": load["acknowledged"],
         "refused": load["refused"],
@@ -197,6 +201,7 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
         "latency_p99_ms": latency["p99_ms"],
         "latency_over_max": latency["over_max"],
         "drain_s": round(stored_at - ended, 2),
+        "mqtt_flow": pipeline.get("mqtt_flow"),
         "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
         "service_cpu_s": round(service_cpu, 2),
         "broker_cpu_s": round(broker_cpu, 2),
@@ -224,6 +229,7 @@ def format_edge_case(r: dict) -> str:
                 f"edge over MQTT: {r['vehicles']:,} vehicles, {r['offered_per_s']:g} observations/s offered for "
                 f"{r['seconds']:.0f} s"
             ),
+            *([] if r["complete"] else [f"INCOMPLETE: load generators finished {r['generators_finished']}"]),
             (
                 f"sent {r['sent']:,}, PUBACKed {r['acknowledged']:,}, stored {r['stored']:,}, lost {r['lost']:,}; "
                 f"vehicles stored exactly as sent {r['vehicles_stored_exactly']:,} of {r['vehicles']:,}; duplicates "

@@ -13,6 +13,7 @@ def test_every_observation_acknowledged_is_stored_exactly_once():
     templates = observation_templates()
     assert templates and all(o["excited"] or o["mu_proven"] >= 0.1 for o in templates)
     row = run_edge_case(vehicles=6, seconds=3.0, rate_per_s=2.0, templates=templates, progress=lambda m: None)
+    assert row["complete"]
     assert row["sent"] == row["acknowledged"] == row["stored"] == row["fanned_out"] == 6 * 6
     assert row["lost"] == 0 and row["refused"] == 0 and row["rejected"] == 0
     assert row["vehicles_stored_exactly"] == 6
@@ -20,6 +21,17 @@ def test_every_observation_acknowledged_is_stored_exactly_once():
     assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
     assert row["service_cpu_s"] > 0 and row["service_cpu_ms_per_stored"] > 0 and row["rss_mb_end"] > 0
     assert "stored 36, lost 0; vehicles stored exactly as sent 6 of 6" in format_edge_case(row)
+
+
+@pytest.mark.slow
+def test_generators_past_their_limit_are_stopped_and_the_run_still_recorded(monkeypatch):
+    from roadgrip.bench import ingest
+
+    monkeypatch.setattr(ingest, "GENERATOR_GRACE_S", -20.0)  # the limit falls at the start of a 20 s period
+    row = run_edge_case(vehicles=2, seconds=20.0, rate_per_s=1.0, templates=observation_templates()[:4])
+    assert not row["complete"] and row["generators_finished"].startswith("0 of ")
+    assert row["sent"] == row["acknowledged"] == 0 and row["stored"] > 0  # what the service stored is still read
+    assert row["timeline"] and "INCOMPLETE: load generators finished 0 of " in format_edge_case(row)
 
 
 def test_the_vehicles_messages_are_spread_over_the_period_each_its_own_key():

@@ -17,13 +17,14 @@ from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
 from roadgrip.cloud.metrics import MAIN_PROCESS, TRANSPORTS, IngestCounters, ProcessView
 from roadgrip.cloud.pipeline.pipeline import Pipeline, SubmitResult
 from roadgrip.cloud.settings import Settings
+from roadgrip.cloud.transport.mqtt import Busy
 
-# Samples the MQTT side may queue for a pipeline (2 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler waits,
-# so paho's network thread stops reading: TCP pushes back and the broker keeps the rest in the service's persistent
-# session, unacknowledged. (Mosquitto 2.0.11 did not stop at the client's Receive Maximum in the soak of
-# docs/RELIABILITY.md: the service queued 116,000 messages and its memory grew; this bound is the service's own.) It
-# also bounds a round: with 100,000 a service that fell behind ran rounds of 10 s and more, and each added its queue
-# to the RSS for good (the allocator keeps its peak), where the broker holds a waiting message in 0.3 kB.
+# Samples the MQTT side may queue for a pipeline (2 s of 1,000 vehicles at 10 Hz). Beyond it the MQTT handler raises
+# Busy: the message stays unacknowledged in the broker's persistent session and comes again once the backlog is down to
+# half (`has_room`; MqttClient reconnects for it), while paho's network thread goes on reading and pinging. The
+# Receive Maximum (SERVICE_RECEIVE_MAXIMUM messages) would bound it by itself on a broker that keeps to it; Mosquitto
+# 2.0.11 does not (tests/cloud/serve/test_edge_intake.py). It also bounds a round: with 100,000 a service that fell
+# behind ran rounds of 10 s and more, and each added its queue to the RSS for good (the allocator keeps its peak).
 MAX_MQTT_BACKLOG = 20_000
 
 Rejecter = Callable[[str, list[dict]], None]  # (vehicle_id, rejections as dicts with index, field, reason)
@@ -93,7 +94,10 @@ class Ingest:
     def mqtt_message(self, vehicle_id: str, payload: bytes, ack: Callable[[], None]) -> None:
         """One MQTT message from a vehicle (the broker's ACL made sure it is that vehicle): parse, report rejections
         on the vehicle's error topic, queue the valid samples, acknowledge once they are stored. A message refused as
-        a whole (unreadable, over the rate limit) is acknowledged at once: the broker must not deliver it again."""
+        a whole (unreadable, over the rate limit) is acknowledged at once: the broker must not deliver it again.
+        Raises Busy, before reading it, while MAX_MQTT_BACKLOG samples wait (backpressure: the broker keeps it)."""
+        if self.pipeline.backlog > MAX_MQTT_BACKLOG and self.pipeline.running:
+            raise Busy(f"{self.pipeline.backlog} samples wait for the pipeline")
         s = self.settings
         try:
             samples, errors = parse_payload(
@@ -109,8 +113,6 @@ class Ingest:
             self.reject(vehicle_id, [{"index": None, "field": exc.field, "reason": str(exc)}])
             ack()
             return
-        while samples and self.pipeline.backlog > MAX_MQTT_BACKLOG and self.pipeline.running:
-            time.sleep(0.01)  # backpressure: no more is read until the pipeline has caught up (MAX_MQTT_BACKLOG)
         future = self.submit(vehicle_id, samples, len(samples) + len(errors), retry=True, transport="mqtt")
         if isinstance(future.exception() if future.done() else None, RateLimited):
             self.reject(vehicle_id, [{"index": None, "field": None, "reason": str(future.exception())}])
@@ -119,6 +121,10 @@ class Ingest:
         if errors:
             self.reject(vehicle_id, [e.to_dict() for e in errors])
         future.add_done_callback(lambda f: ack() if f.exception() is None else None)
+
+    def has_room(self) -> bool:
+        """Whether messages refused with Busy may come again: the pipeline's backlog down to half its bound."""
+        return self.pipeline.backlog <= MAX_MQTT_BACKLOG // 2
 
     def forget_vehicle(self, vehicle_id: str, drop_queued: bool = False) -> None:
         self.pipeline.forget_vehicle(vehicle_id, drop_queued)

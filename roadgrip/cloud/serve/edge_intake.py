@@ -1,11 +1,15 @@
 """serve's intake of edge vehicles' MQTT messages (CONTRACTS 3.7: observations and heartbeats): a bounded queue and one
 worker thread that stores them in group transactions and hands the new observations to the fan-out in batches.
 
-- The MQTT handler (`submit`, on paho's network thread) only puts the message on the queue. At MAX_EDGE_BACKLOG
-  messages it waits: paho's network thread stops reading, TCP pushes back, and the broker keeps the rest in the
-  service's persistent session, unacknowledged (as the raw telemetry's handler does at its own bound,
-  roadgrip/cloud/ingest/admission.py). Memory is bounded by the queue (a message is under `max_payload_bytes`; an
-  observation about 0.5 kB) and a batch.
+- The MQTT handler (`submit`, on paho's network thread) only puts the message on the queue; it never waits. The
+  queue holds MAX_EDGE_BACKLOG messages, ten times the service's Receive Maximum (SERVICE_RECEIVE_MAXIMUM,
+  roadgrip/cloud/transport/mqtt.py): a broker that keeps to it never fills the queue, even with what a dropped
+  connection left in it. One that does not (Mosquitto 2.0.11 after the first PUBACK) can: the handler then raises
+  `Busy` and the message stays unacknowledged in the broker, as does every message after it until all that waited is
+  stored and acknowledged (`has_room`); then the MQTT client reconnects and the broker delivers the deferred ones
+  again (few duplicates: what waited was acknowledged first; a PUBACK still unwritten at the reconnect, or one that
+  raced it, makes its message come twice, stored once). paho's thread goes on reading and answering pings meanwhile.
+  Memory is bounded by the queue (a message is under `max_payload_bytes`; an observation about 0.5 kB) and a batch.
 - The worker takes what waits, up to MAX_EDGE_BATCH messages (it does not wait to fill a batch: alone, a message is
   stored at once; under load, what came in while the previous batch was stored forms the next), parses each (a
   message that breaks the format is reported on the vehicle's errors topic and acknowledged: it would never pass),
@@ -30,12 +34,16 @@ from roadgrip.cloud.api.backend import EdgeIngest
 from roadgrip.cloud.ingest.observations import ObservationError, parse_edge_message
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import StorageUnavailable
+from roadgrip.cloud.transport.mqtt import SERVICE_RECEIVE_MAXIMUM, Busy
 
 log = logging.getLogger(__name__)
 
-# Messages waiting for the worker (about 6 s at the 1,750 a second of docs/EDGE.md's soak; some 5 MB of observations).
-MAX_EDGE_BACKLOG = 10_000
-MAX_EDGE_BATCH = 1_000  # messages stored in one transaction
+# Messages waiting for the worker: ten of the broker's windows (module docstring), some 10 MB of observations, 11 s of
+# docs/EDGE.md's soak. On Mosquitto 2.0.11, which sends past the window, this is what absorbs a stall of the worker:
+# past it every message waiting in the broker comes again after the reconnect (the 600 s soak with 4,000 deferred
+# within a minute, and the repeated redeliveries took over the service).
+MAX_EDGE_BACKLOG = 10 * SERVICE_RECEIVE_MAXIMUM
+MAX_EDGE_BATCH = SERVICE_RECEIVE_MAXIMUM // 2  # messages stored in one transaction
 
 Store = Callable[[list[dict], list[dict]], tuple[EdgeIngest, EdgeIngest]]  # (observations, heartbeats) -> results
 Rejecter = Callable[[str, list[dict]], None]  # (vehicle_id, rejections)
@@ -64,6 +72,8 @@ class EdgeIntake:
         self.clock = clock
         self._queue: queue.Queue = queue.Queue(max_backlog)
         self._thread: threading.Thread | None = None
+        self._deferring = False  # the queue was full: every message is deferred until has_room()
+        self._in_hand = False  # the worker holds a batch not yet acknowledged
         # counted by the worker alone (health: pipeline.edge)
         self.counts = dict.fromkeys(
             (
@@ -95,8 +105,25 @@ class EdgeIntake:
 
     def submit(self, vehicle_id: str, kind: str, payload: bytes, ack: Callable[[], None]) -> None:
         """An MQTT message on an edge vehicle's observations or heartbeat topic (the broker's ACL made sure it is that
-        vehicle's). Waits while the queue is full (backpressure, module docstring)."""
-        self._queue.put((vehicle_id, kind, payload, ack))
+        vehicle's). Raises Busy when the queue is full (backpressure, module docstring); never waits."""
+        if self._deferring:
+            raise Busy("edge intake: deferring until what waits is stored")
+        try:
+            self._queue.put_nowait((vehicle_id, kind, payload, ack))
+        except queue.Full:
+            self._deferring = True
+            raise Busy(f"edge intake: {self._queue.maxsize} messages wait") from None
+
+    def has_room(self) -> bool:
+        """Whether deferred messages may come again: once the queue was full, only when all that waited is stored and
+        acknowledged (so the reconnect brings back only the deferred messages, no duplicates); the handler takes
+        messages again from then on."""
+        if not self._deferring:
+            return True
+        if self._queue.qsize() or self._in_hand:
+            return False
+        self._deferring = False
+        return True
 
     @property
     def backlog(self) -> int:
@@ -110,6 +137,7 @@ class EdgeIntake:
         stopping = False
         while not stopping:
             batch = [self._queue.get()]
+            self._in_hand = True
             while len(batch) < self.max_batch:
                 try:
                     batch.append(self._queue.get_nowait())
@@ -125,6 +153,7 @@ class EdgeIntake:
                 except Exception:  # the worker must outlive one bad batch: it stays unacknowledged
                     self.counts["batches_failed"] += 1
                     log.exception("edge intake: a batch of %d messages failed; left unacknowledged", len(batch))
+            self._in_hand = False
 
     def _drain(self) -> list:
         rest = []

@@ -197,9 +197,16 @@ class CloudService:
             on_telemetry=self.ingest.mqtt_message,
             on_station_report=self._station_message,
             on_edge=self.edge_intake.submit,
+            room=self._mqtt_room,
             max_inflight=MAX_INFLIGHT_MESSAGES if self.broker is not None else DEFAULT_MAX_INFLIGHT,
         )
         self.mqtt.connect()
+
+    def _mqtt_room(self) -> bool:
+        """Whether MQTT messages deferred for want of room (Busy) may come again (MqttClient's redelivery): the edge
+        intake and the raw pipeline both have room (ingest processes never defer)."""
+        ingest_room = getattr(self.ingest, "has_room", None)
+        return self.edge_intake.has_room() and (ingest_room is None or ingest_room())
 
     def _publish(self, topic: str, payload: bytes) -> None:
         if self.mqtt is None:
@@ -365,6 +372,9 @@ class CloudService:
             "fanout_s": self.fanout.busy_s,
             "mqtt_rejected": self.mqtt_rejected,
             "mqtt_unacknowledged": None if self.mqtt is None else self.mqtt.unacknowledged,
+            "mqtt_flow": None
+            if self.mqtt is None
+            else {"deferred": self.mqtt.deferred, "redeliveries": self.mqtt.redeliveries, "drops": self.mqtt.drops},
             "estimate_messages_dropped": self.estimate_messages_dropped,
             "latency": self.fanout.latency.recent(),
             "latency_since_start": self.fanout.latency.since_start(),

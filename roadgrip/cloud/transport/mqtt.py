@@ -80,6 +80,12 @@ DEFAULT_PORT = 1883
 RECONNECT_MIN_DELAY_S = 0.25  # doubling after each failed attempt, up to the max
 RECONNECT_MAX_DELAY_S = 10.0
 DEFAULT_MAX_INFLIGHT = 20  # own QoS 1 publishes unacknowledged at once: paho's default, and Mosquitto's Receive Maximum
+# The service's Receive Maximum (CONNECT): messages the broker may have unacknowledged towards it. Twice the edge
+# intake's batch (roadgrip/cloud/serve/edge_intake.py), so that the broker fills the next batch while one is stored and
+# a round trip never caps throughput; the edge intake's queue is sized from it. Mosquitto 2.0.11 keeps to it only until
+# the first PUBACK (tests/cloud/serve/test_edge_intake.py measures it; fixed in 2.0.13): `Busy` is the bound that holds.
+SERVICE_RECEIVE_MAXIMUM = 2_000
+REDELIVERY_POLL_S = 0.2  # how often a client with deferred messages asks whether the service has room again
 MQTT_PROTOCOLS = {"5": paho.MQTTv5, "3.1.1": paho.MQTTv311}  # what a client may be asked to speak, besides "auto"
 UNSUPPORTED_PROTOCOL_VERSION = 0x84  # MQTT 5's CONNACK reason code for a protocol version the broker does not speak
 
@@ -150,6 +156,11 @@ def parse_url(url: str) -> tuple[str, int]:
     if parts.scheme != "mqtt" or not parts.hostname or parts.path not in ("", "/") or parts.query:
         raise ValueError(f"url must be mqtt://host[:port], got {url!r}")
     return parts.hostname, parts.port or DEFAULT_PORT
+
+
+class Busy(Exception):
+    """Raised by a `MqttClient` handler that has no room for a message now: it is left unacknowledged and counted
+    (`deferred`); once the service has room again the client reconnects and the broker delivers it again."""
 
 
 class BrokerRefused(ConnectionError):
@@ -264,7 +275,14 @@ class MqttClient:
     service puts the message on a queue) and must not block: no other message is read meanwhile. An exception in it
     is logged and the message is left unacknowledged. `on_station_report(station_id, payload, ack)` is the same for
     the roadside stations' reports, `on_edge(vehicle_id, kind, payload, ack)` for edge vehicles' observations and
-    heartbeats (kind "observations" or "heartbeat"). `ack()` may be called from any thread, at any later time, and
+    heartbeats (kind "observations" or "heartbeat").
+    - Backpressure that never holds the network thread: a handler with no room raises `Busy`; the message is left
+      unacknowledged and counted in `deferred`, and paho goes on reading, answering and pinging. A thread of the client
+      then asks `room()` every `redelivery_poll_s` and, once it says yes, reconnects (the persistent session stays):
+      the broker delivers every unacknowledged message again, the deferred ones included. (A broker that keeps to the
+      Receive Maximum never sends more than `receive_maximum`; handlers sized to it never raise `Busy`. Mosquitto 2.0.11
+      does not: module constants.) `drops` counts connections lost (not closed by this client).
+    `ack()` may be called from any thread, at any later time, and
     more than once (only the first call counts): paho's `Client.ack` only appends a PUBACK to a deque (atomic in
     CPython) and wakes the network thread through its socket pair, the same path as `publish`. An `ack()` that comes
     after the connection the message arrived on has dropped does nothing: the broker delivers that message again.
@@ -281,12 +299,14 @@ class MqttClient:
         on_station_report: TelemetryHandler | None = None,
         on_edge: EdgeHandler | None = None,
         session_expiry_s: int = 86_400,
-        receive_maximum: int = 10_000,
+        receive_maximum: int = SERVICE_RECEIVE_MAXIMUM,
         max_queued_messages: int = 100_000,
         max_inflight: int = DEFAULT_MAX_INFLIGHT,
         keepalive_s: int = 30,
         reconnect_min_delay_s: float = RECONNECT_MIN_DELAY_S,
         reconnect_max_delay_s: float = RECONNECT_MAX_DELAY_S,
+        room: Callable[[], bool] | None = None,
+        redelivery_poll_s: float = REDELIVERY_POLL_S,
     ):
         self.host, self.port = parse_url(url)
         if not 1 <= receive_maximum <= 65_535:
@@ -306,6 +326,16 @@ class MqttClient:
         self.keepalive_s = keepalive_s
         self.reconnect_min_delay_s = reconnect_min_delay_s
         self.reconnect_max_delay_s = reconnect_max_delay_s
+        self.room = room or (lambda: True)
+        self.redelivery_poll_s = redelivery_poll_s
+        self.deferred = 0  # messages a handler had no room for (Busy), all connections together
+        self.drops = 0  # connections lost, not closed by this client
+        self.redeliveries = 0  # reconnects to have deferred messages delivered again
+        self._redelivery: threading.Thread | None = None  # the one redelivery thread, while it runs
+        self._pending = False  # a message was deferred since the last redelivery
+        self._redelivering = False  # its disconnect is not a drop
+        self._redelivery_disconnected = threading.Event()
+        self._closed = threading.Event()
         self._password = password
         self._client: paho.Client | None = None
         self._lock = threading.Lock()
@@ -328,6 +358,10 @@ class MqttClient:
         `TimeoutError` after `timeout_s`; the client is then stopped. Later disconnects are repaired in the background."""
         if self._client is not None:
             raise RuntimeError("connect() called twice: close() first")
+        self._closed.clear()
+        self._connect(timeout_s)
+
+    def _connect(self, timeout_s: float) -> None:
         client = paho.Client(
             CallbackAPIVersion.VERSION2, client_id=self.client_id, protocol=paho.MQTTv5, manual_ack=True
         )
@@ -353,11 +387,11 @@ class MqttClient:
             raise
         client.loop_start()
         if not self._ready.wait(timeout_s):
-            self.close()
+            self._disconnect()
             raise TimeoutError(f"{self.client_id}: not connected and subscribed to {self.url} within {timeout_s} s")
         if self._failure is not None:
             failure = self._failure
-            self.close()
+            self._disconnect()
             raise failure
 
     def publish(self, topic: str, payload: bytes | str, qos: int = QOS) -> paho.MQTTMessageInfo:
@@ -388,10 +422,17 @@ class MqttClient:
 
     def close(self) -> None:
         """Disconnect (the broker keeps the session for `session_expiry_s`) and stop the network thread. Idempotent."""
+        self._closed.set()
+        redelivery = self._redelivery
+        if redelivery is not None and redelivery is not threading.current_thread():
+            redelivery.join()
+        self._disconnect()
+
+    def _disconnect(self) -> None:
         client, self._client = self._client, None
         if client is None:
             return
-        client.disconnect()
+        client.disconnect()  # queued after the PUBACKs already handed to paho: they go out first
         client.loop_stop()
         with self._lock:
             self._generation += 1  # acks of this connection are void
@@ -451,17 +492,82 @@ class MqttClient:
         with self._lock:
             self._unacknowledged -= 1
 
-    def _on_disconnect(self, _client, _userdata, _flags, reason_code, _properties):
-        if self._client is not None:  # not our own close()
+    def _on_disconnect(self, client, _userdata, _flags, reason_code, _properties):
+        if self._redelivering:
+            self._redelivery_disconnected.set()
+            return
+        if self._client is client:  # not our own close()
+            self.drops += 1
             log.warning("%s: disconnected from %s (%s); reconnecting", self.client_id, self.url, reason_code)
 
     def _on_message(self, client, _userdata, message):
+        try:
+            self._dispatch(client, message)
+        except Busy:
+            self._defer()
+
+    def _defer(self) -> None:
+        """A handler had no room (Busy): count it and make sure the redelivery thread (one at a time) runs."""
+        with self._lock:
+            self.deferred += 1
+            self._pending = True
+            if self._redelivery is not None or self._closed.is_set():
+                return
+            self._redelivery = threading.Thread(target=self._redeliver, name="mqtt-redelivery", daemon=True)
+        log.warning("%s: no room for a message; deferred until the service has room again", self.client_id)
+        self._redelivery.start()
+
+    def _redeliver(self) -> None:
+        """Once `room()`, reconnect: the broker delivers the unacknowledged messages again (class docstring); again
+        while messages were deferred since."""
+        while not self._closed.wait(self.redelivery_poll_s):
+            if not self.room():
+                continue
+            with self._lock:
+                self._pending = False
+                self._generation += 1  # acks of this connection are void: its messages come again
+            self._reconnect_same_client()
+            with self._lock:
+                if not self._pending:
+                    self._redelivery = None
+                    return
+        with self._lock:
+            self._redelivery = None
+
+    def _reconnect_same_client(self) -> None:
+        """Disconnect and connect the same paho client (what it holds to publish stays queued in it)."""
+        client = self._client
+        if client is None:
+            return
+        self._redelivering = True
+        self._redelivery_disconnected.clear()
+        client.disconnect()  # queued after the PUBACKs already handed to paho: they go out first
+        self._redelivery_disconnected.wait(RECONNECT_MAX_DELAY_S)  # written: those PUBACKs are out
+        client.loop_stop()
+        delay_s = self.reconnect_min_delay_s
+        while not self._closed.is_set():
+            try:
+                client.reconnect()
+                break
+            except OSError as exc:
+                log.warning("%s: reconnect for redelivery failed (%s); again in %.1f s", self.client_id, exc, delay_s)
+                self._closed.wait(delay_s)
+                delay_s = min(2 * delay_s, self.reconnect_max_delay_s)
+        self._redelivering = False
+        client.loop_start()  # paho's network thread again: it reconnects by itself from here should this one fail
+        self.redeliveries += 1
+        log.info("%s: reconnected for the redelivery of deferred messages", self.client_id)
+
+    def _dispatch(self, client, message) -> None:
+        """Hand a message to its handler; Busy goes through to `_on_message`."""
         vehicle_id = vehicle_of_topic(message.topic)
         ack = self._acker(client, message.mid, message.qos)
         station_id = station_of_topic(message.topic)
         if station_id is not None and self.on_station_report is not None:
             try:
                 self.on_station_report(station_id, message.payload, ack)
+            except Busy:
+                raise
             except Exception:
                 log.exception(
                     "%s: station report handler failed on a message of %s; left unacknowledged",
@@ -473,6 +579,8 @@ class MqttClient:
         if vehicle_id is not None and kind in EDGE_KINDS and self.on_edge is not None:
             try:
                 self.on_edge(vehicle_id, kind, message.payload, ack)
+            except Busy:
+                raise
             except Exception:
                 log.exception(
                     "%s: %s handler failed on a message of %s; left unacknowledged", self.client_id, kind, vehicle_id
@@ -485,6 +593,8 @@ class MqttClient:
             return
         try:
             self.on_telemetry(vehicle_id, message.payload, ack)
+        except Busy:
+            raise
         except Exception:
             log.exception(
                 "%s: telemetry handler failed on a message of %s; left unacknowledged", self.client_id, vehicle_id
@@ -500,7 +610,10 @@ class MqttClient:
                 if done or generation != self._generation:
                     return
                 done = True
-            client.ack(mid, qos)
+            try:
+                client.ack(mid, qos)
+            except OSError:  # paho's wake-up socket closed by a reconnect meanwhile: the message comes again
+                log.debug("%s: PUBACK of message %d lost to a reconnect", self.client_id, mid)
 
         return ack
 

@@ -1,7 +1,7 @@
 """serve's MQTT intake of edge vehicles' messages (roadgrip/cloud/serve/edge_intake.py) on a real service and storage:
 a batch is stored in one transaction and handed to the map in one call, each observation once (a repeat in the same
 batch, one stored earlier, one stored before a restart), a broken message reported and acknowledged, every message
-acknowledged only after its batch; a full queue makes the MQTT handler wait."""
+acknowledged only after its batch; a full queue defers to the broker (Busy) while paho's network thread goes on."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import orjson
 from service_fixtures import running_cloud
 
 from roadgrip.cloud.serve.edge_intake import EdgeIntake
+from roadgrip.cloud.transport.mosquitto import ManagedBroker
+from roadgrip.cloud.transport.mqtt import MqttClient, VehicleClient, observations_topic
 
 NOW_MS = int(time.time() * 1000) - 600_000
 LAT, LON = 59.91, 10.75
@@ -134,24 +136,63 @@ def test_a_batch_is_stored_and_mapped_once_per_observation_and_acknowledged_afte
         assert len(service.storage.observations_since(0)) == 4
 
 
-def test_a_full_queue_makes_the_mqtt_handler_wait_until_the_worker_takes_it(tmp_path):
-    with running_cloud(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path) as (service, _):
-        intake = EdgeIntake(service.settings, service.edge_messages, lambda v, e: None, max_backlog=2, max_batch=1)
-        acks = Acks()
-        submit_all(intake, acks, [("car-a", "observations", observation("car-a", NOW_MS + k)) for k in range(2)])
-        third = threading.Thread(
-            target=submit_all, args=(intake, acks, [("car-a", "heartbeat", heartbeat("car-a", NOW_MS))])
-        )
-        third.start()
-        third.join(0.5)
-        assert third.is_alive() and intake.backlog == 2  # waits: paho's network thread would stop reading
+def wait_until(condition, timeout_s: float = 30, msg=lambda: "") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"condition not met in time {msg()}"
+        time.sleep(0.02)
+
+
+def test_a_full_queue_defers_to_the_broker_without_holding_the_network_thread(tmp_path):
+    """A real Mosquitto and the service's MqttClient with a keepalive of 1 s (the broker drops a client silent for
+    1.5 s); the store is held shut while 200 observations come, against a queue of 20 and a Receive Maximum of 50
+    (above the queue on purpose: Busy is the bound that must hold). The handler never waits: the overflow is deferred,
+    the connection stays up through the held store, and once the store opens every observation is stored once."""
+    n, keepalive_s = 200, 1
+    with (
+        running_cloud(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path) as (service, _),
+        ManagedBroker(tmp_path / "broker") as broker,
+    ):
+        broker.set_user("car-a", "secret-a", "vehicle")
+        gate = threading.Event()
+
+        def slow_store(observations, heartbeats):
+            gate.wait()
+            return service.edge_messages(observations, heartbeats)
+
+        intake = EdgeIntake(service.settings, slow_store, lambda v, e: None, max_backlog=20, max_batch=5)
         intake.start()
-        third.join(30)
-        assert not third.is_alive()
-        intake.stop()
-        assert sum(acks.calls.values()) == 3
-        assert intake.counts["batches"] == 3 and intake.counts["largest_batch"] == 1
-        assert len(service.storage.observations_since(0)) == 2
+        mqtt = MqttClient(
+            broker.url,
+            broker.service_user,
+            broker.service_password,
+            "service-under-test",
+            on_telemetry=lambda *_: None,
+            on_edge=intake.submit,
+            room=intake.has_room,
+            receive_maximum=50,
+            keepalive_s=keepalive_s,
+            redelivery_poll_s=0.05,
+        )
+        mqtt.connect()
+        try:
+            with VehicleClient(broker.url, "car-a", "secret-a") as car:
+                for k in range(n):
+                    car.publish(observations_topic("car-a"), orjson.dumps(observation("car-a", NOW_MS - k * STEP_MS)))
+            wait_until(lambda: mqtt.deferred >= 50 - 20 - 5)  # the window beyond the queue and the batch in hand
+            assert intake.backlog == 20
+            time.sleep(3 * keepalive_s)  # the store stays shut: paho must keep the connection alive meanwhile
+            assert mqtt.connected and mqtt.drops == 0 and mqtt.redeliveries == 0
+            gate.set()
+            wait_until(lambda: intake.counts["observations_stored"] == n)
+            wait_until(lambda: intake.backlog == 0)
+        finally:
+            mqtt.close()
+            intake.stop()
+        assert mqtt.drops == 0 and mqtt.redeliveries >= 1
+        stored = [o["last_ms"] for o in service.storage.observations_since(0)]
+        assert sorted(stored) == sorted(NOW_MS - k * STEP_MS for k in range(n))  # each once, none lost
+        assert intake.counts["observations_stored"] == n and intake.counts["batches_failed"] == 0
 
 
 def test_put_edge_stores_a_key_given_twice_in_one_call_once(storage):
