@@ -6,6 +6,8 @@
 - `storage_url`: parametrized over "sqlite" and "postgresql", so that a test using it runs on both: a fresh SQLite file
   in the test's tmp_path, or `postgres_database_url`.
 - `storage`: `roadgrip.cloud.storage.database.open_storage(storage_url)`, closed after the test.
+- `datex2_schema` (session): the official DATEX II v3.1 schema set (tests/reference/datex2-v3.1), read once (seconds):
+  what the DATEX II documents and routes are validated against.
 
 The server needs the Debian packages of `scripts/install_system_deps.sh`; without them the fixture fails (it never skips),
 because "passes on SQLite and PostgreSQL" is part of what the tests check.
@@ -14,11 +16,15 @@ because "passes on SQLite and PostgreSQL" is part of what the tests check.
 from __future__ import annotations
 
 import uuid
+from pathlib import Path
 
 import pytest
+import xmlschema
 
 from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.storage.local_postgres import LocalPostgres, PostgresUnavailable, create_database, drop_database
+
+DATEX2_XSD = Path(__file__).resolve().parents[1] / "reference" / "datex2-v3.1" / "DATEXII_3_D2Payload.xsd"
 
 
 @pytest.fixture(scope="session")
@@ -58,3 +64,8 @@ def storage(storage_url):
     opened = open_storage(storage_url)
     yield opened
     opened.close()
+
+
+@pytest.fixture(scope="session")
+def datex2_schema() -> xmlschema.XMLSchema:
+    return xmlschema.XMLSchema(DATEX2_XSD)

@@ -317,6 +317,7 @@ def test_postgresql_outage_of_30_s_loses_no_acknowledged_sample(broker, tmp_path
 
 
 # ------------------------------------------------------------------------------------------------- 4. SIGTERM
+@pytest.mark.slow
 def test_service_sigterm_stops_cleanly_and_estimates_what_it_held(tmp_path):
     """SIGTERM (systemd, docker stop, `roadgrip bench`) is the clean stop: `roadgrip serve` runs CloudService.stop(),
     whose last pipeline round releases every reorder window, so every stored sample gets its estimate. A 5 s window

@@ -132,6 +132,7 @@ def _wait_for(predicate, what: str, timeout_s: float = 20.0) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # 88 cases of 60 requests: over a minute in all, most of it outside the fast subset
 @pytest.mark.parametrize("role", ROLES)
 @pytest.mark.parametrize("mode", MODES, ids=[m.value for m in MODES])
 @pytest.mark.parametrize("operation", OPERATIONS, ids=[f"{m} {p}" for m, p in OPERATIONS])

@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
-import pytest
-import xmlschema
 from fastapi.testclient import TestClient
 from service_fixtures import ADMIN, add_reader, collect, register, settings_for
 
@@ -21,13 +18,7 @@ from roadgrip.cloud.formats.denm import DENM_MEMBERS, decode_denm_uper, unframe
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, WARNINGS_UPER_TOPIC, UserClient
 
-SCHEMA = Path(__file__).resolve().parents[2] / "reference" / "datex2-v3.1" / "DATEXII_3_D2Payload.xsd"
 LAT, LON = 48.1372, 11.5755
-
-
-@pytest.fixture(scope="module")
-def schema() -> xmlschema.XMLSchema:
-    return xmlschema.XMLSchema(SCHEMA)
 
 
 def report(station_id: str, t_ms: int, state: str) -> dict:
@@ -71,12 +62,12 @@ def json_denms(client, auth, active: bool = True) -> list[dict]:
     return [{k: w[k] for k in DENM_MEMBERS} for w in warnings]
 
 
-def test_the_datex2_routes_validate_empty_and_with_a_stations_ice(tmp_path, schema):
+def test_the_datex2_routes_validate_empty_and_with_a_stations_ice(tmp_path, datex2_schema):
     settings = serving(tmp_path, datex2_country="no")
     with CloudService(settings) as service, TestClient(create_app(service)) as client:
         reader = add_reader(client, "operator")
         for path in ("/v1/map/datex2", "/v1/map/datex2/sites"):
-            empty = datex2(client, path, reader, schema)
+            empty = datex2(client, path, reader, datex2_schema)
             assert empty["@xsi:type"] == "com:GenericPublication"
             assert empty["com:publicationCreator"]["com:country"] == "NO"
         station = add_station(client, "rws-1")
@@ -84,8 +75,8 @@ def test_the_datex2_routes_validate_empty_and_with_a_stations_ice(tmp_path, sche
             "/v1/stations/rws-1/reports", json=report("rws-1", int(time.time() * 1000), "ice"), auth=station
         )
         assert answer.status_code == 200, answer.text
-        data = datex2(client, "/v1/map/datex2", reader, schema)
-        table = datex2(client, "/v1/map/datex2/sites", reader, schema)
+        data = datex2(client, "/v1/map/datex2", reader, datex2_schema)
+        table = datex2(client, "/v1/map/datex2/sites", reader, datex2_schema)
         assert data["@xsi:type"] == "roa:MeasuredDataPublication"
         assert table["@xsi:type"] == "roa:MeasurementSiteTablePublication"
         [reference], [site_table] = data["roa:measurementSiteTableReference"], table["roa:measurementSiteTable"]

@@ -126,6 +126,7 @@ def test_mqtt_and_http_vehicles_on_both_processes_are_stored_once_and_estimated(
     assert client.get("/v1/map", auth=ADMIN).json()["features"]  # the map, in the service's process
 
 
+@pytest.mark.slow
 def test_http_and_mqtt_share_the_owners_rate_limit(tmp_path):
     with running_sharded(
         f"sqlite:///{tmp_path / 'roadgrip.db'}", tmp_path, rate_limit_samples_per_s=1.0, rate_limit_burst_s=50.0
@@ -143,6 +144,7 @@ def test_http_and_mqtt_share_the_owners_rate_limit(tmp_path):
         assert len(service.storage.telemetry(vehicle_id)) == 45
 
 
+@pytest.mark.slow
 def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_acknowledged(sharded):
     service, client = sharded
     vehicle_id, secret, url = register_mqtt(client, "crash-car")
