@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -15,6 +16,15 @@ from roadgrip.fleet.demo import LocalCloud, settle
 ADMIN_SECRET = "fleet-test-admin-secret-0123"
 LOG = Path(__file__).resolve().parents[2] / "data" / "real" / "bmw_m8_braking"
 runner = CliRunner()
+
+
+def wait_stored(service, samples: int, timeout_s: float = 120.0) -> None:
+    """Wait until the service has stored `samples` telemetry samples (over MQTT the broker PUBACKs a vehicle before the
+    service has taken its message: on a loaded machine the fleet command ends well before the store), then settle."""
+    deadline = time.monotonic() + timeout_s
+    while service.storage.counts()["telemetry"] < samples and time.monotonic() < deadline:
+        time.sleep(0.1)
+    settle(service)
 
 
 @pytest.fixture
@@ -51,7 +61,7 @@ def test_simulated_vehicles_drive_against_the_cloud(cloud, transport):
         ],
     )
     assert result.exit_code == 0, result.output
-    settle(cloud.service)
+    wait_stored(cloud.service, 3 * 200)
     counts = cloud.service.storage.counts()
     assert counts["telemetry"] == 3 * 200 and counts["estimates"] > 0
     assert sorted(cloud.service.storage.vehicle_ids()) == [f"cli-{transport}-{k:03d}" for k in range(3)]
@@ -89,7 +99,7 @@ def test_vehicles_spread_over_given_brokers_in_mqtt_3_1_1_and_the_estimates_read
     assert result.exit_code == 0, result.output
     said = " ".join(result.output.split())  # rich wraps long lines
     assert "over MQTT 3.1.1 to 2 broker(s)" in said
-    settle(cloud.service)
+    wait_stored(cloud.service, 2 * 200)
     stored = {v: len(cloud.service.storage.estimates(v, limit=100_000)) for v in ("spread-000", "spread-001")}
     assert cloud.service.storage.counts()["telemetry"] == 2 * 200 and all(stored.values())
     assert f"read back from {cloud.url}: {sum(stored.values()):,} estimates of 2 of 2 vehicles" in said

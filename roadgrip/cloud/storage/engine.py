@@ -41,11 +41,13 @@ def normalise_url(url: str) -> URL:
 
 def _sqlite_pragmas(dbapi_connection, connection_record) -> None:
     cursor = dbapi_connection.cursor()
+    # busy_timeout first: switching a new database to WAL takes its lock, and a process that finds another one
+    # switching it would otherwise fail at once ("database is locked") instead of waiting
     for pragma in (
+        f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}",
         "journal_mode=WAL",
         "synchronous=NORMAL",
         "foreign_keys=ON",
-        f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}",
     ):
         cursor.execute(f"PRAGMA {pragma}")
     cursor.close()
