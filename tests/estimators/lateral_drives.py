@@ -110,6 +110,14 @@ def scenarios(split: str) -> list[Scenario]:
     return out
 
 
+def run_rows(table: pa.Table, run_id: str, calibrated: bool) -> tuple[pa.Table, pa.Table, np.ndarray]:
+    """A run's rows in a simulated table; the rows to estimate (its calm drive first where `calibrated`) and their
+    segments (the calm drive 0, the run 1: the grid restarts, the calibration carries on)."""
+    run = table.filter(pc.equal(table["run_id"], run_id))
+    rows = pa.concat_tables([table.filter(pc.equal(table["run_id"], f"calm-{run_id}")), run]) if calibrated else run
+    return run, rows, np.repeat([0, 1], [rows.num_rows - run.num_rows, run.num_rows])
+
+
 @functools.cache
 def estimated(split: str, calibrated: bool = True) -> dict[str, dict[str, np.ndarray]]:
     """Per run: the truth (mu, lateral utilisation, time) and pmf's estimates, after the calm drive (a segment of its
@@ -119,11 +127,7 @@ def estimated(split: str, calibrated: bool = True) -> dict[str, dict[str, np.nda
     estimator = PMFEstimator()
     out = {}
     for scenario in runs:
-        run = table.filter(pc.equal(table["run_id"], scenario.run_id))
-        rows = run
-        if calibrated:
-            rows = pa.concat_tables([table.filter(pc.equal(table["run_id"], f"calm-{scenario.run_id}")), run])
-        segments = np.repeat([0, 1], [rows.num_rows - run.num_rows, run.num_rows])
+        run, rows, segments = run_rows(table, scenario.run_id, calibrated)
         est = estimator.estimate_batch(rows, segments, scenario.vehicle).slice(rows.num_rows - run.num_rows)
         mu_true = run["mu"].to_numpy()
         ax, ay = run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy()

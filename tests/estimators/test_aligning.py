@@ -9,10 +9,8 @@ import functools
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
 import pytest
-from lateral_drives import calm_drive, scenarios
+from lateral_drives import calm_drive, run_rows, scenarios
 from scipy.optimize import brentq
 
 from roadgrip.estimators import aligning as al
@@ -126,11 +124,7 @@ def _drives(calibrated: bool):
     estimator = PMFEstimator()
     out = {}
     for scenario in runs:
-        run = table.filter(pc.equal(table["run_id"], scenario.run_id))
-        rows = run
-        if calibrated:
-            rows = pa.concat_tables([table.filter(pc.equal(table["run_id"], f"calm-{scenario.run_id}")), run])
-        segments = np.repeat([0, 1], [rows.num_rows - run.num_rows, run.num_rows])
+        run, rows, segments = run_rows(table, scenario.run_id, calibrated)
         mu = run["mu"].to_numpy()
         res = {"mu_true": mu, "u_lat": np.abs(run["ay_true_mps2"].to_numpy()) / (mu * G_MPS2)}
         for name, tab in (("torques", rows), ("base", rows.drop_columns(list(TORQUES)))):
