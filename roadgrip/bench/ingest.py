@@ -52,6 +52,7 @@ SAMPLE_PERIOD_MS = 100
 # How long after the period the load generators may take to report (their PUBACK wait is 60 s): past it the run is
 # recorded with the counts of those that reported (`generators_finished`) and the others are stopped.
 GENERATOR_GRACE_S = 300
+DRAIN_LIMIT_S = 300  # after the last PUBACK, how long the service may take to store it; what is not stored counts lost
 MEMORY_FLAT_FRACTION = 0.05  # a soak's memory is flat when RSS grows by at most this over the run's second half
 # A load-generator process drives its MQTT vehicles' paho clients from one thread on one epoll selector (`_MqttFleet`):
 # a thread per client (paho's loop_start) cost the 5,000 vehicles of docs/EDGE.md's soak both of this machine's cores
@@ -454,14 +455,8 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
                 )
 
             load = _generate(case, target, vehicles, TelemetryMessages(bodies, case.batch), on_tick=record)
-            ended = time.time()
-            while True:  # drain: everything acknowledged is stored, nothing left in the reorder buffers
-                pipeline = service.health()["pipeline"]
-                if pipeline["stored"] >= load["acknowledged"] and pipeline["backlog"] == 0:
-                    break
-                if time.time() - ended > 300:
-                    break
-                time.sleep(0.1)
+            # drain: everything acknowledged is stored, nothing left in the reorder buffers
+            drain_s = drain(lambda: service.health()["pipeline"], "stored", load["acknowledged"])
             stored_at = time.time()
             cpu_after = service.cpu_s()
             time.sleep(1.0)  # the last reorder windows
@@ -494,7 +489,7 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
         "lost": load["acknowledged"] - counts["telemetry"],
         "end_to_end_s": round(e2e_s, 2),
         "stored_per_s": counts["telemetry"] / e2e_s,
-        "drain_s": round(stored_at - ended, 2),
+        "drain_s": round(drain_s, 2),
         "failed_rounds": pipeline["failed_rounds"],
         "service_cpu_s": round(cpu_after["service"] - cpu_before["service"], 1),
         "broker_cpu_s": round(cpu_after["broker"] - cpu_before["broker"], 1),
@@ -513,8 +508,19 @@ def run_case(case: IngestCase, bodies: list[list[str]], database_url: str | None
         "checkpoint_s": round(pipeline["checkpoint_s"], 3),
         **memory_trend(timeline),
         "timeline": timeline,
-        "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and stored_at - ended <= 2.0,
+        "sustained": load["acked_s"] <= 1.05 * case.seconds + 1.0 and drain_s <= 2.0,
     }
+
+
+def drain(read, stored_key: str, acknowledged: int, limit_s: float = DRAIN_LIMIT_S, poll_s: float = 0.1) -> float:
+    """Wait until `read()` (a health section) counts `acknowledged` under `stored_key` with an empty backlog, or
+    `limit_s` has passed; the seconds waited."""
+    start = time.time()
+    while True:
+        counts = read()
+        if (counts[stored_key] >= acknowledged and counts["backlog"] == 0) or time.time() - start > limit_s:
+            return time.time() - start
+        time.sleep(poll_s)
 
 
 def memory_trend(timeline: list[dict]) -> dict:

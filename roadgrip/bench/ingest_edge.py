@@ -33,7 +33,7 @@ from pathlib import Path
 
 import orjson
 
-from roadgrip.bench.ingest import IngestCase, _generate, _Service, memory_trend
+from roadgrip.bench.ingest import IngestCase, _generate, _Service, drain, memory_trend
 from roadgrip.cloud.storage.database import open_storage
 from roadgrip.cloud.transport.mqtt import observations_topic
 
@@ -144,15 +144,10 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
             load_before = os.getloadavg()
             load = _generate(case, {"mqtt_url": mqtt_url}, registered, messages, on_tick=record)
             record()
-            ended = time.time()
-            while True:  # drain: everything acknowledged is stored and nothing waits in the intake
-                edge = service.health()["pipeline"]["edge"]
-                if edge["observations_stored"] >= load["acknowledged"] and edge["backlog"] == 0:
-                    break
-                if time.time() - ended > 300:
-                    break
-                time.sleep(0.2)
-            stored_at = time.time()
+            # drain: everything acknowledged is stored and nothing waits in the intake
+            drain_s = drain(
+                lambda: service.health()["pipeline"]["edge"], "observations_stored", load["acknowledged"], poll_s=0.2
+            )
             cpu_after, busy_after = service.cpu_s(), _busy_s()
             children_after = resource.getrusage(resource.RUSAGE_CHILDREN)
             load_after = os.getloadavg()
@@ -200,7 +195,7 @@ def run_edge_case(vehicles: int, seconds: float, rate_per_s: float, templates: l
         "latency_p50_ms": latency["p50_ms"],
         "latency_p99_ms": latency["p99_ms"],
         "latency_over_max": latency["over_max"],
-        "drain_s": round(stored_at - ended, 2),
+        "drain_s": round(drain_s, 2),
         "mqtt_flow": pipeline.get("mqtt_flow"),
         "generator_lag_max_s": round(load["generator_lag_max_s"], 2),
         "service_cpu_s": round(service_cpu, 2),
