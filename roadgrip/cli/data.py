@@ -197,6 +197,13 @@ def evaluate(
         help="fleet benchmark: the vehicles send raw telemetry (raw) or friction observations made on board (edge, "
         "docs/EDGE.md)",
     ),
+    channel_share: float = typer.Option(
+        0.0,
+        min=0.0,
+        max=1.0,
+        help="fleet benchmark: share of the vehicles that send every optional channel (GNSS speed, forces, steering "
+        "torques; CONTRACTS 3.1)",
+    ),
     split: str = typer.Option(
         "validation",
         help="physics benchmark: validation (choose constants here) | test (held out: run once per release of the "
@@ -224,7 +231,7 @@ def evaluate(
         paths = _evaluate_physics(out, split, seed, channels, tuple(estimator), runs)
     elif benchmark == "fleet":
         check_choice("evaluate", "mode", mode, {"raw", "edge"})
-        paths = _evaluate_fleet(out, seed, seeds, sweep, mode)
+        paths = _evaluate_fleet(out, seed, seeds, sweep, mode, channel_share)
     elif benchmark == "paper":
         paths = _evaluate_paper(out, data, seed, workers)
     elif benchmark == "real-vehicle":
@@ -263,7 +270,10 @@ def _evaluate_paper(out: Path, data: Path | None, seed: int, workers: int) -> di
     return write_report(metrics, predictions, out)
 
 
-def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False, mode: str = "raw") -> dict:
+def _evaluate_fleet(
+    out: Path, seed: int, seeds: int, sweep: bool = False, mode: str = "raw", channel_share: float = 0.0
+) -> dict:
+    from roadgrip.evaluation.fleet_benchmark import FleetConfig
     from roadgrip.evaluation.fleet_report import run_fleet_benchmark
     from roadgrip.evaluation.fleet_sweep import GRID
 
@@ -279,6 +289,7 @@ def _evaluate_fleet(out: Path, seed: int, seeds: int, sweep: bool = False, mode:
             out,
             seed,
             seeds,
+            config=FleetConfig(channel_share=channel_share),
             progress=lambda message, fraction: progress.update(task, completed=fraction, description=message),
             sweep=GRID if sweep else None,
             mode=mode,

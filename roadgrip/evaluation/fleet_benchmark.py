@@ -10,7 +10,9 @@ Scenario (one per seed, `make_scenario`):
   each other; each appears at a time uniform in [0, appear_max_s] and dries up `life_s` later (uniform range), inside
   the run;
 - `vehicles` vehicles (kinds cycling over the shipped ones, production-terminal effects on: ProductionEffects.production,
-  a tire stiffness factor drawn per vehicle, a grade per road), each with a driver style drawn from STYLES (most gentle,
+  a tire stiffness factor drawn per vehicle, a grade per road; a `channel_share` of them, spread evenly, also sending
+  every optional channel: GNSS speed, drive and brake force, steering torques, with roadgrip/sim/channels.py's error
+  models), each with a driver style drawn from STYLES (most gentle,
   some firm, a few braking hard); each drives trips one after the other for the whole run: a road of the network
   (either direction, uniform) end to end at its cruising speed (x U(0.9, 1.05)), braking now and then at random
   stations (BRAKINGS_PER_KM by road kind: junctions in town, merges, traffic) at its style's deceleration to 40 % of the
@@ -140,6 +142,7 @@ class FleetConfig:
     life_s: tuple[float, float] = (900.0, 1800.0)  # ... and dry up this long after
     snapshot_every_s: float = 300.0
     stations: int = 6  # roadside stations, evenly along the network (place_stations)
+    channel_share: float = 0.0  # share of the vehicles that send every optional channel (CONTRACTS 3.1; issue 26)
 
     def __post_init__(self):
         if self.vehicles < 1:
@@ -148,6 +151,8 @@ class FleetConfig:
             raise ValueError(f"duration_s must lie in [60, 10800], got {self.duration_s!r}")
         if self.stations < 0:
             raise ValueError(f"stations must be >= 0, got {self.stations!r}")
+        if not 0.0 <= self.channel_share <= 1.0:
+            raise ValueError(f"channel_share must lie in [0, 1], got {self.channel_share!r}")
         if not 0 < self.life_s[0] <= self.life_s[1]:
             raise ValueError(f"life_s must be (low, high) with 0 < low <= high, got {self.life_s!r}")
 
@@ -168,6 +173,7 @@ class FleetScenario:
     trips: tuple[Trip, ...]
     styles: dict = field(default_factory=dict)  # vehicle_id -> style
     kinds: dict = field(default_factory=dict)  # vehicle_id -> VehicleParams
+    with_channels: frozenset = frozenset()  # the vehicles that send the optional channels (FleetConfig.channel_share)
 
 
 # --------------------------------------------------------------------------------------------------- scenario
@@ -224,9 +230,14 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
     names = list(STYLES)
     shares = np.array([STYLES[n][0] for n in names])
     kinds = list(VEHICLES.values())
-    trips, styles, vehicle_kinds = [], {}, {}
+    trips, styles, vehicle_kinds, with_channels = [], {}, {}, set()
     for v in range(config.vehicles):
         vehicle_id = f"bench-{v:03d}"
+        # spread evenly over the fleet (and so over the kinds, which cycle); no draw, so the rest of the scenario is
+        # the same whatever the share
+        sends_channels = math.floor((v + 1) * config.channel_share) > math.floor(v * config.channel_share)
+        if sends_channels:
+            with_channels.add(vehicle_id)
         style = names[int(rng.choice(len(names), p=shares / shares.sum()))]
         _, brake, accel = STYLES[style]
         vehicle = kinds[v % len(kinds)]
@@ -269,13 +280,13 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
                         road=road.name,
                         manoeuvre=style,
                         grade=grade,
-                        effects=effects,
+                        effects=effects.with_channels() if sends_channels else effects,
                     ),
                 )
             )
             t = round(t + duration + float(rng.uniform(*TRIP_GAP_S)), 1)
             k += 1
-    return FleetScenario(seed, config, network, tuple(trips), styles, vehicle_kinds)
+    return FleetScenario(seed, config, network, tuple(trips), styles, vehicle_kinds, frozenset(with_channels))
 
 
 # --------------------------------------------------------------------------------------------------- stations

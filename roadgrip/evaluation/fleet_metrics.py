@@ -207,9 +207,12 @@ def summarize(group: str, patch_rows: list[dict], cell_scores: list[dict]) -> di
         "eligible": len(eligible),
         "recall": _share(sum(r["detected"] for r in eligible), len(eligible)),
         "recall_all": _share(len(detected), len(patch_rows)),
-        "within_3rd_pass": _share(
-            sum(r["detected"] and r["passes_to_first"] <= TARGET_PASSES for r in eligible), len(eligible)
-        ),
+        **{
+            f"within_{name}_pass": _share(
+                sum(r["detected"] and r["passes_to_first"] <= passes for r in eligible), len(eligible)
+            )
+            for passes, name in ((1, "1st"), (2, "2nd"), (TARGET_PASSES, "3rd"))
+        },
         "time_to_first_median_s": _median(r["time_to_first_s"] for r in detected),
         "time_to_first_max_s": _max(r["time_to_first_s"] for r in detected),
         "passes_to_first_median": _median(r["passes_to_first"] for r in detected),

@@ -413,6 +413,11 @@ def fleet_markdown(
     title = (
         f"# Fleet benchmark: {config.vehicles} vehicles, {config.duration_s / 60:.0f} simulated minutes, report seeds "
         f"{seeds}; vehicles in {mode} mode"
+        + (
+            f"; {len(results[0].scenario.with_channels)} of them with the optional channels"
+            if results[0].scenario.with_channels
+            else ""
+        )
     )
     lines = [
         title,
@@ -425,7 +430,8 @@ def fleet_markdown(
         ),
         "",
         (
-            "| seed | group | patches | eligible | recall | recall (all) | by 3rd pass | time to 1st (median / max) | "
+            "| seed | group | patches | eligible | recall | recall (all) | by 1st / 2nd / 3rd pass | "
+            "time to 1st (median / max) | "
             "passes to 1st (median / max) | warned and dried | lingering | linger (median / max) | > 10 min | "
             "censored | cancelled while there |"
         ),
@@ -436,8 +442,8 @@ def fleet_markdown(
             continue
         lines.append(
             f"| {r['seed']} | {r['group']} | {r['patches']} | {r['eligible']} | {_fmt(r['recall'])} | "
-            f"{_fmt(r['recall_all'])} | {_fmt(r['within_3rd_pass'])} | "
-            f"{_minutes(r['time_to_first_median_s'])} / {_minutes(r['time_to_first_max_s'])} | "
+            f"{_fmt(r['recall_all'])} | {_fmt(r['within_1st_pass'])} / {_fmt(r['within_2nd_pass'])} / "
+            f"{_fmt(r['within_3rd_pass'])} | {_minutes(r['time_to_first_median_s'])} / {_minutes(r['time_to_first_max_s'])} | "
             f"{_fmt(r['passes_to_first_median'], 1)} / {_fmt(r['passes_to_first_max'], 0)} | "
             f"{r['warned_and_dried']} | {r['lingering']} | {_minutes(r['linger_median_s'])} / "
             f"{_minutes(r['linger_max_s'])} | {r['linger_over_10min']} | {r['censored']} | "

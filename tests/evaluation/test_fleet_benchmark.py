@@ -3,6 +3,7 @@ through the cloud service."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import h3
@@ -11,8 +12,9 @@ import pyarrow.csv as pacsv
 import pymap3d
 import pytest
 
+from roadgrip.data.schema import CHANNEL_NAMES, TELEMETRY_COLUMNS
 from roadgrip.evaluation import fleet_report
-from roadgrip.evaluation.fleet_benchmark import FleetConfig, find_passes, make_scenario, patch_cells
+from roadgrip.evaluation.fleet_benchmark import FleetConfig, find_passes, make_scenario, patch_cells, simulate_drives
 from roadgrip.evaluation.fleet_metrics import (
     Warning,
     band_of,
@@ -175,11 +177,47 @@ def test_the_scenario_is_seeded_and_its_patches_fall_in_their_bands():
     assert [band_of(m) for m in mus] == ["mu<=0.2"] * 3 + ["0.2-0.4"] * 3 + ["0.4-0.6"] * 3 + ["dry"] * 2
     assert all(0.0 <= p.appear_s < p.dry_s <= config.duration_s for p in a.network.patches)
     assert all(t.scenario.effects.speed_from_wheels for t in a.trips)  # production-terminal realism on
+    assert not a.with_channels and not any(t.scenario.effects.any_channel for t in a.trips)
+
+
+def test_a_share_of_the_fleet_sends_the_optional_channels_and_nothing_else_changes():
+    """Issue 26, item 2: half the vehicles (every second one, so every kind) send GNSS speed, the forces and the
+    steering torques, through the same wire as the rest; the other half sends none of them; the drives, the patches
+    and every base signal are those of the same seed without channels."""
+    config = FleetConfig(vehicles=6, duration_s=90.0, appear_max_s=30.0, life_s=(40.0, 50.0), channel_share=0.5)
+    half = make_scenario(7, config)
+    none = make_scenario(7, dataclasses.replace(config, channel_share=0.0))
+    assert half.with_channels == {"bench-001", "bench-003", "bench-005"}
+    assert {half.kinds[v].name for v in half.with_channels} == {k.name for k in half.kinds.values()}
+    assert half.network.patches == none.network.patches
+    for a, b in zip(half.trips, none.trips, strict=True):
+        assert a.scenario.effects.any_channel == (a.vehicle_id in half.with_channels)
+        assert a.scenario.effects.with_channels(False) == b.scenario.effects
+        assert (a.vehicle_id, a.depart_s, a.scenario.run_id, a.scenario.seed, a.scenario.duration_s) == (
+            b.vehicle_id,
+            b.depart_s,
+            b.scenario.run_id,
+            b.scenario.seed,
+            b.scenario.duration_s,
+        )
+    drives, bare = simulate_drives(half, 0), simulate_drives(none, 0)
+    for name in TELEMETRY_COLUMNS:
+        if name in drives.table.column_names and name not in CHANNEL_NAMES:
+            assert drives.table[name].equals(bare.table[name]), name
+    sends = np.isin(drives.vehicle, sorted(half.with_channels))
+    for name in CHANNEL_NAMES:
+        values = drives.table[name].to_numpy(zero_copy_only=False).astype(float)
+        assert np.all(np.isnan(values[~sends])), name  # not sent
+        assert np.isfinite(values[sends]).mean() > 0.9, name  # sent (GNSS has its dropouts)
+    with pytest.raises(ValueError, match="channel_share"):
+        FleetConfig(channel_share=1.5)
 
 
 SHARES = (
     "recall",
     "recall_all",
+    "within_1st_pass",
+    "within_2nd_pass",
     "within_3rd_pass",
     "map_coverage",
     "map_coverage_low",
@@ -263,6 +301,8 @@ def test_a_tiny_run_goes_through_the_service_and_yields_metrics(tmp_path, monkey
             assert row.get(key) is None or (row[key] >= 0 and row[key] == int(row[key])), (row["group"], key)
         for key in NON_NEGATIVE:
             assert row.get(key) is None or (math.isfinite(row[key]) and row[key] >= 0), (row["group"], key)
+        if row["within_1st_pass"] is not None:
+            assert row["within_1st_pass"] <= row["within_2nd_pass"] <= row["within_3rd_pass"] <= row["recall"]
     overall = by_seed["3"]["all"]
     assert [by_seed["3"][band]["patches"] for band in ("mu<=0.2", "0.2-0.4", "0.4-0.6")] == [1, 1, 1]
     assert overall["patches"] == 3 and overall["dry_km"] > 1.0
