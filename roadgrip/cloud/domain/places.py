@@ -1,4 +1,4 @@
-"""The place of a warning within its cell (warnings.py, rules 4-7 and 9): where in the cell low friction was read, and
+"""The place of a warning within its cell and next door (warnings.py, rules 4-7 and 9): where low friction was read, and
 whether a dry pass speaks of that place.
 
 A warning's cell (H3 resolution 10) is about 150 m across; a patch of ice is often smaller (the fleet benchmark's are
@@ -29,7 +29,8 @@ keeps, per cell, the *spots* of its low evidence:
   before it in the chain. LINK_RING is 2 * SPOT_RING: a low reading speaks for about as far as a grip reading does
   (GNSS error, the estimate's window), so two low spots whose reaches meet are one stretch of ice. Grip proven on the
   rim spot of one cell is not the patch drying while the rest of that stretch, next door, has not been shown dry: the
-  place is shown dry when its own spots are and the ice it continues into is too (or has aged out of the validity).
+  place is shown dry when its own spots are and the ice it continues into is too (or has aged out of the validity;
+  docs/RESULTS.md, "Warnings that last: the last two misses").
   Only vehicles' spots link: a station's whole-cell spot and UNKNOWN_PLACE are not positions.
 - UNKNOWN_PLACE: a warning restored from an event stored before warnings kept their place (no `spots` in the event);
   any dry pass in the cell speaks of it, the rule before places were kept.

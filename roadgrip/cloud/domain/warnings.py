@@ -28,6 +28,9 @@ Rules
    (even the pessimistic bound has grip); otherwise "unknown", which changes nothing. Medians, so that a few outliers
    in a pass of tens of samples cannot decide it. "Low" is judged first: a pass whose estimates read low although one
    of its samples proved grip straddles a patch's edge within the cell, and the low reading is the one that warns.
+   A low pass's time is the time of its last low reading (`_Pass.evidence_ms`): the ice was under the car then; its
+   later estimates in the cell, on the way out, are not evidence of ice. Every rule below that speaks of a low pass's
+   time (raising, refreshing, superseding, the validity) means that one; any other pass's time is rule 1's.
 3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
@@ -37,11 +40,12 @@ Rules
    passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): it ends when its place is shown dry (rule 9: grip proven on every spot of it after the spot's
-   last low reading) and at least min_dry_passes dry passes later than the detection spoke of the place. A dry pass
-   elsewhere in the cell neither cancels nor refreshes it. The pass that shows the place dry also clears the cell's
-   earlier low passes (rule 4 counts only low passes after the last such dry pass).
-7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
-   validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
+   last low reading, and the ice it continues into next door shown dry too) and at least min_dry_passes dry passes
+   later than the detection spoke of the place. A dry pass elsewhere in the cell neither cancels nor refreshes it. The
+   pass that shows the place dry also clears the cell's earlier low passes (rule 4 counts only low passes after the
+   last such dry pass), and the places next door that waited on it (`_settle`).
+7. Expire ("expired"): a warning lapses validity_s after its last low pass's last low reading (rule 2; evidence_ms +
+   validity_s, the DENM's own validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
    applied to its cell against the pass's time.
 
 8. Roadside stations. A station's report is one pass in each cell it covers, its own source: vehicle_id
@@ -58,7 +62,11 @@ Rules
    speaks of the place when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
    mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m), and shows dry the spots it
    so reaches, except those where the same pass read low (a pass across a patch's edge read ice on it and grip past
-   it); a dry pass that touches no spot changes nothing in the cell. The place is shown dry when every spot is (rule 6).
+   it); a dry pass that touches no spot changes nothing in the cell. The place is shown dry when every spot is and the
+   ice it continues into in the neighbouring cells is too (`places.ice_continues`: their spots read low within
+   validity_s, chained within reach of the place): grip on the rim of a patch whose ice goes on next door is not the
+   patch drying. A neighbour's evidence never raises or refreshes a warning here, and a place held by it ends by
+   expiry at the latest (rule 7).
    A vehicle's dry pass that begins within pass_gap_s of its own low pass in the cell is the rest of that visit (GNSS
    noise along a cell border splits a visit; rule 2 judges a visit that read low as low: grip proven just past a
    patch's edge on the way out is not the patch drying). The event carries the place not yet shown dry (`spots`, as
