@@ -542,13 +542,12 @@ class WarningEngine:
         """After a dry pass at t touched the place of `cell`: clear every place now shown dry (rules 6, 9), this cell's
         and, as each clears, its neighbours' that were waiting on the ice next door."""
         validity_ms = self.validity_s * 1000.0
-        todo, done = [cell], set()
+        todo = [cell]  # a cell is looked at again when a neighbour clears: the chain that held it may be gone
         while todo:
             here = todo.pop()
             state = self.cell_states_.get(here)
-            if here in done or state is None or not state.place or not state.place.shown_dry():
-                continue
-            done.add(here)
+            if state is None or not state.place or not state.place.shown_dry():
+                continue  # nothing to clear (or cleared already: a cleared place is empty)
             warning = state.warning
             if warning is not None and t >= warning.evidence_ms + validity_ms:  # lapsed before t (rule 7)
                 self._end(here, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
@@ -564,7 +563,7 @@ class WarningEngine:
             state.place.clear()
             if warning is not None and t > warning.detection_ms:
                 self._end(here, state, RECOVERED, t, now_ms, events)
-            todo.extend(c for c in h3.grid_ring(here, 1) if c not in done)
+            todo.extend(h3.grid_ring(here, 1))
 
     def _cell(self, cell: str) -> _CellState:
         state = self.cell_states_.get(cell)
