@@ -45,8 +45,8 @@ Rules
    pass that shows the place dry also clears the cell's earlier low passes (rule 4 counts only low passes after the
    last such dry pass), and the places next door that waited on it (`_settle`).
 7. Expire ("expired"): a warning lapses validity_s after its last low pass's last low reading (rule 2; evidence_ms +
-   validity_s, the DENM's own validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
-   applied to its cell against the pass's time.
+   validity_s, the DENM's own validity counted from its detectionTime). The check runs at every update against now_ms,
+   and before a pass is applied to its cell against the pass's time.
 
 8. Roadside stations. A station's report is one pass in each cell it covers, its own source: vehicle_id
    f"station:{station_id}" (a colon, which no vehicle_id holds), time the report's timestamp. Its verdict comes from
