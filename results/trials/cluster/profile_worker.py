@@ -1,8 +1,9 @@
 """Where a cluster worker's CPU goes, end to end: `roadgrip bench cluster` (one worker case) with its `roadgrip worker`
 process run under cProfile in every thread but the main one (which only starts the worker and waits), each thread's
 profiler timed by that thread's CPU time (`time.thread_time`), so waiting in select() or on a lock costs nothing.
-At the worker's clean stop (the bench's SIGTERM) the threads' profiles are merged and written; this script then
-prints the CPU seconds by part and per stored sample (the worker's log gives the samples it stored in all).
+Only the bench's window is profiled (SIGUSR1 at its start clears, SIGUSR2 at its end writes the threads' profiles,
+merged); this script then prints the CPU seconds by part and per sample stored in the window (the bench's count).
+Another commit's worker: the same command with PYTHONPATH at an export of that commit.
 
 cProfile inflates Python calls (a C builtin less so), so read the shares, not the seconds; run it under `nice -n 19`.
 
@@ -128,7 +129,7 @@ def main() -> None:
     logs: list[str] = []
     _Workers = cluster_bench._Workers
 
-    class _KeptLogs(_Workers):  # keep the worker's log: its last stats line gives the samples stored in all
+    class _KeptLogs(_Workers):  # the worker's log kept (DIR/worker.log); its processes noted for the signals
         def stop(self) -> None:
             super().stop()
             logs.extend(p.read_text() for p in self.logs)

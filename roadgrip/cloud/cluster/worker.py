@@ -270,7 +270,7 @@ class Worker:
         self.regions: RegionOwners | None = None
         self.edge: EdgeConsumer | None = None
         self.rejected = 0
-        self.deferred = 0  # deliveries the pipeline had no room for at once (Busy): they waited, unacknowledged
+        self.deferred = 0  # hand-overs the pipeline had no room for (Busy): the delivery waited, unacknowledged
         self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
