@@ -90,7 +90,9 @@ def worker(
     ),
     database: str = typer.Option(..., help="postgresql://... shared by every worker"),
     partitions: int = typer.Option(..., min=1, help="partition queues rg.telemetry.p0..pN-1 (the same N everywhere)"),
-    prefetch: int = typer.Option(100, min=1, help="unacknowledged messages per partition"),
+    prefetch: int | None = typer.Option(
+        None, min=1, help="unacknowledged messages per partition (default: the worker's DEFAULT_PREFETCH, 500)"
+    ),
     config: Path | None = typer.Option(
         None,
         help="settings file (YAML; the estimator, ingest and pipeline settings "
@@ -111,7 +113,7 @@ def worker(
     import signal
     import threading
 
-    from roadgrip.cloud.cluster.worker import run_worker
+    from roadgrip.cloud.cluster.worker import DEFAULT_PREFETCH, run_worker
     from roadgrip.cloud.settings import load_settings
 
     settings = load_settings(config, database_url=database, estimator=estimator)
@@ -119,6 +121,7 @@ def worker(
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda _signum, _frame: stop.set())
+    prefetch = DEFAULT_PREFETCH if prefetch is None else prefetch
     run_worker(broker, settings, partitions, prefetch, stop, metrics_port, metrics_host)
 
 

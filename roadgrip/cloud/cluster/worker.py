@@ -24,8 +24,11 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   swapped, the body the vehicle's payload. The vehicle is the one of the topic (the broker's topic permissions made
   sure the publisher is that vehicle); `Ingest.mqtt_message` parses it as serve does and queues its samples.
 - Acknowledgement after storing: a delivery's tag is done when the pipeline's round that stored its samples committed
-  (or at once for a message refused whole); every FLUSH_S the consumer thread acknowledges, with one multiple-ack, up to
-  the highest tag below which every tag is done, so a message is never acknowledged before an earlier one of its queue.
+  (or at once for a message refused whole); every FLUSH_S the consumer thread takes what the broker sent since in one
+  pass of pika's loop and acknowledges, with one multiple-ack, up to the highest tag below which every tag is done, so
+  a message is never acknowledged before an earlier one of its queue. A delivery the pipeline has no room for
+  (`Busy`: MAX_MQTT_BACKLOG samples wait) waits in the consumer, unacknowledged, with every later one of its queue,
+  until the pipeline has room again.
   Per-vehicle order: a queue delivers in order, the pipeline takes submissions in order and its reorder buffer
   estimates each vehicle's samples in time order.
 - Fencing (a partial handover: a worker whose connection died through a dead node, or that has not noticed yet,
@@ -56,6 +59,7 @@ implements, next to it.
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import json
@@ -80,15 +84,18 @@ from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable, Written, open_storage
 from roadgrip.cloud.transport.amqp import MQTT_EXCHANGE, declare_topology, mqtt_routing_key, partition_queue
 from roadgrip.cloud.transport.amqp_client import BrokersUnreachable, check_brokers, connect, consume
-from roadgrip.cloud.transport.mqtt import errors_topic, vehicle_of_topic
+from roadgrip.cloud.transport.mqtt import Busy, errors_topic, vehicle_of_topic
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
 
-# Unacknowledged messages a partition's consumer holds: 100 messages of 10 samples (a terminal's second) over 16
-# partitions are 16,000 samples, under the pipeline's MAX_MQTT_BACKLOG (20,000), so admission never waits on it.
-DEFAULT_PREFETCH = 100
-FLUSH_S = 0.05  # how often a consumer thread hands over deliveries and acknowledges what was stored
+# Unacknowledged messages a partition's consumer holds. A delivery is acknowledged a round trip after it came (the
+# reorder window, a round, its write, the region confirms: 1-3 s under load), so a worker keeps up with at most
+# partitions x prefetch / round trip messages a second: at 100 its 8 partitions capped it near 400 messages (4,000
+# samples) a second (docs/CLUSTER.md, "The raw path's cost per worker core"). Deliveries beyond the pipeline's
+# MAX_MQTT_BACKLOG wait in the consumer, unacknowledged and unparsed (`Busy`), until it has room.
+DEFAULT_PREFETCH = 500
+FLUSH_S = 0.05  # how often a consumer thread takes deliveries, hands them over and acknowledges what was stored
 STATS_S = 10.0  # how often the worker logs its counters
 WATCH_S = 1.0  # how often a worker beats, counts the live workers and checks its share; and reads the queues' depth
 MOVE_INTERVAL_S = 1.0  # a worker releases at most one partition in this time
@@ -138,14 +145,15 @@ class _Acks:
 
 class _PartitionHold:
     """A partition queue as one consumer connection holds it (an attempt of roadgrip/cloud/transport/amqp_client.py
-    `consume`): its acknowledgements and the vehicles delivered through it; `Worker._serve` and `Worker._ended` do
-    the work."""
+    `consume`): its acknowledgements, the vehicles delivered through it and the deliveries the pipeline had no room
+    for yet (`waiting`, in order: (tag, routing key, body)); `Worker._serve` and `Worker._ended` do the work."""
 
     def __init__(self, worker: Worker, partition: int):
         self.worker = worker
         self.partition = partition
         self.acks = _Acks()
         self.vehicles: set[str] = set()
+        self.waiting: collections.deque[tuple[int, str, bytes]] = collections.deque()
 
     def run(self, connection: pika.BlockingConnection) -> None:
         self.worker._serve(self, connection)
@@ -262,6 +270,7 @@ class Worker:
         self.regions: RegionOwners | None = None
         self.edge: EdgeConsumer | None = None
         self.rejected = 0
+        self.deferred = 0  # hand-overs the pipeline had no room for (Busy): the delivery waited, unacknowledged
         self.deliveries = [0] * partitions  # messages delivered to this worker, per partition
         self.connected = [False] * partitions  # a consumer registered, per partition
         self.lost = 0  # partition connections lost
@@ -377,6 +386,7 @@ class Worker:
             "connections_lost": self.lost,
             "fenced": self.fenced,
             "rejected": self.rejected,
+            "deferred": self.deferred,
             **(self.fanout.stats() if self.fanout is not None else {}),
             **(self.regions.stats() if self.regions is not None else {}),
             **(self.edge.stats() if self.edge is not None else {}),
@@ -440,19 +450,20 @@ class Worker:
             self._release[partition].clear()
             self._acks[partition] = acks
             self._channel.channel = channel
-            channel.basic_consume(
-                partition_queue(partition), functools.partial(self._on_message, partition, acks, hold.vehicles)
-            )
+            channel.basic_consume(partition_queue(partition), functools.partial(self._on_message, hold))
             self.connected[partition] = True
             self._registered[partition].set()
             while not self._closing.is_set():
-                connection.process_data_events(time_limit=FLUSH_S)
+                # what the broker sent since the last pass, dispatched in one pass: one wake-up, one ack a FLUSH_S
+                connection.process_data_events(time_limit=0)
                 if acks.fenced:
                     raise _PartitionLost("taken by another worker")
+                self._hand_waiting(hold)
                 acks.flush(channel)
                 if self._release[partition].is_set():
                     self._hand_over(partition, connection, channel, acks, hold.vehicles)
                     break
+                self._closing.wait(FLUSH_S)
             acks.flush(channel)
         except (pika.exceptions.AMQPError, OSError, StorageUnavailable, _PartitionLost):
             acks.fence()  # given up: nothing it took may be stored or acknowledged any more (before the close)
@@ -480,9 +491,8 @@ class Worker:
         finally:
             self.connected[hold.partition] = False
 
-    def _on_message(
-        self, partition: int, acks: _Acks, vehicles: set[str], channel, method, properties, body: bytes
-    ) -> None:
+    def _on_message(self, hold: _PartitionHold, channel, method, properties, body: bytes) -> None:
+        partition, acks = hold.partition, hold.acks
         acks.delivered = method.delivery_tag
         if not self._taking.is_set() or acks.fenced or acks.releasing:
             return  # stopping, given up or handed over: left unacknowledged, it goes back to the queue at the close
@@ -490,18 +500,40 @@ class Worker:
             acks.epoch = self.storage.take_partition(partition, self.owner)
             acks.taken_at = time.monotonic()
             log.info("partition %d taken, epoch %d", partition, acks.epoch)
-        acks.handed = method.delivery_tag
-        self.deliveries[partition] += 1
-        vehicle_id = vehicle_of_topic(mqtt_routing_key(method.routing_key))
-        if vehicle_id is None:
-            log.warning(
-                "partition %d: a message with routing key %r names no vehicle; dropped", partition, method.routing_key
-            )
-            acks.done(method.delivery_tag)
+        delivery = (method.delivery_tag, method.routing_key, body)
+        if hold.waiting or not self._hand(hold, *delivery):
+            hold.waiting.append(delivery)  # after the ones waiting already: the queue's order is kept
+
+    def _hand_waiting(self, hold: _PartitionHold) -> None:
+        """Hand the deliveries that waited for room over, in order, once the pipeline has room again (`has_room`:
+        its backlog down to half its bound); they stay unacknowledged meanwhile."""
+        acks = hold.acks
+        if not hold.waiting or acks.fenced or acks.releasing or not self._taking.is_set():
             return
-        vehicles.add(vehicle_id)
-        self.partition_of[vehicle_id] = partition
-        self.ingest.mqtt_message(vehicle_id, body, self.fanout.gate(functools.partial(acks.done, method.delivery_tag)))
+        if not self.ingest.has_room():
+            return
+        while hold.waiting and self._hand(hold, *hold.waiting[0]):
+            hold.waiting.popleft()
+
+    def _hand(self, hold: _PartitionHold, tag: int, routing_key: str, body: bytes) -> bool:
+        """A delivery to the pipeline; False when it has no room (`Busy`: the delivery waits, unacknowledged)."""
+        partition, acks = hold.partition, hold.acks
+        vehicle_id = vehicle_of_topic(mqtt_routing_key(routing_key))
+        if vehicle_id is None:
+            log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition, routing_key)
+        else:
+            hold.vehicles.add(vehicle_id)
+            self.partition_of[vehicle_id] = partition
+            try:
+                self.ingest.mqtt_message(vehicle_id, body, self.fanout.gate(functools.partial(acks.done, tag)))
+            except Busy:
+                self.deferred += 1
+                return False
+        acks.handed = tag
+        self.deliveries[partition] += 1
+        if vehicle_id is None:
+            acks.done(tag)
+        return True
 
     def _hand_over(self, partition: int, connection, channel, acks: _Acks, vehicles: set[str]) -> None:
         """Release a partition this worker holds (module docstring, "Spreading partitions"): take no more deliveries,

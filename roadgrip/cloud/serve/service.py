@@ -204,7 +204,7 @@ class CloudService:
 
     def _mqtt_room(self) -> bool:
         """Whether MQTT messages deferred for want of room (Busy) may come again (MqttClient's redelivery): the edge
-        intake and the raw pipeline both have room (ingest processes never defer)."""
+        intake and the raw pipeline (or the ingest processes, IngestShards.has_room) both have room."""
         ingest_room = getattr(self.ingest, "has_room", None)
         return self.edge_intake.has_room() and (ingest_room is None or ingest_room())
 

@@ -14,8 +14,13 @@ interpreter lock 82 % of the time (docs/RELIABILITY.md).
   and its samples are submitted to the owner, whose answer resolves the request's future. After each round the
   ingest process sends what it stored to the fan-out, and its counters every STATS_INTERVAL_S (health sums them; the
   metrics, roadgrip/cloud/metrics.py, show them per process with their own).
-- Backpressure as with no ingest processes: an ingest process whose pipeline has MAX_MQTT_BACKLOG samples waiting
-  stops reading its channel, the channel fills, and paho's network thread waits to forward the next message.
+- Backpressure as with no ingest processes, the MQTT client's `Busy` (roadgrip/cloud/transport/mqtt.py): a message
+  for an ingest process that has MAX_FORWARDED_MESSAGES forwarded and not acknowledged is not forwarded; the handler
+  raises `Busy`, the message stays unacknowledged (the client counts it deferred) and the broker delivers it again
+  once every ingest process is down to half that (`has_room`, the client's `room`). paho's network thread never
+  waits on a channel. An ingest process reads its channel all the time: a message its own pipeline has no room for
+  (`Ingest.mqtt_message` raises Busy at MAX_MQTT_BACKLOG samples) waits there, in order, with every later one, until
+  the pipeline has room.
 - Each ingest process's pipeline checkpoints the estimator states of its own vehicles and restores them when it first
   sees them (roadgrip/cloud/pipeline/checkpoints.py), so a vehicle's calibration survives a restart of its process, and a
   change of `ingest_processes` too: the states are stored by vehicle_id, whichever process owns it next.
@@ -34,6 +39,7 @@ or exception), ("stored", estimates, stored_ms, newest_data_ms), ("stats", count
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import logging
@@ -45,13 +51,14 @@ import traceback
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from roadgrip.cloud.ingest.admission import Ingest, IngestUnavailable, Rejecter
+from roadgrip.cloud.ingest.admission import MAX_MQTT_BACKLOG, Ingest, IngestUnavailable, Rejecter
 from roadgrip.cloud.metrics import ProcessView
 from roadgrip.cloud.pipeline.fanout import Fanout
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
 from roadgrip.cloud.process import rss_mb, tune_memory_for_serving, warm_up
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import open_storage
+from roadgrip.cloud.transport.mqtt import Busy
 from roadgrip.estimators.learned import load_estimator
 
 log = logging.getLogger(__name__)
@@ -59,6 +66,9 @@ log = logging.getLogger(__name__)
 STATS_INTERVAL_S = 0.5  # how often an ingest process sends its counters
 START_TIMEOUT_S = 180.0  # importing torch and numba and warming the estimator up, on a busy machine
 RESTART_DELAY_S = 1.0  # wait before starting again an ingest process that failed to start
+# MQTT messages forwarded to one ingest process and not acknowledged, at most: its pipeline's MAX_MQTT_BACKLOG in
+# terminal messages of 10 samples (1 s at 10 Hz); beyond it the broker keeps them (Busy)
+MAX_FORWARDED_MESSAGES = MAX_MQTT_BACKLOG // 10
 _MAX_OF = ("last_round_s", "slowest_round_s")  # counters summed over processes, but for these
 
 
@@ -190,13 +200,20 @@ class IngestShards:
         return future
 
     def mqtt_message(self, vehicle_id: str, payload: bytes, ack) -> None:
-        """As `Ingest.mqtt_message`: forwarded to the owner, acknowledged when it says so. Waits while the owner's
-        channel is full (backpressure)."""
+        """As `Ingest.mqtt_message`: forwarded to the owner, acknowledged when it says so. Raises Busy, before
+        forwarding, while the owner has MAX_FORWARDED_MESSAGES forwarded and not acknowledged (backpressure: the
+        broker keeps the message)."""
         shard = self._shards[shard_of(vehicle_id, len(self._shards))]
+        if len(shard.pending) >= MAX_FORWARDED_MESSAGES:
+            raise Busy(f"ingest process {shard.index} has {len(shard.pending)} messages not acknowledged")
         token = next(self._tokens)
         with shard.lock:
             shard.pending[token] = (vehicle_id, payload, ack)
             self._send(shard, ("mqtt", token, vehicle_id, payload))
+
+    def has_room(self) -> bool:
+        """Whether messages refused with Busy may come again: every ingest process down to half its bound."""
+        return all(len(shard.pending) <= MAX_FORWARDED_MESSAGES // 2 for shard in self._shards)
 
     def forget_vehicle(self, vehicle_id: str) -> None:
         shard = self._shards[shard_of(vehicle_id, len(self._shards))]
@@ -358,6 +375,18 @@ def _answer(send, request: int, future: Future) -> None:
     send(("result", request, future.exception() or future.result()))
 
 
+def _hand(ingest: Ingest, send, message: tuple) -> bool:
+    """An MQTT message ("mqtt", token, vehicle_id, payload) to the pipeline; False when it has no room (Busy)."""
+    _, token, vehicle_id, payload = message
+    try:
+        ingest.mqtt_message(vehicle_id, payload, functools.partial(send, ("ack", token)))
+    except Busy:
+        return False
+    except Exception:  # as MqttClient does: logged, left unacknowledged
+        log.exception("handling a message of %s failed; left unacknowledged", vehicle_id)
+    return True
+
+
 def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None:
     """An ingest process's main (module docstring): start, say ready, then serve the channel until it closes or says
     stop; then store what is held, send the last counters and exit."""
@@ -393,20 +422,22 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
     tune_memory_for_serving()
     send(("ready",))  # before the pipeline's first counters
     ingest.start()
+    waiting: collections.deque[tuple] = collections.deque()  # MQTT messages the pipeline had no room for, in order
     try:
         while True:
+            while waiting and ingest.has_room() and _hand(ingest, send, waiting[0]):
+                waiting.popleft()
             try:
+                if waiting and not conn.poll(settings.flush_interval_s):
+                    continue  # room is looked for again
                 message = conn.recv()
             except (EOFError, OSError):
                 log.warning("the service's channel closed: storing what is held and stopping")
                 break
             kind = message[0]
             if kind == "mqtt":
-                _, token, vehicle_id, payload = message
-                try:
-                    ingest.mqtt_message(vehicle_id, payload, functools.partial(send, ("ack", token)))
-                except Exception:  # as MqttClient does: logged, left unacknowledged
-                    log.exception("handling a message of %s failed; left unacknowledged", vehicle_id)
+                if waiting or not _hand(ingest, send, message):
+                    waiting.append(message)
             elif kind == "submit":
                 _, request, vehicle_id, samples, received = message
                 ingest.submit(vehicle_id, samples, received).add_done_callback(
@@ -417,6 +448,10 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
             elif kind == "stop":
                 break
     finally:
+        if waiting:
+            log.warning(
+                "%d MQTT messages found no room before the stop: not acknowledged, they come again", len(waiting)
+            )
         ingest.stop()
         sink.send_stats()
         storage.close()

@@ -27,6 +27,7 @@ from sqlalchemy.engine import make_url
 from roadgrip.cloud.cluster.map_cells import new_friction_map
 from roadgrip.cloud.cluster.spread import FRESH_S, WORKERS_SETTLE_S
 from roadgrip.cloud.cluster.worker import Worker, _Acks, _FencedStorage
+from roadgrip.cloud.ingest import admission
 from roadgrip.cloud.localhost import free_ports
 from roadgrip.cloud.pipeline.fanout import Fanout, new_warning_engine
 from roadgrip.cloud.pipeline.pipeline import Pipeline
@@ -41,7 +42,7 @@ from roadgrip.vehicle.params import PAPER_SUV
 pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 PARTITIONS = 4
 VEHICLES_PER_TEST = 8
-GROUPS = ("a", "b", "c", "d", "e")  # one set of vehicles per test (their users exist from the cluster's start)
+GROUPS = ("a", "b", "c", "d", "e", "g")  # one set of vehicles per test (their users exist from the cluster's start)
 FAILOVER_LIMIT_S = 10.0
 # data time starts this long before the clock and runs ten times faster: it reaches the workers' max_future_s ahead of
 # the clock, where they refuse samples (acknowledged all the same), after (1,800 + 60) / 9 = 207 s of publishing
@@ -297,6 +298,35 @@ def test_two_workers_store_every_acknowledged_sample_once(cluster, postgres_data
         assert set(db.calibration_weight_s()) == set(vehicles)  # every state stored at the stop
     finally:
         stop_running(first, second)
+        db.close()
+
+
+def test_deliveries_the_pipeline_has_no_room_for_wait_in_order_and_none_is_lost(
+    cluster, postgres_database_url, monkeypatch
+):
+    """Backpressure inside a worker: with the pipeline's backlog bound at 30 samples (3 messages), most deliveries
+    find no room (`Busy`); they wait in their partition's consumer, unacknowledged, and are handed over in order once
+    there is room: every PUBACKed sample is stored once and each vehicle's estimates in time order."""
+    monkeypatch.setattr(admission, "MAX_MQTT_BACKLOG", 30)
+    purge(cluster, 0)
+    vehicles = vehicles_of("g")
+    worker = Worker(
+        [cluster.amqp_url(i) for i in range(3)],
+        Settings(database_url=postgres_database_url, rate_limit_samples_per_s=0),
+        PARTITIONS,
+    )
+    worker.start()
+    db = Database(postgres_database_url)
+    try:
+        fleet = Fleet(cluster, vehicles)
+        fleet.run(3.0)
+        acked = fleet.finish()
+        db.wait_stored(acked)
+        assert_stored_exactly_once(db, acked, vehicles)
+        assert db.estimates_out_of_order() == 0
+        assert worker.deferred > 0  # the bound was reached: deliveries waited
+    finally:
+        worker.stop()
         db.close()
 
 

@@ -15,6 +15,7 @@ from broker_fixtures import wait_until
 from drives import patch_drive
 from service_fixtures import ADMIN, collect, register_mqtt, running_cloud
 
+from roadgrip.cloud.serve import shards
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.serve.shards import shard_of
 from roadgrip.cloud.settings import Settings
@@ -166,6 +167,27 @@ def test_an_ingest_process_killed_mid_stream_is_started_again_and_loses_nothing_
         30,
         "every forwarded message acknowledged",
     )
+
+
+def test_an_ingest_process_without_room_defers_to_the_broker_and_nothing_is_lost_or_stored_twice(
+    storage_url, tmp_path, monkeypatch
+):
+    """Backpressure through the MQTT client's Busy: with at most 3 messages forwarded to an ingest process and not
+    acknowledged, a car's 40 messages outrun the pipeline (its reorder window holds each 0.2 s); the rest are deferred
+    to Mosquitto, not waited for in paho's network thread, and come again once there is room: every sample stored
+    once, in order."""
+    monkeypatch.setattr(shards, "MAX_FORWARDED_MESSAGES", 3)
+    with running_sharded(storage_url, tmp_path) as (service, client):
+        vehicle_id, secret, url = register_mqtt(client, "busy-car")
+        samples = wire_samples(patch_drive(0.9, 20), vehicle_id, START_MS)
+        with UserClient(url, vehicle_id, secret).connect() as car:
+            for k in range(0, len(samples), 5):
+                car.publish(telemetry_topic(vehicle_id), json.dumps(samples[k : k + 5]))  # PUBACK: the broker has it
+        wait_until(lambda: len(service.storage.telemetry(vehicle_id)) == len(samples), 60, "every sample stored")
+        stored = [s["timestamp_ms"] for s in service.storage.telemetry(vehicle_id)]
+        assert stored == [s["timestamp_ms"] for s in samples]  # each once, none lost
+        assert service.mqtt.deferred > 0 and service.mqtt.redeliveries >= 1
+        assert service.mqtt.drops == 0  # the network thread went on answering the broker
 
 
 def test_an_ingest_process_that_cannot_start_stops_the_service_starting_with_its_reason(tmp_path):
