@@ -22,7 +22,9 @@ def main() -> None:
     parser.add_argument("half", type=Path)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = parser.parse_args()
-    print("| seed | run | vehicles | estimates | excited share | excited: mu_lower median | excited: mu_upper p10 / median |")
+    print(
+        "| seed | run | vehicles | estimates | excited share | excited: mu_lower median | excited: mu_upper p10 / median |"
+    )
     print("| --- | --- | --- | ---: | ---: | ---: | --- |")
     for seed in args.seeds:
         senders = sorted(make_scenario(seed, FleetConfig(channel_share=0.5)).with_channels)
