@@ -4,6 +4,8 @@ on, a busy timeout; PostgreSQL through psycopg 3: a connect timeout and position
 
 from __future__ import annotations
 
+import sqlite3
+import time
 from pathlib import Path
 
 import psycopg
@@ -14,6 +16,7 @@ from sqlalchemy.engine import URL, Engine, make_url
 from roadgrip.cloud.storage.base import StorageUnavailable
 
 SQLITE_BUSY_TIMEOUT_MS = 10_000  # how long a writer waits for another one's lock before giving up
+WAL_RETRY_S = 0.05  # switching to WAL found the database locked: asked again this often, within the busy timeout
 CONNECT_TIMEOUT_S = 5  # PostgreSQL: how long to wait for the server before calling it unavailable
 
 
@@ -43,14 +46,26 @@ def _sqlite_pragmas(dbapi_connection, connection_record) -> None:
     cursor = dbapi_connection.cursor()
     # busy_timeout first: switching a new database to WAL takes its lock, and a process that finds another one
     # switching it would otherwise fail at once ("database is locked") instead of waiting
-    for pragma in (
-        f"busy_timeout={SQLITE_BUSY_TIMEOUT_MS}",
-        "journal_mode=WAL",
-        "synchronous=NORMAL",
-        "foreign_keys=ON",
-    ):
-        cursor.execute(f"PRAGMA {pragma}")
+    cursor.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+    _switch_to_wal(cursor)
+    cursor.execute("PRAGMA synchronous=NORMAL")
+    cursor.execute("PRAGMA foreign_keys=ON")
     cursor.close()
+
+
+def _switch_to_wal(cursor) -> None:
+    """journal_mode=WAL, asked again while the database is locked: SQLite does not always call the busy handler for
+    the exclusive lock this switch takes (processes opening a new database at once), so busy_timeout alone does not
+    cover it. WAL is kept in the file: once one process has switched, the others only read it."""
+    deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_MS / 1000.0
+    while True:
+        try:
+            cursor.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as err:
+            if "locked" not in str(err) or time.monotonic() >= deadline:
+                raise
+            time.sleep(WAL_RETRY_S)
 
 
 def make_engine(sa_url: URL) -> Engine:
