@@ -45,8 +45,6 @@ EDGE_BINDINGS = ("roadgrip.v1.vehicles.*.observations", "roadgrip.v1.vehicles.*.
 REGION_QUEUES = 4  # M, the region queues, unless the settings say otherwise (Settings.region_queues)
 NODE_STOP_S = 30.0  # RabbitCluster.stop: a node's clean stop, before SIGKILL
 KILLED_WAIT_S = 5.0  # a process signalled at the end of a stop is waited for this long
-BOOT_TIMEOUT_S = 150.0  # RabbitCluster.start: every node booted, joined and listening
-DISCOVERY_RETRY_S = 0.5  # a node joining at its first boot asks node 0 again this often while node 0 is not up
 
 
 def partition_queue(partition: int) -> str:
@@ -165,13 +163,8 @@ def rabbit_password_hash(password: str) -> str:
     return base64.b64encode(salt + hashlib.sha256(salt + password.encode()).digest()).decode()
 
 
-class NodeExited(subprocess.SubprocessError):
-    """A RabbitMQ node's server ended while `RabbitCluster` waited for it to boot (the message names its log)."""
-
-
 class RabbitCluster:
-    """`nodes` RabbitMQ nodes (three by default: rg0..rg2@localhost) on their own epmd, booted one after the other,
-    each joining the cluster as it boots (peer discovery: `_formation`), plugins
+    """`nodes` RabbitMQ nodes (three by default: rg0..rg2@localhost) on their own epmd, joined with `rabbitmqctl join_cluster`, plugins
     rabbitmq_mqtt, rabbitmq_consistent_hash_exchange and rabbitmq_management (the HTTP API through which `roadgrip
     api` manages vehicles' broker users: roadgrip/cloud/transport/rabbit_users.py; a listener per node on 127.0.0.1,
     `management_url`). MQTT publishes land in amq.topic (routing key: the topic with
@@ -242,7 +235,6 @@ class RabbitCluster:
                     f"management.tcp.ip = {HOST}",
                     f"management.tcp.port = {self.management_ports[i]}",
                     "log.file.level = warning",
-                    *self._formation(i),
                 ]
             )
             + "\n"
@@ -273,44 +265,17 @@ class RabbitCluster:
             start_new_session=True,
         )
         wait_port(self.epmd_port, 10)
-        for i in range(self.nodes):  # one after the other: each node's MQTT plugin joins those before it (below)
+        for i in range(self.nodes):
             self.start_node(i)
-            self._wait_listening(i, BOOT_TIMEOUT_S)
-
-    def _formation(self, i: int) -> list[str]:
-        """Node i's part of the cluster's formation at its first boot (peer discovery, classic_config): node 0 boots
-        alone, every other node joins it as it boots (no standalone boot then rabbitmqctl stop_app, join_cluster,
-        start_app). The nodes boot one after the other, as start_app ran one after the other: in RabbitMQ 3.10 a
-        node's MQTT plugin joins the client-id tracking (a Raft cluster) of the nodes in the cluster when it starts,
-        and two starting at once may not see each other (a vehicle's CONNECT then answered "Server unavailable"). A
-        node that boots again with its data (`restart`) skips discovery and rejoins the cluster it was in."""
-        if i == 0:
-            return []
-        return [
-            "cluster_formation.peer_discovery_backend = classic_config",
-            f"cluster_formation.classic_config.nodes.1 = {self.node_name(0)}",
-            f"cluster_formation.discovery_retry_limit = {int(BOOT_TIMEOUT_S / DISCOVERY_RETRY_S)}",
-            f"cluster_formation.discovery_retry_interval = {int(DISCOVERY_RETRY_S * 1000)}",
-        ]
-
-    def _wait_listening(self, i: int, timeout_s: float) -> None:
-        """Return once node i's AMQP, MQTT and management listeners accept connections (they open at the end of its
-        boot, after it joined the cluster); NodeExited, naming its log, if its server exits first; TimeoutError
-        after `timeout_s`."""
-        deadline = time.monotonic() + timeout_s
-        for port in (self.amqp_ports[i], self.mqtt_ports[i], self.management_ports[i]):
-            while True:
-                try:
-                    wait_port(port, min(1.0, max(0.0, deadline - time.monotonic())))
-                    break
-                except TimeoutError:
-                    if self.procs[i].poll() is not None:
-                        raise NodeExited(
-                            f"RabbitMQ node {self.node_name(i)} exited with status {self.procs[i].returncode} while "
-                            f"starting: see {self.root / f'rg{i}' / 'stdout.log'}"
-                        ) from None
-                    if time.monotonic() >= deadline:
-                        raise
+        for i in range(self.nodes):
+            self.ctl(i, "wait", str(self.root / f"rg{i}" / "pid"), "--timeout", "120", timeout_s=150)
+        for i in range(1, self.nodes):
+            self.ctl(i, "stop_app")
+            self.ctl(i, "join_cluster", self.node_name(0))
+            self.ctl(i, "start_app")
+        for i in range(self.nodes):
+            wait_port(self.mqtt_ports[i], 60)
+            wait_port(self.management_ports[i], 60)
 
     def definitions(self) -> dict:
         users = [
@@ -395,9 +360,12 @@ class RabbitCluster:
     def restart(self, i: int) -> None:
         """Start node i again after `kill`: it rejoins the cluster with its data (its quorum queue members catch
         up from the leaders); returns once its app runs and its MQTT and management listeners answer."""
-        (self.root / f"rg{i}" / "pid").unlink(missing_ok=True)  # the killed node's: `pid` reads the new one's
+        pid_file = self.root / f"rg{i}" / "pid"
+        pid_file.unlink(missing_ok=True)  # the killed node's: `rabbitmqctl wait` would watch that process
         self.start_node(i)
-        self._wait_listening(i, BOOT_TIMEOUT_S)
+        self.ctl(i, "wait", str(pid_file), "--timeout", "120", timeout_s=150)
+        wait_port(self.mqtt_ports[i], 60)
+        wait_port(self.management_ports[i], 60)
 
     def stop(self) -> None:
         """SIGTERM to every node's process group (the server script, beam.smp and its helpers), SIGKILL to those
