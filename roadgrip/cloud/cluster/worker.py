@@ -59,7 +59,6 @@ implements, next to it.
 
 from __future__ import annotations
 
-import collections
 import functools
 import itertools
 import json
@@ -76,7 +75,7 @@ from roadgrip.cloud.cluster.edge import EdgeConsumer
 from roadgrip.cloud.cluster.regions import RegionOwners, WorkerFanout
 from roadgrip.cloud.cluster.spread import Liveness, Spread
 from roadgrip.cloud.cluster.worker_metrics import serve_metrics
-from roadgrip.cloud.ingest.admission import Ingest
+from roadgrip.cloud.ingest.admission import Ingest, WaitingLine
 from roadgrip.cloud.metrics import LATENCY_BUCKETS_S, BatchHistogram
 from roadgrip.cloud.pipeline.pipeline import Pipeline, StoredSink
 from roadgrip.cloud.process import warm_up
@@ -153,7 +152,9 @@ class _PartitionHold:
         self.partition = partition
         self.acks = _Acks()
         self.vehicles: set[str] = set()
-        self.waiting: collections.deque[tuple[int, str, bytes]] = collections.deque()
+        self.waiting: WaitingLine[tuple[int, str, bytes]] = WaitingLine(
+            worker.ingest.has_room, functools.partial(worker._hand, self)
+        )
 
     def run(self, connection: pika.BlockingConnection) -> None:
         self.worker._serve(self, connection)
@@ -500,24 +501,20 @@ class Worker:
             acks.epoch = self.storage.take_partition(partition, self.owner)
             acks.taken_at = time.monotonic()
             log.info("partition %d taken, epoch %d", partition, acks.epoch)
-        delivery = (method.delivery_tag, method.routing_key, body)
-        if hold.waiting or not self._hand(hold, *delivery):
-            hold.waiting.append(delivery)  # after the ones waiting already: the queue's order is kept
+        hold.waiting.offer((method.delivery_tag, method.routing_key, body))
 
     def _hand_waiting(self, hold: _PartitionHold) -> None:
         """Hand the deliveries that waited for room over, in order, once the pipeline has room again (`has_room`:
         its backlog down to half its bound); they stay unacknowledged meanwhile."""
         acks = hold.acks
-        if not hold.waiting or acks.fenced or acks.releasing or not self._taking.is_set():
-            return
-        if not self.ingest.has_room():
-            return
-        while hold.waiting and self._hand(hold, *hold.waiting[0]):
-            hold.waiting.popleft()
+        if not (acks.fenced or acks.releasing or not self._taking.is_set()):
+            hold.waiting.drain()
 
-    def _hand(self, hold: _PartitionHold, tag: int, routing_key: str, body: bytes) -> bool:
-        """A delivery to the pipeline; False when it has no room (`Busy`: the delivery waits, unacknowledged)."""
+    def _hand(self, hold: _PartitionHold, delivery: tuple[int, str, bytes]) -> bool:
+        """A delivery (tag, routing key, body) to the pipeline; False when it has no room (`Busy`: the delivery
+        waits, unacknowledged)."""
         partition, acks = hold.partition, hold.acks
+        tag, routing_key, body = delivery
         vehicle_id = vehicle_of_topic(mqtt_routing_key(routing_key))
         if vehicle_id is None:
             log.warning("partition %d: a message with routing key %r names no vehicle; dropped", partition, routing_key)

@@ -8,9 +8,11 @@ same methods and hands each vehicle to the ingest process that owns it, where an
 
 from __future__ import annotations
 
+import collections
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
+from typing import Generic, TypeVar
 
 from roadgrip.cloud.ingest.ratelimit import RateLimiter
 from roadgrip.cloud.ingest.wire import PayloadError, parse_payload
@@ -28,6 +30,7 @@ from roadgrip.cloud.transport.mqtt import Busy
 MAX_MQTT_BACKLOG = 20_000
 
 Rejecter = Callable[[str, list[dict]], None]  # (vehicle_id, rejections as dicts with index, field, reason)
+Delivery = TypeVar("Delivery")
 
 
 class IngestUnavailable(RuntimeError):
@@ -145,3 +148,33 @@ class Ingest:
     def views(self) -> list[ProcessView]:
         """This process's pipeline, for the metrics."""
         return [ProcessView(MAIN_PROCESS, self.stats(), self.metrics())]
+
+
+class WaitingLine(Generic[Delivery]):
+    """The MQTT deliveries a pipeline had no room for (`Busy`), in the order they came, each unacknowledged until it
+    is handed over: the one rule of backpressure for the processes that read a broker (an ingest process,
+    roadgrip/cloud/serve/shards.py; a cluster worker's partition, roadgrip/cloud/cluster/worker.py). `hand` gives one
+    delivery to the pipeline and says whether it took it (False on Busy); `has_room` says whether refused deliveries
+    may come again (`Ingest.has_room`)."""
+
+    def __init__(self, has_room: Callable[[], bool], hand: Callable[[Delivery], bool]):
+        self.has_room = has_room
+        self.hand = hand
+        self.line: collections.deque[Delivery] = collections.deque()
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+    def offer(self, delivery: Delivery) -> None:
+        """A new delivery: handed over at once unless earlier ones wait (the broker's order is kept) or the pipeline
+        has no room; else it waits."""
+        if self.line or not self.hand(delivery):
+            self.line.append(delivery)
+
+    def drain(self) -> None:
+        """Hand what waits over, in order, once the pipeline has room again (`Ingest.has_room`: its backlog down to
+        half its bound), until it refuses one."""
+        if not self.line or not self.has_room():
+            return
+        while self.line and self.hand(self.line[0]):
+            self.line.popleft()

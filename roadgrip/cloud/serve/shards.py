@@ -39,7 +39,6 @@ or exception), ("stored", estimates, stored_ms, newest_data_ms), ("stats", count
 
 from __future__ import annotations
 
-import collections
 import functools
 import itertools
 import logging
@@ -51,7 +50,7 @@ import traceback
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from roadgrip.cloud.ingest.admission import MAX_MQTT_BACKLOG, Ingest, IngestUnavailable, Rejecter
+from roadgrip.cloud.ingest.admission import MAX_MQTT_BACKLOG, Ingest, IngestUnavailable, Rejecter, WaitingLine
 from roadgrip.cloud.metrics import ProcessView
 from roadgrip.cloud.pipeline.fanout import Fanout
 from roadgrip.cloud.pipeline.pipeline import Pipeline, PipelineCounters
@@ -422,11 +421,10 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
     tune_memory_for_serving()
     send(("ready",))  # before the pipeline's first counters
     ingest.start()
-    waiting: collections.deque[tuple] = collections.deque()  # MQTT messages the pipeline had no room for, in order
+    waiting: WaitingLine[tuple] = WaitingLine(ingest.has_room, functools.partial(_hand, ingest, send))
     try:
         while True:
-            while waiting and ingest.has_room() and _hand(ingest, send, waiting[0]):
-                waiting.popleft()
+            waiting.drain()
             try:
                 if waiting and not conn.poll(settings.flush_interval_s):
                     continue  # room is looked for again
@@ -436,8 +434,7 @@ def serve_shard(index: int, settings_fields: dict, conn, log_level: int) -> None
                 break
             kind = message[0]
             if kind == "mqtt":
-                if waiting or not _hand(ingest, send, message):
-                    waiting.append(message)
+                waiting.offer(message)
             elif kind == "submit":
                 _, request, vehicle_id, samples, received = message
                 ingest.submit(vehicle_id, samples, received).add_done_callback(
