@@ -6,7 +6,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
-| at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
+| at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle / mu anywhere above 0.3, u_axle the driven axle's force per load |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
@@ -482,6 +482,17 @@ def _brush_force(slip, mu, c):
 
 
 @njit(cache=True)
+def _soft_between(p, lo, s_lo, hi, s_hi):
+    """P(lo <= p <= hi) with each end blurred (normal, s_lo and s_hi): Phi((p - lo) / s_lo) Phi((hi - p) / s_hi), each
+    factor taken as 0 or 1 beyond 6 sigma (1e-9 off), where it costs no erf."""
+    a = (p - lo) / s_lo
+    b = (hi - p) / s_hi
+    if a < -6.0 or b < -6.0:
+        return 0.0
+    return (1.0 if a > 6.0 else normal_cdf(a)) * (1.0 if b > 6.0 else normal_cdf(b))
+
+
+@njit(cache=True)
 def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
     """ABS acting. With a fixed brake distribution the axle it names first (u_first: its utilisation by the profile's
     brake_front_share) reaches its limit first; ABS then holds that axle there and its force no longer follows the
@@ -492,6 +503,7 @@ def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
     one (cobblestone, snow, worn: C small). The likelihood of (mu, C) is the share of that band's forces (uniform over
     the band's slips) that lies in [u_car, u_first]: flat over mu in between for a stiff tire, and a soft tire's wider
     band pays for the forces that fall outside."""
+    step = (ABS_SLIP_BAND[1] - ABS_SLIP_BAND[0]) / ABS_BAND_POINTS
     for i in range(NM):
         mu = MU_GRID[i]
         s_mu = 0.03 * mu  # the brush model's force against the tires' at the band
@@ -501,9 +513,11 @@ def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
             c = c0 * C_FACTORS[j]
             total = 0.0
             for k in range(ABS_BAND_POINTS):
-                slip = ABS_SLIP_BAND[0] + (k + 0.5) / ABS_BAND_POINTS * (ABS_SLIP_BAND[1] - ABS_SLIP_BAND[0])
-                p = _brush_force(slip, mu, c)
-                total += normal_cdf((p - u_car) / s_lo) * normal_cdf((u_first - p) / s_hi)
+                slip = ABS_SLIP_BAND[0] + (k + 0.5) * step
+                if c * slip >= 3.0 * mu:  # saturated here, so at every larger slip of the band: force mu
+                    total += (ABS_BAND_POINTS - k) * _soft_between(mu, u_car, s_lo, u_first, s_hi)
+                    break
+                total += _soft_between(_brush_force(slip, mu, c), u_car, s_lo, u_first, s_hi)
             like[i, j] = total / ABS_BAND_POINTS
 
 
