@@ -6,7 +6,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
-| at the friction limit | ABS, TCS or ESC active | ABS: the brush force at the slip band ABS holds (0.06-0.15), near the peak for a stiff tire, below it for a soft one; traction control: u_axle / mu anywhere above 0.3; u_axle the force per load of the axle that reaches its limit first (braking: by the profile's brake_front_share; TCS: the driven axle) |
+| at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle / mu anywhere above 0.3, u_axle the driven axle's force per load |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
@@ -139,9 +139,13 @@ C_FORGET_PER_S = 1.0 / 120.0  # the slope is the tire's and the surface's (Gusta
 # crosses below its peak: measured on the training and held-out runs of the generalization preset (5-95 %), ABS 0.86-1.0
 # and 0.57-1.0, traction control 0.48-0.99 and 0.22-0.87.
 ABS_SLIP_BAND = (0.06, 0.15)  # ABS cycles the slip between about 0.08 and 0.12 (Bosch; the simulator: 0.08/0.12)
+ABS_BAND_POINTS = 5  # the slip band's force read at this many slips (midpoint rule): 1 % of mu apart on a stiff tire
+# A catalogue profile does not know the car's load: ECE R13-H's laden and unladen conditions (a driver alone against
+# the permissible maximum mass) move a car's static front load share by about 0.05
+LOAD_SHARE_SPREAD = 0.05
 LIMIT_PEAK_S = 1.0  # how long a controller's flag may lag or latch behind the utilisation it reacted to
 ETA_TCS = 0.3  # traction control (and ESC's engine cut) says little more than "the driven axle slips"
-LIMIT_ABS, LIMIT_TCS, LIMIT_LOCK = 0, 1, 2
+LIMIT_TCS, LIMIT_LOCK = 1, 2
 DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
 ETA_LIMIT = 0.8  # a car at its limit without a controller: u / mu 0.76-1.07 in the simulator (5-95 %, wheels locked)
 ETA_LOCK = 0.7  # a locked or spinning wheel slides: sliding friction is 0.7-1 of the peak (Burckhardt's surfaces)
@@ -478,26 +482,57 @@ def _brush_force(slip, mu, c):
 
 
 @njit(cache=True)
-def _limit_likelihood(u_axle, s_u, kind, c0, like):
-    """At (or near) the friction limit, by what says so (LIMIT_*). ABS holds the acting wheels' slip in a band
-    (ABS_SLIP_BAND): the axle's force is then the brush force at that slip, which for a stiff tire is its peak and for
-    a soft one (cobblestone, snow, worn: C small) below it, so the stiffness posterior decides how close to the peak
-    the tires are. Traction control and a locked or spinning wheel: u_axle / mu spread over [eta, 1]."""
+def _soft_between(p, lo, s_lo, hi, s_hi):
+    """P(lo <= p <= hi) with each end blurred (normal, s_lo and s_hi): Phi((p - lo) / s_lo) Phi((hi - p) / s_hi), each
+    factor taken as 0 or 1 beyond 6 sigma (1e-9 off), where it costs no erf."""
+    a = (p - lo) / s_lo
+    b = (hi - p) / s_hi
+    if a < -6.0 or b < -6.0:
+        return 0.0
+    return (1.0 if a > 6.0 else normal_cdf(a)) * (1.0 if b > 6.0 else normal_cdf(b))
+
+
+@njit(cache=True)
+def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
+    """ABS acting. With a fixed brake distribution the axle it names first (u_first: its utilisation by the profile's
+    brake_front_share) reaches its limit first; ABS then holds that axle there and its force no longer follows the
+    pedal, while the other axle's does, up to its own limit. The pedal is not sent, so every state between "only the
+    first axle at its limit" (its held force per load p = u_first) and "both at their limit" (p = u_car, the car's
+    utilisation) is possible: u_car <= p <= u_first, each end blurred by its own noise (s_car, s_first). What ABS holds
+    is a slip band (ABS_SLIP_BAND): p is the brush force there, the peak mu for a stiff tire and below it for a soft
+    one (cobblestone, snow, worn: C small). The likelihood of (mu, C) is the share of that band's forces (uniform over
+    the band's slips) that lies in [u_car, u_first]: flat over mu in between for a stiff tire, and a soft tire's wider
+    band pays for the forces that fall outside."""
+    step = (ABS_SLIP_BAND[1] - ABS_SLIP_BAND[0]) / ABS_BAND_POINTS
     for i in range(NM):
         mu = MU_GRID[i]
+        s_mu = 0.03 * mu  # the brush model's force against the tires' at the band
+        s_lo = sqrt(s_car * s_car + s_mu * s_mu)
+        s_hi = sqrt(s_first * s_first + s_mu * s_mu)
         for j in range(NC):
-            if kind == LIMIT_ABS:
-                c = c0 * C_FACTORS[j]
-                lo = _brush_force(ABS_SLIP_BAND[0], mu, c)
-                hi = _brush_force(ABS_SLIP_BAND[1], mu, c)
-                s_lim = sqrt(s_u * s_u + (0.03 * mu) ** 2)
-                # a density over the band (normalised): ABS holds its slip band for every wheel it acts on, so a
-                # narrow band (a stiff tire at its peak) that keeps containing u_axle is the better explanation
-                like[i, j] = normal_cdf((hi - u_axle) / s_lim) * normal_cdf((u_axle - lo) / s_lim) / (hi - lo + s_lim)
-            elif kind == LIMIT_TCS:
-                like[i, j] = _band(mu, u_axle, s_u, ETA_TCS)
-            else:
-                like[i, j] = _band(mu, u_axle, s_u, ETA_LOCK) / ((1.0 - ETA_LOCK) * mu)
+            c = c0 * C_FACTORS[j]
+            total = 0.0
+            for k in range(ABS_BAND_POINTS):
+                slip = ABS_SLIP_BAND[0] + (k + 0.5) * step
+                if c * slip >= 3.0 * mu:  # saturated here, so at every larger slip of the band: force mu
+                    total += (ABS_BAND_POINTS - k) * _soft_between(mu, u_car, s_lo, u_first, s_hi)
+                    break
+                total += _soft_between(_brush_force(slip, mu, c), u_car, s_lo, u_first, s_hi)
+            like[i, j] = total / ABS_BAND_POINTS
+
+
+@njit(cache=True)
+def _limit_likelihood(u_axle, s_u, kind, like):
+    """At (or near) the friction limit without ABS (LIMIT_*): traction control and a locked or spinning wheel, u_axle /
+    mu spread over [eta, 1]."""
+    for i in range(NM):
+        mu = MU_GRID[i]
+        if kind == LIMIT_TCS:
+            lk = _band(mu, u_axle, s_u, ETA_TCS)
+        else:
+            lk = _band(mu, u_axle, s_u, ETA_LOCK) / ((1.0 - ETA_LOCK) * mu)
+        for j in range(NC):
+            like[i, j] = lk
 
 
 @njit(cache=True)
@@ -848,12 +883,19 @@ def pmf_step(mem, q, smp, t_prev, out):
         mem[K_U_LIMIT] = 0.0
     else:
         u_limit = u
+        s_first = s_u
         if atx < 0.0:
             # braking: the axle whose brake share exceeds its load share reaches its limit first (ABS acts on it)
             share = q[Q_BRAKE_FRONT]
-            f_front = share * m * -atx / max(fz_front, 0.2 * m * G_MPS2)
-            f_rear = (1.0 - share) * m * -atx / max(fz_rear, 0.2 * m * G_MPS2)
-            u_limit = sqrt(max(f_front, f_rear) ** 2 + (aty / G_MPS2) ** 2)
+            fz_f, fz_r = max(fz_front, 0.2 * m * G_MPS2), max(fz_rear, 0.2 * m * G_MPS2)
+            f_front = share * m * -atx / fz_f
+            f_rear = (1.0 - share) * m * -atx / fz_r
+            f_first = max(f_front, f_rear)
+            u_limit = sqrt(f_first**2 + (aty / G_MPS2) ** 2)
+            # its noise: a_x's through share / load share (f_first g / -a_x), and the load share's, known to
+            # LOAD_SHARE_SPREAD: f_first = F / (psi W) moves by LOAD_SHARE_SPREAD / psi of itself
+            psi = (fz_f if f_front >= f_rear else fz_r) / (fz_f + fz_r)
+            s_first = sqrt((s_u * f_first * G_MPS2 / -atx) ** 2 + (f_first * LOAD_SHARE_SPREAD / psi) ** 2)
         if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
             # traction control: only the driven axle is at its limit
             fz_d = fz_front if drive == 0 else fz_rear
@@ -862,8 +904,11 @@ def pmf_step(mem, q, smp, t_prev, out):
         # largest utilisation of the last LIMIT_PEAK_S, not of this sample's
         u_limit = max(u_limit, mem[K_U_LIMIT] * exp(-dt / LIMIT_PEAK_S))
         mem[K_U_LIMIT] = u_limit
-        kind = LIMIT_ABS if smp[S_ABS] > 0.0 else (LIMIT_TCS if controller else LIMIT_LOCK)
-        _limit_likelihood(u_limit, s_u, kind, q[Q_C0], like)
+        if smp[S_ABS] > 0.0:
+            # ABS: mu between the car's utilisation (both axles at their limit) and the first axle's (_abs_likelihood)
+            _abs_likelihood(u, s_u, u_limit, s_first, q[Q_C0], like)
+        else:
+            _limit_likelihood(u_limit, s_u, LIMIT_TCS if controller else LIMIT_LOCK, like)
         _apply(mem, like, TEMPER)
     # slip between the driven and the undriven axle
     straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
