@@ -43,7 +43,10 @@ from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
 from roadgrip.vehicle.params import VehicleParams
 
 PRIOR_MU = 0.8  # the median of the prior a contradicted estimate falls back on (pmf.py: half dry asphalt)
-PRIOR_UPPER_MU = 1.2  # the prior's upper end (pmf.py's prior puts 95 % of its mass below it)
+# The highest friction a road is taken to have (dry, new asphalt with high-grip tires; the simulator's dry surfaces
+# reach 1.17): the upper end of an interval where nothing is known above (pmf.py's where its evidence is silent, a
+# contradicted estimate's here), which the friction map reads as no upper side
+PRIOR_UPPER_MU = 1.2
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,8 @@ so slip at small force tells C, and slip growing faster than f / C tells mu. The
 steady manoeuvre repeats (controllers, slip) are tempered (raised to TEMPER), because consecutive 100 ms samples share
 their errors (model error, bias); the bound is a maximum and is applied only where a sample raises it.
 
-Between samples mu diffuses (random walk, a 3-tap kernel) and the grid is mixed with the prior at FORGET_PER_S: evidence
+Between samples mu diffuses (random walk, a 3-tap kernel whose moves are accepted against the prior, Metropolis: it
+leaves the prior as it is) and the grid is mixed with the prior at FORGET_PER_S: evidence
 ages, so that a car leaving a braking zone does not carry its mu onto the next road, and with no evidence the posterior
 returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +- 0.15) and half spread evenly over
 0.1-1.1: below excitation the answer is this wide interval, never a low number.
@@ -54,10 +55,10 @@ but the lateral bias calibration takes a long crossfall for bias).
 
 An evidence term that no cell of the grid explains (its total likelihood below INCONSISTENT of its best) is an
 inconsistency of the model with the measurement: it is skipped and counted, never read as low friction.
-The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles with the lower end widened to
-every mu the evidence does not exclude (the likelihood-ratio interval of the evidence alone, `_evidence_lower`: the
-prior is about roads in general, so its low tail excludes the car that is on ice; where the evidence is silent the
-lower end is the grid's lowest cell), excited where the sample's own utilisation u / mu is at least 0.5 (CONTRACTS 4),
+The estimate: mu the posterior median, the 90 % interval its 5 % and 95 % quantiles with both ends widened to every mu
+the evidence does not exclude (the likelihood-ratio interval of the evidence alone, `_evidence_interval`: the prior
+is about roads in general, so its low tail excludes the car that is on ice and its high tail the best dry asphalt;
+where the evidence is silent the ends are the grid's lowest cell and PRIOR_UPPER_MU), excited where the sample's own utilisation u / mu is at least 0.5 (CONTRACTS 4),
 a controller acts, or the posterior's own interval is narrower than EXCITED_WIDTH.
 
 Kinematics before slip: in a turn the wheels roll at different speeds without slipping (the outer faster than the
@@ -100,7 +101,7 @@ from roadgrip.estimators.base import (
     memory_state,
     profile_of_call,
 )
-from roadgrip.estimators.guard import drag_per_mass
+from roadgrip.estimators.guard import PRIOR_UPPER_MU, drag_per_mass
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
     brush_slip,
@@ -126,6 +127,12 @@ def _prior(mu):
 
 
 PRIOR = _prior(MU_GRID)
+# The random walk's moves up and down the grid, accepted as Metropolis accepts them against PRIOR (min(1, PRIOR[to] /
+# PRIOR[from])): the walk then leaves the prior as it is (detailed balance), so that posterior / prior, which the
+# interval's ends read (`_evidence_interval`), moves only with evidence, not with the walk's spreading into the
+# prior's thin tail above 1.1
+WALK_UP = np.append(np.minimum(1.0, PRIOR[1:] / PRIOR[:-1]), 0.0)
+WALK_DOWN = np.insert(np.minimum(1.0, PRIOR[:-1] / PRIOR[1:]), 0, 0.0)
 C_PRIOR = np.exp(-0.5 * (np.log(C_FACTORS) / 0.6) ** 2)  # around the profile's, broad: worn tires, soft surfaces
 C_PRIOR /= C_PRIOR.sum()
 
@@ -396,8 +403,8 @@ def _stiffness_prior(mem, q, out):
 
 @njit(cache=True)
 def _predict(mem, dt, c_prior):
-    """Mu diffuses (random walk on the grid) and the grid is mixed with the prior; stiffness forgets slowly towards
-    its (calibrated) prior."""
+    """Mu diffuses (random walk on the grid, its moves accepted against the prior: WALK_UP, WALK_DOWN) and the grid is
+    mixed with the prior; stiffness forgets slowly towards its (calibrated) prior."""
     step = MU_GRID[1] - MU_GRID[0]
     var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * dt) / (step * step)  # in grid steps^2
     side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
@@ -412,9 +419,11 @@ def _predict(mem, dt, c_prior):
         for i in range(NM):
             col[i] = mem[G0 + i * NC + j]
         for i in range(NM):
-            left = col[i - 1] if i > 0 else col[i]
-            right = col[i + 1] if i < NM - 1 else col[i]
-            p = (1.0 - 2.0 * side) * col[i] + side * (left + right)
+            p = col[i] * (1.0 - side * (WALK_UP[i] + WALK_DOWN[i]))
+            if i > 0:
+                p += side * WALK_UP[i - 1] * col[i - 1]
+            if i < NM - 1:
+                p += side * WALK_DOWN[i + 1] * col[i + 1]
             c_target = (1.0 - forget_c) * cm[j] + forget_c * c_prior[j]
             mem[G0 + i * NC + j] = (1.0 - forget) * (
                 (1.0 - forget_c) * p + forget_c * PRIOR[i] * c_prior[j]
@@ -973,19 +982,25 @@ def pmf_step(mem, q, smp, t_prev, out):
 
 
 @njit(cache=True)
-def _evidence_lower(pm, lower):
-    """lower, widened down to the lowest grid cell whose evidence ratio pm / PRIOR is within LR_INTERVAL_RATIO of the
-    largest (the cell read as a bin of one step, as _quantile reads it): where the evidence is silent about the low
-    end, or has aged back into the prior, that is the grid's lowest cell, ice included. Only the lower end: at the
-    upper end the prior falls steeply above 1.1, where the random walk, which does not keep the prior's shape, lifts
-    the ratio without evidence (docs/ESTIMATORS.md)."""
+def _evidence_interval(pm, lower, upper):
+    """(lower, upper), widened to the grid cells whose evidence ratio pm / PRIOR is within LR_INTERVAL_RATIO of the
+    largest (each cell read as a bin of one step, as _quantile reads it): where the evidence is silent about an end,
+    or has aged back into the prior, that end is the grid's lowest cell (ice included) or PRIOR_UPPER_MU, the highest
+    friction a road is taken to have (the guard's and the map's "nothing known above"). The walk keeps the prior's
+    shape (WALK_UP, WALK_DOWN), so the ratio moves with evidence only."""
+    half = 0.5 * (MU_GRID[1] - MU_GRID[0])
     best = 0.0
     for i in range(NM):
         best = max(best, pm[i] / PRIOR[i])
     for i in range(NM):
         if pm[i] / PRIOR[i] >= LR_INTERVAL_RATIO * best:
-            return min(lower, MU_GRID[i] - 0.5 * (MU_GRID[1] - MU_GRID[0]))
-    return lower
+            lower = min(lower, MU_GRID[i] - half)
+            break
+    for i in range(NM - 1, -1, -1):
+        if MU_GRID[i] - half < PRIOR_UPPER_MU and pm[i] / PRIOR[i] >= LR_INTERVAL_RATIO * best:
+            upper = max(upper, min(MU_GRID[i] + half, PRIOR_UPPER_MU))
+            break
+    return lower, upper
 
 
 @njit(cache=True)
@@ -1009,8 +1024,9 @@ def _output(mem, u, s_u, ok, out):
         lower = min(lower, mem[K_U_LIMIT] - 2.0 * s_u)
     out[O_MU] = mu
     mem[K_MU_LO] = max(lower, 0.0)  # the friction the car is taken to have (the lateral calibration's calm share)
-    out[O_LOWER] = max(_evidence_lower(pm, lower), 0.0)  # what the evidence does not exclude, reported
-    out[O_UPPER] = upper
+    reported_lower, reported_upper = _evidence_interval(pm, lower, upper)  # what the evidence does not exclude
+    out[O_LOWER] = max(reported_lower, 0.0)
+    out[O_UPPER] = reported_upper
     out[O_EXCITED] = 1.0 if (ok and excited) else 0.0
     out[O_VALID] = 1.0
 

@@ -68,6 +68,15 @@ def test_calm_driving_is_a_wide_interval_never_a_low_number():
     assert not any(e.excited for e in estimates)
 
 
+def test_where_nothing_is_proven_the_interval_holds_ice_and_the_best_dry_asphalt():
+    """A minute at a steady 25 m/s proves nothing about mu: the interval reaches both ends of what roads have, ice
+    (0.05) and the best dry asphalt (the guard's PRIOR_UPPER_MU, 1.2), however long the grid's walk has run."""
+    n = 600
+    estimates, _, _ = _run(_samples(np.full(n, 25.0), np.zeros(n)))
+    assert max(e.mu_lower for e in estimates) <= 0.05
+    assert min(e.mu_upper for e in estimates) >= 1.19
+
+
 def test_abs_braking_on_ice_is_tight_and_low():
     """ABS holding the front tires (the profile's brake split saturates them first) at 0.9 of mu 0.15: the estimate
     brackets 0.15 tightly, its upper end well below 0.4."""
