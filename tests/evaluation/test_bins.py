@@ -103,18 +103,22 @@ def test_mu_quantile_by_hand():
 
 def test_prior_baseline_is_pmfs_prior_read_by_pmfs_rule():
     """The baseline is pmf's prior read by pmf's own quantile rule: with the prior as its whole posterior, pmf's median
-    and upper end are the baseline's to the last digit (one owner of the quantile rule); its lower end is wider, the
-    grid's lowest cell, since no evidence excludes ice there."""
+    is the baseline's to the last digit (one owner of the quantile rule); its interval is wider at both ends, the
+    grid's lowest cell and the guard's PRIOR_UPPER_MU, since no evidence excludes ice or the best dry asphalt."""
+    from roadgrip.estimators.guard import PRIOR_UPPER_MU
     from roadgrip.estimators.pmf import N_MEM, N_OUT, O_LOWER, O_MU, O_UPPER, _output, _start
 
     base = prior_baseline()
     mem, out = np.zeros(N_MEM), np.zeros(N_OUT)
     _start(mem, False)  # a segment's start: the prior, before any sample
     _output(mem, 0.0, 0.0, True, out)
-    assert (base.mu_median, base.mu_upper) == pytest.approx((out[O_MU], out[O_UPPER]), abs=1e-12)
-    assert base.mu_lower == pytest.approx(mu_quantile(PRIOR, 0.05), abs=1e-12)
+    assert base.mu_median == pytest.approx(out[O_MU], abs=1e-12)
+    assert (base.mu_lower, base.mu_upper) == pytest.approx(
+        (mu_quantile(PRIOR, 0.05), mu_quantile(PRIOR, 0.95)), abs=1e-12
+    )
     assert out[O_LOWER] == pytest.approx(MU_GRID[0] - 0.5 * (MU_GRID[1] - MU_GRID[0]))
     assert out[O_LOWER] < 0.1 < base.mu_lower
+    assert base.mu_upper < 1.1 < out[O_UPPER] == PRIOR_UPPER_MU
 
 
 def test_catalogue_profile_keeps_the_entrys_nominal_values_and_the_drawn_drive_layout():
