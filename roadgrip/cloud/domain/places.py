@@ -1,4 +1,4 @@
-"""The place of a warning within its cell (warnings.py, rules 4-7 and 9): where in the cell low friction was read, and
+"""The place of a warning within its cell and next door (warnings.py, rules 4-7 and 9): where low friction was read, and
 whether a dry pass speaks of that place.
 
 A warning's cell (H3 resolution 10) is about 150 m across; a patch of ice is often smaller (the fleet benchmark's are
@@ -23,6 +23,15 @@ keeps, per cell, the *spots* of its low evidence:
   braked where the patch begins, or skirted its edge) is not the patch drying: in the fleet benchmark's tuning seeds
   (issue 23) both warnings cancelled while their patch was there were of that kind: grip proven at the patch's edge or
   past it while the place held low readings 30-60 m further in (docs/RESULTS.md, "Warnings that last").
+- The ice goes on next door (`ice_continues`): a patch does not stop at a cell border, and a cell often holds only its
+  rim. The place of a cell's warning extends to the low evidence of its neighbouring cells that continues it: their
+  spots read low within the validity, reached by a chain of spots each within LINK_RING of the cell's spots or of one
+  before it in the chain. LINK_RING is 2 * SPOT_RING: a low reading speaks for about as far as a grip reading does
+  (GNSS error, the estimate's window), so two low spots whose reaches meet are one stretch of ice. Grip proven on the
+  rim spot of one cell is not the patch drying while the rest of that stretch, next door, has not been shown dry: the
+  place is shown dry when its own spots are and the ice it continues into is too (or has aged out of the validity;
+  docs/RESULTS.md, "Warnings that last: the last two misses").
+  Only vehicles' spots link: a station's whole-cell spot and UNKNOWN_PLACE are not positions.
 - UNKNOWN_PLACE: a warning restored from an event stored before warnings kept their place (no `spots` in the event);
   any dry pass in the cell speaks of it, the rule before places were kept.
 
@@ -37,6 +46,7 @@ import h3
 
 SPOT_RESOLUTION = 12
 SPOT_RING = 1
+LINK_RING = 2 * SPOT_RING
 UNKNOWN_PLACE = ""
 _NEVER = -(2**62)
 
@@ -92,10 +102,42 @@ class Place:
         """The spots not yet shown dry, sorted (what a warning's event carries)."""
         return tuple(sorted(k for k, (low_ms, dry_ms) in self.spots.items() if dry_ms <= low_ms))
 
-    def forget(self, horizon_ms: float, *, inclusive: bool = False) -> None:
-        """Forget the spots whose last low reading is older than horizon_ms (or at it, when inclusive)."""
-        for key in [k for k, (t, _) in self.spots.items() if t < horizon_ms or (inclusive and t == horizon_ms)]:
+    def last_dry_ms(self) -> int:
+        """The time of the last grip proven on the place (when it is shown dry: the dry pass that completed it)."""
+        return max((dry_ms for _, dry_ms in self.spots.values()), default=_NEVER)
+
+    def forget(self, horizon_ms: float) -> None:
+        """Forget the spots whose last low reading is older than horizon_ms."""
+        for key in [k for k, (t, _) in self.spots.items() if t < horizon_ms]:
             del self.spots[key]
 
     def clear(self) -> None:
         self.spots.clear()
+
+
+def _is_spot(key: str) -> bool:
+    """Whether a place's key is a vehicle's spot (a position), not a station's whole cell or UNKNOWN_PLACE."""
+    return key != UNKNOWN_PLACE and h3.get_resolution(key) == SPOT_RESOLUTION
+
+
+def ice_continues(place: Place, next_door: Iterable[Place], since_ms: float) -> bool:
+    """Whether the ice of `place` goes on, not yet shown dry, in the places of the neighbouring cells (`next_door`;
+    module docstring): a chain of their spots read low after since_ms, each within LINK_RING of a spot of `place` or of
+    one before it, that reaches a spot not shown dry."""
+    still_ice: dict[str, bool] = {}
+    for other in next_door:
+        for key, (low_ms, dry_ms) in other.spots.items():
+            if low_ms > since_ms and _is_spot(key):
+                still_ice[key] = dry_ms <= low_ms
+    if not still_ice:
+        return False
+    frontier = [key for key in place.spots if _is_spot(key)]
+    seen: set[str] = set()
+    while frontier:
+        for near in h3.grid_disk(frontier.pop(), LINK_RING):
+            if near in still_ice and near not in seen:
+                if still_ice[near]:
+                    return True
+                seen.add(near)
+                frontier.append(near)
+    return False
