@@ -10,14 +10,16 @@ keeps, per cell, the *spots* of its low evidence:
   its station stands for (roadgrip/cloud/domain/stations.py, COVERAGE_RADIUS_M), not a point: its spot is the whole cell
   (the spot's key is the cell itself).
 - A vehicle's dry pass shows a spot dry when one of its estimates that proved grip (excited with mu_lower at or above
-  the threshold, or mu_proven at or above it) lies on the spot or one of its six neighbours (SPOT_RING 1): within
-  about 15-30 m, which allows for GNSS error (a few metres) and for an estimate's window (pmf reads the last second or
-  so of driving, 10-30 m at road speeds). Grip proves friction only where the tires were worked, so a pass shows dry
-  only the spots it reaches, and never a spot where the same pass read low (a pass that crosses a patch's edge reads
-  low on it and proves grip past it: its grip says nothing of where it read ice). A vehicle's pass never speaks for a
-  station's whole-cell spot (it proved grip along its own track only), and a station's dry report speaks only of a
-  place a station read low (the whole-cell spot): the evidence row of a report holds the cell, not where the station
-  stands, and a station up to COVERAGE_RADIUS_M away says nothing of where a vehicle read ice.
+  the threshold, or mu_proven at or above it) lies on the spot or one of its six neighbours (SPOT_RING 1): within about
+  15-30 m, which allows for GNSS error (a few metres) and for an estimate's window (pmf reads the last second or so of
+  driving, 10-30 m at road speeds). Grip proves friction only where the tires were worked, so a pass shows dry only the
+  spots it reaches, and never a spot where the same pass read low (a pass that crosses a patch's edge reads low on it
+  and proves grip past it: its grip says nothing of where it read ice). A vehicle's pass never speaks for a station's
+  whole-cell spot (it proved grip along its own track only); its grip reaches the spots of the cells next door as well
+  as its own cell's (a spot near a border, or straddling it, is shown dry by grip proven beside it whichever cell the
+  pass is counted in: `Place.dry`'s next_door). A station's dry report speaks only of a place a station read low (the
+  whole-cell spot): the evidence row of a report holds the cell, not where the station stands, and a station up to
+  COVERAGE_RADIUS_M away says nothing of where a vehicle read ice.
 - The place is shown dry when every spot is: grip proven on it (or beside it) after its last low reading. Until then
   a warning stays, and ends by expiry if nobody proves the rest dry. Grip at one end of the place (a vehicle that
   braked where the patch begins, or skirted its edge) is not the patch drying: in the fleet benchmark's tuning seeds
@@ -83,13 +85,14 @@ class Place:
             times = self.spots.setdefault(key, [_NEVER, _NEVER])
             times[0] = max(times[0], t)
 
-    def dry(self, grip: set[str], t: int) -> bool:
+    def dry(self, grip: set[str], t: int, *, next_door: bool = False) -> bool:
         """Grip proven at time t on `grip` (a vehicle's: the reach of its grip spots less the spots where the same pass
-        read low; a station's: its cell, the whole-cell spot): marks the spots it touches, and says whether it touched
-        any (whether the pass speaks of the place)."""
+        read low; a station's: its cell, the whole-cell spot), by a pass in this place's cell or, `next_door`, in a
+        neighbouring one: marks the spots it touches, and says whether it touched any (whether the pass speaks of the
+        place). UNKNOWN_PLACE is touched by any pass in the cell, none next door."""
         touched = False
         for key, times in self.spots.items():
-            if key in grip or key == UNKNOWN_PLACE:
+            if key in grip or (key == UNKNOWN_PLACE and not next_door):
                 times[1] = max(times[1], t)
                 touched = True
         return touched

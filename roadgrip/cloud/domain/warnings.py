@@ -40,10 +40,12 @@ Rules
    passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): it ends when its place is shown dry (rule 9: grip proven on every spot of it after the spot's
-   last low reading, and the ice it continues into next door shown dry too) and at least min_dry_passes dry passes
-   later than the detection spoke of the place. A dry pass elsewhere in the cell neither cancels nor refreshes it. The
-   pass that shows the place dry also clears the cell's earlier low passes (rule 4 counts only low passes after the
-   last such dry pass), and the places next door that waited on it (`_settle`).
+   last low reading, and the ice it continues into next door shown dry too) and at least min_dry_passes dry passes later
+   than the detection spoke of the place (one vehicle's dry passes closer than pass_gap_s to the one before are one
+   visit, counted once, as its low passes are in rule 4: a visit across a cell border may speak of the place from both
+   cells). A dry pass elsewhere in the cell neither cancels nor refreshes it. The pass that shows the place dry also
+   clears the cell's earlier low passes (rule 4 counts only low passes after the last such dry pass), and the places
+   next door that waited on it (`_settle`).
 7. Expire ("expired"): a warning lapses validity_s after its last low pass's last low reading (rule 2; evidence_ms +
    validity_s, the DENM's own validity counted from its detectionTime). The check runs at every update against now_ms,
    and before a pass is applied to its cell against the pass's time.
@@ -62,7 +64,11 @@ Rules
    speaks of the place when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
    mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m), and shows dry the spots it
    so reaches, except those where the same pass read low (a pass across a patch's edge read ice on it and grip past
-   it); a dry pass that touches no spot changes nothing in the cell. The place is shown dry when every spot is and the
+   it); a dry pass that touches no spot changes nothing in the cell. A vehicle's grip shows dry the spots it reaches in
+   the places of the cells next door too: grip is proven where the tires were, whichever cell the pass is counted in
+   (a spot straddles a cell border, and GNSS noise puts one pass's readings on either side of it; were a spot next door
+   shown dry only by a pass in its own cell, the ice's last readings across a border would hold, as ice next door
+   below, a whole patch's warnings that grip was proven over). The place is shown dry when every spot is and the
    ice it continues into in the neighbouring cells is too (`places.ice_continues`: their spots read low within
    validity_s, chained within reach of the place): grip on the rim of a patch whose ice goes on next door is not the
    patch drying. A neighbour's evidence never raises or refreshes a warning here, and a place held by it ends by
@@ -251,6 +257,7 @@ class _Warning:
         "action_sequence_number",
         "detection_ms",
         "dry_passes",
+        "dry_seen",
         "evidence_ms",
         "last_event",
         "sequence_number",
@@ -261,7 +268,17 @@ class _Warning:
         self.warning_id, self.detection_ms, self.evidence_ms = warning_id, detection_ms, detection_ms
         self.action_sequence_number, self.sequence_number = action_sequence_number, sequence_number
         self.dry_passes = 0
+        self.dry_seen: dict[str, int] = {}  # vehicle_id -> the end of its last dry pass counted
         self.last_event: WarningEvent | None = None
+
+    def count_dry(self, finished: _Pass, gap_ms: float) -> None:
+        """Count a dry pass that spoke of the place (rule 6). One vehicle's dry passes closer than gap_ms to the one
+        before are one visit, counted once, as its low passes are (rule 4): a visit that crosses a cell border speaks
+        of the place from both cells (rule 9)."""
+        before = self.dry_seen.get(finished.vehicle_id)
+        if before is None or finished.first_ms - before > gap_ms:
+            self.dry_passes += 1
+        self.dry_seen[finished.vehicle_id] = max(finished.last_ms, _NEVER if before is None else before)
 
 
 class _CellState:
@@ -451,17 +468,13 @@ class WarningEngine:
             warning = None
         place = state.place
         if verdict == DRY:
-            if not place:
-                return  # no low evidence here
-            own_low = state.low_passes.last_of(finished.vehicle_id)
-            if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
-                return  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
-            grip = {finished.cell} if station else reach(spots_of(finished.grip_at)) - spots_of(finished.low_at)
-            if not place.dry(grip, t):
-                return  # grip proven elsewhere in the cell: nothing of its place (rule 9)
-            if warning is not None and t > warning.detection_ms:
-                warning.dry_passes += 1
-            self._settle(finished.cell, t, now_ms, events)
+            if station:  # its whole-cell spot, which only its own cell's place holds (rule 8)
+                touched = [finished.cell] if self._shows_dry(finished.cell, finished, {finished.cell}, t) else []
+            else:  # its grip reaches the spots of the cells next door too (rule 9)
+                grip = reach(spots_of(finished.grip_at)) - spots_of(finished.low_at)
+                cells = (finished.cell, *h3.grid_ring(finished.cell, 1))
+                touched = [c for c in cells if self._shows_dry(c, finished, grip, t)]
+            self._settle(touched, t, now_ms, events)
             return
         if t <= state.last_dry_ms:
             return  # superseded by a later dry pass over its place (rules 4, 9)
@@ -538,11 +551,26 @@ class WarningEngine:
             if now_ms >= lapse_ms:
                 self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
 
-    def _settle(self, cell: str, t: int, now_ms: int, events: list[WarningEvent]) -> None:
-        """After a dry pass at t touched the place of `cell`: clear every place now shown dry (rules 6, 9), this cell's
+    def _shows_dry(self, cell: str, finished: _Pass, grip: set[str], t: int) -> bool:
+        """Whether a dry pass at t, of `cell` or of a cell next door, with grip proven on the spots `grip` speaks of the
+        place of `cell` (rule 9): it marks the spots it reaches, and counts as one of its warning's dry passes."""
+        state = self.cell_states_.get(cell)
+        if state is None or not state.place:
+            return False  # no low evidence here
+        own_low = state.low_passes.last_of(finished.vehicle_id)
+        if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
+            return False  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
+        if not state.place.dry(grip, t, next_door=cell != finished.cell):
+            return False  # grip proven elsewhere: nothing of its place (rule 9)
+        if state.warning is not None and t > state.warning.detection_ms:
+            state.warning.count_dry(finished, self.pass_gap_s * 1000.0)
+        return True
+
+    def _settle(self, cells: list[str], t: int, now_ms: int, events: list[WarningEvent]) -> None:
+        """After a dry pass at t touched the places of `cells`: clear every place now shown dry (rules 6, 9), theirs
         and, as each clears, its neighbours' that were waiting on the ice next door."""
         validity_ms = self.validity_s * 1000.0
-        todo = [cell]  # a cell is looked at again when a neighbour clears: the chain that held it may be gone
+        todo = list(cells)  # a cell is looked at again when a neighbour clears: the chain that held it may be gone
         while todo:
             here = todo.pop()
             state = self.cell_states_.get(here)

@@ -2,6 +2,7 @@
 cancelled by dry passes and expired, and their DENM."""
 
 import dataclasses
+import json
 import random
 import statistics
 
@@ -652,3 +653,47 @@ def test_ice_next_door_raises_nothing_and_holds_a_warning_no_longer_than_its_val
     assert [e.cell for e in refreshed] == [NEXT_DOOR]
     (ended,) = engine.update([], here.evidence_ms + 600_000)
     assert (ended.cell, ended.reason, ended.evidence_ms) == (CELL, "expired", here.evidence_ms + 600_000)
+
+
+def _stored_and_restored(engine):
+    """A fresh engine that knows `engine`'s warnings only as the store keeps them (their latest events, read back from
+    JSON), as a cluster worker that takes a region over does (roadgrip/cloud/cluster/regions.py)."""
+    restarted = WarningEngine()
+    restarted.restore(WarningEvent(**json.loads(json.dumps(dataclasses.asdict(e)))) for e in engine.active())
+    assert restarted.active() == engine.active()
+    return restarted
+
+
+@pytest.mark.parametrize("restored", [False, True], ids=["same engine", "restored"])
+def test_grip_proven_on_ice_read_next_door_shows_it_dry_from_either_cell(restored):
+    """The ice's last readings fell just across the border (RIM in CELL, NEAR next door, one spot apart), and a vehicle
+    braking over the whole patch proves grip on both spots from CELL alone (its estimates all lie in CELL): both places
+    are shown dry and both warnings end. Grip is proven where the tires were, whichever cell a pass is counted in; were
+    NEAR shown dry only by a pass in NEXT_DOOR, it would hold CELL's warning as ice next door until it expired."""
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, RIM, low=True, n=10) + at("a", T0_MS + 1_000, NEAR, low=True, n=10))
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+    if restored:
+        engine = _stored_and_restored(engine)
+    over = at("c", T0_MS + 120_000, RIM, low=False)
+    assert {h3.latlng_to_cell(r["latitude_deg"], r["longitude_deg"], 10) for r in over} == {CELL}
+    events = stream(engine, over)
+    assert {(e.cell, e.status, e.reason) for e in events} == {
+        (CELL, "cancelled", "recovered"),
+        (NEXT_DOOR, "cancelled", "recovered"),
+    }
+    assert engine.active() == []
+
+
+def test_restored_warnings_stay_while_the_ice_goes_on_next_door_and_end_when_it_is_shown_dry():
+    """The converse, with the warnings restored as a worker that takes a region over knows them
+    (test_grip_on_the_rim_does_not_end_a_warning_whose_ice_goes_on_next_door in one engine): grip proven on the rim ends
+    nothing while INNER, next door, is not shown dry; grip over the ice next door then ends both."""
+    engine = WarningEngine()
+    _low_across_the_border(engine)
+    engine = _stored_and_restored(engine)
+    assert stream(engine, at("c", T0_MS + 120_000, RIM, low=False)) == []
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+    over = at("d", T0_MS + 240_000, NEAR, low=False, n=10) + at("d", T0_MS + 241_000, INNER, low=False, n=10)
+    events = stream(engine, over)
+    assert {(e.cell, e.reason) for e in events} == {(CELL, "recovered"), (NEXT_DOOR, "recovered")}
