@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from roadgrip.estimators.pmf import PMFEstimator
+from roadgrip.estimators.pmf import CALIBRATION, PMFEstimator
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -66,6 +66,22 @@ def test_calm_driving_is_a_wide_interval_never_a_low_number():
     upper = np.array([e.mu_upper for e in estimates])
     assert mu.min() >= 0.6 and upper.min() >= 1.0
     assert not any(e.excited for e in estimates)
+
+
+def test_the_accelerometer_bias_is_the_sensors_not_the_roads_grade():
+    """Half an hour over roads that climb and descend 2 % in turn (two minutes each), a sensor bias of +0.4 m/s^2:
+    a_x - dv/dt is the bias plus g sin(grade), whose grade part is tire force. The calibrated bias is the sensor's
+    within 0.1 m/s^2 whichever road the car is on, not the last road's grade (0.2 m/s^2 off) as a one-minute
+    average makes it."""
+    n = 18_000
+    t = np.arange(n) * 0.1
+    grade = np.where((t // 120) % 2 == 0, 0.02, -0.02)
+    ax = 0.3 * np.sin(2 * np.pi * t / 30.0)  # the wheels' acceleration; the accelerometer adds gravity's part
+    speed = 20.0 + np.cumsum(ax) * 0.1
+    _, _, state = _run(_samples(speed, ax + G_MPS2 * np.sin(grade), accel_bias=0.4)[: n // 2])
+    first = state.mem[CALIBRATION["accel_bias_mps2"]]
+    _run(_samples(speed, ax + G_MPS2 * np.sin(grade), accel_bias=0.4)[n // 2 + 600 :], state=state)
+    assert abs(first - 0.4) < 0.1 and abs(state.mem[CALIBRATION["accel_bias_mps2"]] - 0.4) < 0.1
 
 
 def test_abs_braking_on_ice_is_tight_and_low():
