@@ -162,7 +162,12 @@ REF_TOLERANCE_MPS2 = 0.5  # the reference speed follows the wheels unless they c
 ACCEL_NOISE_MPS2 = 0.1  # per-sample accelerometer noise allowance (the simulator: 0.05 white)
 BIAS_SIGMA0_MPS2 = 0.5  # an uncalibrated bias: mounting and pitch (a production SUV: -0.63 against d(speed)/dt)
 BIAS_SIGMA_FLOOR_MPS2 = 0.15  # what calibration leaves: grades that vary along the road (1.5 %)
-BIAS_TAU_S = 60.0  # seconds of steady driving that the bias average spans
+BIAS_TAU_S = 60.0  # seconds of steady driving after which the bias is known to BIAS_SIGMA_FLOOR_MPS2
+# The bias average's window grows from BIAS_TAU_S with the steady driving seen, up to this: a_x - dv/dt is the
+# sensor's bias plus g sin(grade), and the grade's part is tire force (the car climbs), so the average must span many
+# roads' grades to leave the sensor's alone; over one road (BIAS_TAU_S) it takes that road's grade out of every force
+# it reads, and the slip line's slope, regressed on those forces, comes out stiff (errors in the regressor)
+BIAS_AVERAGE_S = 1200.0
 RADIUS_TAU_S = 30.0  # seconds of straight driving that the left/right radius ratios span
 RLS_TAU_S = 120.0  # the slip line's memory
 STIFFNESS_CALIBRATED_S = 30.0  # seconds of low-force driving before the slip line's slope informs the stiffness
@@ -616,8 +621,8 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     v_prev = mem[K_V_PREV]
     if v_prev >= 0.0 and abs(smp[S_AX]) < 2.5 and abs(smp[S_R]) < 0.1:
         dvdt = (v - v_prev) / dt
-        w = 1.0 - exp(-dt / BIAS_TAU_S)
-        mem[K_BIAS] += w * ((smp[S_AX] - dvdt) - mem[K_BIAS])
+        window = max(BIAS_TAU_S, min(mem[K_BIAS_W], BIAS_AVERAGE_S))  # grows with the steady driving seen
+        mem[K_BIAS] += dt / window * ((smp[S_AX] - dvdt) - mem[K_BIAS])
         mem[K_BIAS_W] += dt
     if v < SLIP_MIN_SPEED_MPS or not straight or not driving:
         return

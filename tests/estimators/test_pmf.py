@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from roadgrip.estimators.pmf import PMFEstimator
+from roadgrip.estimators.pmf import CALIBRATION, PMFEstimator
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -75,6 +75,22 @@ def test_where_nothing_is_proven_the_interval_holds_ice_and_the_best_dry_asphalt
     estimates, _, _ = _run(_samples(np.full(n, 25.0), np.zeros(n)))
     assert max(e.mu_lower for e in estimates) <= 0.05
     assert min(e.mu_upper for e in estimates) >= 1.19
+
+
+def test_the_accelerometer_bias_is_the_sensors_not_the_roads_grade():
+    """Half an hour over roads that climb and descend 2 % in turn (two minutes each), a sensor bias of +0.4 m/s^2:
+    a_x - dv/dt is the bias plus g sin(grade), whose grade part is tire force. The calibrated bias is the sensor's
+    within 0.1 m/s^2 whichever road the car is on, not the last road's grade (0.2 m/s^2 off) as a one-minute
+    average makes it."""
+    n = 18_000
+    t = np.arange(n) * 0.1
+    grade = np.where((t // 120) % 2 == 0, 0.02, -0.02)
+    ax = 0.3 * np.sin(2 * np.pi * t / 30.0)  # the wheels' acceleration; the accelerometer adds gravity's part
+    speed = 20.0 + np.cumsum(ax) * 0.1
+    _, _, state = _run(_samples(speed, ax + G_MPS2 * np.sin(grade), accel_bias=0.4)[: n // 2])
+    first = state.mem[CALIBRATION["accel_bias_mps2"]]
+    _run(_samples(speed, ax + G_MPS2 * np.sin(grade), accel_bias=0.4)[n // 2 + 600 :], state=state)
+    assert abs(first - 0.4) < 0.1 and abs(state.mem[CALIBRATION["accel_bias_mps2"]] - 0.4) < 0.1
 
 
 def test_abs_braking_on_ice_is_tight_and_low():

@@ -48,15 +48,15 @@ class _Tracer:
     def __enter__(self):
         tracer, original = self, self._original
 
-        def apply(engine, finished, now_ms, events, verdict=None, *, station=False):
-            judged = engine.verdict(finished.uppers, finished.lowers, finished.proven) if verdict is None else verdict
-            state = engine.cell_states_.get(finished.cell)
+        def apply(engine, finished, verdict, t, now_ms, events, *, station=False):
+            near = h3.grid_disk(finished.cell, 1)  # a dry pass may clear the places of neighbours waiting on its cell
+            spots = {c: engine.cell_states_[c].place.keys() for c in near if c in engine.cell_states_}
             before = len(events)
-            warning_id = state.warning.warning_id if state is not None and state.warning is not None else None
-            spots = state.place.keys() if state is not None else ()
-            original(engine, finished, now_ms, events, verdict, station=station)
-            if judged == DRY and any(e.reason == RECOVERED for e in events[before:]):
-                tracer.cancels[warning_id] = (finished, spots)
+            original(engine, finished, verdict, t, now_ms, events, station=station)
+            if verdict == DRY:
+                for event in events[before:]:
+                    if event.reason == RECOVERED:
+                        tracer.cancels[event.warning_id] = (finished, spots.get(event.cell, ()))
 
         engine_module.WarningEngine._apply = apply
         return self

@@ -28,6 +28,9 @@ Rules
    (even the pessimistic bound has grip); otherwise "unknown", which changes nothing. Medians, so that a few outliers
    in a pass of tens of samples cannot decide it. "Low" is judged first: a pass whose estimates read low although one
    of its samples proved grip straddles a patch's edge within the cell, and the low reading is the one that warns.
+   A low pass's time is the time of its last low reading (`_Pass.evidence_ms`): the ice was under the car then; its
+   later estimates in the cell, on the way out, are not evidence of ice. Every rule below that speaks of a low pass's
+   time (raising, refreshing, superseding, the validity) means that one; any other pass's time is rule 1's.
 3. Passes are applied to their cells in order of their time, all those ended in one call together, and every rule
    compares pass times, not arrival order, so that how the estimates are batched matters little.
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
@@ -37,12 +40,15 @@ Rules
    passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): it ends when its place is shown dry (rule 9: grip proven on every spot of it after the spot's
-   last low reading) and at least min_dry_passes dry passes later than the detection spoke of the place. A dry pass
-   elsewhere in the cell neither cancels nor refreshes it. The pass that shows the place dry also clears the cell's
-   earlier low passes (rule 4 counts only low passes after the last such dry pass).
-7. Expire ("expired"): a warning lapses validity_s after its last low pass (evidence_ms + validity_s, the DENM's own
-   validity counted from its detectionTime). The check runs at every update against now_ms, and before a pass is
-   applied to its cell against the pass's time.
+   last low reading, and the ice it continues into next door shown dry too) and at least min_dry_passes dry passes later
+   than the detection spoke of the place (one vehicle's dry passes closer than pass_gap_s to the one before are one
+   visit, counted once, as its low passes are in rule 4: a visit across a cell border may speak of the place from both
+   cells). A dry pass elsewhere in the cell neither cancels nor refreshes it. The pass that shows the place dry also
+   clears the cell's earlier low passes (rule 4 counts only low passes after the last such dry pass), and the places
+   next door that waited on it (`_settle`).
+7. Expire ("expired"): a warning lapses validity_s after its last low pass's last low reading (rule 2; evidence_ms +
+   validity_s, the DENM's own validity counted from its detectionTime). The check runs at every update against now_ms,
+   and before a pass is applied to its cell against the pass's time.
 
 8. Roadside stations. A station's report is one pass in each cell it covers, its own source: vehicle_id
    f"station:{station_id}" (a colon, which no vehicle_id holds), time the report's timestamp. Its verdict comes from
@@ -58,7 +64,15 @@ Rules
    speaks of the place when one of its estimates that proved grip (excited with mu_lower >= threshold_mu, or
    mu_proven >= threshold_mu) lies on a spot or a neighbour of one (within about 15-30 m), and shows dry the spots it
    so reaches, except those where the same pass read low (a pass across a patch's edge read ice on it and grip past
-   it); a dry pass that touches no spot changes nothing in the cell. The place is shown dry when every spot is (rule 6).
+   it); a dry pass that touches no spot changes nothing in the cell. A vehicle's grip shows dry the spots it reaches in
+   the places of the cells next door too: grip is proven where the tires were, whichever cell the pass is counted in
+   (a spot straddles a cell border, and GNSS noise puts one pass's readings on either side of it; were a spot next door
+   shown dry only by a pass in its own cell, the ice's last readings across a border would hold, as ice next door
+   below, a whole patch's warnings that grip was proven over). The place is shown dry when every spot is and the
+   ice it continues into in the neighbouring cells is too (`places.ice_continues`: their spots read low within
+   validity_s, chained within reach of the place): grip on the rim of a patch whose ice goes on next door is not the
+   patch drying. A neighbour's evidence never raises or refreshes a warning here, and a place held by it ends by
+   expiry at the latest (rule 7).
    A vehicle's dry pass that begins within pass_gap_s of its own low pass in the cell is the rest of that visit (GNSS
    noise along a cell border splits a visit; rule 2 judges a visit that read low as low: grip proven just past a
    patch's edge on the way out is not the patch drying). The event carries the place not yet shown dry (`spots`, as
@@ -88,7 +102,7 @@ import h3
 from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
 from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
-from roadgrip.cloud.domain.places import UNKNOWN_PLACE, Place, reach, spots_of
+from roadgrip.cloud.domain.places import UNKNOWN_PLACE, Place, ice_continues, reach, spots_of
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
 # trade-off curve chose them (docs/RESULTS.md, "The warning engine's thresholds"; roadgrip/evaluation/fleet_sweep.py):
@@ -221,7 +235,7 @@ class _Pass(Pass):
     """A pass (passes.py) as the engine judges it: its excited estimates' bounds, its largest proven bound, and where
     its estimates read low and proved grip (rule 9)."""
 
-    __slots__ = ("grip_at", "low_at", "lowers", "proven", "uppers")
+    __slots__ = ("grip_at", "low_at", "low_ms", "lowers", "proven", "uppers")
 
     def __init__(self, vehicle_id: str, cell: str, t: int):
         super().__init__(vehicle_id, cell, t)
@@ -229,7 +243,13 @@ class _Pass(Pass):
         self.lowers: list[float] = []
         self.proven = 0.0  # the largest mu_proven of its estimates, excited or not
         self.low_at: list[tuple[float, float]] = []  # positions of excited estimates with mu_upper < threshold_mu
+        self.low_ms = _NEVER  # ... and the time of the last of them
         self.grip_at: list[tuple[float, float]] = []  # ... of estimates that proved grip >= threshold_mu
+
+    def evidence_ms(self, verdict: str) -> int:
+        """The time of what the pass says (rule 2): a low pass's last low reading, when the ice was under the car (its
+        later estimates in the cell, on the way out, are not); any other pass's time (passes.py)."""
+        return self.low_ms if verdict == LOW and self.low_ms != _NEVER else self.last_ms
 
 
 class _Warning:
@@ -237,6 +257,7 @@ class _Warning:
         "action_sequence_number",
         "detection_ms",
         "dry_passes",
+        "dry_seen",
         "evidence_ms",
         "last_event",
         "sequence_number",
@@ -247,7 +268,17 @@ class _Warning:
         self.warning_id, self.detection_ms, self.evidence_ms = warning_id, detection_ms, detection_ms
         self.action_sequence_number, self.sequence_number = action_sequence_number, sequence_number
         self.dry_passes = 0
+        self.dry_seen: dict[str, int] = {}  # vehicle_id -> the end of its last dry pass counted
         self.last_event: WarningEvent | None = None
+
+    def count_dry(self, finished: _Pass, gap_ms: float) -> None:
+        """Count a dry pass that spoke of the place (rule 6). One vehicle's dry passes closer than gap_ms to the one
+        before are one visit, counted once, as its low passes are (rule 4): a visit that crosses a cell border speaks
+        of the place from both cells (rule 9)."""
+        before = self.dry_seen.get(finished.vehicle_id)
+        if before is None or finished.first_ms - before > gap_ms:
+            self.dry_passes += 1
+        self.dry_seen[finished.vehicle_id] = max(finished.last_ms, _NEVER if before is None else before)
 
 
 class _CellState:
@@ -331,15 +362,20 @@ class WarningEngine:
                 current.uppers.append(hi)
                 if hi < threshold:
                     current.low_at.append((lat, lon))
+                    current.low_ms = max(current.low_ms, t)
                 elif lo >= threshold:
                     current.grip_at.append((lat, lon))
         self.passes_.close_idle(now_ms)  # no estimate from a vehicle for pass_gap_s: its pass is over
-        closed = self._judged[:]
+        judged = []
+        for finished in self._judged:
+            verdict = self.verdict(finished.uppers, finished.lowers, finished.proven)
+            if verdict != UNKNOWN:  # changes nothing
+                judged.append((finished.evidence_ms(verdict), finished.cell, finished.vehicle_id, finished, verdict))
         self._judged.clear()
-        closed.sort(key=lambda p: (p.last_ms, p.cell, p.vehicle_id))
+        judged.sort(key=operator.itemgetter(0, 1, 2))
         events: list[WarningEvent] = []
-        for finished in closed:
-            self._apply(finished, now_ms, events)
+        for t, _, _, finished, verdict in judged:
+            self._apply(finished, verdict, t, now_ms, events)
         self._expire(now_ms, events)
         if now_ms - self.last_sweep_ms_ >= gap_ms:
             self._sweep(now_ms)
@@ -362,7 +398,8 @@ class WarningEngine:
             report.uppers.append(hi)
             report.lowers.append(lo)
             verdict = LOW if hi < self.threshold_mu else DRY if lo >= self.threshold_mu else UNKNOWN
-            self._apply(report, now_ms, events, verdict, station=True)
+            if verdict != UNKNOWN:
+                self._apply(report, verdict, t, now_ms, events, station=True)
         self._expire(now_ms, events)
         return events
 
@@ -414,17 +451,15 @@ class WarningEngine:
     def _apply(
         self,
         finished: _Pass,
+        verdict: str,
+        t: int,
         now_ms: int,
         events: list[WarningEvent],
-        verdict: str | None = None,
         *,
         station: bool = False,
     ) -> None:
-        """Apply a judged pass to its cell (rules 4-7, 9); its verdict by rule 2 unless given (a station's, rule 8)."""
-        verdict = self.verdict(finished.uppers, finished.lowers, finished.proven) if verdict is None else verdict
-        if verdict == UNKNOWN:
-            return
-        t = finished.last_ms
+        """Apply a pass judged low or dry (rule 2; a station's report, rule 8) at its evidence time t to its cell (rules
+        4-7, 9)."""
         validity_ms = self.validity_s * 1000.0
         state = self._cell(finished.cell)
         warning = state.warning
@@ -433,25 +468,13 @@ class WarningEngine:
             warning = None
         place = state.place
         if verdict == DRY:
-            if not place:
-                return  # no low evidence here
-            own_low = state.low_passes.last_of(finished.vehicle_id)
-            if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
-                return  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
-            grip = {finished.cell} if station else reach(spots_of(finished.grip_at)) - spots_of(finished.low_at)
-            if not place.dry(grip, t):
-                return  # grip proven elsewhere in the cell: nothing of its place (rule 9)
-            if warning is not None and t > warning.detection_ms:
-                warning.dry_passes += 1
-            if not place.shown_dry():
-                return  # part of the place shown dry; the rest may still be ice (rule 9)
-            if warning is not None and warning.dry_passes < self.min_dry_passes:
-                return
-            state.last_dry_ms = max(state.last_dry_ms, t)
-            state.low_passes.drop_older(t, inclusive=True)
-            if warning is not None and t > warning.detection_ms:
-                self._end(finished.cell, state, RECOVERED, t, now_ms, events)
-            place.forget(t, inclusive=True)  # the low evidence it held is cleared (rule 6)
+            if station:  # its whole-cell spot, which only its own cell's place holds (rule 8)
+                touched = [finished.cell] if self._shows_dry(finished.cell, finished, {finished.cell}, t) else []
+            else:  # its grip reaches the spots of the cells next door too (rule 9)
+                grip = reach(spots_of(finished.grip_at)) - spots_of(finished.low_at)
+                cells = (finished.cell, *h3.grid_ring(finished.cell, 1))
+                touched = [c for c in cells if self._shows_dry(c, finished, grip, t)]
+            self._settle(touched, t, now_ms, events)
             return
         if t <= state.last_dry_ms:
             return  # superseded by a later dry pass over its place (rules 4, 9)
@@ -527,6 +550,48 @@ class WarningEngine:
             lapse_ms = state.warning.evidence_ms + validity_ms
             if now_ms >= lapse_ms:
                 self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
+
+    def _shows_dry(self, cell: str, finished: _Pass, grip: set[str], t: int) -> bool:
+        """Whether a dry pass at t, of `cell` or of a cell next door, with grip proven on the spots `grip` speaks of the
+        place of `cell` (rule 9): it marks the spots it reaches, and counts as one of its warning's dry passes."""
+        state = self.cell_states_.get(cell)
+        if state is None or not state.place:
+            return False  # no low evidence here
+        own_low = state.low_passes.last_of(finished.vehicle_id)
+        if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
+            return False  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
+        if not state.place.dry(grip, t, next_door=cell != finished.cell):
+            return False  # grip proven elsewhere: nothing of its place (rule 9)
+        if state.warning is not None and t > state.warning.detection_ms:
+            state.warning.count_dry(finished, self.pass_gap_s * 1000.0)
+        return True
+
+    def _settle(self, cells: list[str], t: int, now_ms: int, events: list[WarningEvent]) -> None:
+        """After a dry pass at t touched the places of `cells`: clear every place now shown dry (rules 6, 9), theirs
+        and, as each clears, its neighbours' that were waiting on the ice next door."""
+        validity_ms = self.validity_s * 1000.0
+        todo = list(cells)  # a cell is looked at again when a neighbour clears: the chain that held it may be gone
+        while todo:
+            here = todo.pop()
+            state = self.cell_states_.get(here)
+            if state is None or not state.place or not state.place.shown_dry():
+                continue  # nothing to clear (or cleared already: a cleared place is empty)
+            warning = state.warning
+            if warning is not None and t >= warning.evidence_ms + validity_ms:  # lapsed before t (rule 7)
+                self._end(here, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
+                continue
+            if warning is not None and warning.dry_passes < self.min_dry_passes:
+                continue
+            next_door = [self.cell_states_[c].place for c in h3.grid_ring(here, 1) if c in self.cell_states_]
+            if ice_continues(state.place, next_door, t - validity_ms):
+                continue  # its own spots shown dry, but the ice they belong to goes on next door (rule 9)
+            dry_ms = max(t, state.place.last_dry_ms())
+            state.last_dry_ms = max(state.last_dry_ms, dry_ms)
+            state.low_passes.drop_older(dry_ms, inclusive=True)  # the low evidence it held is cleared (rule 6)
+            state.place.clear()
+            if warning is not None and t > warning.detection_ms:
+                self._end(here, state, RECOVERED, t, now_ms, events)
+            todo.extend(h3.grid_ring(here, 1))
 
     def _cell(self, cell: str) -> _CellState:
         state = self.cell_states_.get(cell)

@@ -7,8 +7,8 @@ subscribed to the warnings topic.
   each region's patch of low mu raises warnings, stored in PostgreSQL and published as DENMs on the MQTT warnings
   topic; the map the region owners saved, read back as an API replica would, shows the patch.
 - kill -9 of the worker that owns a region's queue: the other worker takes the queue over, restores the region's map
-  cells and active warnings from PostgreSQL, and a vehicle that then brakes on dry road where the ice was cancels the
-  warnings raised before the kill (stored, and published with the DENM's termination).
+  cells and active warnings from PostgreSQL, and vehicles that then brake on dry road over the whole stretch where the
+  ice was cancel the warnings raised before the kill (stored, and published with the DENM's termination).
 - A station's evidence published by an API replica with no broker reachable is given up at its deadline."""
 
 from __future__ import annotations
@@ -59,8 +59,14 @@ SETTINGS = Settings(map_clock="data")  # the workers' (environment below): the m
 START_MS = int(time.time() * 1000) - 3_600_000
 TAKEOVER_LIMIT_S = 10.0
 VEHICLES = [
-    f"{tag}-{name}" for tag in "xyz" for name in ("ice1", "ice2", "close1", "ping", "dry", "close2", "ice3", "close3")
+    f"{tag}-{name}"
+    for tag in "xyz"
+    for name in ("ice1", "ice2", "close1", "ping", "dry0", "dry1", "dry2", "close2", "ice3", "close3")
 ]
+# three dry vehicles braking 2 s apart prove grip from the patch's start to its end (255-300, 305-350, 355-400 m east),
+# where the ice vehicles read low (256-401 m: on ice their braking lasts the patch); one alone proves its first 45 m, and
+# a warning whose ice goes on past it stays (roadgrip/cloud/domain/places.py, the ice next door)
+DRY_BRAKE_S = (10.5, 12.5, 14.5)
 STREAMING = [f"s{k:02d}" for k in range(8)]  # vehicles of the mid-stream kill
 
 
@@ -328,7 +334,10 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
         victim.proc.wait()
         killed_at = time.monotonic()
         later = START_MS + 300_000
-        drive(cluster, [run_of(f"{tag}-dry", 0.9, 3, later, shifts[tag]) for tag in "xy"], node=2)
+        dry = [
+            run_of(f"{tag}-dry{k}", 0.9, 3, later, shifts[tag], b) for tag in "xy" for k, b in enumerate(DRY_BRAKE_S)
+        ]
+        drive(cluster, dry, node=2)
         drive(cluster, [run_of(f"{tag}-close2", 0.9, 3, later + 120_000, shifts[tag], first=5) for tag in "xy"], node=2)
         wait_for(
             "the home region's queue taken over",
@@ -342,8 +351,9 @@ def test_regions_raise_publish_persist_and_move_to_another_worker_on_a_kill(clus
             f"delivery: the drives sent after the kill included)"
         )
         assert took_s < TAKEOVER_LIMIT_S
-        # the dry vehicle braked where the ice vehicles did: warnings raised before the kill are cancelled by the new
-        # owner, which knows them only from the database (same warning and ActionID); the others are still active
+        # the dry vehicles braked over the patch the ice vehicles read low on: warnings raised before the kill are
+        # cancelled by the new owner, which knows them only from the database (same warning and ActionID); the others
+        # are still active
         for t in "xy":
             wait_for(
                 f"a warning of region {t} raised before the kill cancelled",

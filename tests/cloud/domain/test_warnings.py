@@ -2,6 +2,7 @@
 cancelled by dry passes and expired, and their DENM."""
 
 import dataclasses
+import json
 import random
 import statistics
 
@@ -534,3 +535,165 @@ def test_grip_on_the_way_out_of_the_ice_is_the_rest_of_a_low_visit():
     assert [e.cell for e in engine.active()] == [CELL]
     (event,) = stream(engine, at("b", T0_MS + 120_000, ICE_SPOT, low=False))
     assert event.reason == "recovered"
+
+
+# ------------------------------------------- validity from the last low reading; the ice next door (rules 7, 9)
+
+
+def test_validity_counts_from_the_last_low_reading_not_the_pass_end():
+    """A vehicle reads ice for 2 s, then drives on in the cell calmly for 20 s (no verdict in those estimates): the ice
+    was under it when it read low, so the warning's evidence, and its validity, count from there."""
+    engine = WarningEngine(validity_s=600.0)
+    low = at("a", T0_MS, ICE_SPOT, low=True)
+    calm = [
+        {**r, "mu": 0.8, "mu_lower": 0.0, "mu_upper": 1.2, "excited": False, "mu_proven": 0.1}
+        for r in at("a", T0_MS + 2_000, OTHER_SPOT, low=False, n=200)
+    ]
+    (event,) = stream(engine, low + calm)
+    last_low_ms = low[-1]["timestamp_ms"]
+    assert event.detection_ms == event.evidence_ms == last_low_ms < calm[-1]["timestamp_ms"] - 19_000
+    assert engine.update([], last_low_ms + 600_000 - 1) == []
+    (ended,) = engine.update([], last_low_ms + 600_000)
+    assert (ended.reason, ended.evidence_ms) == ("expired", last_low_ms + 600_000)
+
+
+NEXT_DOOR = min(h3.grid_ring(CELL, 1))
+
+
+def _spots_of_cell(cell):
+    """The resolution-12 spots whose estimates by `at` all lie in `cell`."""
+
+    def inside(spot):
+        lat, lon = h3.cell_to_latlng(spot)
+        return all(h3.latlng_to_cell(lat + 1e-6 * k, lon, 10) == cell for k in range(5))
+
+    return sorted(c for c in h3.grid_disk(h3.cell_to_center_child(cell, 12), 8) if inside(c))
+
+
+def _ice_across_the_border():
+    """Spots of a patch across the border of CELL and NEXT_DOOR: RIM, the spot of CELL nearest NEXT_DOOR; NEAR, a spot
+    of NEXT_DOOR beside it; INNER, a spot of NEXT_DOOR further in (within 2 rings of NEAR, 3 from RIM); FAR, the spot of
+    NEXT_DOOR furthest from RIM (other ice)."""
+    here, there = _spots_of_cell(CELL), _spots_of_cell(NEXT_DOOR)
+    rim = min(here, key=lambda s: h3.great_circle_distance(h3.cell_to_latlng(s), h3.cell_to_latlng(NEXT_DOOR), "m"))
+    near = next(s for s in there if h3.grid_distance(rim, s) == 1)
+    inner = next(s for s in there if h3.grid_distance(rim, s) == 3 and h3.grid_distance(near, s) <= 2)
+    far = max(there, key=lambda s: h3.grid_distance(rim, s))
+    return tuple(h3.cell_to_latlng(s) for s in (rim, near, inner, far))
+
+
+RIM, NEAR, INNER, FAR = _ice_across_the_border()
+
+
+def test_the_ice_across_the_border_lies_as_described():
+    assert h3.latlng_to_cell(*RIM, 10) == CELL
+    assert {h3.latlng_to_cell(*p, 10) for p in (NEAR, INNER, FAR)} == {NEXT_DOOR}
+    assert h3.great_circle_distance(RIM, INNER, "m") > 40.0  # beyond the reach of grip proven on the rim
+    assert h3.grid_distance(*(h3.latlng_to_cell(*p, 12) for p in (RIM, FAR))) >= 5  # no chain links them
+
+
+def _low_across_the_border(engine):
+    """A vehicle brakes across the patch: ice read on the rim of CELL, then on two spots of NEXT_DOOR (two passes, one
+    low in each cell; the product raises on one)."""
+    rows = at("a", T0_MS, RIM, low=True, n=10) + at("a", T0_MS + 1_000, NEAR, low=True, n=10)
+    rows += at("a", T0_MS + 2_000, INNER, low=True, n=10)
+    events = stream(engine, rows)
+    assert raised(events) == {CELL, NEXT_DOOR}
+    return {e.cell: e for e in events}
+
+
+def test_grip_on_the_rim_does_not_end_a_warning_whose_ice_goes_on_next_door():
+    """The cell holds only the patch's rim: grip proven on that spot while the ice goes on next door is not the patch
+    drying. The same ice shown dry next door (a vehicle braking over it) ends both: a drying road still ends."""
+    engine = WarningEngine()
+    first = _low_across_the_border(engine)
+    assert stream(engine, at("c", T0_MS + 120_000, RIM, low=False)) == []
+    assert [(e.cell, e.sequence_number) for e in engine.active()] == sorted([(CELL, 0), (NEXT_DOOR, 0)])
+    assert engine.active() == [first[c] for c in sorted(first)]  # neither refreshed nor changed
+    over = at("d", T0_MS + 240_000, NEAR, low=False, n=10) + at("d", T0_MS + 241_000, INNER, low=False, n=10)
+    events = stream(engine, over)
+    assert {(e.cell, e.status, e.reason) for e in events} == {
+        (CELL, "cancelled", "recovered"),
+        (NEXT_DOOR, "cancelled", "recovered"),
+    }
+    assert {e.evidence_ms for e in events} == {over[-1]["timestamp_ms"]}  # when the last of the ice was shown dry
+    assert engine.active() == []
+
+
+def test_grip_at_the_border_next_door_does_not_end_it_while_the_ice_further_in_stays():
+    """Grip proven on the rim and on the spot beside it next door, not where the ice was read further in: the chain of
+    the ice's spots next door still reaches ice, and the warning stays."""
+    engine = WarningEngine()
+    _low_across_the_border(engine)
+    assert stream(engine, at("c", T0_MS + 120_000, NEAR, low=False, n=10)) == []
+    assert stream(engine, at("e", T0_MS + 180_000, RIM, low=False)) == []
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+
+
+def test_other_ice_next_door_does_not_hold_a_warning_shown_dry():
+    """Ice read next door far from the cell's place (no chain of spots within reach of each other) is other ice: grip
+    on the cell's place ends its warning, and the other one stays."""
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, RIM, low=True) + at("b", T0_MS + 10_000, FAR, low=True))
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+    (event,) = stream(engine, at("c", T0_MS + 120_000, RIM, low=False))
+    assert (event.cell, event.reason) == (CELL, "recovered")
+    assert [e.cell for e in engine.active()] == [NEXT_DOOR]
+
+
+def test_ice_next_door_raises_nothing_and_holds_a_warning_no_longer_than_its_validity():
+    """Low evidence next door never warns a cell without low passes of its own, and holding a warning shown dry never
+    makes it outlast its own validity: it expires validity_s after its last low reading."""
+    engine = WarningEngine(validity_s=600.0)
+    (next_door,) = stream(engine, at("a", T0_MS, NEAR, low=True) + at("a", T0_MS + 2_000, INNER, low=True))
+    assert next_door.cell == NEXT_DOOR and [e.cell for e in engine.active()] == [NEXT_DOOR]
+    (here,) = stream(engine, at("b", T0_MS + 100_000, RIM, low=True))
+    assert stream(engine, at("c", T0_MS + 200_000, RIM, low=False)) == []  # held by the ice next door
+    refreshed = stream(engine, at("d", T0_MS + 500_000, INNER, low=True))  # the ice next door read again
+    assert [e.cell for e in refreshed] == [NEXT_DOOR]
+    (ended,) = engine.update([], here.evidence_ms + 600_000)
+    assert (ended.cell, ended.reason, ended.evidence_ms) == (CELL, "expired", here.evidence_ms + 600_000)
+
+
+def _stored_and_restored(engine):
+    """A fresh engine that knows `engine`'s warnings only as the store keeps them (their latest events, read back from
+    JSON), as a cluster worker that takes a region over does (roadgrip/cloud/cluster/regions.py)."""
+    restarted = WarningEngine()
+    restarted.restore(WarningEvent(**json.loads(json.dumps(dataclasses.asdict(e)))) for e in engine.active())
+    assert restarted.active() == engine.active()
+    return restarted
+
+
+@pytest.mark.parametrize("restored", [False, True], ids=["same engine", "restored"])
+def test_grip_proven_on_ice_read_next_door_shows_it_dry_from_either_cell(restored):
+    """The ice's last readings fell just across the border (RIM in CELL, NEAR next door, one spot apart), and a vehicle
+    braking over the whole patch proves grip on both spots from CELL alone (its estimates all lie in CELL): both places
+    are shown dry and both warnings end. Grip is proven where the tires were, whichever cell a pass is counted in; were
+    NEAR shown dry only by a pass in NEXT_DOOR, it would hold CELL's warning as ice next door until it expired."""
+    engine = WarningEngine()
+    stream(engine, at("a", T0_MS, RIM, low=True, n=10) + at("a", T0_MS + 1_000, NEAR, low=True, n=10))
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+    if restored:
+        engine = _stored_and_restored(engine)
+    over = at("c", T0_MS + 120_000, RIM, low=False)
+    assert {h3.latlng_to_cell(r["latitude_deg"], r["longitude_deg"], 10) for r in over} == {CELL}
+    events = stream(engine, over)
+    assert {(e.cell, e.status, e.reason) for e in events} == {
+        (CELL, "cancelled", "recovered"),
+        (NEXT_DOOR, "cancelled", "recovered"),
+    }
+    assert engine.active() == []
+
+
+def test_restored_warnings_stay_while_the_ice_goes_on_next_door_and_end_when_it_is_shown_dry():
+    """The converse, with the warnings restored as a worker that takes a region over knows them
+    (test_grip_on_the_rim_does_not_end_a_warning_whose_ice_goes_on_next_door in one engine): grip proven on the rim ends
+    nothing while INNER, next door, is not shown dry; grip over the ice next door then ends both."""
+    engine = WarningEngine()
+    _low_across_the_border(engine)
+    engine = _stored_and_restored(engine)
+    assert stream(engine, at("c", T0_MS + 120_000, RIM, low=False)) == []
+    assert {e.cell for e in engine.active()} == {CELL, NEXT_DOOR}
+    over = at("d", T0_MS + 240_000, NEAR, low=False, n=10) + at("d", T0_MS + 241_000, INNER, low=False, n=10)
+    events = stream(engine, over)
+    assert {(e.cell, e.reason) for e in events} == {(CELL, "recovered"), (NEXT_DOOR, "recovered")}
