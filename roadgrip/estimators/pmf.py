@@ -170,6 +170,12 @@ BIAS_TAU_S = 60.0  # seconds of steady driving after which the bias is known to 
 BIAS_AVERAGE_S = 1200.0
 RADIUS_TAU_S = 30.0  # seconds of straight driving that the left/right radius ratios span
 RLS_TAU_S = 120.0  # the slip line's memory
+# The slip line is regressed on the force and slip averaged over this (a first-order filter): the accelerometer's
+# white noise (ACCEL_NOISE_MPS2, 0.01-0.02 of a wheel load) is as large as the force's own spread in steady driving, and
+# noise in the regressor flattens the fitted slope (errors in variables: a sedan's 1 / C came out 0.019 against its
+# tire's 0.062 on the fleet benchmark); over 1 s its variance falls 20-fold while the driver's changes of force, over
+# seconds, pass
+SLIP_LINE_FILTER_S = 1.0
 STIFFNESS_CALIBRATED_S = 30.0  # seconds of low-force driving before the slip line's slope informs the stiffness
 STIFFNESS_SURFACE_SPREAD = 0.25  # what the slope at low force leaves unknown of the curve nearer the peak (log)
 SLIP_SIGMA0 = 0.0015  # slip noise floor: wheel-speed noise, CAN quantisation, signal time offsets
@@ -315,7 +321,11 @@ N_MEM_V1 = K_CH
 # block fresh
 K_AL = K_CH + ch.N_CHANNEL_MEM
 N_MEM_V2 = K_AL
-N_MEM = K_AL + al.memory_size(NM)
+# the slip line's input filter (`_calibrate`), appended after it: a state saved before (N_MEM_V3 numbers) loads with
+# the filter empty
+N_MEM_V3 = K_AL + al.memory_size(NM)
+K_LINE_F, K_LINE_S, K_LINE_W = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
+N_MEM = N_MEM_V3 + 3
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -616,6 +626,7 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     if dt <= 0.0 or controller or v < 3.0:
+        mem[K_LINE_W] = 0.0
         return
     # accelerometer bias: a_x - dv/dt over steady driving
     v_prev = mem[K_V_PREV]
@@ -625,10 +636,12 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
         mem[K_BIAS] += dt / window * ((smp[S_AX] - dvdt) - mem[K_BIAS])
         mem[K_BIAS_W] += dt
     if v < SLIP_MIN_SPEED_MPS or not straight or not driving:
+        mem[K_LINE_W] = 0.0
         return
     kin = np.empty(4)
     for i in range(4):
         if not v_cog[i] > 0.5 * v:  # a wheel locked or spinning backwards: no ratio to learn
+            mem[K_LINE_W] = 0.0
             return
         kin[i] = gain[i] * v + offset[i]  # the speed it rolls at without slip
     # left/right radius ratios (straight driving, each wheel's count against its own kinematic speed: a gentle curve
@@ -637,23 +650,34 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     mem[K_LR_F] += w * (smp[S_W0] * kin[1] / (smp[S_W0 + 1] * kin[0]) - 1.0 - mem[K_LR_F])
     mem[K_LR_R] += w * (smp[S_W0 + 2] * kin[3] / (smp[S_W0 + 3] * kin[2]) - 1.0 - mem[K_LR_R])
     mem[K_LR_W] += dt
-    # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting
-    if abs(f_d) < 0.15:
-        lam = exp(-dt / RLS_TAU_S)
-        p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
-        # K = P h / (h' P h + r), h = (1, f)
-        ph0, ph1 = p00 + p01 * f_d, p01 + p11 * f_d
-        r = (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
-        den = ph0 + ph1 * f_d + r
-        k0, k1 = ph0 / den, ph1 / den
-        err = s_raw - (mem[K_S0] + mem[K_SLOPE] * f_d)
-        mem[K_S0] += k0 * err
-        mem[K_SLOPE] += k1 * err
-        # P = (I - K h') P
-        mem[K_P00] = p00 - k0 * ph0
-        mem[K_P01] = p01 - k0 * ph1
-        mem[K_P11] = p11 - k1 * ph1
-        mem[K_RLS_W] += dt
+    # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting, on the filtered force
+    # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
+    if not abs(f_d) < 0.15:
+        mem[K_LINE_W] = 0.0
+        return
+    if mem[K_LINE_W] == 0.0:
+        mem[K_LINE_F], mem[K_LINE_S] = f_d, s_raw
+    else:
+        a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
+        mem[K_LINE_F] += a * (f_d - mem[K_LINE_F])
+        mem[K_LINE_S] += a * (s_raw - mem[K_LINE_S])
+    mem[K_LINE_W] += dt
+    f_d, s_raw = mem[K_LINE_F], mem[K_LINE_S]
+    lam = exp(-dt / RLS_TAU_S)
+    p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
+    # K = P h / (h' P h + r), h = (1, f)
+    ph0, ph1 = p00 + p01 * f_d, p01 + p11 * f_d
+    r = (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
+    den = ph0 + ph1 * f_d + r
+    k0, k1 = ph0 / den, ph1 / den
+    err = s_raw - (mem[K_S0] + mem[K_SLOPE] * f_d)
+    mem[K_S0] += k0 * err
+    mem[K_SLOPE] += k1 * err
+    # P = (I - K h') P
+    mem[K_P00] = p00 - k0 * ph0
+    mem[K_P01] = p01 - k0 * ph1
+    mem[K_P11] = p11 - k1 * ph1
+    mem[K_RLS_W] += dt
 
 
 @njit(cache=True)
@@ -1182,10 +1206,10 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2):
-            # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh) or
-            # before the steering torques' (V2: the trail's gain at the profile's): everything kept, each missing
-            # block fresh, as for a new car
+        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3):
+            # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
+            # before the steering torques' (V2: the trail's gain at the profile's) or before the slip line's input
+            # filter (V3: empty): everything kept, each missing block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
