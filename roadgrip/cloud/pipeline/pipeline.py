@@ -410,7 +410,17 @@ class Pipeline:
             self.counters.submitted += len(sub.samples)
             if not sub.future.done():
                 sub.future.set_result(SubmitResult(stored, duplicates))
-        self.counters.late += sum(key not in repeats for key in held.late)  # a repeat is a duplicate, not late
+        late = [key for key in held.late if key not in repeats]  # a repeat is a duplicate, not late
+        if late:
+            self.counters.late += len(late)
+            vehicle_id, timestamp_ms = min(late)
+            log.warning(
+                "%d samples stored but not estimated: behind what was estimated (the first: %s at %d, estimated to %s)",
+                len(late),
+                vehicle_id,
+                timestamp_ms,
+                self._streams[vehicle_id].last_estimated_ms if vehicle_id in self._streams else "?",
+            )
         if held.rows:
             self._newest_data_ms = max(self._newest_data_ms, max(r["timestamp_ms"] for r in held.rows))
         for vehicle_id in held.touched & self._streams.keys():  # a vehicle forgotten meanwhile starts afresh
