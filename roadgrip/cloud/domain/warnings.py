@@ -462,10 +462,7 @@ class WarningEngine:
         4-7, 9)."""
         validity_ms = self.validity_s * 1000.0
         state = self._cell(finished.cell)
-        warning = state.warning
-        if warning is not None and t >= warning.evidence_ms + validity_ms:  # it lapsed before this pass (rule 7)
-            self._end(finished.cell, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
-            warning = None
+        warning = None if self._lapsed(finished.cell, state, t, now_ms, events) else state.warning
         place = state.place
         if verdict == DRY:
             if station:  # its whole-cell spot, which only its own cell's place holds (rule 8)
@@ -544,12 +541,20 @@ class WarningEngine:
             state.place.clear()
 
     def _expire(self, now_ms: int, events: list[WarningEvent]) -> None:
-        validity_ms = self.validity_s * 1000.0
         for cell in sorted(self.active_cells_):
-            state = self.cell_states_[cell]
-            lapse_ms = state.warning.evidence_ms + validity_ms
-            if now_ms >= lapse_ms:
-                self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
+            self._lapsed(cell, self.cell_states_[cell], now_ms, now_ms, events)
+
+    def _lapsed(self, cell: str, state: _CellState, t: float, now_ms: int, events: list[WarningEvent]) -> bool:
+        """Whether the cell's warning had lapsed by t (validity_s after its last low pass, rule 7); it then ends
+        "expired" at its lapse time."""
+        warning = state.warning
+        if warning is None:
+            return False
+        lapse_ms = warning.evidence_ms + self.validity_s * 1000.0
+        if t < lapse_ms:
+            return False
+        self._end(cell, state, EXPIRED, int(lapse_ms), now_ms, events)
+        return True
 
     def _shows_dry(self, cell: str, finished: _Pass, grip: set[str], t: int) -> bool:
         """Whether a dry pass at t, of `cell` or of a cell next door, with grip proven on the spots `grip` speaks of the
@@ -576,10 +581,9 @@ class WarningEngine:
             state = self.cell_states_.get(here)
             if state is None or not state.place or not state.place.shown_dry():
                 continue  # nothing to clear (or cleared already: a cleared place is empty)
-            warning = state.warning
-            if warning is not None and t >= warning.evidence_ms + validity_ms:  # lapsed before t (rule 7)
-                self._end(here, state, EXPIRED, int(warning.evidence_ms + validity_ms), now_ms, events)
+            if self._lapsed(here, state, t, now_ms, events):
                 continue
+            warning = state.warning
             if warning is not None and warning.dry_passes < self.min_dry_passes:
                 continue
             next_door = [self.cell_states_[c].place for c in h3.grid_ring(here, 1) if c in self.cell_states_]
