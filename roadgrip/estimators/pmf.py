@@ -324,7 +324,7 @@ N_MEM_V2 = K_AL
 # the slip line's input filter (`_calibrate`), appended after it: a state saved before (N_MEM_V3 numbers) loads with
 # the filter empty
 N_MEM_V3 = K_AL + al.memory_size(NM)
-K_LINE_F, K_LINE_S, K_LINE_W = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
+K_LINE_F, K_LINE_S, K_LINE_ON = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
 N_MEM = N_MEM_V3 + 3
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
@@ -624,9 +624,11 @@ def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
 @njit(cache=True)
 def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving):
     """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
+    # the slip line's filter goes on only from a sample that fed it (K_LINE_ON, set again below if this one does)
+    line_on = mem[K_LINE_ON] > 0.0
+    mem[K_LINE_ON] = 0.0
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     if dt <= 0.0 or controller or v < 3.0:
-        mem[K_LINE_W] = 0.0
         return
     # accelerometer bias: a_x - dv/dt over steady driving
     v_prev = mem[K_V_PREV]
@@ -636,12 +638,10 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
         mem[K_BIAS] += dt / window * ((smp[S_AX] - dvdt) - mem[K_BIAS])
         mem[K_BIAS_W] += dt
     if v < SLIP_MIN_SPEED_MPS or not straight or not driving:
-        mem[K_LINE_W] = 0.0
         return
     kin = np.empty(4)
     for i in range(4):
         if not v_cog[i] > 0.5 * v:  # a wheel locked or spinning backwards: no ratio to learn
-            mem[K_LINE_W] = 0.0
             return
         kin[i] = gain[i] * v + offset[i]  # the speed it rolls at without slip
     # left/right radius ratios (straight driving, each wheel's count against its own kinematic speed: a gentle curve
@@ -653,15 +653,14 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting, on the filtered force
     # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
     if not abs(f_d) < 0.15:
-        mem[K_LINE_W] = 0.0
         return
-    if mem[K_LINE_W] == 0.0:
-        mem[K_LINE_F], mem[K_LINE_S] = f_d, s_raw
-    else:
+    if line_on:
         a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
         mem[K_LINE_F] += a * (f_d - mem[K_LINE_F])
         mem[K_LINE_S] += a * (s_raw - mem[K_LINE_S])
-    mem[K_LINE_W] += dt
+    else:
+        mem[K_LINE_F], mem[K_LINE_S] = f_d, s_raw
+    mem[K_LINE_ON] = 1.0
     f_d, s_raw = mem[K_LINE_F], mem[K_LINE_S]
     lam = exp(-dt / RLS_TAU_S)
     p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
