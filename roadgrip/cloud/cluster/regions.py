@@ -36,7 +36,9 @@ Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 - Estimates stored and confirmed reach their region at least once. A region drops an estimate of a vehicle not newer
   than the newest it applied of that vehicle (estimates of a vehicle are made in time order, once: the pipeline
   estimates a sample after the newest stored estimate only), and after a takeover not newer than the newest of that
-  vehicle in the restored cells, so a redelivered message counts once in the map.
+  vehicle in the restored cells, so a redelivered message counts once in the map. Not held for order at a hand-over
+  as the partitions' vehicles are (pipeline.py TAKEOVER_HOLD_S): a region message the broker returns behind a newer
+  one of the same vehicle (results/trials/cluster/handover_order.py) is dropped, its estimates missing from the map.
 - Crash window: a worker that stored a round and died before its publish was confirmed leaves the round's telemetry
   unacknowledged; the partition's next owner stores nothing new of it and estimates none of it again
   (`skip_estimated`), so those estimates never reach the region (they are in the database; the map misses them).

@@ -29,8 +29,10 @@ pipeline.py); only how messages arrive and who owns which vehicles differ.
   a message is never acknowledged before an earlier one of its queue. A delivery the pipeline has no room for
   (`Busy`: MAX_MQTT_BACKLOG samples wait) waits in the consumer, unacknowledged, with every later one of its queue,
   until the pipeline has room again.
-  Per-vehicle order: a queue delivers in order, the pipeline takes submissions in order and its reorder buffer
-  estimates each vehicle's samples in time order.
+  Per-vehicle order: a queue delivers in order, except to the next consumer after a hand-over (RabbitMQ 3.10's quorum
+  queues return the previous consumer's unacknowledged messages out of order: results/trials/cluster/
+  handover_order.py); the pipeline takes submissions in order, holds a vehicle it takes over for TAKEOVER_HOLD_S
+  (pipeline.py) and its reorder buffer estimates each vehicle's samples in time order.
 - Fencing (a partial handover: a worker whose connection died through a dead node, or that has not noticed yet,
   still holds rounds of that partition while the new owner starts on the redelivered messages): the first delivery
   on a partition's channel takes the partition in the database (`Storage.take_partition`: its epoch + 1); every

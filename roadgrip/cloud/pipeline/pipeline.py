@@ -9,7 +9,8 @@ up to MAX_ROUND_SAMPLES (the rest goes in the next round, at once), and:
    timestamps;
 2. puts each vehicle's new samples into that vehicle's reorder buffer and releases, in time order, the samples older than
    the vehicle's newest by `reorder_window_s` (all of them once the vehicle has been silent that long): a sample that
-   arrives out of order within the window is estimated in its place;
+   arrives out of order within the window is estimated in its place (a vehicle a cluster worker takes over releases
+   nothing for TAKEOVER_HOLD_S: the broker hands the previous owner's messages over out of order);
 3. feeds the released samples to the vehicle's estimator (`roadgrip.estimators.base.Estimator`, the interface the offline
    tools use), each vehicle's in one `update_many` (the estimates `update` gives sample by sample, without the
    per-sample Python where the estimator has its own). A gap longer than `max_gap_s` restarts the estimator (`reset`)
@@ -69,6 +70,11 @@ DEDUP_HORIZON_MS = 30_000
 MAX_ROUND_SAMPLES = 5_000
 SLOW_ROUND_S = 1.0  # a round slower than this is counted (health: pipeline.slow_rounds): the service stalled
 MAX_RETRY_S = 2.0  # longest wait between two tries while storage is down (doubling from 0.2 s)
+# A vehicle a cluster worker takes over (`skip_estimated`) is estimated only after this long of the clock from its first
+# arrival: RabbitMQ 3.10's quorum queues hand the previous consumer's unacknowledged messages to the next one out of
+# order (among themselves and with newer ones; 13-15 of 19 hand-overs in results/trials/cluster/handover_order.py),
+# all in the first burst, so the reorder buffer puts them back in order within the hold instead of calling them late.
+TAKEOVER_HOLD_S = 1.0
 
 
 class StoredSink(Protocol):
@@ -120,6 +126,8 @@ class _VehicleStream:
     stored: set = field(default_factory=set)  # timestamps stored within DEDUP_HORIZON_MS of newest_ms
     checkpoint_at_ms: float = math.inf  # data time at which its state is due for a checkpoint (Checkpoints)
     written_ms: int | None = None  # last_estimated_ms of its stored state
+    held_until_s: float | None = None  # taken over: nothing released before this (clock), then what was estimated read
+    first_ms: float = math.inf  # its oldest sample seen while held
 
 
 @dataclass
@@ -147,8 +155,8 @@ class PipelineCounters:
 
 
 class Pipeline:
-    """`skip_estimated`: a vehicle first seen is not estimated at or before its newest estimate stored from its first
-    sample on: those samples are redeliveries of what another owner estimated (and may have checkpointed into the
+    """`skip_estimated`: a vehicle first seen is held for TAKEOVER_HOLD_S, then not estimated at or before its newest
+    estimate stored from its oldest sample on: those samples are redeliveries of what another owner estimated (and may have checkpointed into the
     state this pipeline restores, whose calibration would count them twice). A cluster worker sets it
     (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not. `clock` (callable() -> s, monotonic; a test's
     fake one): the reorder window's (when a vehicle's samples arrived) and the storage retry's backoff."""
@@ -322,14 +330,15 @@ class Pipeline:
                 inbox, StorageUnavailable("storage is down; the service holds what it acknowledged until it is back")
             )
             return
+        now_s = self.clock()
         try:
             for sub in inbox:  # every profile first: a storage failure here leaves nothing half done
                 self._profile(sub.vehicle_id)
-            self._open_streams(inbox)
+            self._open_streams(inbox, now_s)
+            self._end_holds(inbox, now_s, final)
         except StorageUnavailable as exc:
             self._refuse_or_keep(inbox, exc)
             return
-        now_s = self.clock()
         results: list[tuple[_Submission, list[int]]] = []
         new_rows: list[dict] = []
         touched: set[str] = set()
@@ -447,9 +456,10 @@ class Pipeline:
         return self._held is not None and self._failures > 0
 
     # ------------------------------------------------------------------------------------------------- per vehicle
-    def _open_streams(self, inbox: list[_Submission]) -> None:
+    def _open_streams(self, inbox: list[_Submission], now_s: float) -> None:
         """Streams for the vehicles first seen (their profiles read): from their stored estimator states where those
-        fit, else fresh. StorageUnavailable leaves nothing half done."""
+        fit, else fresh; held for TAKEOVER_HOLD_S with `skip_estimated`. StorageUnavailable leaves nothing half
+        done."""
         first_ms: dict[str, float] = {}
         for sub in inbox:
             if sub.vehicle_id not in self._streams:
@@ -460,18 +470,29 @@ class Pipeline:
         if not first_ms:
             return
         states = self.checkpoints.start_states({v: self._profiles[v] for v in first_ms})
-        estimated_ms = {}  # vehicle -> its newest estimate stored from its first sample on
-        if self.skip_estimated:
-            for vehicle_id, first in first_ms.items():
-                stored = self.storage.estimates(vehicle_id, start_ms=int(first))
-                if stored:
-                    estimated_ms[vehicle_id] = stored[-1]["timestamp_ms"]
         for vehicle_id, state in states.items():
             self._streams[vehicle_id] = _VehicleStream(
                 state,
-                last_estimated_ms=estimated_ms.get(vehicle_id),
                 checkpoint_at_ms=self.checkpoints.first_due_ms(vehicle_id, first_ms[vehicle_id]),
+                held_until_s=now_s + TAKEOVER_HOLD_S if self.skip_estimated else None,
             )
+
+    def _end_holds(self, inbox: list[_Submission], now_s: float, final: bool) -> None:
+        """The vehicles taken over whose hold ends: estimated only after their newest estimate stored from their
+        oldest sample seen on (those are redeliveries of what another owner estimated, and may be in the restored
+        state, whose calibration would count them twice)."""
+        for sub in inbox:
+            stream = self._streams[sub.vehicle_id]
+            if stream.held_until_s is not None:
+                stream.first_ms = min(stream.first_ms, min((s["timestamp_ms"] for s in sub.samples), default=math.inf))
+        for vehicle_id, stream in self._streams.items():
+            if stream.held_until_s is None or not (final or now_s >= stream.held_until_s):
+                continue
+            if stream.first_ms < math.inf:
+                stored = self.storage.estimates(vehicle_id, start_ms=int(stream.first_ms))
+                if stored:
+                    stream.last_estimated_ms = stored[-1]["timestamp_ms"]
+            stream.held_until_s = None
 
     def _profile(self, vehicle_id: str) -> VehicleParams:
         params = self._profiles.get(vehicle_id)
@@ -497,7 +518,7 @@ class Pipeline:
         positions: list[dict] = []  # the sample of each estimate, for its position
         update_s: list[float] = []  # each sample's share of its run's time, into estimator_time once for the round
         for vehicle_id, stream in self._streams.items():
-            if not stream.pending:
+            if not stream.pending or stream.held_until_s is not None:
                 continue
             quiet = final or now_s - stream.last_arrival_s >= self.settings.reorder_window_s
             limit = stream.newest_ms if quiet else stream.newest_ms - window_ms

@@ -230,3 +230,38 @@ def test_a_vehicle_forgotten_with_its_queue_dropped_is_not_started_again_from_it
         assert len(storage.estimates("v1")) > len(storage.estimates("v1", end_ms=samples[19]["timestamp_ms"]))
     finally:
         storage.close()
+
+
+def test_a_vehicle_taken_over_is_estimated_in_order_though_the_broker_hands_its_messages_over_out_of_order(tmp_path):
+    """RabbitMQ 3.10's quorum queues hand the previous owner's unacknowledged messages to the next consumer out of order
+    (results/trials/cluster/handover_order.py): a worker's pipeline holds a vehicle it takes over for TAKEOVER_HOLD_S,
+    so a message older than one before it, within the hold, is estimated in its place; after the hold it is late
+    (stored, never estimated)."""
+    clock = FakeClock()
+    settings = settings_of(tmp_path)
+    storage = open_storage(settings.storage_url)
+    try:
+        sink = Fanout(storage, settings, FrictionMap(), WarningEngine())
+        pipeline = Pipeline(storage, settings, load_estimator("ekf"), sink, skip_estimated=True, clock=clock)
+        late_by = {"within": 0.5 * pipeline_module.TAKEOVER_HOLD_S, "after": 2.0 * pipeline_module.TAKEOVER_HOLD_S}
+        drives = {v: wire_samples(patch_drive(0.9, 3), v, START_MS)[:30] for v in late_by}
+        for v, samples in drives.items():  # 10-19 first, then 20-29 (their successors), then 0-9
+            pipeline.submit(v, samples[10:20])
+            pipeline.submit(v, samples[20:30])
+        pipeline.run_round()
+        for v in sorted(late_by, key=late_by.get):
+            clock.advance(late_by[v] - (clock() - 1_000.0))
+            pipeline.run_round()
+            pipeline.submit(v, drives[v][:10])
+            pipeline.run_round()
+        clock.advance(1.0)
+        pipeline.run_round(final=True)
+        assert pipeline.counters.late == 10
+        for v, late in (("within", []), ("after", drives["after"][:10])):
+            estimated = [e["timestamp_ms"] for e in storage.estimates(v)]
+            assert estimated == sorted(estimated) and estimated[-1] == drives[v][-1]["timestamp_ms"]
+            assert not {s["timestamp_ms"] for s in drives[v][:10] if s not in late} - set(estimated), v
+            assert not {s["timestamp_ms"] for s in late} & set(estimated), v
+            assert len(storage.telemetry(v)) == 30
+    finally:
+        storage.close()
