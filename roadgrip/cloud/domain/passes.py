@@ -19,6 +19,10 @@ state, tires and bias: the map counts them as one piece of evidence, the engine 
 Each consumer forgets a vehicle's last closed pass once evidence that old no longer counts for it (`forget`: the
 engine after validity_s, the map after max_age_s); a row older than that, arriving after, starts a pass again.
 
+Visits, which the engine counts instead of passes: one vehicle's passes closer than pass_gap_s to the one before (from
+its end to the next one's start) are one visit (`new_visit`). GNSS noise along a cell border splits one drive past
+into several passes in a few seconds: one observation, not repeated ones.
+
 `Passes` applies the rule to the consumer's own pass objects (subclasses of `Pass`, which add what the consumer keeps
 of a pass): `row` says which pass a row goes into, and every pass that ends is handed to the consumer's `on_close`.
 """
@@ -46,6 +50,12 @@ def in_pass_order(rows: Iterable[dict]) -> list[dict]:
     kept = [r for r in rows if r["latitude_deg"] is not None and r["longitude_deg"] is not None]
     kept.sort(key=_PASS_ORDER)
     return kept
+
+
+def new_visit(end_before_ms: float | None, start_ms: float, gap_ms: float) -> bool:
+    """Whether a vehicle's pass starting at start_ms begins a new visit (module docstring) after the vehicle's pass
+    before it, which ended at end_before_ms (None: it has none)."""
+    return end_before_ms is None or start_ms - end_before_ms > gap_ms
 
 
 class Passes:

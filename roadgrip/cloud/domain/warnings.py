@@ -3,9 +3,9 @@ adverseWeatherCondition-Adhesion).
 
 This module owns the warning rules 2-9 below, the product's warning settings (THRESHOLD_MU, ...; Settings takes them
 as defaults) and the longest validity a DENM can carry (MAX_VALIDITY_S). Rule 1, what a pass is, is passes.py's,
-the friction map's too; the cell of a position is cells.py's; the argument checks are checks.py's. Writing an event
-as a DENM is roadgrip/cloud/formats/denm.py's; where in a cell a warning's low evidence lies, and which dry pass
-speaks of it (rule 9), is roadgrip/cloud/domain/places.py's.
+the friction map's too, and so is what a visit is (rules 4, 6, 9); the cell of a position is cells.py's; the argument
+checks are checks.py's. Writing an event as a DENM is roadgrip/cloud/formats/denm.py's; where in a cell a warning's
+low evidence lies, and which dry pass speaks of it (rule 9), is roadgrip/cloud/domain/places.py's.
 
 Pure and in memory: `update(estimates, now_ms)` takes estimate rows (CONTRACTS 3.4 dicts with vehicle_id, timestamp_ms,
 latitude_deg, longitude_deg, mu, mu_lower, mu_upper, excited) and returns the WarningEvents it caused. Rows without a
@@ -36,8 +36,9 @@ Rules
 4. Raise: a cell gets a warning when it holds at least min_low_passes low passes (1 by default: a vehicle whose
    excited estimates say mu_upper < threshold_mu is evidence enough; with 2, two vehicles or repeated passes of one)
    later than the last dry pass over the cell's place (rule 9) and at most validity_s old. One vehicle's passes less
-   than pass_gap_s apart count once (`_Evidence`): GNSS noise along a cell border splits one visit into several
-   passes. Only low passes in the cell itself count: a warning never appears in a cell without them.
+   than pass_gap_s apart are one visit and count once (`_Evidence`; what a visit is, passes.py's): GNSS noise along a
+   cell border splits one visit into several passes. Only low passes in the cell itself count: a warning never appears
+   in a cell without them.
 5. Refresh: a low pass in a cell with an active warning extends it (an "active" event with a higher sequence_number).
 6. Cancel ("recovered"): it ends when its place is shown dry (rule 9: grip proven on every spot of it after the spot's
    last low reading, and the ice it continues into next door shown dry too) and at least min_dry_passes dry passes later
@@ -101,7 +102,7 @@ import h3
 
 from roadgrip.cloud.domain import checks
 from roadgrip.cloud.domain.cells import cell_of, validate_resolution
-from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order
+from roadgrip.cloud.domain.passes import Pass, Passes, in_pass_order, new_visit
 from roadgrip.cloud.domain.places import UNKNOWN_PLACE, Place, ice_continues, reach, spots_of
 
 # The product's settings, in this one place (Settings.warning_* take them as defaults), as the fleet benchmark's
@@ -164,10 +165,9 @@ class _Evidence:
     adding or dropping a pass costs a binary search and a list insert or delete, so an event costs about the same for 3
     passes as for 3,000 (recounting them all per event made the service slower the longer it ran).
 
-    Independent passes (`independent`): one vehicle's passes closer than pass_gap_s to the one before are one visit (a
-    vehicle driving along a cell border, GNSS noise moving it in and out, makes several passes in a few seconds; they
-    are one observation, not repeated passes). Of each vehicle's passes in time order, the first counts, and each
-    later one that comes more than pass_gap_s after its predecessor."""
+    Independent passes (`independent`): one vehicle's passes closer than pass_gap_s to the one before are one visit
+    (passes.py's `new_visit`; a low pass at its time, rule 2). Of each vehicle's passes in time order, the first
+    counts, and each later one that begins a new visit after its predecessor."""
 
     __slots__ = ("_by_vehicle", "_gap_ms", "_passes", "_uppers", "independent")
 
@@ -194,10 +194,8 @@ class _Evidence:
         times = self._by_vehicle.get(vehicle_id)
         return times[-1] if times else None
 
-    def _counts(self, earlier: int | None, t: int) -> bool:
-        return earlier is None or t - earlier > self._gap_ms
-
     def add(self, p: _LowPass) -> None:
+        gap_ms = self._gap_ms
         bisect.insort(self._passes, p)
         bisect.insort(self._uppers, p.mu_upper)
         times = self._by_vehicle.setdefault(p.vehicle_id, [])
@@ -205,8 +203,8 @@ class _Evidence:
         before = times[i - 1] if i else None
         if i < len(times):  # the vehicle's next pass now follows this one instead of `before`
             after = times[i]
-            self.independent += self._counts(p.time_ms, after) - self._counts(before, after)
-        self.independent += self._counts(before, p.time_ms)
+            self.independent += new_visit(p.time_ms, after, gap_ms) - new_visit(before, after, gap_ms)
+        self.independent += new_visit(before, p.time_ms, gap_ms)
         times.insert(i, p.time_ms)
 
     def drop_older(self, time_ms: float, *, inclusive: bool = False) -> None:
@@ -217,7 +215,7 @@ class _Evidence:
             times = self._by_vehicle[p.vehicle_id]
             del times[0]  # the vehicle's oldest: it counted; its next one becomes the first, which counts
             if times:
-                self.independent += not self._counts(p.time_ms, times[0])
+                self.independent += not new_visit(p.time_ms, times[0], self._gap_ms)
             else:
                 del self._by_vehicle[p.vehicle_id]
             self.independent -= 1
@@ -273,10 +271,10 @@ class _Warning:
 
     def count_dry(self, finished: _Pass, gap_ms: float) -> None:
         """Count a dry pass that spoke of the place (rule 6). One vehicle's dry passes closer than gap_ms to the one
-        before are one visit, counted once, as its low passes are (rule 4): a visit that crosses a cell border speaks
-        of the place from both cells (rule 9)."""
+        before are one visit (passes.py's `new_visit`), counted once, as its low passes are (rule 4): a visit that
+        crosses a cell border speaks of the place from both cells (rule 9)."""
         before = self.dry_seen.get(finished.vehicle_id)
-        if before is None or finished.first_ms - before > gap_ms:
+        if new_visit(before, finished.first_ms, gap_ms):
             self.dry_passes += 1
         self.dry_seen[finished.vehicle_id] = max(finished.last_ms, _NEVER if before is None else before)
 
@@ -562,8 +560,7 @@ class WarningEngine:
         state = self.cell_states_.get(cell)
         if state is None or not state.place:
             return False  # no low evidence here
-        own_low = state.low_passes.last_of(finished.vehicle_id)
-        if own_low is not None and finished.first_ms - own_low <= self.pass_gap_s * 1000.0:
+        if not new_visit(state.low_passes.last_of(finished.vehicle_id), finished.first_ms, self.pass_gap_s * 1000.0):
             return False  # the rest of a visit that read low here, split by a cell border (rules 2, 9)
         if not state.place.dry(grip, t, next_door=cell != finished.cell):
             return False  # grip proven elsewhere: nothing of its place (rule 9)

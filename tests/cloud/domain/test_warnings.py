@@ -458,6 +458,22 @@ def test_one_dry_pass_over_the_place_does_not_cancel_when_two_are_needed():
     assert event.reason == "recovered"
 
 
+def test_one_vehicles_dry_passes_closer_than_the_gap_are_one_visit():
+    """A vehicle over the place, a second in another cell, back over the place: two dry passes of one visit, which
+    count once when two are needed; another vehicle's dry pass is the second."""
+    engine = WarningEngine(min_dry_passes=2, pass_gap_s=30.0)
+    stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
+    elsewhere = (ICE_SPOT[0] + 0.01, ICE_SPOT[1])  # about 1 km north: another cell, not next door
+    visit = [
+        *at("b", T0_MS + 120_000, ICE_SPOT, low=False),
+        *at("b", T0_MS + 122_000, elsewhere, low=False, n=5),
+        *at("b", T0_MS + 123_000, ICE_SPOT, low=False),
+    ]
+    assert stream(engine, visit) == []
+    (event,) = stream(engine, at("c", T0_MS + 240_000, ICE_SPOT, low=False))
+    assert event.reason == "recovered"
+
+
 def test_a_warning_whose_place_is_never_shown_dry_expires():
     engine = WarningEngine(validity_s=600.0)
     (raised_event,) = stream(engine, at("a", T0_MS, ICE_SPOT, low=True))
