@@ -8,7 +8,9 @@ heartbeat topics (roadgrip/cloud/transport/rabbit_users.py); amq.topic binds bot
 queue with single-active-consumer, so the broker PUBACKs a message once a quorum of nodes holds it.
 
 `EdgeConsumer` (every worker runs one; the broker makes one of them active, the next registered one after its
-connection dies, as for the partitions): every FLUSH_S it takes what was delivered as one batch, in order,
+connection dies, as for the partitions): every FLUSH_S it takes what was delivered as one batch, in order (the first
+batch after it took the queue: all that came in TAKEOVER_HOLD_S, since the broker returns the previous consumer's
+unacknowledged messages out of order; results/trials/cluster/handover_order.py),
 - parses each message with the one parser (roadgrip/cloud/ingest/observations.py) as the vehicle of its topic; a
   message refused whole is published on that vehicle's errors topic, as serve does, and acknowledged;
 - stores the batch's observations in one transaction and its heartbeats in another (a repeat of a stored one is
@@ -39,6 +41,7 @@ import pika
 from roadgrip.cloud.cluster.publisher import PUBLISH_DEADLINE_S
 from roadgrip.cloud.cluster.regions import RegionPublisher, check_region_resolution, publish_observations
 from roadgrip.cloud.ingest.observations import ObservationError, parse_edge_message
+from roadgrip.cloud.pipeline.pipeline import TAKEOVER_HOLD_S
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Storage, StorageUnavailable
 from roadgrip.cloud.transport.amqp import EDGE_QUEUE, MQTT_EXCHANGE, mqtt_routing_key
@@ -58,6 +61,14 @@ class _EdgeHold:
     def __init__(self, consumer: EdgeConsumer):
         self.consumer = consumer
         self.deliveries: list[tuple[str, int, bytes]] = []  # (routing key, delivery tag, body)
+        self.hold_until: float | None = (
+            None  # the first batch waits until then (monotonic s; set at the first delivery)
+        )
+
+    def deliver(self, routing_key: str, tag: int, body: bytes) -> None:
+        if self.hold_until is None:  # the queue taken: the previous consumer's returned messages come out of order
+            self.hold_until = time.monotonic() + TAKEOVER_HOLD_S
+        self.deliveries.append((routing_key, tag, body))
 
     def run(self, connection: pika.BlockingConnection) -> None:
         self.consumer._serve(self, connection)
@@ -127,12 +138,12 @@ class EdgeConsumer:
         channel.basic_qos(prefetch_count=EDGE_PREFETCH)
         channel.basic_consume(
             EDGE_QUEUE,
-            lambda _ch, method, _props, body: hold.deliveries.append((method.routing_key, method.delivery_tag, body)),
+            lambda _ch, method, _props, body: hold.deliver(method.routing_key, method.delivery_tag, body),
         )
         self._registered.set()
         while not self._closing.is_set():
             connection.process_data_events(time_limit=FLUSH_S)
-            if hold.deliveries:
+            if hold.deliveries and time.monotonic() >= hold.hold_until:
                 self._handle(hold.deliveries, channel)
                 channel.basic_ack(hold.deliveries[-1][1], multiple=True)
                 self.messages += len(hold.deliveries)

@@ -36,9 +36,10 @@ Guarantees and their limits (docs/CLUSTER.md, "Region fan-out (item 3)"):
 - Estimates stored and confirmed reach their region at least once. A region drops an estimate of a vehicle not newer
   than the newest it applied of that vehicle (estimates of a vehicle are made in time order, once: the pipeline
   estimates a sample after the newest stored estimate only), and after a takeover not newer than the newest of that
-  vehicle in the restored cells, so a redelivered message counts once in the map. Not held for order at a hand-over
-  as the partitions' vehicles are (pipeline.py TAKEOVER_HOLD_S): a region message the broker returns behind a newer
-  one of the same vehicle (results/trials/cluster/handover_order.py) is dropped, its estimates missing from the map.
+  vehicle in the restored cells, so a redelivered message counts once in the map. The broker returns the previous
+  owner's unacknowledged messages out of order (results/trials/cluster/handover_order.py): a queue's new owner holds
+  what it is delivered in its first TAKEOVER_HOLD_S (pipeline.py) and applies it per region as one message, its
+  estimates in time order (`Regions.apply_held`), so a vehicle's older estimates are not dropped behind newer ones.
 - Crash window: a worker that stored a round and died before its publish was confirmed leaves the round's telemetry
   unacknowledged; the partition's next owner stores nothing new of it and estimates none of it again
   (`skip_estimated`), so those estimates never reach the region (they are in the database; the map misses them).
@@ -76,6 +77,7 @@ from roadgrip.cloud.pipeline.fanout import (
     new_friction_map,
     new_warning_engine,
 )
+from roadgrip.cloud.pipeline.pipeline import TAKEOVER_HOLD_S
 from roadgrip.cloud.settings import Settings
 from roadgrip.cloud.storage.database import Fenced, Storage, StorageUnavailable
 from roadgrip.cloud.transport.amqp import ESTIMATES_EXCHANGE, MQTT_EXCHANGE, mqtt_routing_key, region_queue
@@ -313,6 +315,23 @@ class Regions:
             touched |= fanout.station_reports(message["stations"])
         self._dirty[region] |= touched
 
+    def apply_held(self, held: list[tuple[str, dict]]) -> None:
+        """Messages held at a takeover (routing key, message), in the order delivered: per region as one message, its
+        estimates in time order (the broker returned the previous owner's out of order: a vehicle's older estimates
+        behind newer ones would be dropped as repeats), its station reports in the order delivered."""
+        merged: dict[str, dict] = {}
+        for region, message in held:
+            into = merged.setdefault(region, {})
+            if "estimates" in message:
+                into["newest_data_ms"] = max(int(message["newest_data_ms"]), into.get("newest_data_ms", 0))
+                into.setdefault("estimates", []).extend(message["estimates"])
+            if "stations" in message:
+                into.setdefault("stations", []).extend(message["stations"])
+        for region, message in merged.items():
+            if "estimates" in message:
+                message["estimates"].sort(key=lambda row: row["timestamp_ms"])
+            self.apply(region, message)
+
     def tick(self) -> None:
         for fanout in self.held.values():
             fanout.tick()
@@ -345,6 +364,18 @@ class Regions:
         return changes
 
 
+def _checked(message: dict) -> dict:
+    """A region message to hold (`Regions.apply_held`), checked as `Regions.apply` would read it: KeyError, TypeError
+    or ValueError if it is not one, so that it is dropped alone, not the messages held with it."""
+    if "estimates" in message:
+        int(message["newest_data_ms"])
+        for row in message["estimates"]:
+            row["vehicle_id"], int(row["timestamp_ms"])
+    if "stations" in message:
+        list(message["stations"])
+    return message
+
+
 class _QueueState:
     """A region queue as one consumer connection holds it (an attempt of roadgrip/cloud/transport/amqp_client.py
     `consume`): its regions once taken (first delivery), the last delivery applied and the last acknowledged."""
@@ -353,7 +384,9 @@ class _QueueState:
         self.owners = owners
         self.q = q
         self.regions: Regions | None = None
-        self.applied = 0
+        self.held: list[tuple[str, dict]] | None = None  # taken: the deliveries of the first TAKEOVER_HOLD_S, in order
+        self.hold_until = 0.0  # (monotonic s)
+        self.applied = 0  # the last delivery applied, or held
         self.acknowledged = 0
 
     def run(self, connection: pika.BlockingConnection) -> None:
@@ -478,10 +511,13 @@ class RegionOwners:
         next_save = time.monotonic() + SAVE_S
         while not self._closing.is_set() and not self._release[q].is_set():
             connection.process_data_events(time_limit=FLUSH_S)
-            if time.monotonic() >= next_save:
+            if state.held is not None and time.monotonic() >= state.hold_until:
+                self._end_hold(q, state)
+            if time.monotonic() >= next_save and state.held is None:
                 self._save(q, state, channel)
                 next_save = time.monotonic() + SAVE_S
         channel.basic_cancel(tag)  # no more deliveries, then what was applied is saved and acknowledged
+        self._end_hold(q, state)
         self._save(q, state, channel)
 
     def _ended(self, q: int, state: _QueueState, exc: BaseException | None, broker: int) -> None:
@@ -515,15 +551,31 @@ class RegionOwners:
             self._taken_at[q] = time.monotonic()
             state.regions = Regions(self.settings, self.storage, functools.partial(self._publish, channel), (q, epoch))
             self.held[q] = state.regions
+            state.held, state.hold_until = [], time.monotonic() + TAKEOVER_HOLD_S
             log.info("region queue %d taken, epoch %d", q, epoch)
         try:
-            state.regions.apply(method.routing_key, orjson.loads(body))
+            message = orjson.loads(body)
+            if state.held is None:
+                state.regions.apply(method.routing_key, message)
+                self.messages[q] += 1
+            else:
+                state.held.append((method.routing_key, _checked(message)))
         except (ValueError, KeyError, TypeError):  # never valid: acknowledged with the others, not redelivered
             log.exception(
                 "region queue %d: a message for region %r could not be applied; dropped", q, method.routing_key
             )
         state.applied = method.delivery_tag
-        self.messages[q] += 1
+
+    def _end_hold(self, q: int, state: _QueueState) -> None:
+        """Apply what the first TAKEOVER_HOLD_S of a queue taken delivered (`Regions.apply_held`)."""
+        held, state.held = state.held, None
+        if not held:
+            return
+        try:
+            state.regions.apply_held(held)
+        except (ValueError, KeyError, TypeError):  # as a message's in _on_message: acknowledged, not redelivered
+            log.exception("region queue %d: the %d messages held at its takeover could not be applied", q, len(held))
+        self.messages[q] += len(held)
 
     def _save(self, q: int, state: _QueueState, channel) -> None:
         """Close due passes and expire warnings, store the changed cells, then acknowledge what was applied."""

@@ -263,3 +263,40 @@ def test_the_settings_make_the_map_and_the_engine_in_one_place_each():
     swept = new_warning_engine(settings, threshold_mu=0.5, min_low_passes=1)  # a study's overrides
     assert (swept.threshold_mu, swept.min_low_passes, swept.validity_s, swept.action_sequence) == (0.5, 1, 900.0, None)
     assert new_friction_map(settings, half_life_s=60.0).half_life_s == 60.0
+
+
+def test_a_regions_new_owner_applies_what_the_broker_returned_out_of_order_in_time_order(settings, tmp_path):
+    """At a region queue's hand-over RabbitMQ returns the previous owner's unacknowledged messages out of order
+    (results/trials/cluster/handover_order.py): one by one, a vehicle's older estimates behind its newer ones are
+    dropped as repeats; held and applied together (`apply_held`), none is, and the map is the one of the messages
+    in order."""
+    messages = [
+        (region, message)
+        for rows, newest in scenario()
+        for region, message in region_messages(rows, newest, settings.region_resolution).items()
+    ]
+    returned = messages[5:10][::-1] + messages[10:]  # the first five applied before the hand-over
+    owners = {}
+    for name in ("in order", "one by one", "held"):
+        storage = open_storage(f"sqlite:///{tmp_path / (name + '.db')}")
+        before = Regions(settings, storage)
+        for region, message in messages[:5]:
+            before.apply(region, message)
+        before.save()
+        owners[name] = Regions(settings, storage)
+    for region, message in messages[5:]:
+        owners["in order"].apply(region, message)
+    for region, message in returned:
+        owners["one by one"].apply(region, message)
+    owners["held"].apply_held(returned[:8])
+    for region, message in returned[8:]:
+        owners["held"].apply(region, message)
+    assert owners["one by one"].dropped > 0 and owners["held"].dropped == owners["in order"].dropped == 0
+    now_ms = max(m["newest_data_ms"] for _, m in messages)
+    for region in owners["in order"].held:
+        assert_same_cells(
+            owners["held"].region(region).friction_map.cells(now_ms),
+            owners["in order"].region(region).friction_map.cells(now_ms),
+        )
+    for owner in owners.values():
+        owner.storage.close()
