@@ -390,6 +390,14 @@ def _start(mem, keep_stiffness):
         for j in range(NC):
             mem[G0 + i * NC + j] = PRIOR[i] * cm[j] / total
     mem[K_STARTED] = 1.0
+    # a restart may follow a new ignition cycle, and a MEMS gyro's bias is drawn anew at each power-on (its turn-on
+    # repeatability is as large as its bias; the simulator's sensors draw every bias per run): the understeer line's
+    # offset b, which carries L b_r / v, is then as unknown as an uncalibrated car's, and its covariance returns to
+    # the prior's, uncorrelated with the slope (the tires', which the power-on leaves as they were). Kept at its
+    # former value, it read a new trip's offset as the tires' slip angle: on a ramp's gentle curve the rear axle
+    # sliding, mu 0.07 on dry asphalt
+    mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
+    mem[K_LP01] = 0.0
     mem[K_V_PREV] = -1.0
     mem[K_V_REF] = 0.0
     mem[K_U_SEEN] = 0.0
