@@ -43,7 +43,11 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   recursive least squares (RLS_TAU_S) over calm driving only, where the brush model is within 10 % of its line (|a_y|
   under LAT_CALM_SHARE of the proven friction and LAT_CALM_AY_MPS2, and the yaw rate within LAT_REF_AGREE of the
   steer's linear reference r_ref = v delta / (L + K_us v^2)); its uncertainty (the RLS covariance) widens the lateral
-  term, so an uncalibrated car's line is a prior of +-LAT_SLOPE_SIGMA0, not a fact.
+  term, so an uncalibrated car's line is a prior of +-LAT_SLOPE_SIGMA0, not a fact. Each restart (`_start`: a gap or a
+  new segment, perhaps a new power-on) returns the offset's covariance to an uncalibrated car's (LAT_OFFSET_SIGMA0_RAD)
+  and keeps the slope: a MEMS gyro's bias comes back different at each power-on, so a new trip's offset is learned in
+  its first seconds of calm driving instead of being read as the tires' slip angles (docs/RESULTS.md, "A new trip's
+  gyro bias").
 
 The lateral channel needs no steady state: the understeer angle alpha_f - alpha_r = delta - L r / v is kinematic (v_y
 cancels) and the axles' forces come from a_y and the yaw acceleration (Newton-Euler), so a sine steer is read as a ramp
@@ -390,6 +394,12 @@ def _start(mem, keep_stiffness):
         for j in range(NC):
             mem[G0 + i * NC + j] = PRIOR[i] * cm[j] / total
     mem[K_STARTED] = 1.0
+    # a restart may follow a new power-on, and a MEMS gyro's bias comes back different at each (its turn-on
+    # repeatability is as large as its bias; the simulator's sensors draw theirs per run): the understeer line's offset
+    # b, which carries L b_r / v, is as unknown as an uncalibrated car's, and no longer correlated with the slope (the
+    # tires', which a power-on leaves as they were)
+    mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
+    mem[K_LP01] = 0.0
     mem[K_V_PREV] = -1.0
     mem[K_V_REF] = 0.0
     mem[K_U_SEEN] = 0.0
