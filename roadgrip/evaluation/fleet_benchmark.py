@@ -245,7 +245,10 @@ def make_scenario(seed: int, config: FleetConfig = FleetConfig()) -> FleetScenar
             DugoffTire(),
             stiffness_scale=float(rng.uniform(1 - effects.tire_stiffness_spread, 1 + effects.tire_stiffness_spread)),
         )
-        sensor_seed = int(rng.integers(2**31))  # one terminal: its biases and mounting stay with the vehicle
+        # one terminal's seed: its speed scale and production effects (mounting, radii) stay with the vehicle; the IMU,
+        # gyro and steering biases come out different each trip (drawn after noise as long as the trip), as a MEMS
+        # gyro's do at each power-on (docs/RESULTS.md, "A new trip's gyro bias")
+        sensor_seed = int(rng.integers(2**31))
         styles[vehicle_id], vehicle_kinds[vehicle_id] = style, vehicle
         t = float(rng.uniform(0.0, 60.0))
         k = 0
