@@ -30,6 +30,7 @@ import secrets
 import signal
 import subprocess
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from roadgrip.cloud.localhost import free_ports, wait_port
@@ -163,6 +164,12 @@ def rabbit_password_hash(password: str) -> str:
     return base64.b64encode(salt + hashlib.sha256(salt + password.encode()).digest()).decode()
 
 
+# The plugins every node runs. Management last: a joining node starts it after the join, since with its agent running
+# `rabbitmqctl stop_app` (which the join needs) takes 5.4 s instead of 0.4 s (RabbitMQ 3.10.8, measured 2026-12-06):
+# a three-node start 26.5 -> 18.3 s.
+PLUGINS = ("rabbitmq_mqtt", "rabbitmq_consistent_hash_exchange", "rabbitmq_management")
+
+
 class RabbitCluster:
     """`nodes` RabbitMQ nodes (three by default: rg0..rg2@localhost) on their own epmd, joined with `rabbitmqctl join_cluster`, plugins
     rabbitmq_mqtt, rabbitmq_consistent_hash_exchange and rabbitmq_management (the HTTP API through which `roadgrip
@@ -207,13 +214,13 @@ class RabbitCluster:
             "RABBITMQ_MNESIA_BASE": str(base / "mnesia"),
             "RABBITMQ_LOG_BASE": str(base / "log"),
             "RABBITMQ_CONFIG_FILE": str(base / "rabbitmq.conf"),
-            "RABBITMQ_ENABLED_PLUGINS_FILE": str(self.root / "enabled_plugins"),
+            "RABBITMQ_ENABLED_PLUGINS_FILE": str(base / "enabled_plugins"),
             "RABBITMQ_PID_FILE": str(base / "pid"),
         }
 
-    def ctl(self, i: int, *args: str, timeout_s: float = 120) -> str:
+    def ctl(self, i: int, *args: str, timeout_s: float = 120, tool: str = "rabbitmqctl") -> str:
         return subprocess.run(
-            [str(self.bin_dir / "rabbitmqctl"), "-n", self.node_name(i), *args],
+            [str(self.bin_dir / tool), "-n", self.node_name(i), *args],
             env=self.env(i),
             check=True,
             capture_output=True,
@@ -254,9 +261,11 @@ class RabbitCluster:
         cookie.write_text(secrets.token_hex(16))
         cookie.chmod(0o400)
         (self.root / "rabbitmq-env.conf").write_text("")
-        (self.root / "enabled_plugins").write_text(
-            "[rabbitmq_mqtt,rabbitmq_consistent_hash_exchange,rabbitmq_management].\n"
-        )
+        for i in range(self.nodes):  # the joining nodes' management comes after the join: its agent makes stop_app 5 s
+            (self.root / f"rg{i}").mkdir(exist_ok=True)
+            (self.root / f"rg{i}" / "enabled_plugins").write_text(
+                f"[{','.join(PLUGINS if i == 0 else PLUGINS[:-1])}].\n"
+            )
         # a session of its own, as the nodes': a terminal's Ctrl-C reaches the process that runs the cluster only
         self.epmd = subprocess.Popen(
             ["epmd", "-port", str(self.epmd_port)],
@@ -269,10 +278,15 @@ class RabbitCluster:
             self.start_node(i)
         for i in range(self.nodes):
             self.ctl(i, "wait", str(self.root / f"rg{i}" / "pid"), "--timeout", "120", timeout_s=150)
-        for i in range(1, self.nodes):
-            self.ctl(i, "stop_app")
-            self.ctl(i, "join_cluster", self.node_name(0))
-            self.ctl(i, "start_app")
+        with ThreadPoolExecutor() as pool:  # a node's management starts while the next one joins
+            enabled = []
+            for i in range(1, self.nodes):
+                self.ctl(i, "stop_app")
+                self.ctl(i, "join_cluster", self.node_name(0))
+                self.ctl(i, "start_app")
+                enabled.append(pool.submit(self.ctl, i, "enable", PLUGINS[-1], tool="rabbitmq-plugins"))
+            for future in enabled:
+                future.result()  # kept in the node's enabled_plugins: a restart starts it again
         for i in range(self.nodes):
             wait_port(self.mqtt_ports[i], 60)
             wait_port(self.management_ports[i], 60)
