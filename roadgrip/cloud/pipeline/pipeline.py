@@ -156,10 +156,11 @@ class PipelineCounters:
 
 class Pipeline:
     """`skip_estimated`: a vehicle first seen is held for TAKEOVER_HOLD_S, then not estimated at or before its newest
-    estimate stored from its oldest sample on: those samples are redeliveries of what another owner estimated (and may have checkpointed into the
-    state this pipeline restores, whose calibration would count them twice). A cluster worker sets it
-    (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not. `clock` (callable() -> s, monotonic; a test's
-    fake one): the reorder window's (when a vehicle's samples arrived) and the storage retry's backoff."""
+    estimate stored from its oldest sample on: those samples are redeliveries of what another owner estimated (and may
+    have checkpointed into the state this pipeline restores, whose calibration would count them twice). A cluster
+    worker sets it (roadgrip/cloud/cluster/worker.py); `roadgrip serve` does not. `clock` (callable() -> s, monotonic;
+    a test's fake one): the reorder window's (when a vehicle's samples arrived), the hold's and the storage retry's
+    backoff."""
 
     def __init__(
         self,
