@@ -61,9 +61,8 @@ class _EdgeHold:
     def __init__(self, consumer: EdgeConsumer):
         self.consumer = consumer
         self.deliveries: list[tuple[str, int, bytes]] = []  # (routing key, delivery tag, body)
-        self.hold_until: float | None = (
-            None  # the first batch waits until then (monotonic s; set at the first delivery)
-        )
+        # the first batch waits until then (monotonic s; set at the first delivery)
+        self.hold_until: float | None = None
 
     def deliver(self, routing_key: str, tag: int, body: bytes) -> None:
         if self.hold_until is None:  # the queue taken: the previous consumer's returned messages come out of order

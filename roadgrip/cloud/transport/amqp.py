@@ -261,7 +261,7 @@ class RabbitCluster:
         cookie.write_text(secrets.token_hex(16))
         cookie.chmod(0o400)
         (self.root / "rabbitmq-env.conf").write_text("")
-        for i in range(self.nodes):  # the joining nodes' management comes after the join: its agent makes stop_app 5 s
+        for i in range(self.nodes):  # the joining nodes start management after the join (PLUGINS)
             (self.root / f"rg{i}").mkdir(exist_ok=True)
             (self.root / f"rg{i}" / "enabled_plugins").write_text(
                 f"[{','.join(PLUGINS if i == 0 else PLUGINS[:-1])}].\n"
