@@ -732,8 +732,15 @@ def _first_line(e: Exception) -> str:
 # ------------------------------------------------------------------------------------------------- messages
 
 
+def encodable(text: str) -> str:
+    """`text` with its lone surrogates (which a JSON \\ud800 escape can carry, and UTF-8, a log or a socket cannot)
+    written as \\udXXXX."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def _clip(text: str) -> str:
-    return text if len(text) <= CLIP_CHARS else text[: CLIP_CHARS - 3] + "..."
+    """What was sent, quoted in a reason: clipped and encodable."""
+    return encodable(text if len(text) <= CLIP_CHARS else text[: CLIP_CHARS - 3] + "...")
 
 
 def _quote(value) -> str:

@@ -202,6 +202,14 @@ def test_an_unknown_vss_key_in_a_wire_sample_is_an_unknown_field_not_a_vss_sampl
     assert (error.field, error.reason) == ("Vehicle.Colour", "unknown field 'Vehicle.Colour'")
 
 
+@pytest.mark.parametrize("changes", [{"\udfff": 1.0}, {"vehicle_id": "car\ud800"}, {"speed_mps": "\udfff"}])
+def test_a_reason_quoting_a_lone_surrogate_can_be_logged_and_sent(changes):
+    # JSON's \\udfff escape gives Python a lone surrogate, which UTF-8 (a log file, a socket) cannot encode
+    error = only_error(sample(**changes))
+    error.reason.encode("utf-8")
+    assert "\\ud" in error.reason
+
+
 def test_t_s_does_not_replace_timestamp_ms():
     error = only_error(sample(timestamp_ms=DROP, t_s=1.5))
     assert error.field == "t_s"

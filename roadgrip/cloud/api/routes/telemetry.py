@@ -16,7 +16,7 @@ from pydantic import BaseModel, Field
 from roadgrip.cloud.api.backend import Accepted
 from roadgrip.cloud.api.deps import Backend, Caller, read_limited, require
 from roadgrip.cloud.api.errors import AsciiJSONResponse, ErrorAnswer, errors
-from roadgrip.cloud.ingest.wire import PayloadError, SampleError, parse_payload
+from roadgrip.cloud.ingest.wire import PayloadError, SampleError, encodable, parse_payload
 from roadgrip.cloud.settings import Settings
 
 router = APIRouter()
@@ -143,7 +143,4 @@ def _escaped(rejection: dict) -> dict:
     """A rejection whose texts (the field as sent, the reason quoting the value) hold lone surrogates, which JSON
     escapes carry but UTF-8 cannot encode, with those written as \\udXXXX instead (they were a 500, found by
     fuzzing)."""
-    return {
-        k: v.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(v, str) else v
-        for k, v in rejection.items()
-    }
+    return {k: encodable(v) if isinstance(v, str) else v for k, v in rejection.items()}
