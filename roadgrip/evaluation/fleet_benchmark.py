@@ -734,14 +734,16 @@ def find_passes(
     return sorted(passes, key=lambda p: p[1])
 
 
-def observable(drives: Drives, patch: Patch, passes: list[tuple[str, float, float]]) -> int:
-    """How many of the passes had at least OBSERVABLE_SAMPLES excited samples on the patch (the truth's view: a
-    braking or an acceleration that made the patch's mu observable)."""
+def observable(
+    drives: Drives, patch: Patch, passes: list[tuple[str, float, float]], min_samples: int = OBSERVABLE_SAMPLES
+) -> int:
+    """How many of the passes had at least `min_samples` (the benchmark's: OBSERVABLE_SAMPLES) excited samples on the
+    patch (the truth's view: a braking or an acceleration that made the patch's mu observable)."""
     on = np.flatnonzero(patch.contains(drives.east_m, drives.north_m) & drives.excited)
     count = 0
     for vehicle_id, first, last in passes:
         sel = on[(drives.vehicle[on] == vehicle_id) & (drives.t_s[on] >= first) & (drives.t_s[on] <= last)]
-        count += sel.size >= OBSERVABLE_SAMPLES
+        count += sel.size >= min_samples
     return count
 
 

@@ -14,7 +14,15 @@ import pytest
 
 from roadgrip.data.schema import CHANNEL_NAMES, TELEMETRY_COLUMNS
 from roadgrip.evaluation import fleet_report
-from roadgrip.evaluation.fleet_benchmark import FleetConfig, find_passes, make_scenario, patch_cells, simulate_drives
+from roadgrip.evaluation.fleet_benchmark import (
+    Drives,
+    FleetConfig,
+    find_passes,
+    make_scenario,
+    observable,
+    patch_cells,
+    simulate_drives,
+)
 from roadgrip.evaluation.fleet_metrics import (
     Warning,
     band_of,
@@ -158,6 +166,32 @@ def test_a_patch_is_under_the_wheels_only_while_it_is_there():
         assert len(passes) == (1 if icy else 0)
         if icy:
             assert ICE.appear_s <= passes[0][1] < ICE.dry_s
+
+
+def test_a_pass_is_observable_with_enough_excited_samples_on_the_patch():
+    # two passes over the ice, 0.1 s a sample: the first with 3 excited samples on it, the second with 1 on it and
+    # 2 more beyond its edge, which do not count
+    east = np.array([290.0, 295.0, 300.0, 305.0, 290.0, 300.0, 340.0, 345.0])
+    t_s = np.array([30.0, 30.1, 30.2, 30.3, 40.0, 40.1, 40.2, 40.3])
+    excited = np.array([True, True, True, False, False, True, True, True])
+    n = len(t_s)
+    drives = Drives(
+        None,
+        t_s,
+        np.array(["v"] * n, dtype=object),
+        east,
+        np.zeros(n),
+        np.full(n, ICE.mu),
+        np.ones(n),
+        None,
+        0,
+        excited,
+    )
+    passes = find_passes(drives.t_s, drives.vehicle, drives.east_m, drives.north_m, drives.mu, ICE)
+    assert len(passes) == 2
+    assert observable(drives, ICE, passes) == 1  # the benchmark's: OBSERVABLE_SAMPLES (3)
+    assert observable(drives, ICE, passes, min_samples=1) == 2
+    assert observable(drives, ICE, passes[1:], min_samples=2) == 0
 
 
 def test_patch_times_are_checked():
