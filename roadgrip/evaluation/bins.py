@@ -31,9 +31,15 @@ ABS_BIN = "ABS"
 BIN_NAMES = tuple(name for name, _, _ in UTILIZATION_BINS) + (ABS_BIN,)
 
 
+def true_utilization(ax_true_mps2, ay_true_mps2, mu_true) -> np.ndarray:
+    """How hard the tires work, the truth's view: |a| / (mu g) of the true accelerations and mu (mu floored at 0.05).
+    Never the reported accelerations: on ice a sensor's noise and bias alone read as half the limit."""
+    return np.hypot(ax_true_mps2, ay_true_mps2) / (np.maximum(mu_true, 0.05) * G_MPS2)
+
+
 def utilization_bin(ax_true_mps2, ay_true_mps2, mu_true, abs_active) -> np.ndarray:
     """The bin name of each sample (ABS first, then the true utilization)."""
-    utilization = np.hypot(ax_true_mps2, ay_true_mps2) / (np.maximum(mu_true, 0.05) * G_MPS2)
+    utilization = true_utilization(ax_true_mps2, ay_true_mps2, mu_true)
     names = np.empty(len(utilization), dtype=object)
     for name, low, high in UTILIZATION_BINS:
         names[(utilization >= low) & (utilization < high)] = name

@@ -93,6 +93,7 @@ from roadgrip.cloud.ingest.wire import parse_payload
 from roadgrip.cloud.serve.service import CloudService
 from roadgrip.cloud.settings import Settings
 from roadgrip.data.schema import TELEMETRY_COLUMNS
+from roadgrip.evaluation.bins import true_utilization
 from roadgrip.evaluation.fleet_edge import EdgeFleet
 from roadgrip.fleet.fleet import _speed_profile, planned_arrival
 from roadgrip.fleet.network import SURFACE_MU, Network, Patch, Road, generated_network, points_at
@@ -411,7 +412,7 @@ class Drives:
     distance_m: np.ndarray  # driven in the 100 ms before the sample
     cell: np.ndarray  # H3 cell of the reported position (object array)
     start_ms: int
-    excited: np.ndarray  # CONTRACTS 4: friction utilization >= 0.5 (reported accelerations, true mu) or ABS active
+    excited: np.ndarray  # CONTRACTS 4: friction utilization >= 0.5 (bins.true_utilization) or ABS active
 
 
 def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10) -> Drives:
@@ -440,9 +441,7 @@ def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10
     lon = telemetry["longitude_deg"].to_numpy()
     cells = np.array([h3.latlng_to_cell(a, b, resolution) for a, b in zip(lat.tolist(), lon.tolist())], dtype=object)
     mu = table["mu"].to_numpy()[order]
-    utilization = np.hypot(telemetry["accel_lon_mps2"].to_numpy(), telemetry["accel_lat_mps2"].to_numpy()) / (
-        mu * G_MPS2
-    )
+    utilization = true_utilization(table["ax_true_mps2"].to_numpy()[order], table["ay_true_mps2"].to_numpy()[order], mu)
     excited = (utilization >= EXCITED_UTILIZATION) | telemetry["abs_active"].to_numpy(zero_copy_only=False)
     return Drives(
         telemetry,

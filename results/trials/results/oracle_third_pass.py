@@ -9,11 +9,15 @@ Per seed (default: the report seeds 0-2 and the tuning seeds 100-102 of `roadgri
 benchmark's own scenario and drives (make_scenario, simulate_drives, FleetConfig's defaults), its passes while a patch
 is there (fleet_report.patch_truth: find_passes) and whether a pass is observable (fleet_benchmark.observable) under
 these definitions of an excited sample, each with the least count of them on the patch that a pass needs:
-- bench: the benchmark's, friction utilization (reported accelerations over true mu g) >= 0.5 or ABS, 3 samples;
+- bench: the benchmark's, true friction utilization (evaluation.bins.true_utilization) >= 0.5 or ABS, 3 samples;
 - u0.5x1: the same samples, 1 is enough;
 - u0.4x3: utilization >= 0.4 or ABS, 3 samples;
 - tire x3, tire x1: a tire in the Dugoff model's saturated region, from the simulator's true forces: some wheel's
-  |F| > mu F_z / 2 (below that a Dugoff tire's force is linear in slip, whatever mu: roadgrip/vehicle/tires/dugoff.py).
+  |F| > mu F_z / 2 (below that a Dugoff tire's force is linear in slip, whatever mu: roadgrip/vehicle/tires/dugoff.py);
+- tire0.7 x3: some wheel's |F| >= 0.7 mu F_z, 3 samples. A saturated Dugoff tire's force is mu F_z (1 - lambda / 2)
+  against the linear line's mu F_z / (2 lambda), so at a share phi of mu F_z its slip is 1 / (4 phi (1 - phi)) of the
+  linear line's: 1.04 at 0.6, 1.19 at 0.7, 1.56 at 0.8. Below about 0.7 a slip reading cannot tell saturation from a
+  tire some 10-20 % softer than calibrated.
 Prints one row per patch with mu <= TARGET_MU (its passes, distinct vehicles, the 1-based index in time order of its
 first observable pass by each definition, '-' for none) and, per seed set, the bound: the share of the eligible
 patches (driven by >= TARGET_MIN_VEHICLES vehicles, the target's denominator) whose first observable pass is among the
@@ -28,6 +32,7 @@ import numpy as np
 
 from roadgrip.data.schema import WHEELS
 from roadgrip.evaluation import fleet_benchmark
+from roadgrip.evaluation.bins import true_utilization
 from roadgrip.evaluation.fleet_benchmark import (
     EXCITED_UTILIZATION,
     OBSERVABLE_SAMPLES,
@@ -38,16 +43,15 @@ from roadgrip.evaluation.fleet_benchmark import (
 from roadgrip.evaluation.fleet_metrics import TARGET_MIN_VEHICLES, TARGET_MU, TARGET_PASSES
 from roadgrip.evaluation.fleet_report import TUNING_SEEDS, patch_truth
 from roadgrip.sim.simulate import simulate
-from roadgrip.units import G_MPS2
 
 REPORT_SEEDS = (0, 1, 2)
-DEFINITIONS = ("bench", "u0.5x1", "u0.4x3", "tire x3", "tire x1")
+DEFINITIONS = ("bench", "u0.5x1", "u0.4x3", "tire x3", "tire x1", "tire0.7 x3")
 
 
 def drives_and_tires(seed: int):
-    """The benchmark's drives of the seed, and per sample of them whether a tire was in Dugoff's saturated region:
-    simulate_drives keeps only the wire format and a few truths, so the simulator's table it made them from (the true
-    per-wheel forces) is kept on the way and joined on (vehicle, time)."""
+    """The benchmark's drives of the seed, and per sample of them the true utilization and the largest share of its
+    wheel's mu F_z that a tire used: simulate_drives keeps only the wire format and a few truths, so the simulator's table it
+    made them from (the true accelerations and per-wheel forces) is kept on the way and joined on (vehicle, time)."""
     scenario = make_scenario(seed)
     kept = []
 
@@ -64,7 +68,10 @@ def drives_and_tires(seed: int):
             / (table[f"mu_{w}"].to_numpy() * table[f"fz_{w}_n"].to_numpy())
             for w in WHEELS
         ]
-    saturated = np.nan_to_num(np.max(share, axis=0)) > 0.5
+    tire_share = np.nan_to_num(np.max(share, axis=0))
+    utilization = true_utilization(
+        table["ax_true_mps2"].to_numpy(), table["ay_true_mps2"].to_numpy(), table["mu"].to_numpy()
+    )
     trips = {trip.scenario.run_id: trip for trip in scenario.trips}
     runs = table["run_id"].to_pylist()
     index = {v: k for k, v in enumerate(sorted(scenario.styles))}
@@ -82,15 +89,13 @@ def drives_and_tires(seed: int):
     paired = np.unique(truth_key).size == truth_key.size == drive_key.size
     if not (paired and np.array_equal(truth_key[order][at], drive_key)):
         raise RuntimeError("the simulator's table and the drives do not pair sample for sample")
-    return scenario, drives, saturated[order][at]
+    return scenario, drives, utilization[order][at], tire_share[order][at]
 
 
 def first_observable(seed: int) -> list[dict]:
     """One row per patch with mu <= TARGET_MU: its passes, vehicles, and first observable pass by each definition."""
-    scenario, drives, saturated = drives_and_tires(seed)
-    utilization = np.hypot(drives.table["accel_lon_mps2"].to_numpy(), drives.table["accel_lat_mps2"].to_numpy()) / (
-        drives.mu * G_MPS2
-    )
+    scenario, drives, utilization, tire_share = drives_and_tires(seed)
+    saturated = tire_share > 0.5
     abs_active = drives.table["abs_active"].to_numpy(zero_copy_only=False)
     if not np.array_equal((utilization >= EXCITED_UTILIZATION) | abs_active, drives.excited):
         raise RuntimeError("the utilization here is not the benchmark's (simulate_drives)")
@@ -100,6 +105,7 @@ def first_observable(seed: int) -> list[dict]:
         "u0.4x3": (dataclasses.replace(drives, excited=(utilization >= 0.4) | abs_active), 3),
         "tire x3": (dataclasses.replace(drives, excited=saturated), 3),
         "tire x1": (dataclasses.replace(drives, excited=saturated), 1),
+        "tire0.7 x3": (dataclasses.replace(drives, excited=tire_share >= 0.7), 3),
     }
     truth = patch_truth(scenario, drives)
     rows = []
