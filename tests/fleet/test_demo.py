@@ -11,17 +11,21 @@ from pathlib import Path
 import pytest
 
 
-def mosquitto_pids() -> set[int]:
-    return {
-        int(p.name)
-        for p in Path("/proc").iterdir()
-        if p.name.isdigit() and (p / "comm").exists() and (p / "comm").read_text().strip() == "mosquitto"
-    }
+def mosquitto_pids(under: Path) -> set[int]:
+    """The Mosquitto processes configured from a directory below `under` (the demo's own, not another test's)."""
+    pids = set()
+    for p in Path("/proc").iterdir():
+        try:
+            mosquitto = p.name.isdigit() and (p / "comm").read_text().strip() == "mosquitto"
+            if mosquitto and str(under) in (p / "cmdline").read_bytes().decode(errors="replace"):
+                pids.add(int(p.name))
+        except OSError:  # exited while listed
+            continue
+    return pids
 
 
 @pytest.mark.slow
 def test_the_demo_runs_end_to_end_and_leaves_nothing_behind(tmp_path):
-    before = mosquitto_pids()
     result = subprocess.run(
         [
             sys.executable,
@@ -49,4 +53,5 @@ def test_the_demo_runs_end_to_end_and_leaves_nothing_behind(tmp_path):
     assert "dashboard: http://127.0.0.1:" in out
     assert "slippery-road warnings (0)" not in out, out[-3000:]
     assert "low friction" in out and "ice-expressway" in out
-    assert mosquitto_pids() <= before
+    assert list(tmp_path.rglob("mosquitto.conf")), "the demo started no broker of its own"
+    assert mosquitto_pids(tmp_path) == set()
