@@ -117,7 +117,7 @@ def patch_outcome(
     }
     if warnings and last_low_s < run_end_s:
         ends = [run_end_s if w.end_s is None else w.end_s for w in warnings]
-        row["linger_s"] = max(0.0, max(ends) - last_low_s)
+        row["linger_s"] = max(0.0, round(max(ends) - last_low_s, 3))  # to the clock's ms, not a float's last bit
         row["censored"] = any(w.end_s is None for w in warnings)
     return row
 

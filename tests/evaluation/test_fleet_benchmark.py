@@ -83,6 +83,16 @@ def test_linger_counts_from_the_last_ice_a_vehicle_drove_on():
     assert on_time["last_low_s"] == pytest.approx(ICE.dry_s) and on_time["linger_s"] == pytest.approx(615.0)
 
 
+def test_a_warning_that_expires_its_validity_after_the_last_ice_lingers_exactly_10_min():
+    """Times are the service clock's milliseconds in seconds, and (988.686 + 600) - 988.686 is 600.0000000000001 in
+    floats: such a warning counted as lingering over 10 min (report seed 1 at a02eba8: 600.0000000000002)."""
+    patch = Patch("ice", "ice", 300.0, 0.0, 30.0, appear_s=300.0, dry_s=988.686)
+    warned = Warning("cell", 400.0, patch.dry_s + 600.0, "expired")
+    row = patch_outcome(patch, [("a", 390.0, 395.0)], [warned], [], run_end_s=3600.0)
+    assert row["linger_s"] == 600.0
+    assert summarize_run([row], [], [], 1.0, 0, 0)[-1]["linger_over_10min"] == 0
+
+
 def test_a_warning_cancelled_while_its_patch_persists_is_counted():
     """ICE is there from 20 s to 60 s: a dry pass that cancels its warning at 40 s read grip where the ice still was
     (or grip elsewhere in the cell); an expiry, or a cancellation after it dried, is not counted."""
