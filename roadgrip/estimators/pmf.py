@@ -381,17 +381,21 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
 
 
 @njit(cache=True)
+def _c_marginal(mem):
+    """The grid's stiffness marginal: its mass at each of C_FACTORS, summed over mu."""
+    cm = np.zeros(NC)
+    for i in range(NM):
+        for j in range(NC):
+            cm[j] += mem[G0 + i * NC + j]
+    return cm
+
+
+@njit(cache=True)
 def _start(mem, keep_stiffness):
     """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps)."""
-    cm = np.empty(NC)
+    cm = _c_marginal(mem) if keep_stiffness else C_PRIOR.copy()
     total = 0.0
     for j in range(NC):
-        cm[j] = 0.0
-        if keep_stiffness:
-            for i in range(NM):
-                cm[j] += mem[G0 + i * NC + j]
-        else:
-            cm[j] = C_PRIOR[j]
         total += cm[j]
     for i in range(NM):
         for j in range(NC):
@@ -438,10 +442,7 @@ def _predict(mem, dt, c_prior):
     side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
     forget = 1.0 - exp(-FORGET_PER_S * dt)
     forget_c = 1.0 - exp(-C_FORGET_PER_S * dt)
-    cm = np.zeros(NC)
-    for i in range(NM):
-        for j in range(NC):
-            cm[j] += mem[G0 + i * NC + j]
+    cm = _c_marginal(mem)
     for j in range(NC):
         col = np.empty(NM)
         for i in range(NM):
@@ -493,10 +494,7 @@ def _apply_at_stiffness(mem, like, inconsistent):
     for i in range(NM):
         for j in range(NC):
             best = max(best, like[i, j])
-    pc = np.zeros(NC)
-    for i in range(NM):
-        for j in range(NC):
-            pc[j] += mem[G0 + i * NC + j]
+    pc = _c_marginal(mem)
     explained = 0.0
     for i in range(NM):
         e = 0.0
