@@ -9,6 +9,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle / mu anywhere above 0.3, u_axle the driven axle's force per load |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+| slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear radius ratio calibrated | N(d; s_brush(f_f, mu, C) - s_brush(f_r, mu, C), s_d): each axle's force per load by the profile's brake_front_share (`_brake_slip_likelihood`) |
 | the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
 | the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
@@ -36,6 +37,10 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
   over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
   has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope;
+- an AWD's front/rear rolling-radius ratio (a 2WD's is the slip line's s0, above): the mean of v_front / v_rear - 1
+  (speeds mapped to the CoG) over straight calm driving (|a_road| under FR_CALM_MPS2), its running mean until
+  RADIUS_TAU_S of it, then a moving average over that span; the braking term reads slip against it (or s0) once it has
+  FR_CALIBRATED_S behind it;
 - the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
   a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
 - the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
@@ -112,6 +117,7 @@ from roadgrip.estimators.guard import PRIOR_UPPER_MU, drag_per_mass
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
     brush_slip,
+    brush_slip_angle_slope,
     lateral_likelihood,
     normal_cdf,
     reference_yaw_rate,
@@ -195,6 +201,18 @@ SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic F
 # SLIP_SIGMA_PER_MPS / v (CAN resolution, tone-wheel jitter) is 0.002 at 5 m/s, the brush slip of gentle driving
 # (f = 0.05 at C = 25), which the axle slip term needs to see. Parking, junctions and roundabouts lie mostly below.
 SLIP_MIN_SPEED_MPS = 5.0
+# Braking without a controller: every wheel brakes, so no axle is a reference, but the fixed brake split loads the axles
+# unequally (brake_front_share against the front's load share) and the axle nearer its limit slips faster than its
+# force (the brush curve), so the slip between front and rear axles tells mu where the tire's stiffness is known.
+# From this deceleration on the brakes carry the force: an engine's overrun drag in gear is 0.2-0.4 m/s^2, on the
+# driven axle alone, which the fixed split does not describe
+BRAKE_MIN_MPS2 = 0.8
+BRAKE_SHARE_SPREAD = 0.05  # the real split against the catalogue's: each axle's pad friction +-10 % (heat, wear)
+# The braking term's zero: the front/rear radius ratio at no force. A 2WD car's is the slip line's intercept s0; an
+# AWD's axles share the force near their load shares, so their slips differ by a fraction of f / C in calm driving
+# (under 0.1 % at 0.05 g, C 20), and the ratio is the mean over straight driving below this force per mass
+FR_CALM_MPS2 = 0.5
+FR_CALIBRATED_S = 10.0  # seconds of that driving after which the zero is read
 # The lateral channel (lateral.py: the single-track model and the brush model's slip angles)
 LAT_STEER_NOISE_RAD = 0.0035  # steering-wheel angle noise: 0.2 degrees (production angle sensors step 0.1 degrees)
 LAT_YAW_NOISE_RADPS = 0.002  # a MEMS gyro's noise, about 0.1 degrees/s
@@ -332,7 +350,11 @@ N_MEM_V2 = K_AL
 # the filter empty
 N_MEM_V3 = K_AL + al.memory_size(NM)
 K_LINE_F, K_LINE_S, K_LINE_ON = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
-N_MEM = N_MEM_V3 + 3
+# the front/rear radius ratio of the braking term (`_calibrate`), appended after it: a state saved before (N_MEM_V4
+# numbers) loads with the ratio unlearned
+N_MEM_V4 = N_MEM_V3 + 3
+K_FR, K_FR_W = N_MEM_V4, N_MEM_V4 + 1
+N_MEM = N_MEM_V4 + 2
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -342,6 +364,8 @@ CALIBRATION = {
     "slip_offset_front_rear": K_S0,
     "slip_slope": K_SLOPE,
     "slip_line_weight_s": K_RLS_W,
+    "radius_ratio_front_rear_awd": K_FR,
+    "radius_ratio_front_rear_awd_weight_s": K_FR_W,
     "accel_lat_bias_mps2": K_BIAS_Y,
     "accel_lat_bias_weight_s": K_BIAS_Y_W,
     "understeer_offset_rad": K_LAT_B,
@@ -659,6 +683,36 @@ def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
 
 
 @njit(cache=True)
+def _brake_slip_likelihood(d, f_front, f_rear, share, psi, s_f, v, c0_front, c0_rear, repeats, like):
+    """Braking without a controller: the front axle's slip minus the rear's, d, against the brush model's at each
+    axle's force per load (f_front, f_rear: the profile's brake split over its axle loads), already raised to TEMPER.
+    Its spread: the wheels' noise (as `_slip_likelihood`), the brush model's error on each axle's slip, and the forces'
+    own, propagated through each axle's slip slope: both forces scaled by the accelerometer's relative noise s_f, the
+    split known to BRAKE_SHARE_SPREAD (it moves the front force per load by f_front / share of itself and the rear's
+    the other way) and the front load share psi to LOAD_SHARE_SPREAD (the loads the other way round). The last two are
+    the car's, the same at every sample of every stop: their variance is multiplied by `repeats`, the number of times
+    the grid counts a sample's evidence, so that they count once rather than once a sample. Linear in the force, d is
+    (f_front - f_rear) / C whatever mu; the axle nearer its limit slipping faster than that tells mu."""
+    s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v
+    for i in range(NM):
+        mu = MU_GRID[i]
+        slip_f = brush_slip(f_front, mu, c0_front)  # each at C = the profile's; at C factor k it is this / k
+        slip_r = brush_slip(f_rear, mu, c0_rear)
+        k_f = brush_slip_angle_slope(f_front, mu, c0_front) * f_front
+        k_r = brush_slip_angle_slope(f_rear, mu, c0_rear) * f_rear
+        spread = sqrt(
+            repeats * ((k_f / share + k_r / (1.0 - share)) * BRAKE_SHARE_SPREAD) ** 2
+            + repeats * ((k_f / psi + k_r / (1.0 - psi)) * LOAD_SHARE_SPREAD) ** 2
+            + ((k_f - k_r) * s_f) ** 2
+            + (SLIP_MODEL_SHARE * (slip_f + slip_r)) ** 2
+        )
+        for j in range(NC):
+            pred = (slip_f - slip_r) / C_FACTORS[j]
+            sig2 = s_floor * s_floor + (spread / C_FACTORS[j]) ** 2
+            like[i, j] = exp(-0.5 * TEMPER * (d - pred) ** 2 / sig2)
+
+
+@njit(cache=True)
 def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving):
     """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
     # the slip line's filter goes on only from a sample that fed it (K_LINE_ON, set again below if this one does)
@@ -687,6 +741,11 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     mem[K_LR_F] += w * (smp[S_W0] * kin[1] / (smp[S_W0 + 1] * kin[0]) - 1.0 - mem[K_LR_F])
     mem[K_LR_R] += w * (smp[S_W0 + 2] * kin[3] / (smp[S_W0 + 3] * kin[2]) - 1.0 - mem[K_LR_R])
     mem[K_LR_W] += dt
+    # an AWD's front/rear radius ratio (the braking term's zero) in calm driving: its running mean, then RADIUS_TAU_S's
+    if q[Q_DRIVE] == 2.0 and abs(atx) < FR_CALM_MPS2:
+        w = max(1.0 - exp(-dt / RADIUS_TAU_S), dt / (mem[K_FR_W] + dt))
+        mem[K_FR] += w * ((v_cog[0] + v_cog[1]) / (v_cog[2] + v_cog[3]) - 1.0 - mem[K_FR])
+        mem[K_FR_W] += dt
     # the slip line s = s0 + slope f at low force, by recursive least squares with forgetting, on the filtered force
     # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
     if not abs(f_d) < 0.15:
@@ -924,6 +983,7 @@ def pmf_step(mem, q, smp, t_prev, out):
     ch.gnss_update(mem, K_CH, smp[S_GNSS], smp[S_GNSS_ACC], ax_c, bias_sd, dt)
     v_x, v_x_sd = ch.reference_speed(mem, K_CH, smp[S_R], q[Q_LR], v, aty, q[Q_CA_REAR])
     gnss_driven = False
+    gnss_axles = False
     if np.isfinite(v_x) and v_x >= SLIP_MIN_SPEED_MPS:
         calm = not limit and abs(smp[S_R]) * (q[Q_LF] + q[Q_LR]) < 0.05 * v_x
         evidence = not limit and dt > 0.0 and abs(aty) < ch.EVIDENCE_MAX_AY_MPS2
@@ -953,6 +1013,7 @@ def pmf_step(mem, q, smp, t_prev, out):
             ):
                 _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
                 gnss_driven = gnss_driven or axle == int(q[Q_DRIVE])
+                gnss_axles = True
     if not limit:
         mem[K_U_LIMIT] = 0.0
     else:
@@ -999,6 +1060,40 @@ def pmf_step(mem, q, smp, t_prev, out):
         if straight and driving and not gnss_driven:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
+    # slip between the front and the rear axle under braking (every drive): the GNSS reference reads each axle's
+    # own slip where it speaks (above), so this term stays silent then
+    share = q[Q_BRAKE_FRONT]
+    brake = -m * atx - q[Q_FRR] * m * G_MPS2  # the brakes' force: the road's less the tires' rolling resistance
+    if (
+        dt > 0.0
+        and straight
+        and not limit
+        and not gnss_axles
+        and atx < -BRAKE_MIN_MPS2
+        and brake > 0.0
+        and 0.0 < share < 1.0
+        and (mem[K_FR_W] if drive == 2 else mem[K_RLS_W]) >= FR_CALIBRATED_S
+        and v_ref >= SLIP_MIN_SPEED_MPS
+        and min(v_front, v_rear) > 0.5 * v_ref
+    ):
+        fz_f, fz_r = max(fz_front, 0.2 * m * G_MPS2), max(fz_rear, 0.2 * m * G_MPS2)
+        # the ratio's zero: an AWD's calm mean, a 2WD's slip line at no force (s0: driven over undriven axle)
+        zero = mem[K_FR] if drive == 2 else (mem[K_S0] if drive == 0 else 1.0 / (1.0 + mem[K_S0]) - 1.0)
+        d = -(v_front / v_rear - 1.0 - zero)  # braking slips: 1 - v_wheel / v, front minus rear
+        _brake_slip_likelihood(
+            d,
+            share * brake / fz_f,
+            (1.0 - share) * brake / fz_r,
+            share,
+            fz_f / (fz_f + fz_r),
+            s_u * G_MPS2 / -atx,
+            v_ref,
+            q[Q_C0_FRONT],
+            q[Q_C0_REAR],
+            TEMPER / (1.0 - exp(-FORGET_PER_S * dt)),  # tempered samples within the grid's memory: 10 at 10 Hz
+            like,
+        )
+        _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
     # the steering torques (aligning.py): the front axle's pneumatic trail against the brush model's at its force
     if al.torques_sent(smp[S_STEER_T], smp[S_EPS_T]) and dt > 0.0 and mem[K_V_PREV] >= 0.0:
@@ -1242,10 +1337,11 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3):
+        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4):
             # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
-            # before the steering torques' (V2: the trail's gain at the profile's) or before the slip line's input
-            # filter (V3: empty): everything kept, each missing block fresh, as for a new car
+            # before the steering torques' (V2: the trail's gain at the profile's), before the slip line's input
+            # filter (V3: empty) or before the front/rear radius ratio (V4: unlearned): everything kept, each missing
+            # block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)

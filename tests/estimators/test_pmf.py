@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from roadgrip.estimators.pmf import CALIBRATION, N_MEM_V3, PMFEstimator
+from roadgrip.estimators.pmf import CALIBRATION, N_MEM_V3, N_MEM_V4, PMFEstimator
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import PAPER_SUV
 
@@ -219,6 +219,19 @@ def test_a_state_saved_before_the_slip_lines_filter_loads_with_it_empty():
     loaded = estimator.state_from_dict(saved)
     assert np.array_equal(loaded.mem[:N_MEM_V3], state.mem[:N_MEM_V3])
     assert not loaded.mem[N_MEM_V3:].any() and state.mem[N_MEM_V3:].any()
+
+
+def test_a_state_saved_before_the_front_rear_radius_ratio_loads_with_it_unlearned():
+    """A checkpoint of the layout before the braking term (N_MEM_V4 numbers) of an all-wheel-drive car: everything
+    kept, its front/rear radius ratio unlearned (it is learned again in FR_CALIBRATED_S of calm straight driving)."""
+    estimator = PMFEstimator()
+    samples, _ = worn_tire_drive(600)
+    _, _, state = _run(samples, vehicle=PAPER_SUV, estimator=estimator)
+    saved = estimator.state_to_dict(state)
+    saved["memory"] = saved["memory"][:N_MEM_V4]
+    loaded = estimator.state_from_dict(saved)
+    assert np.array_equal(loaded.mem[:N_MEM_V4], state.mem[:N_MEM_V4])
+    assert not loaded.mem[N_MEM_V4:].any() and state.mem[N_MEM_V4:].any()
 
 
 def test_controller_flags_the_wire_leaves_empty_are_taken_as_not_acting():
