@@ -9,7 +9,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle / mu anywhere above 0.3, u_axle the driven axle's force per load |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
-| slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear radius ratio calibrated | N(d; s_brush(f_f, mu, C) - s_brush(f_r, mu, C), s_d): each axle's force per load by the profile's brake_front_share (`_brake_slip_likelihood`) |
+| slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear zero calibrated | N(d; line(x) + s_brush(f_f, mu, C) - s_brush(f_r, mu, C) - the static line, s_d): each axle's force per load by the profile's brake_front_share, the car's braking line learned in gentle stops; before it is, the brush slips alone, the split's and load share's error counted once (`_brake_slip_likelihood`) |
 | the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
 | the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
@@ -37,10 +37,13 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
 - the front/rear radius mismatch and the slip slope 1/C at low force: a recursive least-squares line s = s0 + f / C
   over free rolling and gentle driving (RLS_TAU_S forgetting); s0 is taken out of the measured slip, and once the line
   has STIFFNESS_CALIBRATED_S of data the grid's stiffness marginal (kept across gaps) forgets towards its 1 / slope;
-- an AWD's front/rear rolling-radius ratio (a 2WD's is the slip line's s0, above): the mean of v_front / v_rear - 1
-  (speeds mapped to the CoG) over straight calm driving (|a_road| under FR_CALM_MPS2), its running mean until
-  RADIUS_TAU_S of it, then a moving average over that span; the braking term reads slip against it (or s0) once it has
-  FR_CALIBRATED_S behind it;
+- the braking term's zero: an AWD's front/rear rolling-radius ratio (a 2WD's is the slip line's s0, above), the mean
+  of v_front / v_rear - 1 (speeds mapped to the CoG) over straight calm driving (|a_road| under FR_CALM_MPS2), its
+  running mean until RADIUS_TAU_S of it, then a moving average over that span; read once it has FR_CALIBRATED_S;
+- the braking line d = b + k_b x (x the brakes' force per weight at the static loads; k_b the car's own split, load
+  share and tires in one number, b what the zero leaves): recursive least squares over gentle straight stops (x under
+  BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S, from the catalogue's k_b and b = 0 +-
+  BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
 - the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
   a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
 - the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
@@ -213,6 +216,18 @@ BRAKE_SHARE_SPREAD = 0.05  # the real split against the catalogue's: each axle's
 # (under 0.1 % at 0.05 g, C 20), and the ratio is the mean over straight driving below this force per mass
 FR_CALM_MPS2 = 0.5
 FR_CALIBRATED_S = 10.0  # seconds of that driving after which the zero is read
+# The braking line: in gentle braking both axles are linear, so d = b + k_b x (x the brakes' force per weight, at
+# the static loads) with k_b = (share / psi) / C_f - ((1 - share) / (1 - psi)) / C_r, the car's own split, load share
+# and tires in one number, and b what the zero leaves (the slip line's intercept carries the driven axle's rolling
+# resistance and its regression's error: 0.002-0.005 between a car's FWD and RWD variants). Learned per car by
+# recursive least squares (RLS_TAU_S of braking) on x and d filtered over SLIP_LINE_FILTER_S (x's noise is a quarter
+# to a half of its spread here), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; it takes the split's and the
+# load share's error out of the linear part, and the term reads only the slip the line does not explain. Below
+# BRAKE_LINE_MAX_G a road of mu 0.4 or more leaves the front axle at about half its limit or less; a gentle stop on
+# ice is read into the line too, and the line's memory of braking seconds keeps it one stop among many
+BRAKE_LINE_MAX_G = 0.15
+BRAKE_ZERO_SIGMA = 0.005
+BRAKE_LINE_CALIBRATED_S = 5.0  # seconds of gentle braking after which the line replaces the catalogue's
 # The lateral channel (lateral.py: the single-track model and the brush model's slip angles)
 LAT_STEER_NOISE_RAD = 0.0035  # steering-wheel angle noise: 0.2 degrees (production angle sensors step 0.1 degrees)
 LAT_YAW_NOISE_RADPS = 0.002  # a MEMS gyro's noise, about 0.1 degrees/s
@@ -350,11 +365,13 @@ N_MEM_V2 = K_AL
 # the filter empty
 N_MEM_V3 = K_AL + al.memory_size(NM)
 K_LINE_F, K_LINE_S, K_LINE_ON = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
-# the front/rear radius ratio of the braking term (`_calibrate`), appended after it: a state saved before (N_MEM_V4
-# numbers) loads with the ratio unlearned
+# the braking term's calibration (an AWD's front/rear radius ratio, `_calibrate`; the braking line, `_brake_line`),
+# appended after it: a state saved before (N_MEM_V4 numbers) loads with both unlearned
 N_MEM_V4 = N_MEM_V3 + 3
-K_FR, K_FR_W = N_MEM_V4, N_MEM_V4 + 1
-N_MEM = N_MEM_V4 + 2
+(K_FR, K_FR_W, K_BL_B, K_BL_K, K_BL_P00, K_BL_P01, K_BL_P11, K_BL_W, K_BL_X, K_BL_D, K_BL_ON) = range(
+    N_MEM_V4, N_MEM_V4 + 11
+)
+N_MEM = N_MEM_V4 + 11
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -366,6 +383,9 @@ CALIBRATION = {
     "slip_line_weight_s": K_RLS_W,
     "radius_ratio_front_rear_awd": K_FR,
     "radius_ratio_front_rear_awd_weight_s": K_FR_W,
+    "braking_slip_offset": K_BL_B,
+    "braking_slip_slope": K_BL_K,
+    "braking_line_weight_s": K_BL_W,
     "accel_lat_bias_mps2": K_BIAS_Y,
     "accel_lat_bias_weight_s": K_BIAS_Y_W,
     "understeer_offset_rad": K_LAT_B,
@@ -683,33 +703,93 @@ def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
 
 
 @njit(cache=True)
-def _brake_slip_likelihood(d, f_front, f_rear, share, psi, s_f, v, c0_front, c0_rear, repeats, like):
+def _brake_slip_likelihood(
+    d,
+    x,
+    f_front,
+    f_rear,
+    f_front_static,
+    f_rear_static,
+    share,
+    psi,
+    s_f,
+    v,
+    c0_front,
+    c0_rear,
+    line,
+    line_var,
+    repeats,
+    like,
+):
     """Braking without a controller: the front axle's slip minus the rear's, d, against the brush model's at each
-    axle's force per load (f_front, f_rear: the profile's brake split over its axle loads), already raised to TEMPER.
-    Its spread: the wheels' noise (as `_slip_likelihood`), the brush model's error on each axle's slip, and the forces'
-    own, propagated through each axle's slip slope: both forces scaled by the accelerometer's relative noise s_f, the
-    split known to BRAKE_SHARE_SPREAD (it moves the front force per load by f_front / share of itself and the rear's
-    the other way) and the front load share psi to LOAD_SHARE_SPREAD (the loads the other way round). The last two are
-    the car's, the same at every sample of every stop: their variance is multiplied by `repeats`, the number of times
-    the grid counts a sample's evidence, so that they count once rather than once a sample. Linear in the force, d is
-    (f_front - f_rear) / C whatever mu; the axle nearer its limit slipping faster than that tells mu."""
+    axle's force per load (f_front, f_rear: the profile's brake split over its axle loads, their sum per weight x),
+    already raised to TEMPER. Linear in the force, d is (f_front / c_f - f_rear / c_r) whatever mu; the axle nearer its
+    limit slipping faster than that tells mu. Where the car's braking line is calibrated (`line` its value b + k_b x at
+    this x, line_var its variance, not NaN) the linear part at the static loads is the line's (f_front_static,
+    f_rear_static: the same forces over the static loads), and the brush model gives the rest: its slips at the loads
+    the braking transfers, less the static line's; before, everything comes from the catalogue and the grid's
+    stiffness. The spread: the wheels' noise (as `_slip_likelihood`), the brush model's error
+    on each axle's slip, the forces' relative noise s_f, and what the car's split (BRAKE_SHARE_SPREAD: it moves the
+    front force per load by f_front / share of itself and the rear's the other way) and front load share psi
+    (LOAD_SHARE_SPREAD) leave unknown: of the whole slip before the line is calibrated, of its excess after, beside the
+    line's own variance. Those are the car's, the same at every sample: their variance is multiplied by
+    `repeats`, the number of times the grid counts a sample's evidence, so that they count once."""
     s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v
+    calibrated = np.isfinite(line_var)
     for i in range(NM):
         mu = MU_GRID[i]
         slip_f = brush_slip(f_front, mu, c0_front)  # each at C = the profile's; at C factor k it is this / k
         slip_r = brush_slip(f_rear, mu, c0_rear)
-        k_f = brush_slip_angle_slope(f_front, mu, c0_front) * f_front
-        k_r = brush_slip_angle_slope(f_rear, mu, c0_rear) * f_rear
+        g_f = brush_slip_angle_slope(f_front, mu, c0_front)  # d slip / d f
+        g_r = brush_slip_angle_slope(f_rear, mu, c0_rear)
+        if calibrated:  # what the static line does not hold: the load transfer and the curve's excess
+            slip_f -= f_front_static / c0_front
+            slip_r -= f_rear_static / c0_rear
+            g_f -= 1.0 / c0_front
+            g_r -= 1.0 / c0_rear
+        k_f, k_r = g_f * f_front, g_r * f_rear
         spread = sqrt(
             repeats * ((k_f / share + k_r / (1.0 - share)) * BRAKE_SHARE_SPREAD) ** 2
             + repeats * ((k_f / psi + k_r / (1.0 - psi)) * LOAD_SHARE_SPREAD) ** 2
             + ((k_f - k_r) * s_f) ** 2
-            + (SLIP_MODEL_SHARE * (slip_f + slip_r)) ** 2
+            + (SLIP_MODEL_SHARE * (brush_slip(f_front, mu, c0_front) + brush_slip(f_rear, mu, c0_rear))) ** 2
         )
         for j in range(NC):
             pred = (slip_f - slip_r) / C_FACTORS[j]
             sig2 = s_floor * s_floor + (spread / C_FACTORS[j]) ** 2
+            if calibrated:
+                pred += line
+                sig2 += repeats * line_var
             like[i, j] = exp(-0.5 * TEMPER * (d - pred) ** 2 / sig2)
+
+
+@njit(cache=True)
+def _brake_line(mem, d, x, dt, v, fed):
+    """The braking line d = b + k_b x by recursive least squares with forgetting over RLS_TAU_S of the braking it
+    sees, on x and d filtered over SLIP_LINE_FILTER_S (the filter restarted where the line's conditions broke: `fed`
+    False there, as for the slip line); its start (init_brake_line) is the catalogue's."""
+    if mem[K_BL_ON] > 0.0:
+        a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
+        mem[K_BL_X] += a * (x - mem[K_BL_X])
+        mem[K_BL_D] += a * (d - mem[K_BL_D])
+    else:
+        mem[K_BL_X], mem[K_BL_D] = x, d
+    mem[K_BL_ON] = 1.0 if fed else 0.0
+    if not fed:
+        return
+    x, d = mem[K_BL_X], mem[K_BL_D]
+    lam = exp(-dt / RLS_TAU_S)
+    p00, p01, p11 = mem[K_BL_P00] / lam, mem[K_BL_P01] / lam, mem[K_BL_P11] / lam
+    ph0, ph1 = p00 + p01 * x, p01 + p11 * x
+    den = ph0 + ph1 * x + (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
+    k0, k1 = ph0 / den, ph1 / den
+    err = d - (mem[K_BL_B] + mem[K_BL_K] * x)
+    mem[K_BL_B] += k0 * err
+    mem[K_BL_K] += k1 * err
+    mem[K_BL_P00] = p00 - k0 * ph0
+    mem[K_BL_P01] = p01 - k0 * ph1
+    mem[K_BL_P11] = p11 - k1 * ph1
+    mem[K_BL_W] += dt
 
 
 @njit(cache=True)
@@ -776,6 +856,21 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
 
 
 @njit(cache=True)
+def init_brake_line(mem, q):
+    """The braking line's start: b = 0 +- BRAKE_ZERO_SIGMA, and the catalogue's k_b (static load share, the profile's
+    stiffnesses), known to half the axles' slips per force (the tires' stiffness alone is known to a factor of 1.8,
+    C_PRIOR)."""
+    share, psi = q[Q_BRAKE_FRONT], q[Q_LR] / (q[Q_LF] + q[Q_LR])
+    front, rear = share / psi / q[Q_C0_FRONT], (1.0 - share) / (1.0 - psi) / q[Q_C0_REAR]
+    mem[K_BL_B] = 0.0
+    mem[K_BL_K] = front - rear
+    mem[K_BL_P00] = BRAKE_ZERO_SIGMA**2
+    mem[K_BL_P01] = 0.0
+    mem[K_BL_P11] = (0.5 * (front + rear)) ** 2
+    mem[K_BL_W] = 0.0
+
+
+@njit(cache=True)
 def init_memory(mem, q):
     mem[:] = 0.0
     mem[K_SLOPE] = 1.0 / q[Q_C0]
@@ -787,6 +882,7 @@ def init_memory(mem, q):
     mem[K_LP11] = LAT_SLOPE_SIGMA0**2
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
+    init_brake_line(mem, q)
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -1080,20 +1176,35 @@ def pmf_step(mem, q, smp, t_prev, out):
         # the ratio's zero: an AWD's calm mean, a 2WD's slip line at no force (s0: driven over undriven axle)
         zero = mem[K_FR] if drive == 2 else (mem[K_S0] if drive == 0 else 1.0 / (1.0 + mem[K_S0]) - 1.0)
         d = -(v_front / v_rear - 1.0 - zero)  # braking slips: 1 - v_wheel / v, front minus rear
+        x = brake / (m * G_MPS2)
+        f_f, f_r = share * brake / fz_f, (1.0 - share) * brake / fz_r
+        f_f_static, f_r_static = share * x * wb / lr, (1.0 - share) * x * wb / lf
         _brake_slip_likelihood(
             d,
-            share * brake / fz_f,
-            (1.0 - share) * brake / fz_r,
+            x,
+            f_f,
+            f_r,
+            f_f_static,
+            f_r_static,
             share,
             fz_f / (fz_f + fz_r),
             s_u * G_MPS2 / -atx,
             v_ref,
             q[Q_C0_FRONT],
             q[Q_C0_REAR],
+            mem[K_BL_B] + mem[K_BL_K] * x,
+            mem[K_BL_P00] + 2.0 * mem[K_BL_P01] * x + mem[K_BL_P11] * x * x
+            if mem[K_BL_W] >= BRAKE_LINE_CALIBRATED_S
+            else np.nan,
             TEMPER / (1.0 - exp(-FORGET_PER_S * dt)),  # tempered samples within the grid's memory: 10 at 10 Hz
             like,
         )
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
+        # the line at the static loads: the transfer's part (at the profile's tires) taken out
+        transfer = (f_f - f_f_static) / q[Q_C0_FRONT] - (f_r - f_r_static) / q[Q_C0_REAR]
+        _brake_line(mem, d - transfer, x, dt, v_ref, x <= BRAKE_LINE_MAX_G)
+    else:
+        mem[K_BL_ON] = 0.0
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
     # the steering torques (aligning.py): the front axle's pneumatic trail against the brush model's at its force
     if al.torques_sent(smp[S_STEER_T], smp[S_EPS_T]) and dt > 0.0 and mem[K_V_PREV] >= 0.0:
@@ -1340,13 +1451,14 @@ class PMFEstimator(Estimator):
         if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4):
             # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
             # before the steering torques' (V2: the trail's gain at the profile's), before the slip line's input
-            # filter (V3: empty) or before the front/rear radius ratio (V4: unlearned): everything kept, each missing
-            # block fresh, as for a new car
+            # filter (V3: empty) or before the braking term (V4: its zero and line unlearned): everything kept, each
+            # missing block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
             ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
             al.init_aligning_memory(block, K_AL, NM)
+            init_brake_line(block, q)
             data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))

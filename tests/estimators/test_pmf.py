@@ -209,8 +209,8 @@ def test_the_slip_line_is_the_tires_when_the_force_varies_less_than_the_accelero
 
 
 def test_a_state_saved_before_the_slip_lines_filter_loads_with_it_empty():
-    """A checkpoint of the previous layout (N_MEM_V3 numbers): everything kept, the filter empty (it fills again in
-    SLIP_LINE_FILTER_S of steady driving)."""
+    """A checkpoint of the layout before the slip line's filter (N_MEM_V3 numbers): everything kept, the filter empty
+    (it fills again in SLIP_LINE_FILTER_S of steady driving) and the blocks appended since as a new car's."""
     estimator = PMFEstimator()
     samples, _ = worn_tire_drive(600)
     _, _, state = _run(samples, estimator=estimator)
@@ -218,12 +218,15 @@ def test_a_state_saved_before_the_slip_lines_filter_loads_with_it_empty():
     saved["memory"] = saved["memory"][:N_MEM_V3]
     loaded = estimator.state_from_dict(saved)
     assert np.array_equal(loaded.mem[:N_MEM_V3], state.mem[:N_MEM_V3])
-    assert not loaded.mem[N_MEM_V3:].any() and state.mem[N_MEM_V3:].any()
+    fresh = estimator.start(FWD)  # the blocks appended since, as a new car holds them
+    assert np.array_equal(loaded.mem[N_MEM_V3:], fresh.mem[N_MEM_V3:])
+    assert not np.array_equal(state.mem[N_MEM_V3:], fresh.mem[N_MEM_V3:])
 
 
 def test_a_state_saved_before_the_front_rear_radius_ratio_loads_with_it_unlearned():
     """A checkpoint of the layout before the braking term (N_MEM_V4 numbers) of an all-wheel-drive car: everything
-    kept, its front/rear radius ratio unlearned (it is learned again in FR_CALIBRATED_S of calm straight driving)."""
+    kept, its front/rear radius ratio and braking line as a new car's (learned again in calm driving and gentle
+    stops)."""
     estimator = PMFEstimator()
     samples, _ = worn_tire_drive(600)
     _, _, state = _run(samples, vehicle=PAPER_SUV, estimator=estimator)
@@ -231,7 +234,9 @@ def test_a_state_saved_before_the_front_rear_radius_ratio_loads_with_it_unlearne
     saved["memory"] = saved["memory"][:N_MEM_V4]
     loaded = estimator.state_from_dict(saved)
     assert np.array_equal(loaded.mem[:N_MEM_V4], state.mem[:N_MEM_V4])
-    assert not loaded.mem[N_MEM_V4:].any() and state.mem[N_MEM_V4:].any()
+    fresh = estimator.start(PAPER_SUV)
+    assert np.array_equal(loaded.mem[N_MEM_V4:], fresh.mem[N_MEM_V4:])
+    assert not np.array_equal(state.mem[N_MEM_V4:], fresh.mem[N_MEM_V4:])
 
 
 def test_controller_flags_the_wire_leaves_empty_are_taken_as_not_acting():

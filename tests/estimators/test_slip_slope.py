@@ -8,7 +8,17 @@ import pytest
 from roadgrip.data.schema import CHANNEL_NAMES
 from roadgrip.estimators import aligning as al
 from roadgrip.estimators import slip_slope as ch
-from roadgrip.estimators.pmf import K_AL, K_CH, N_MEM, N_MEM_V1, NM, Q_C0_FRONT, Q_C0_REAR, PMFEstimator
+from roadgrip.estimators.pmf import (
+    K_AL,
+    K_CH,
+    N_MEM,
+    N_MEM_V1,
+    NM,
+    Q_C0_FRONT,
+    Q_C0_REAR,
+    PMFEstimator,
+    init_brake_line,
+)
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.roads import MuProfile, Path
@@ -134,6 +144,7 @@ def test_a_state_saved_before_the_channels_continues_with_a_fresh_channel_block(
     fresh = np.zeros(N_MEM)
     ch.init_channel_memory(fresh, K_CH, restored.q[Q_C0_FRONT], restored.q[Q_C0_REAR])
     al.init_aligning_memory(fresh, K_AL, NM)  # the steering torques' block, appended after it
+    init_brake_line(fresh, restored.q)  # and the braking line's, after that
     np.testing.assert_array_equal(restored.mem[K_CH:], fresh[K_CH:])
     with pytest.raises(ValueError, match="memory must hold"):
         est.state_from_dict(saved | {"memory": saved["memory"][:-1]})
