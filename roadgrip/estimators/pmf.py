@@ -365,7 +365,9 @@ N_MEM_V2 = K_AL
 # the filter empty
 N_MEM_V3 = K_AL + al.memory_size(NM)
 K_LINE_F, K_LINE_S, K_LINE_ON = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
-# the braking term's calibration (an AWD's front/rear radius ratio, `_calibrate`; the braking line, `_brake_line`),
+# a line's slots lie in the order `_line_update` (K_S0 .. K_RLS_W, K_BL_B .. K_BL_W) and `_line_input` (K_LINE_F ..
+# K_LINE_ON, K_BL_X .. K_BL_ON) read them
+# the braking term's calibration (an AWD's front/rear radius ratio, `_calibrate`; the braking line, `_line_update`),
 # appended after it: a state saved before (N_MEM_V4 numbers) loads with both unlearned
 N_MEM_V4 = N_MEM_V3 + 3
 (K_FR, K_FR_W, K_BL_B, K_BL_K, K_BL_P00, K_BL_P01, K_BL_P11, K_BL_W, K_BL_X, K_BL_D, K_BL_ON) = range(
@@ -764,32 +766,37 @@ def _brake_slip_likelihood(
 
 
 @njit(cache=True)
-def _brake_line(mem, d, x, dt, v, fed):
-    """The braking line d = b + k_b x by recursive least squares with forgetting over RLS_TAU_S of the braking it
-    sees, on x and d filtered over SLIP_LINE_FILTER_S (the filter restarted where the line's conditions broke: `fed`
-    False there, as for the slip line); its start (init_brake_line) is the catalogue's."""
-    if mem[K_BL_ON] > 0.0:
+def _line_input(mem, k, x, y, dt, was_on):
+    """A line's regressor and response through their first-order filter over SLIP_LINE_FILTER_S (mem[k], mem[k + 1];
+    mem[k + 2] set: it fed the line): from where it was if it fed the line at the previous sample (was_on), else
+    started at the raw values. Returns the filtered pair."""
+    if was_on:
         a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
-        mem[K_BL_X] += a * (x - mem[K_BL_X])
-        mem[K_BL_D] += a * (d - mem[K_BL_D])
+        mem[k] += a * (x - mem[k])
+        mem[k + 1] += a * (y - mem[k + 1])
     else:
-        mem[K_BL_X], mem[K_BL_D] = x, d
-    mem[K_BL_ON] = 1.0 if fed else 0.0
-    if not fed:
-        return
-    x, d = mem[K_BL_X], mem[K_BL_D]
+        mem[k], mem[k + 1] = x, y
+    mem[k + 2] = 1.0
+    return mem[k], mem[k + 1]
+
+
+@njit(cache=True)
+def _line_update(mem, k, x, y, dt, v):
+    """One step of a line y = mem[k] + mem[k + 1] x by recursive least squares forgetting over RLS_TAU_S (mem[k + 2:
+    k + 5] its covariance P00, P01, P11; mem[k + 5] the seconds it has seen), the wheels' slip noise at v its
+    measurement's: K = P h / (h' P h + r), h = (1, x); P = (I - K h') P."""
     lam = exp(-dt / RLS_TAU_S)
-    p00, p01, p11 = mem[K_BL_P00] / lam, mem[K_BL_P01] / lam, mem[K_BL_P11] / lam
+    p00, p01, p11 = mem[k + 2] / lam, mem[k + 3] / lam, mem[k + 4] / lam
     ph0, ph1 = p00 + p01 * x, p01 + p11 * x
     den = ph0 + ph1 * x + (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
     k0, k1 = ph0 / den, ph1 / den
-    err = d - (mem[K_BL_B] + mem[K_BL_K] * x)
-    mem[K_BL_B] += k0 * err
-    mem[K_BL_K] += k1 * err
-    mem[K_BL_P00] = p00 - k0 * ph0
-    mem[K_BL_P01] = p01 - k0 * ph1
-    mem[K_BL_P11] = p11 - k1 * ph1
-    mem[K_BL_W] += dt
+    err = y - (mem[k] + mem[k + 1] * x)
+    mem[k] += k0 * err
+    mem[k + 1] += k1 * err
+    mem[k + 2] = p00 - k0 * ph0
+    mem[k + 3] = p01 - k0 * ph1
+    mem[k + 4] = p11 - k1 * ph1
+    mem[k + 5] += dt
 
 
 @njit(cache=True)
@@ -830,29 +837,8 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
     if not abs(f_d) < 0.15:
         return
-    if line_on:
-        a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
-        mem[K_LINE_F] += a * (f_d - mem[K_LINE_F])
-        mem[K_LINE_S] += a * (s_raw - mem[K_LINE_S])
-    else:
-        mem[K_LINE_F], mem[K_LINE_S] = f_d, s_raw
-    mem[K_LINE_ON] = 1.0
-    f_d, s_raw = mem[K_LINE_F], mem[K_LINE_S]
-    lam = exp(-dt / RLS_TAU_S)
-    p00, p01, p11 = mem[K_P00] / lam, mem[K_P01] / lam, mem[K_P11] / lam
-    # K = P h / (h' P h + r), h = (1, f)
-    ph0, ph1 = p00 + p01 * f_d, p01 + p11 * f_d
-    r = (SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v) ** 2
-    den = ph0 + ph1 * f_d + r
-    k0, k1 = ph0 / den, ph1 / den
-    err = s_raw - (mem[K_S0] + mem[K_SLOPE] * f_d)
-    mem[K_S0] += k0 * err
-    mem[K_SLOPE] += k1 * err
-    # P = (I - K h') P
-    mem[K_P00] = p00 - k0 * ph0
-    mem[K_P01] = p01 - k0 * ph1
-    mem[K_P11] = p11 - k1 * ph1
-    mem[K_RLS_W] += dt
+    f_d, s_raw = _line_input(mem, K_LINE_F, f_d, s_raw, dt, line_on)
+    _line_update(mem, K_S0, f_d, s_raw, dt, v)
 
 
 @njit(cache=True)
@@ -1202,7 +1188,11 @@ def pmf_step(mem, q, smp, t_prev, out):
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
         # the line at the static loads: the transfer's part (at the profile's tires) taken out
         transfer = (f_f - f_f_static) / q[Q_C0_FRONT] - (f_r - f_r_static) / q[Q_C0_REAR]
-        _brake_line(mem, d - transfer, x, dt, v_ref, x <= BRAKE_LINE_MAX_G)
+        was_on = mem[K_BL_ON] > 0.0
+        mem[K_BL_ON] = 0.0
+        if x <= BRAKE_LINE_MAX_G:
+            x_f, d_f = _line_input(mem, K_BL_X, x, d - transfer, dt, was_on)
+            _line_update(mem, K_BL_B, x_f, d_f, dt, v_ref)
     else:
         mem[K_BL_ON] = 0.0
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)

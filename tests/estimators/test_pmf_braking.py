@@ -23,7 +23,7 @@ DRIVES = {"fwd": 1.0, "rwd": 0.0, "awd": 0.5}
 STOP_AT_S = 120.0  # the stop under test begins here
 
 
-def _first_axle_decel(vehicle, share_of_limit, mu):
+def first_axle_decel(vehicle, share_of_limit, mu):
     """The deceleration (m/s^2) at which the axle the brake split loads most carries share_of_limit of mu (static
     loads: the transfer is left out, so the real share is a little larger on the front axle)."""
     psi = vehicle.cg_to_rear_axle_m / vehicle.wheelbase_m
@@ -44,11 +44,11 @@ def _speed(brake_s):
     return SpeedProfile(t, v), float(np.trapezoid(v[:-2], t[:-2]))
 
 
-def _stop(car, profile_entry, tire, mu, share_of_limit):
+def stop_estimates(car, profile_entry, tire, mu, share_of_limit):
     """The drive of `_speed` on a straight road whose last part (from 30 m before the stop) has mu, the stop's
     deceleration putting the first axle at share_of_limit of mu by the catalogue's geometry, every production effect
     on. Returns pmf's estimates over the stop, given the catalogue profile."""
-    brake_s = 6.0 / _first_axle_decel(profile_entry, share_of_limit, mu)
+    brake_s = 6.0 / first_axle_decel(profile_entry, share_of_limit, mu)
     speed, before = _speed(brake_s)
     scenario = Scenario(
         run_id="stop",
@@ -70,7 +70,7 @@ def _stop(car, profile_entry, tire, mu, share_of_limit):
     return {k: out[k].to_numpy()[braking] for k in ("mu", "mu_lower", "mu_upper")}
 
 
-def _drawn(entry, drive, front_load):
+def drawn_car(entry, drive, front_load):
     """A car drawn around a catalogue entry: the drive layout given, 10 % more mass, its static front load share
     front_load off the catalogue's (the random vehicles span +-0.075; ECE R13-H's laden against unladen is 0.05).
     Returns (the car, the catalogue entry it registers as)."""
@@ -93,8 +93,8 @@ def test_gentle_braking_on_ice_reads_low(entry, drive, mu, tire, median_at_most)
     the braking line learned in the gentle stops: over the last second the median reads ice on the Dugoff tire (2.5
     to 5 times its linear slip there) and below the prior's on the Magic Formula's, whose curve is straighter (the
     brush model reads part of its bend as a softer tire); the interval holds the truth throughout."""
-    car, catalogue = _drawn(entry, drive, -0.06)
-    est = _stop(car, catalogue, TIRES[tire], mu, 0.9)
+    car, catalogue = drawn_car(entry, drive, -0.06)
+    est = stop_estimates(car, catalogue, TIRES[tire], mu, 0.9)
     assert np.median(est["mu"][-10:]) <= median_at_most
     assert ((est["mu_lower"] <= mu) & (est["mu_upper"] >= mu)).all()
 
@@ -109,9 +109,9 @@ def test_braking_on_wet_and_dry_with_another_load_share_is_not_read_as_ice(entry
     than the profile says. Read against the catalogue's line at every sample, that read wet asphalt as snow (median
     0.34-0.37); against a line whose zero and slope were taken from a 2WD's slip line, as 0.32-0.45 (a 0.002-0.005
     error in the zero, extrapolated). The median stays above 0.6 and the upper end above 0.8."""
-    car, catalogue = _drawn(entry, drive, front_load)
+    car, catalogue = drawn_car(entry, drive, front_load)
     for mu, share_of_limit in ((0.5, 0.5), (0.5, 0.85), (0.95, 0.5), (0.95, 0.85)):
-        est = _stop(car, catalogue, TIRES[tire], mu, share_of_limit)
+        est = stop_estimates(car, catalogue, TIRES[tire], mu, share_of_limit)
         assert est["mu"].min() >= 0.6, (mu, share_of_limit)
         assert est["mu_upper"].min() >= 0.8, (mu, share_of_limit)
 
