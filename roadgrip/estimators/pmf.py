@@ -740,8 +740,9 @@ def _brake_slip_likelihood(
     calibrated = np.isfinite(line_var)
     for i in range(NM):
         mu = MU_GRID[i]
-        slip_f = brush_slip(f_front, mu, c0_front)  # each at C = the profile's; at C factor k it is this / k
-        slip_r = brush_slip(f_rear, mu, c0_rear)
+        brush_f = brush_slip(f_front, mu, c0_front)  # each at C = the profile's; at C factor k it is this / k
+        brush_r = brush_slip(f_rear, mu, c0_rear)
+        slip_f, slip_r = brush_f, brush_r
         g_f = brush_slip_angle_slope(f_front, mu, c0_front)  # d slip / d f
         g_r = brush_slip_angle_slope(f_rear, mu, c0_rear)
         if calibrated:  # what the static line does not hold: the load transfer and the curve's excess
@@ -754,7 +755,7 @@ def _brake_slip_likelihood(
             repeats * ((k_f / share + k_r / (1.0 - share)) * BRAKE_SHARE_SPREAD) ** 2
             + repeats * ((k_f / psi + k_r / (1.0 - psi)) * LOAD_SHARE_SPREAD) ** 2
             + ((k_f - k_r) * s_f) ** 2
-            + (SLIP_MODEL_SHARE * (brush_slip(f_front, mu, c0_front) + brush_slip(f_rear, mu, c0_rear))) ** 2
+            + (SLIP_MODEL_SHARE * (brush_f + brush_r)) ** 2
         )
         for j in range(NC):
             pred = (slip_f - slip_r) / C_FACTORS[j]
@@ -1186,11 +1187,11 @@ def pmf_step(mem, q, smp, t_prev, out):
             like,
         )
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
-        # the line at the static loads: the transfer's part (at the profile's tires) taken out
-        transfer = (f_f - f_f_static) / q[Q_C0_FRONT] - (f_r - f_r_static) / q[Q_C0_REAR]
         was_on = mem[K_BL_ON] > 0.0
         mem[K_BL_ON] = 0.0
         if x <= BRAKE_LINE_MAX_G:
+            # the line at the static loads: the transfer's part (at the profile's tires) taken out
+            transfer = (f_f - f_f_static) / q[Q_C0_FRONT] - (f_r - f_r_static) / q[Q_C0_REAR]
             x_f, d_f = _line_input(mem, K_BL_X, x, d - transfer, dt, was_on)
             _line_update(mem, K_BL_B, x_f, d_f, dt, v_ref)
     else:
