@@ -373,7 +373,11 @@ N_MEM_V4 = N_MEM_V3 + 3
 (K_FR, K_FR_W, K_BL_B, K_BL_K, K_BL_P00, K_BL_P01, K_BL_P11, K_BL_W, K_BL_X, K_BL_D, K_BL_ON) = range(
     N_MEM_V4, N_MEM_V4 + 11
 )
-N_MEM = N_MEM_V4 + 11
+N_MEM_V5 = N_MEM_V4 + 11
+# the GNSS reference filter's accelerometer error (slip_slope.py), appended after it: a state saved before (N_MEM_V5
+# numbers) loads with none known
+K_GB = N_MEM_V5
+N_MEM = K_GB + ch.N_BIAS_MEM
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -455,6 +459,7 @@ def _start(mem, keep_stiffness):
     mem[K_LP01] = 0.0
     mem[K_V_PREV] = -1.0
     mem[K_V_REF] = 0.0
+    ch.unlock(mem, K_CH)  # the GNSS reference's speed is the last segment's: lock afresh on this one's fixes
     mem[K_U_SEEN] = 0.0
     mem[K_U_LIMIT] = 0.0
     mem[K_MU_LO] = _quantile(PRIOR, 0.05)
@@ -705,6 +710,14 @@ def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
 
 
 @njit(cache=True)
+def _repeats(dt):
+    """How many times the grid counts one sample's evidence within its memory (tempered samples dt apart, forgotten at
+    FORGET_PER_S): 10 at 10 Hz. A systematic error (the same at every sample) whose variance is multiplied by this
+    counts once. A sample without a step (dt = 0) counts once."""
+    return TEMPER / (1.0 - exp(-FORGET_PER_S * dt)) if dt > 0.0 else 1.0
+
+
+@njit(cache=True)
 def _brake_slip_likelihood(
     d,
     x,
@@ -870,6 +883,7 @@ def init_memory(mem, q):
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
     init_brake_line(mem, q)
+    ch.init_bias_memory(mem, K_GB)
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -1063,13 +1077,28 @@ def pmf_step(mem, q, smp, t_prev, out):
         q[Q_BRAKE_FRONT],
         q[Q_FRR],
     )
-    ch.gnss_update(mem, K_CH, smp[S_GNSS], smp[S_GNSS_ACC], ax_c, bias_sd, dt)
+    straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
+    # slip between the front and the rear axle under braking (below): where it speaks it reads the wheels' slip, against
+    # the car's own braking line, and the GNSS reference's per-axle terms stay silent (the same wheels, read once)
+    share = q[Q_BRAKE_FRONT]
+    brake = -m * atx - q[Q_FRR] * m * G_MPS2  # the brakes' force: the road's less the tires' rolling resistance
+    braking_term = (
+        dt > 0.0
+        and straight
+        and not limit
+        and atx < -BRAKE_MIN_MPS2
+        and brake > 0.0
+        and 0.0 < share < 1.0
+        and (mem[K_FR_W] if drive == 2 else mem[K_RLS_W]) >= FR_CALIBRATED_S
+        and v_ref >= SLIP_MIN_SPEED_MPS
+        and min(v_front, v_rear) > 0.5 * v_ref
+    )
+    ch.gnss_update(mem, K_CH, K_GB, smp[S_GNSS], smp[S_GNSS_ACC], ax_c, bias_sd, dt)
     v_x, v_x_sd = ch.reference_speed(mem, K_CH, smp[S_R], q[Q_LR], v, aty, q[Q_CA_REAR])
     gnss_driven = False
-    gnss_axles = False
     if np.isfinite(v_x) and v_x >= SLIP_MIN_SPEED_MPS:
         calm = not limit and abs(smp[S_R]) * (q[Q_LF] + q[Q_LR]) < 0.05 * v_x
-        evidence = not limit and dt > 0.0 and abs(aty) < ch.EVIDENCE_MAX_AY_MPS2
+        evidence = not limit and not braking_term and dt > 0.0 and abs(aty) < ch.EVIDENCE_MAX_AY_MPS2
         s_floor = SLIP_SIGMA0 + SLIP_SIGMA_PER_MPS / v_x
         for axle in range(2):
             c0 = q[Q_C0_FRONT] if axle == 0 else q[Q_C0_REAR]
@@ -1092,11 +1121,11 @@ def pmf_step(mem, q, smp, t_prev, out):
                 MU_GRID,
                 C_FACTORS,
                 TEMPER,
+                _repeats(dt),
                 like,
             ):
                 _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
                 gnss_driven = gnss_driven or axle == int(q[Q_DRIVE])
-                gnss_axles = True
     if not limit:
         mem[K_U_LIMIT] = 0.0
     else:
@@ -1129,7 +1158,6 @@ def pmf_step(mem, q, smp, t_prev, out):
             _limit_likelihood(u_limit, s_u, LIMIT_TCS if controller else LIMIT_LOCK, like)
         _apply(mem, like, TEMPER)
     # slip between the driven and the undriven axle
-    straight = abs(smp[S_R]) * wb < 0.05 * max(v, 1.0) and abs(smp[S_SWA] / q[Q_STEER_RATIO]) < 0.05
     driving = atx > -0.3 and smp[S_ABS] == 0.0
     f_d = 0.0
     s_raw = 0.0
@@ -1143,22 +1171,8 @@ def pmf_step(mem, q, smp, t_prev, out):
         if straight and driving and not gnss_driven:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
-    # slip between the front and the rear axle under braking (every drive): the GNSS reference reads each axle's
-    # own slip where it speaks (above), so this term stays silent then
-    share = q[Q_BRAKE_FRONT]
-    brake = -m * atx - q[Q_FRR] * m * G_MPS2  # the brakes' force: the road's less the tires' rolling resistance
-    if (
-        dt > 0.0
-        and straight
-        and not limit
-        and not gnss_axles
-        and atx < -BRAKE_MIN_MPS2
-        and brake > 0.0
-        and 0.0 < share < 1.0
-        and (mem[K_FR_W] if drive == 2 else mem[K_RLS_W]) >= FR_CALIBRATED_S
-        and v_ref >= SLIP_MIN_SPEED_MPS
-        and min(v_front, v_rear) > 0.5 * v_ref
-    ):
+    # slip between the front and the rear axle under braking (every drive; its condition `braking_term` above)
+    if braking_term:
         fz_f, fz_r = max(fz_front, 0.2 * m * G_MPS2), max(fz_rear, 0.2 * m * G_MPS2)
         # the ratio's zero: an AWD's calm mean, a 2WD's slip line at no force (s0: driven over undriven axle)
         zero = mem[K_FR] if drive == 2 else (mem[K_S0] if drive == 0 else 1.0 / (1.0 + mem[K_S0]) - 1.0)
@@ -1183,7 +1197,7 @@ def pmf_step(mem, q, smp, t_prev, out):
             mem[K_BL_P00] + 2.0 * mem[K_BL_P01] * x + mem[K_BL_P11] * x * x
             if mem[K_BL_W] >= BRAKE_LINE_CALIBRATED_S
             else np.nan,
-            TEMPER / (1.0 - exp(-FORGET_PER_S * dt)),  # tempered samples within the grid's memory: 10 at 10 Hz
+            _repeats(dt),
             like,
         )
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
@@ -1439,17 +1453,18 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4):
+        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4, N_MEM_V5):
             # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
             # before the steering torques' (V2: the trail's gain at the profile's), before the slip line's input
-            # filter (V3: empty) or before the braking term (V4: its zero and line unlearned): everything kept, each
-            # missing block fresh, as for a new car
+            # filter (V3: empty), before the braking term (V4: its zero and line unlearned) or before the reference
+            # filter's accelerometer error (V5: none known): everything kept, each missing block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
             ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
             al.init_aligning_memory(block, K_AL, NM)
             init_brake_line(block, q)
+            ch.init_bias_memory(block, K_GB)
             data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))

@@ -4,10 +4,13 @@ each axle's force, and the slip slope against them (Gustafsson, "Slip-based tire
 
 The reference. A production car's speed comes from its wheels, so under braking (every wheel brakes) and with all-wheel
 drive it has no slip-free reference. A GNSS receiver's Doppler speed (0.05 m/s, 10 Hz) is one, with latency (0-0.2 s),
-outages (tunnels) and multipath outliers. A two-state Kalman filter tracks the speed over ground V and the receiver's
-latency L: V is predicted by the accelerometer (a_x with pmf's calibrated bias taken out; its remaining error, bias and
-grades, grows the variance linearly in time: a systematic error, not white), and a fix z describes V at t - L,
-z = V - a_x L, so L is identified where a_x changes (braking, starting) and kept across gaps (it is the receiver's).
+outages (tunnels) and multipath outliers. A three-state Kalman filter tracks the speed over ground V, the receiver's
+latency L and b, the accelerometer's error that pmf's calibration leaves (a grade changing along the road, a bias that
+moved since; a random walk, its spread capped at the calibration's): V is predicted by a_x - b (a_x with pmf's
+calibrated bias taken out; the accelerometer's own error beside b grows V's spread linearly, a systematic error, not
+white), and a fix z describes V at t - L, z = V - (a_x - b) L, so L is identified where a_x changes (braking,
+starting) and b where the fixes drift from the prediction, both kept across gaps (the receiver's and the road's).
+Without b, V lagged the true speed on a grade the calibration had not seen (docs/ESTIMATORS.md 9).
 A fix whose innovation lies beyond GATE_SIGMA of its predicted spread (the receiver's sAcc, GNSS_SD_DEFAULT_MPS where
 it reports none) is rejected as an outlier; RELOCK_MISSES rejections in a row, or the spread past LOST_SD_MPS (an
 outage), and the filter locks afresh on the next fix, which counts only after CONFIRM_FIXES agree. The reference is used
@@ -18,8 +21,8 @@ the reference is V's component along the body, sqrt(V^2 - v_y^2), v_y = r l_r - 
 as pmf's). s = v_axle / v_x - 1 carries the rolling radius's error (1 % of radius: 0.01 of slip, more than moderate
 driving's whole slip), so each axle keeps a slip line s = s0 + k f by recursive least squares with forgetting (RLS_TAU_S)
 over straight, calm driving (|f| < LINE_MAX_F): s0 is the radius calibrated against GNSS, k Gustafsson's slip slope
-(1 / the axle's longitudinal stiffness per load). The line's intercept variance enters every slip term, so an axle not
-yet calibrated speaks weakly.
+(1 / the axle's longitudinal stiffness per load). The line's intercept variance enters every slip term, counted once
+over the grid's memory (the same error at every sample), so an axle not yet calibrated says nothing of mu.
 
 The force. Each axle's force per load comes from the drive and brake force channels where the car sends them (the
 drive force by the profile's drive split, the brake force by its brake balance; FORCE_SCALE_SD of scale error, the ECU's
@@ -53,7 +56,9 @@ LATENCY_PRIOR_S = 0.1  # the latency's prior: 0-0.2 s (uniform: mean 0.1, sd 0.0
 LATENCY_PRIOR_SD_S = 0.058
 LATENCY_RANGE_S = (0.0, 0.4)
 LATENCY_WALK_S_PER_SQRT_S = 0.001  # a receiver's latency barely changes
-ACCEL_ERROR_MPS2 = 0.1  # the accelerometer's noise allowance (as pmf's), added to its remaining bias
+ACCEL_ERROR_MPS2 = 0.1  # the accelerometer's error beside the filter's b (as pmf's allowance): pitch, vibration
+B_SD0_MPS2 = 0.5  # the accelerometer's error before any calibration (pmf's BIAS_SIGMA0_MPS2): mounting and pitch
+B_WALK_MPS2_PER_SQRT_S = 0.03  # ... and how fast it moves: a grade changing along the road (1 % in about 10 s)
 GATE_SIGMA = 4.0  # innovations beyond 4 sigma: multipath
 RELOCK_MISSES = 10  # a second of rejected fixes in a row: the filter, not the fixes, is wrong
 LOST_SD_MPS = 0.5  # an outage of a few seconds: lock afresh on the next fix
@@ -76,6 +81,9 @@ C_LINE = 10  # per axle (front, rear): s0, k, P00, P01, P11, seconds of data
 L_S0, L_K, L_P00, L_P01, L_P11, L_W = range(6)
 N_LINE = 6
 N_CHANNEL_MEM = C_LINE + 2 * N_LINE
+# The reference filter's accelerometer error state (its own block): b, its covariances with V and L, its variance
+B_B, B_PVB, B_PLB, B_PBB = range(4)
+N_BIAS_MEM = 4
 
 
 @njit(cache=True)
@@ -94,30 +102,71 @@ def init_channel_memory(mem, base, c0_front, c0_rear):
 
 
 @njit(cache=True)
-def _lock(mem, base, z, a, r):
-    mem[base + C_V] = z + a * mem[base + C_L]
-    mem[base + C_PVV] = r + (a * sqrt(mem[base + C_PLL])) ** 2
-    mem[base + C_PVL] = 0.0
+def init_bias_memory(mem, bias_base):
+    """The reference filter's accelerometer error state (its own block, appended after the first): none known yet,
+    within the uncalibrated accelerometer's spread (capped at pmf's calibration's as soon as the filter predicts)."""
+    mem[bias_base + B_B] = 0.0
+    mem[bias_base + B_PVB] = 0.0
+    mem[bias_base + B_PLB] = 0.0
+    mem[bias_base + B_PBB] = B_SD0_MPS2**2
+
+
+@njit(cache=True)
+def unlock(mem, base):
+    """The reference lost (a gap in the data): it speaks again only after a fresh lock and CONFIRM_FIXES agreeing
+    fixes. The latency and b are kept (the receiver's and the road's)."""
+    mem[base + C_LOCKED] = 0.0
+    mem[base + C_AGREE] = 0.0
+    mem[base + C_MISS] = 0.0
+
+
+@njit(cache=True)
+def _lock(mem, base, bias_base, z, a, r):
+    """A fresh lock on the fix z: V = z + (a - b) L, its covariance with L and b from theirs (L and b are kept: the
+    receiver's and the road's)."""
+    a_c = a - mem[bias_base + B_B]
+    lat = mem[base + C_L]
+    pll, plb, pbb = mem[base + C_PLL], mem[bias_base + B_PLB], mem[bias_base + B_PBB]
+    mem[base + C_V] = z + a_c * lat
+    mem[base + C_PVV] = r + a_c * a_c * pll + lat * lat * pbb - 2.0 * a_c * lat * plb
+    mem[base + C_PVL] = a_c * pll - lat * plb
+    mem[bias_base + B_PVB] = a_c * plb - lat * pbb
     mem[base + C_AGREE] = 0.0
     mem[base + C_MISS] = 0.0
     mem[base + C_LOCKED] = 1.0
 
 
 @njit(cache=True)
-def gnss_update(mem, base, z, accuracy, a, bias_sd, dt):
-    """Predict the speed over ground V with the accelerometer's a (bias out) over dt, then take the fix z (NaN: none)
-    with its reported accuracy (NaN: not reported). Fixes below 0.5 m/s say nothing of the direction of travel: skipped."""
+def gnss_update(mem, base, bias_base, z, accuracy, a, bias_sd, dt):
+    """Predict the speed over ground V with the accelerometer's a (pmf's calibrated bias out) less the filter's own
+    estimate b of what remains (a grade, a bias drifting since calibration) over dt, then take the fix z (NaN: none)
+    with its reported accuracy (NaN: not reported). b's spread never exceeds pmf's calibration's, bias_sd. Fixes below
+    0.5 m/s say nothing of the direction of travel: skipped."""
     locked = mem[base + C_LOCKED] > 0.0
     # z = V - a L holds where a was constant over the last L: where it changed, the fix's model is uncertain by the
     # change times the latency (the onset of braking would otherwise be read as latency, and then gated away)
     a_change = a - mem[base + C_A_PREV] if dt > 0.0 else 0.0
     mem[base + C_A_PREV] = a
-    if locked and dt > 0.0:
-        mem[base + C_V] += a * dt
-        sd = sqrt(mem[base + C_PVV]) + (bias_sd + ACCEL_ERROR_MPS2) * dt  # a systematic error grows linearly
-        mem[base + C_PVV] = sd * sd
+    if dt > 0.0:
+        pbb = mem[bias_base + B_PBB] + B_WALK_MPS2_PER_SQRT_S**2 * dt
+        if pbb > bias_sd * bias_sd:  # b scaled to pmf's spread, D P D with D = diag(1, 1, scale): P stays positive
+            scale = bias_sd / sqrt(pbb)
+            mem[bias_base + B_PVB] *= scale
+            mem[bias_base + B_PLB] *= scale
+            pbb = bias_sd * bias_sd
+        mem[bias_base + B_PBB] = pbb
         mem[base + C_PLL] += LATENCY_WALK_S_PER_SQRT_S**2 * dt
-        if sd > LOST_SD_MPS:
+    if locked and dt > 0.0:
+        # x = (V, L, b): V += (a - b) dt; F = [[1, 0, -dt], [0, 1, 0], [0, 0, 1]]
+        mem[base + C_V] += (a - mem[bias_base + B_B]) * dt
+        pvb, pbb = mem[bias_base + B_PVB], mem[bias_base + B_PBB]
+        # b's part through F; the accelerometer's own error beside it (pitch under braking, vibration) as a
+        # systematic one: V's spread grows linearly by it
+        pvv = mem[base + C_PVV] - 2.0 * dt * pvb + dt * dt * pbb
+        mem[base + C_PVV] = (sqrt(max(pvv, 0.0)) + ACCEL_ERROR_MPS2 * dt) ** 2
+        mem[base + C_PVL] -= dt * mem[bias_base + B_PLB]
+        mem[bias_base + B_PVB] = pvb - dt * pbb
+        if mem[base + C_PVV] > LOST_SD_MPS**2:
             mem[base + C_LOCKED] = 0.0
             locked = False
     if not np.isfinite(z) or z < 0.5:
@@ -125,26 +174,34 @@ def gnss_update(mem, base, z, accuracy, a, bias_sd, dt):
     sd_z = accuracy if np.isfinite(accuracy) and accuracy > 0.0 else GNSS_SD_DEFAULT_MPS
     r = max(sd_z, GNSS_SD_FLOOR_MPS) ** 2 + (a_change * LATENCY_RANGE_S[1]) ** 2
     if not locked:
-        _lock(mem, base, z, a, r)
+        _lock(mem, base, bias_base, z, a, r)
         return
-    # z = V - a L: H = (1, -a)
+    # z = V - (a - b) L: H = (1, -(a - b), L)
+    a_c = a - mem[bias_base + B_B]
+    lat = mem[base + C_L]
     pvv, pvl, pll = mem[base + C_PVV], mem[base + C_PVL], mem[base + C_PLL]
-    y = z - (mem[base + C_V] - a * mem[base + C_L])
-    ph0 = pvv - a * pvl
-    ph1 = pvl - a * pll
-    s = ph0 - a * ph1 + r
+    pvb, plb, pbb = mem[bias_base + B_PVB], mem[bias_base + B_PLB], mem[bias_base + B_PBB]
+    y = z - (mem[base + C_V] - a_c * lat)
+    ph0 = pvv - a_c * pvl + lat * pvb
+    ph1 = pvl - a_c * pll + lat * plb
+    ph2 = pvb - a_c * plb + lat * pbb
+    s = ph0 - a_c * ph1 + lat * ph2 + r
     if y * y > GATE_SIGMA * GATE_SIGMA * s:
         mem[base + C_OUTLIERS] += 1.0
         mem[base + C_MISS] += 1.0
         if mem[base + C_MISS] >= RELOCK_MISSES:
-            _lock(mem, base, z, a, r)
+            _lock(mem, base, bias_base, z, a, r)
         return
-    k0, k1 = ph0 / s, ph1 / s
+    k0, k1, k2 = ph0 / s, ph1 / s, ph2 / s
     mem[base + C_V] += k0 * y
-    mem[base + C_L] = min(max(mem[base + C_L] + k1 * y, LATENCY_RANGE_S[0]), LATENCY_RANGE_S[1])
+    mem[base + C_L] = min(max(lat + k1 * y, LATENCY_RANGE_S[0]), LATENCY_RANGE_S[1])
+    mem[bias_base + B_B] += k2 * y
     mem[base + C_PVV] = pvv - k0 * ph0
     mem[base + C_PVL] = pvl - k0 * ph1
     mem[base + C_PLL] = pll - k1 * ph1
+    mem[bias_base + B_PVB] = pvb - k0 * ph2
+    mem[bias_base + B_PLB] = plb - k1 * ph2
+    mem[bias_base + B_PBB] = pbb - k2 * ph2
     mem[base + C_MISS] = 0.0
     mem[base + C_AGREE] += 1.0
 
@@ -205,6 +262,7 @@ def axle_slip_evidence(
     mu_grid,
     c_factors,
     temper,
+    repeats,
     like,
 ):
     """One axle's slip against the GNSS reference: the likelihood over pmf's (mu, C) grid into `like` (True returned)
@@ -216,7 +274,9 @@ def axle_slip_evidence(
     used = False
     if evidence and abs(f) >= EVIDENCE_MIN_F:
         s_meas = s - mem[b + L_S0]
-        sd0 = sqrt(var_meas + mem[b + L_P00] + (f_sd * mem[b + L_K]) ** 2)
+        # the line's intercept is the same at every sample within the grid's memory: its variance counts `repeats`
+        # times, so that it counts once (the reference's error is correlated over the filter's few fixes, as TEMPER)
+        sd0 = sqrt(var_meas + repeats * mem[b + L_P00] + (f_sd * mem[b + L_K]) ** 2)
         for i in range(mu_grid.size):
             shape = brush_slip(f, mu_grid[i], c0)  # at C = c0; at C it is shape / C
             for j in range(c_factors.size):
