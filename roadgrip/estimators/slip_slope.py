@@ -30,13 +30,14 @@ torque model), else from m a_x allocated the same way (the accelerometer's remai
 
 The evidence. The brush model's slip at the axle's force per load (lateral.py `brush_slip`, the same relation as pmf's
 axle-slip term) against the measured slip minus s0, for every (mu, C) of pmf's grid; the spread is the reference's,
-the wheels' (noise, a time offset against the accelerometer under deceleration), the force's through the line's slope,
-and the brush model's error against real tires (a share of the prediction). What it can prove (docs/ESTIMATORS.md 9):
-at low utilization the brush slip is f / C whatever mu (its excess over the line is about f / (3 mu)), so calm driving
-tells the stiffness, not mu; and the stiffness is the tire's and the surface's together (Gustafsson's slope-mu
-correlation is empirical, per tire), so the slope is never mapped to mu directly: the grid marginalises C, and only the
-bend of slip against force near the limit (braking, accelerating, where the wheels have no reference of their own)
-narrows mu. The steering torques are aligning.py's (docs/ESTIMATORS.md 9).
+the wheels' (noise, a time offset against the accelerometer under deceleration), the force's through the line's
+slope, and the brush model's error against real tires (a share of the prediction). Under braking where pmf's braking
+term speaks, that term reads the wheels and this one is silent (`evidence` False). What it can prove
+(docs/ESTIMATORS.md 9): at low utilization the brush slip is f / C whatever mu (its excess over the line is about
+f / (3 mu)), so calm driving tells the stiffness, not mu; and the stiffness is the tire's and the surface's together
+(Gustafsson's slope-mu correlation is empirical, per tire), so the slope is never mapped to mu directly: the grid
+marginalises C, and only the bend of slip against force near the limit (braking, accelerating, where the wheels have
+no reference of their own) narrows mu. The steering torques are aligning.py's (docs/ESTIMATORS.md 9).
 """
 
 from __future__ import annotations
