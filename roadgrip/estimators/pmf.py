@@ -883,7 +883,7 @@ def init_memory(mem, q):
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
     init_brake_line(mem, q)
-    ch.init_bias_memory(mem, K_GB)
+    ch.init_bias_memory(mem, K_GB, BIAS_SIGMA0_MPS2)
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -1464,7 +1464,7 @@ class PMFEstimator(Estimator):
             ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
             al.init_aligning_memory(block, K_AL, NM)
             init_brake_line(block, q)
-            ch.init_bias_memory(block, K_GB)
+            ch.init_bias_memory(block, K_GB, BIAS_SIGMA0_MPS2)
             data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))

@@ -58,8 +58,7 @@ LATENCY_PRIOR_SD_S = 0.058
 LATENCY_RANGE_S = (0.0, 0.4)
 LATENCY_WALK_S_PER_SQRT_S = 0.001  # a receiver's latency barely changes
 ACCEL_ERROR_MPS2 = 0.1  # the accelerometer's error beside the filter's b (as pmf's allowance): pitch, vibration
-B_SD0_MPS2 = 0.5  # the accelerometer's error before any calibration (pmf's BIAS_SIGMA0_MPS2): mounting and pitch
-B_WALK_MPS2_PER_SQRT_S = 0.03  # ... and how fast it moves: a grade changing along the road (1 % in about 10 s)
+B_WALK_MPS2_PER_SQRT_S = 0.03  # how fast b moves: a grade changing along the road (1 % in about 10 s)
 GATE_SIGMA = 4.0  # innovations beyond 4 sigma: multipath
 RELOCK_MISSES = 10  # a second of rejected fixes in a row: the filter, not the fixes, is wrong
 LOST_SD_MPS = 0.5  # an outage of a few seconds: lock afresh on the next fix
@@ -103,13 +102,14 @@ def init_channel_memory(mem, base, c0_front, c0_rear):
 
 
 @njit(cache=True)
-def init_bias_memory(mem, bias_base):
+def init_bias_memory(mem, bias_base, sd0):
     """The reference filter's accelerometer error state (its own block, appended after the first): none known yet,
-    within the uncalibrated accelerometer's spread (capped at pmf's calibration's as soon as the filter predicts)."""
+    within sd0, the uncalibrated accelerometer's spread (capped at pmf's calibration's as soon as the filter
+    predicts)."""
     mem[bias_base + B_B] = 0.0
     mem[bias_base + B_PVB] = 0.0
     mem[bias_base + B_PLB] = 0.0
-    mem[bias_base + B_PBB] = B_SD0_MPS2**2
+    mem[bias_base + B_PBB] = sd0 * sd0
 
 
 @njit(cache=True)
