@@ -39,8 +39,8 @@ from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
 from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
 
-# docs/PRODUCTION.md, "The physics guard": the bound is (|a_road| - 2 sigma_a) / g with sigma_a = 0.15 m/s^2
-ACCEL_SIGMA_MPS2 = 0.15
+# docs/PRODUCTION.md, "The physics guard": the bound is (|a_road| - 2 sigma_a) / g with sigma_a = 0.3 m/s^2
+ACCEL_SIGMA_MPS2 = 0.3
 K_SIGMA = 2.0
 FLOAT_FIELDS = ("mu", "mu_lower", "mu_upper", "mu_proven")
 CHUNK_SIZES = (1, 7, 50, None)  # None: the whole drive in one chunk (plain streaming)

@@ -25,6 +25,7 @@ from roadgrip.vehicle.dynamics import AIR_DENSITY_KGPM3
 from roadgrip.vehicle.params import PAPER_SUV
 
 ESTIMATORS = estimator_names()
+UNCALIBRATED_SIGMA_MPS2 = 0.3  # docs/PRODUCTION.md, "The physics guard": an uncalibrated production sensor's allowance
 
 
 def test_bound_takes_drag_out_and_nothing_else():
@@ -34,14 +35,15 @@ def test_bound_takes_drag_out_and_nothing_else():
     bound = tire_force_bound(PAPER_SUV, ax, 0.0, v, GuardSettings(k_sigma=0.0))
     assert bound == pytest.approx(mu, abs=1e-12)
     margin = tire_force_bound(PAPER_SUV, ax, 0.0, v)
-    assert margin == pytest.approx(mu - 0.3 / G_MPS2, abs=1e-12)
+    assert margin == pytest.approx(mu - 0.6 / G_MPS2, abs=1e-12)
     assert tire_force_bound(PAPER_SUV, 0.05, 0.0, 0.0) == 0.0  # never negative
 
 
 def test_bound_holds_on_simulated_runs_at_the_limit():
     """On the paper's decreasing road (every wheel at its limit on the 0.1 section) the guard's bound never exceeds
-    the true mu under the wheels; on random runs with every production effect on (accelerometers tilted up to 2
-    degrees: 0.34 m/s^2, beyond the guard's allowance) by no more than 0.02."""
+    the true mu under the wheels, nor on random runs with every production effect on (accelerometers tilted up to 2
+    degrees, 0.34 m/s^2, and offset up to 0.2 m/s^2: within the guard's allowance; with half of it the bound exceeded
+    the truth by up to 0.02 there)."""
     import pyarrow.compute as pc
 
     from roadgrip.sim.presets import paper_scenarios, random_scenarios
@@ -55,8 +57,7 @@ def test_bound_holds_on_simulated_runs_at_the_limit():
             s.vehicle, run["accel_lon_mps2"].to_numpy(), run["accel_lat_mps2"].to_numpy(), run["speed_mps"].to_numpy()
         )
         mu_max = np.max([run[f"mu_{w}"].to_numpy() for w in ("fl", "fr", "rl", "rr")], axis=0)
-        allowance = 0.02 if s.run_id.startswith("random") else 1e-9
-        assert (bound <= mu_max + allowance).all(), s.run_id
+        assert (bound <= mu_max + 1e-9).all(), s.run_id
 
 
 def test_apply_bound_raises_what_is_below_and_widens_what_is_contradicted():
@@ -174,9 +175,10 @@ def log_accelerometer_sigma(table: pa.Table) -> float:
 def test_bmw_m8_braking_log_never_below_what_the_car_proves(name, estimators):
     """A real car braking at 1.2-1.4 g on dry asphalt. Coulomb's law at the tires: mu g >= |a_road_x|, the road's
     force along the car per mass (the accelerometer's reading with the air's drag taken out). The reading carries
-    noise and bias: two sigma of them, measured on the log itself against the reference speed (0.25 m/s^2), come off.
-    Neither the guard's margin nor its drag enter the bound, so the estimates could fall below it (without the guard
-    each of the four estimators does, on 11-38 samples)."""
+    noise and bias: two sigma of them come off, the larger of the log's own (measured against the reference speed,
+    0.25 m/s^2) and the documented allowance of a sensor nobody has calibrated yet (docs/PRODUCTION.md: 0.3 m/s^2),
+    which is all an estimator reading the log can know. The guard's drag does not enter this bound, so the estimates
+    could fall below it (without the guard each of the four estimators does: on 11-47 of 87-96 samples)."""
     importer = get_importer("bmw-m8")
     table = importer.load(Path(__file__).parents[2] / "data/real/bmw_m8_braking")
     vehicle = importer.profile()
@@ -185,7 +187,7 @@ def test_bmw_m8_braking_log_never_below_what_the_car_proves(name, estimators):
     speed = table["speed_mps"].to_numpy()
     drag = 0.5 * AIR_DENSITY_KGPM3 * vehicle.drag_coefficient * vehicle.frontal_area_m2 / vehicle.mass_kg * speed**2
     road_x = table["accel_lon_mps2"].to_numpy() + drag
-    proven = np.maximum(np.abs(road_x) - 2.0 * sigma, 0.0) / G_MPS2
+    proven = np.maximum(np.abs(road_x) - 2.0 * max(sigma, UNCALIBRATED_SIGMA_MPS2), 0.0) / G_MPS2
     assert (proven > 0.8).sum() >= 10  # the hard braking is in the log
     out = estimators[name].estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), vehicle)
     idx = np.searchsorted(table["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
