@@ -562,10 +562,12 @@ def _apply_at_stiffness(mem, like, inconsistent):
 def _demand_likelihood(mu, u, s_u):
     """p(u | mu) up to a factor: the driver's demand d has density exp(-d / DEMAND_G) / DEMAND_G whatever the road;
     the tires transmit u = d where d < mu, and where d >= mu (probability exp(-mu / DEMAND_G)) they saturate, u / mu
-    then in [ETA_LIMIT, 1]. Divided by exp(-u / DEMAND_G): P(mu >= u) (1 + DEMAND_G [u / mu in the band] / band)."""
+    then uniform in [ETA_LIMIT, 1]. Divided by exp(-u / DEMAND_G) / DEMAND_G:
+    P(mu >= u) (1 + DEMAND_G exp(-(mu - u) / DEMAND_G) [u / mu in the band] / band)."""
     s_lim = sqrt(s_u * s_u + (0.05 * mu) ** 2)
     band = (1.0 - ETA_LIMIT) * mu
-    return normal_cdf((mu - u) / s_u) * (1.0 + DEMAND_G * normal_cdf((u - ETA_LIMIT * mu) / s_lim) / band)
+    saturated = DEMAND_G * exp(-max(mu - u, 0.0) / DEMAND_G) / band
+    return normal_cdf((mu - u) / s_u) * (1.0 + saturated * normal_cdf((u - ETA_LIMIT * mu) / s_lim))
 
 
 @njit(cache=True)

@@ -272,3 +272,25 @@ def test_batch_equals_streaming():
     streamed, estimator, _ = _run(samples)
     batch = estimator.estimate_batch(pa.Table.from_pylist(samples), np.zeros(n, dtype=np.int64), FWD)
     assert batch["mu"].to_pylist() == [e.mu for e in streamed]
+
+
+@pytest.mark.parametrize("mu_low, u", [(0.6, 0.54), (0.3, 0.27), (0.9, 0.8)])
+def test_the_demand_likelihood_is_its_generative_models(mu_low, u):
+    """The bound's likelihood models the driver's demand d as exponential (mean DEMAND_G) whatever the road, the tires
+    transmitting u = d below mu and saturating, u / mu uniform in [ETA_LIMIT, 1], when d >= mu. Its density of u,
+    written out here from that model, sets the odds of a mu whose band holds u against a mu far above it; pmf's
+    likelihood (noise made negligible) must give the same odds (before the saturation's exp(-(mu - u) / DEMAND_G) was
+    left out, overstating them by a fifth to a half, which pulled a dry road's estimate to just above its utilisation)."""
+    from roadgrip.estimators import pmf
+
+    d, eta = pmf.DEMAND_G, pmf.ETA_LIMIT
+
+    def density(mu):
+        below = np.exp(-u / d) / d if u < mu else 0.0
+        saturated = np.exp(-mu / d) / ((1.0 - eta) * mu) if eta * mu <= u <= mu else 0.0
+        return below + saturated
+
+    mu_high = 1.4
+    expected = density(mu_low) / density(mu_high)
+    got = pmf._demand_likelihood(mu_low, u, 1e-6) / pmf._demand_likelihood(mu_high, u, 1e-6)
+    assert got == pytest.approx(expected, rel=0.03)
