@@ -873,6 +873,17 @@ def init_brake_line(mem, q):
 
 
 @njit(cache=True)
+def init_appended_blocks(mem, q):
+    """The blocks appended to the memory's layout since its first version, each as a new car's: the optional channels'
+    (V1), the steering torques' (V2), the braking line's (V4) and the GNSS reference's accelerometer error (V5). A state
+    saved before one of them loads with that block from here (`state_from_dict`)."""
+    ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
+    al.init_aligning_memory(mem, K_AL, NM)
+    init_brake_line(mem, q)
+    ch.init_bias_memory(mem, K_GB, BIAS_SIGMA0_MPS2)
+
+
+@njit(cache=True)
 def init_memory(mem, q):
     mem[:] = 0.0
     mem[K_SLOPE] = 1.0 / q[Q_C0]
@@ -882,10 +893,7 @@ def init_memory(mem, q):
     mem[K_LAT_S] = 1.0
     mem[K_LP00] = LAT_OFFSET_SIGMA0_RAD**2
     mem[K_LP11] = LAT_SLOPE_SIGMA0**2
-    ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
-    al.init_aligning_memory(mem, K_AL, NM)
-    init_brake_line(mem, q)
-    ch.init_bias_memory(mem, K_GB, BIAS_SIGMA0_MPS2)
+    init_appended_blocks(mem, q)
     _start(mem, False)
     mem[K_STARTED] = 0.0
 
@@ -1463,10 +1471,7 @@ class PMFEstimator(Estimator):
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
-            ch.init_channel_memory(block, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
-            al.init_aligning_memory(block, K_AL, NM)
-            init_brake_line(block, q)
-            ch.init_bias_memory(block, K_GB, BIAS_SIGMA0_MPS2)
+            init_appended_blocks(block, q)
             data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))
