@@ -102,37 +102,67 @@ def normal_cdf(x):
     return 0.5 * (1.0 + erf(x / sqrt(2.0)))
 
 
+# The tires' compliance state (lateral_likelihood's `comp`, and `post` a grid mu): the means of the front and rear
+# tires' cornering compliance over the profile's, then their covariance's (ff, fr, rr)
+N_COMPLIANCE = 5
+
+
 @njit(cache=True)
 def lateral_likelihood(
-    mu_grid, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, slope, var0, sf, temper, out
+    mu_grid, comp, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, var0, sf, temper, out, post
 ):
     """The likelihood over mu (out, one value per grid mu) of a measured understeer angle (rad, the calibrated offset
-    taken out), raised to `temper`; f_*: the axles' lateral, fx_*: their longitudinal forces per load.
+    taken out), raised to `temper`, with the tires' compliances marginalised; f_*: the axles' lateral, fx_*: their
+    longitudinal forces per load.
 
-    slope: the calibrated factor on the profile's slip angles (1 / the tires' stiffness factor); var0: the variance of
-    the measurement and of the calibration (offset and slope); sf: the force per load's standard deviation (the
-    lateral accelerometer's remaining bias over g), carried through the brush model's slope. An axle at its limit
-    (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then one-sided, and uninformative where both
-    axles are: there the likelihood is the nearest cell's with an axle that holds (from above), so that a sample the
-    model fits badly does not favour the cells where it says nothing (the friction bound judges those)."""
+    Given mu the understeer angle is linear in the front and rear tires' compliances over the profile's (k_f, k_r):
+    k_f a_f - k_r a_r, a_* the brush model's slip angles at the profile's stiffnesses. comp holds their Gaussian (means,
+    covariance: N_COMPLIANCE numbers), so each mu's likelihood is the Kalman filter's predictive
+    density N(y; h m, h P h' + R / temper), h = (a_f, -a_r), times the tempering's own factor (R^(-temper / 2) for
+    N(y; h x, R)^temper), scaled by var0^(temper / 2) (1 at R = var0, P = 0: the one-sided terms' scale); post gets
+    each mu's Kalman update (m + K e, P - K h P: N_COMPLIANCE numbers a mu). var0: the variance of the measurement and of the calibrated offset; R adds
+    the brush model's error against other tires (LATERAL_MODEL_SHARE of its bend) and the force per load's standard
+    deviation sf (the lateral accelerometer's remaining bias over g) through the brush model's slope, each at the mean
+    compliances. An axle at its limit (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then
+    one-sided (and post is comp), and uninformative where both axles are: there the likelihood is the nearest cell's
+    with an axle that holds (from above), so that a sample the model fits badly does not favour the cells where it
+    says nothing (the friction bound judges those)."""
+    n = N_COMPLIANCE
+    m_f, m_r, p_ff, p_fr, p_rr = comp[0], comp[1], comp[2], comp[3], comp[4]
     for i in range(mu_grid.size - 1, -1, -1):
         mu = mu_grid[i]
+        for k in range(n):
+            post[i * n + k] = comp[k]
         mu_f = sqrt(max(mu * mu - fx_front * fx_front, (LATERAL_SHARE_FLOOR * mu) ** 2))
         mu_r = sqrt(max(mu * mu - fx_rear * fx_rear, (LATERAL_SHARE_FLOOR * mu) ** 2))
         a_f, sat_f = brush_slip_angle(f_front, mu_f, c_front)
         a_r, sat_r = brush_slip_angle(f_rear, mu_r, c_rear)
-        pred = slope * (a_f - a_r)
-        lin = slope * (f_front / c_front - f_rear / c_rear)
-        d_slope = slope * (
-            brush_slip_angle_slope(f_front, mu_f, c_front) - brush_slip_angle_slope(f_rear, mu_r, c_rear)
+        pred = m_f * a_f - m_r * a_r
+        excess = m_f * (a_f - f_front / c_front) - m_r * (a_r - f_rear / c_rear)
+        d_slope = m_f * brush_slip_angle_slope(f_front, mu_f, c_front) - m_r * brush_slip_angle_slope(
+            f_rear, mu_r, c_rear
         )
-        sig = sqrt(var0 + (LATERAL_MODEL_SHARE * (pred - lin)) ** 2 + (sf * d_slope) ** 2)
+        r = var0 + (LATERAL_MODEL_SHARE * excess) ** 2 + (sf * d_slope) ** 2
+        # P h' with h = (a_f, -a_r), and h P h'
+        ph_f = p_ff * a_f - p_fr * a_r
+        ph_r = p_fr * a_f - p_rr * a_r
+        hph = a_f * ph_f - a_r * ph_r
         if sat_f and sat_r:
             out[i] = out[i + 1] if i + 1 < mu_grid.size else 1.0
         elif sat_f:  # the front slides: the understeer angle is at least (in the force's direction) the prediction
+            sig = sqrt(r + hph)
             out[i] = normal_cdf((understeer - pred) / sig if f_front > 0.0 else (pred - understeer) / sig) ** temper
         elif sat_r:  # the rear slides: the understeer angle is at most the prediction
+            sig = sqrt(r + hph)
             out[i] = normal_cdf((pred - understeer) / sig if f_rear > 0.0 else (understeer - pred) / sig) ** temper
         else:
-            z = (understeer - pred) / sig
-            out[i] = exp(-0.5 * temper * z * z)
+            s = hph + r / temper  # the innovation's variance, the tempered measurement's R / temper
+            e = understeer - pred
+            out[i] = sqrt(r / (temper * s)) * exp(-0.5 * e * e / s)
+            # K = P h' / s; m = m + K e; P = P - K h P
+            k_f, k_r = ph_f / s, ph_r / s
+            post[i * n] = m_f + k_f * e
+            post[i * n + 1] = m_r + k_r * e
+            post[i * n + 2] = p_ff - k_f * ph_f
+            post[i * n + 3] = p_fr - k_f * ph_r
+            post[i * n + 4] = p_rr - k_r * ph_r

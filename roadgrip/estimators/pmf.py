@@ -10,7 +10,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear zero calibrated | N(d; line(x) + s_brush(f_f, mu, C) - s_brush(f_r, mu, C) - the static line, s_d): each axle's force per load by the profile's brake_front_share, the car's braking line learned in gentle stops; before it is, the brush slips alone, the split's and load share's error counted once (`_brake_slip_likelihood`) |
-| the understeer angle delta - L r / v | the line calibrated (slope known to LAT_SLOPE_CALIBRATED), v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k (alpha_f - alpha_r), s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), one-sided where an axle is at its limit |
+| the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, |a_x| under BRAKE_MIN_MPS2, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k_f alpha_f - k_r alpha_r, s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), the tires' compliances (k_f, k_r) a Gaussian state marginalised (its predictive density), one-sided where an axle is at its limit |
 | the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
@@ -50,12 +50,20 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   load; b the steering and gyro offsets, k the tires' compliance over the profile's, K_us = k (1 / c_f - 1 / c_r) / g):
   recursive least squares (RLS_TAU_S) over calm driving only, where the brush model is within 10 % of its line (|a_y|
   under LAT_CALM_SHARE of the proven friction and LAT_CALM_AY_MPS2, and the yaw rate within LAT_REF_AGREE of the
-  steer's linear reference r_ref = v delta / (L + K_us v^2)); its uncertainty (the RLS covariance) widens the lateral
-  term, so an uncalibrated car's line is a prior of +-LAT_SLOPE_SIGMA0, not a fact. Each restart (`_start`: a gap or a
+  steer's linear reference r_ref = v delta / (L + K_us v^2)); the lateral term takes its offset b (the covariance's
+  b part as noise), and the reference its K_us. Each restart (`_start`: a gap or a
   new segment, perhaps a new power-on) returns the offset's covariance to an uncalibrated car's (LAT_OFFSET_SIGMA0_RAD)
   and keeps the slope: a MEMS gyro's bias comes back different at each power-on, so a new trip's offset is learned in
   its first seconds of calm driving instead of being read as the tires' slip angles (docs/RESULTS.md, "A new trip's
   gyro bias").
+
+The tires' cornering compliances over the profile's (k_f, k_r: 1 +- LAT_SLOPE_SIGMA0 common, +- LAT_AXLE_SIGMA each
+axle's own) are a state the samples share, not noise each sample has: given mu the understeer angle is linear in them,
+so each grid mu carries their Gaussian, updated by a Kalman step with the angle and collapsed after it into one pair
+for every mu (weighted by the posterior over mu: the tires are the car's, whatever the road), stepped between samples
+as the grid moves its mass and forgetting towards the prior at C_FORGET_PER_S. The term speaks from a new car's first
+sample, its likelihood the predictive density, so a compliance the angle has not yet pinned down widens it once
+rather than at every sample (docs/ESTIMATORS.md 11).
 
 The lateral channel needs no steady state: the understeer angle alpha_f - alpha_r = delta - L r / v is kinematic (v_y
 cancels) and the axles' forces come from a_y and the yaw acceleration (Newton-Euler), so a sine steer is read as a ramp
@@ -118,6 +126,7 @@ from roadgrip.estimators.base import (
 )
 from roadgrip.estimators.guard import PRIOR_UPPER_MU, drag_per_mass
 from roadgrip.estimators.lateral import (
+    N_COMPLIANCE,
     axle_lateral_per_load,
     brush_slip,
     brush_slip_angle_slope,
@@ -236,11 +245,10 @@ LAT_RELAXATION_M = 0.6  # a tire's lateral relaxation length (Pacejka ch. 7: 0.3
 LAT_MAX_STEER_RAD = 0.15  # the single-track model's small angles: cos delta within 1.1 %, tan within 0.8 %
 LAT_OFFSET_SIGMA0_RAD = 0.001  # an uncalibrated offset: steering bias 0.5 deg / ratio, gyro bias 0.002 rad/s x L / v
 LAT_OFFSET_FLOOR_RAD = 0.0003  # what its calibration leaves: the gyro bias's L b_r / v at another speed (11 vs 20 m/s)
-LAT_SLOPE_FLOOR = 0.05  # ... and of the slope: the tires' stiffness with their temperature and the road's texture
-# The line's errors are the same at every sample, not noise that averages out: the term speaks only once the slope is
-# known to this (1 sigma), a third of the brush model's bend at 60 % of the limit (1.32 x the line)
-LAT_SLOPE_CALIBRATED = 0.1
 LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: worn, winter, inflation (+-30 %)
+# ... and each axle's against the other's, apart from that common factor: front and rear tires wear unequally (the
+# driven axle faster) and may differ in make, size or pressure (1 sigma, about +-20 %)
+LAT_AXLE_SIGMA = 0.12
 LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
 LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
 LAT_BIAS_FLOOR_MPS2 = 0.1  # what calibration leaves: crossfall varying by 1 % around the one it learned
@@ -377,7 +385,11 @@ N_MEM_V5 = N_MEM_V4 + 11
 # the GNSS reference filter's accelerometer error (slip_slope.py), appended after it: a state saved before (N_MEM_V5
 # numbers) loads with none known
 K_GB = N_MEM_V5
-N_MEM = K_GB + ch.N_BIAS_MEM
+N_MEM_V6 = K_GB + ch.N_BIAS_MEM
+# the tires' cornering compliances over the profile's (`_lateral`, lateral.py: a Gaussian, N_COMPLIANCE numbers),
+# appended after it: a state saved before (N_MEM_V6 numbers) loads with them at a new car's
+K_KC = N_MEM_V6
+N_MEM = K_KC + N_COMPLIANCE
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
     "accel_bias_weight_s": K_BIAS_W,
@@ -441,8 +453,53 @@ def _c_marginal(mem):
 
 
 @njit(cache=True)
+def _mu_marginal(mem):
+    pm = np.zeros(NM)
+    for i in range(NM):
+        for j in range(NC):
+            pm[i] += mem[G0 + i * NC + j]
+    return pm
+
+
+@njit(cache=True)
+def _compliance_prior(out):
+    """The tires' compliances over the profile's (k_f, k_r) of a new car: 1 each, a common spread (LAT_SLOPE_SIGMA0)
+    and each axle's own (LAT_AXLE_SIGMA); as `lateral_likelihood` reads them (means, then ff, fr, rr)."""
+    common, own = LAT_SLOPE_SIGMA0**2, LAT_AXLE_SIGMA**2
+    out[0], out[1] = 1.0, 1.0
+    out[2], out[3], out[4] = common + own, common, common + own
+
+
+@njit(cache=True)
+def _compliance_collapse(post, weights, out):
+    """One Gaussian (means and covariance, as _compliance_prior's) with the moments of the grid mus' compliance
+    Gaussians `post` (N_COMPLIANCE numbers a mu), weighted by `weights` (one a grid mu)."""
+    total = 0.0
+    second = np.zeros(3)
+    for k in range(N_COMPLIANCE):
+        out[k] = 0.0
+    for i in range(NM):
+        b = i * N_COMPLIANCE
+        w = weights[i]
+        total += w
+        out[0] += w * post[b]
+        out[1] += w * post[b + 1]
+        second[0] += w * (post[b + 2] + post[b] * post[b])
+        second[1] += w * (post[b + 3] + post[b] * post[b + 1])
+        second[2] += w * (post[b + 4] + post[b + 1] * post[b + 1])
+    out[0] /= total
+    out[1] /= total
+    out[2] = second[0] / total - out[0] * out[0]
+    out[3] = second[1] / total - out[0] * out[1]
+    out[4] = second[2] / total - out[1] * out[1]
+
+
+@njit(cache=True)
 def _start(mem, keep_stiffness):
-    """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps)."""
+    """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps, as are the
+    tires' cornering compliances: a restart leaves the tires as they were), or a new car's."""
+    if not keep_stiffness:
+        _compliance_prior(mem[K_KC : K_KC + N_COMPLIANCE])
     cm = _c_marginal(mem) if keep_stiffness else C_PRIOR.copy()
     total = 0.0
     for j in range(NC):
@@ -508,6 +565,19 @@ def _predict(mem, dt, c_prior):
             mem[G0 + i * NC + j] = (1.0 - forget) * (
                 (1.0 - forget_c) * p + forget_c * PRIOR[i] * c_prior[j]
             ) + forget * PRIOR[i] * c_target
+
+
+@njit(cache=True)
+def _compliance_forget(mem, dt):
+    """The tires' cornering compliances forget towards a new car's at C_FORGET_PER_S, as the grid's stiffness does: an
+    Ornstein-Uhlenbeck step, x0 + e^(-a) (x - x0) for the means and the covariance towards the prior's (its stationary
+    law)."""
+    prior = np.empty(N_COMPLIANCE)
+    _compliance_prior(prior)
+    keep = exp(-C_FORGET_PER_S * dt)
+    for k in range(N_COMPLIANCE):
+        w = keep if k < 2 else keep * keep
+        mem[K_KC + k] = prior[k] + w * (mem[K_KC + k] - prior[k])
 
 
 @njit(cache=True)
@@ -875,12 +945,14 @@ def init_brake_line(mem, q):
 @njit(cache=True)
 def init_appended_blocks(mem, q):
     """The blocks appended to the memory's layout since its first version, each as a new car's: the optional channels'
-    (V1), the steering torques' (V2), the braking line's (V4) and the GNSS reference's accelerometer error (V5). A state
+    (V1), the steering torques' (V2), the braking line's (V4), the GNSS reference's accelerometer error (V5) and the
+    tires' compliances (V6). A state
     saved before one of them loads with that block from here (`state_from_dict`)."""
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
     init_brake_line(mem, q)
     ch.init_bias_memory(mem, K_GB, BIAS_SIGMA0_MPS2)
+    _compliance_prior(mem[K_KC : K_KC + N_COMPLIANCE])
 
 
 @njit(cache=True)
@@ -916,7 +988,6 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
     ay = aty - mem[K_BIAS_Y]
     f_f, f_r = axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear)
     understeer = delta - wb * smp[S_R] / v - mem[K_LAT_B]
-    x0 = f_f / c_f - f_r / c_r  # the profile's linear understeer angle
     # the measurement's variance: steering and gyro noise, the groups' time offsets and the tire's lag on a changing
     # steer, the yaw acceleration's noise (a difference of two gyro samples) through the axles' forces
     lag = LAT_TIME_OFFSET_S + LAT_RELAXATION_M / v
@@ -928,9 +999,10 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
         + rate * rate
         + (mem[K_LAT_S] * s_racc) ** 2
     )
-    if (
-        not at_limit and mem[K_LP11] <= LAT_SLOPE_CALIBRATED**2
-    ):  # a wheel locked or spinning: its axle's forces are not the brush model's; the limit term speaks
+    # not at a wheel locked or spinning (its axle's forces are not the brush model's; the limit term speaks), nor where
+    # the axles brake or drive hard (|a_x| from BRAKE_MIN_MPS2, where the braking and drive terms read them): an axle's
+    # side slip then depends on its longitudinal slip too (combined slip), which this term does not know
+    if not at_limit and abs(atx) < BRAKE_MIN_MPS2:
         # each axle's longitudinal force per load (braking by the brake share, driving by the driven axle's)
         fx_f = fx_r = atx / G_MPS2  # all-wheel drive: each axle by its load
         if atx < 0.0:
@@ -940,22 +1012,20 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
             fx_f, fx_r = m * atx / fz_front, 0.0
         elif q[Q_DRIVE] == 1.0:
             fx_f, fx_r = 0.0, m * atx / fz_rear
-        var0 = (
-            var_meas
-            + mem[K_LP00]
-            + 2.0 * x0 * mem[K_LP01]
-            + x0 * x0 * mem[K_LP11]
-            + LAT_OFFSET_FLOOR_RAD**2
-            + (LAT_SLOPE_FLOOR * x0) ** 2
-        )
+        # the offset's uncertainty is noise a sample has; the tires' compliances are the state K_KC carries
+        var0 = var_meas + mem[K_LP00] + LAT_OFFSET_FLOOR_RAD**2
         bias_y_var = LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2
         sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var) / G_MPS2
         lk = np.empty(NM)
-        lateral_likelihood(MU_GRID, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, mem[K_LAT_S], var0, sf, TEMPER, lk)
+        post = np.empty(NM * N_COMPLIANCE)
+        comp = mem[K_KC : K_KC + N_COMPLIANCE]
+        lateral_likelihood(MU_GRID, comp, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, var0, sf, TEMPER, lk, post)
         for i in range(NM):
             for j in range(NC):
                 like[i, j] = lk[i]
-        _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
+        if _apply(mem, like, 1.0, INCONSISTENT**TEMPER):
+            # each mu's Kalman update, collapsed into one pair by the posterior over mu: the tires are the car's
+            _compliance_collapse(post, _mu_marginal(mem), comp)
     # calibration in calm driving: well below the proven friction, following the steer's linear reference
     if (
         at_limit
@@ -1014,6 +1084,7 @@ def pmf_step(mem, q, smp, t_prev, out):
     if dt > 0.0:
         c_prior = np.empty(NC)
         _stiffness_prior(mem, q, c_prior)
+        _compliance_forget(mem, dt)
         _predict(mem, dt, c_prior)
     radius = q[Q_RADIUS]
     # wheel ground speeds with the left/right radius ratios taken out (each side by half the ratio)
@@ -1443,6 +1514,8 @@ class PMFEstimator(Estimator):
         cm = grid.sum(axis=0)
         out = {name: float(state.mem[k]) for name, k in CALIBRATION.items()}
         out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
+        out["cornering_compliance_front"] = float(state.mem[K_KC])
+        out["cornering_compliance_rear"] = float(state.mem[K_KC + 1])
         out["inconsistent"] = int(state.mem[K_INCONSISTENT])
         out["gnss_latency_s"] = float(state.mem[K_CH + ch.C_L])
         out["gnss_outliers"] = int(state.mem[K_CH + ch.C_OUTLIERS])
@@ -1463,11 +1536,12 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4, N_MEM_V5):
+        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4, N_MEM_V5, N_MEM_V6):
             # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
             # before the steering torques' (V2: the trail's gain at the profile's), before the slip line's input
-            # filter (V3: empty), before the braking term (V4: its zero and line unlearned) or before the reference
-            # filter's accelerometer error (V5: none known): everything kept, each missing block fresh, as for a new car
+            # filter (V3: empty), before the braking term (V4: its zero and line unlearned), before the reference
+            # filter's accelerometer error (V5: none known) or before the tires' compliances (V6: at their prior):
+            # everything kept, each missing block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)

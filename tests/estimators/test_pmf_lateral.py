@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from lateral_drives import CALM_S, estimated, pooled
 
+from roadgrip.estimators import pmf
 from roadgrip.estimators.lateral import (
     axle_lateral_per_load,
     brush_slip_angle,
@@ -63,20 +64,44 @@ def test_the_brush_slip_angle_is_linear_at_small_force_and_bends_at_the_limit():
 
 
 def test_the_likelihood_prefers_the_mu_whose_bend_matches():
-    """An understeer angle made by the brush model at mu 0.15 is best explained near 0.15, a linear one by a high mu.
-    Where mu is below the force both axles slide and the angle says nothing: those cells keep the likelihood of the
-    nearest cell that holds (the friction bound judges them), so that a poor fit never favours them."""
+    """An understeer angle made by the brush model at mu 0.15 is best explained near 0.15, a linear one by a high mu,
+    with the tires' compliances known (a covariance of zero). Where mu is below the force both axles slide and the
+    angle says nothing: those cells keep the likelihood of the nearest cell that holds (the friction bound judges
+    them), so that a poor fit never favours them."""
     c_f, c_r = 14.0, 20.0
     f = 0.12
+    known = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # k_f = k_r = 1, no spread
+    post = np.empty(5 * MU_GRID.size)
     measured = brush_slip_angle(f, 0.15, c_f)[0] - brush_slip_angle(f, 0.15, c_r)[0]
     out = np.empty(MU_GRID.size)
-    lateral_likelihood(MU_GRID, measured, f, f, 0.0, 0.0, c_f, c_r, 1.0, 2e-4**2, 0.0, 1.0, out)
+    lateral_likelihood(MU_GRID, known, measured, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
     above = MU_GRID > f
     assert (out[~above] == out[above][0]).all()
     assert abs(MU_GRID[above][np.argmax(out[above])] - 0.15) <= 0.03
-    lateral_likelihood(MU_GRID, f / c_f - f / c_r, f, f, 0.0, 0.0, c_f, c_r, 1.0, 2e-4**2, 0.0, 1.0, out)
+    lateral_likelihood(MU_GRID, known, f / c_f - f / c_r, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
     assert MU_GRID[above][np.argmax(out[above])] >= 0.8
     assert out[above & (MU_GRID <= 0.2)].max() < 0.25 * out.max()  # half the bend allowed as model error
+
+
+def test_an_unknown_compliance_is_paid_for_and_learned():
+    """The same ice-made angle with the compliances at a new car's prior (1 +- 0.36 each): the low mu is still the
+    best explanation, less sharply than with them known, and the Kalman update moves the pair towards what the angle
+    asks at a high mu (the line explains the angle there) and shrinks its spread."""
+    c_f, c_r = 14.0, 20.0
+    f = 0.12
+    prior = np.empty(5)
+    pmf._compliance_prior(prior)
+    post = np.empty(5 * MU_GRID.size)
+    measured = brush_slip_angle(f, 0.15, c_f)[0] - brush_slip_angle(f, 0.15, c_r)[0]
+    out = np.empty(MU_GRID.size)
+    lateral_likelihood(MU_GRID, prior, measured, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
+    above = MU_GRID > f
+    assert abs(MU_GRID[above][np.argmax(out[above])] - 0.15) <= 0.05
+    i = int(np.argmin(abs(MU_GRID - 0.9)))  # at a high mu the angles are nearly the line's: the pair must explain more
+    a_f, a_r = brush_slip_angle(f, 0.9, c_f)[0], brush_slip_angle(f, 0.9, c_r)[0]
+    before, after = prior[0] * a_f - prior[1] * a_r, post[5 * i] * a_f - post[5 * i + 1] * a_r
+    assert abs(measured - after) < 0.5 * abs(measured - before)
+    assert post[5 * i + 2] < prior[2] and post[5 * i + 4] < prior[4]
 
 
 def test_the_calibration_survives_the_state_round_trip():
