@@ -445,20 +445,13 @@ def pack(vehicle: VehicleParams) -> np.ndarray:
 @njit(cache=True)
 def _c_marginal(mem):
     """The grid's stiffness marginal: its mass at each of C_FACTORS, summed over mu."""
-    cm = np.zeros(NC)
-    for i in range(NM):
-        for j in range(NC):
-            cm[j] += mem[G0 + i * NC + j]
-    return cm
+    return mem[G0 : G0 + NM * NC].reshape((NM, NC)).sum(axis=0)
 
 
 @njit(cache=True)
 def _mu_marginal(mem):
-    pm = np.zeros(NM)
-    for i in range(NM):
-        for j in range(NC):
-            pm[i] += mem[G0 + i * NC + j]
-    return pm
+    """The grid's mu marginal: its mass at each of MU_GRID, summed over the stiffness."""
+    return mem[G0 : G0 + NM * NC].reshape((NM, NC)).sum(axis=1)
 
 
 @njit(cache=True)
@@ -1365,10 +1358,7 @@ def _output(mem, u, s_u, ok, out):
     if mem[K_STARTED] == 0.0:
         out[O_VALID] = 0.0
         return
-    pm = np.zeros(NM)
-    for i in range(NM):
-        for j in range(NC):
-            pm[i] += mem[G0 + i * NC + j]
+    pm = _mu_marginal(mem)
     lower = _quantile(pm, 0.05)
     mu = _quantile(pm, 0.5)
     upper = _quantile(pm, 0.95)
