@@ -52,10 +52,12 @@ LAT_MAX_STEER_RAD gate applies), and a torque sign that differs from ISO 8855's 
 
 from __future__ import annotations
 
-from math import exp, sqrt, tanh
+from math import exp, tanh
 
 import numpy as np
 from numba import njit
+
+from roadgrip.estimators.lateral import lateral_friction
 
 # The column
 TORQUE_NOISE_NM = 0.05  # each torque signal's noise (a column torque sensor: 0.02-0.1 N m)
@@ -74,7 +76,6 @@ GAIN_FLOOR = 0.05  # what calibration leaves: the trail with the load, the tire'
 EVIDENCE_MIN_F = 0.05  # below this the trail's reduction is within the column friction's error
 MODEL_SHARE = 0.5  # the brush model's linear trail against measured trails (Pacejka 3.2 Fig. 3.7): half its reduction
 TIME_OFFSET_S = 0.05  # the torque and IMU signals read up to 50 ms apart (pmf's LAT_TIME_OFFSET_S)
-SHARE_FLOOR = 0.1  # the combined-slip floor of mu_y (lateral.py's LATERAL_SHARE_FLOOR)
 # Memory block (offsets from its start): bookkeeping, then each grid mu's gain and its variance
 A_F_PREV, A_W, A_USED = range(3)
 A_CELLS = 3
@@ -146,7 +147,7 @@ def aligning_step(
     lam = exp(-dt / RLS_TAU_S)
     for i in range(mu_grid.size - 1, -1, -1):
         mu = mu_grid[i]
-        mu_y = sqrt(max(mu * mu - fx_front * fx_front, (SHARE_FLOOR * mu) ** 2))
+        mu_y = lateral_friction(mu, fx_front)
         x = abs(f_front) / mu_y
         if x >= 1.0:  # past this hypothesis's limit: the friction bound judges it, not the trail
             lk[i] = lk[i + 1] if i + 1 < mu_grid.size else 1.0

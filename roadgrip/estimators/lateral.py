@@ -73,6 +73,13 @@ def axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear):
 
 
 @njit(cache=True)
+def lateral_friction(mu, fx):
+    """What the friction ellipse leaves for the side of an axle carrying fx per load on a road of friction mu (Pacejka
+    section 3.2.4): sqrt(mu^2 - fx^2), at least LATERAL_SHARE_FLOOR of mu."""
+    return sqrt(max(mu * mu - fx * fx, (LATERAL_SHARE_FLOOR * mu) ** 2))
+
+
+@njit(cache=True)
 def brush_slip(f, mu, c):
     """The brush model's slip at force per load f (signed), friction mu, slip stiffness per load c:
     (3 mu / c) (1 - (1 - |f| / mu)^(1/3)), signed as f, its value at |f| = mu beyond (Pacejka 3.2). With an isotropic
@@ -133,8 +140,8 @@ def lateral_likelihood(
         mu = mu_grid[i]
         for k in range(n):
             post[i * n + k] = comp[k]
-        mu_f = sqrt(max(mu * mu - fx_front * fx_front, (LATERAL_SHARE_FLOOR * mu) ** 2))
-        mu_r = sqrt(max(mu * mu - fx_rear * fx_rear, (LATERAL_SHARE_FLOOR * mu) ** 2))
+        mu_f = lateral_friction(mu, fx_front)
+        mu_r = lateral_friction(mu, fx_rear)
         a_f, sat_f = brush_slip_angle(f_front, mu_f, c_front)
         a_r, sat_r = brush_slip_angle(f_rear, mu_r, c_rear)
         pred = m_f * a_f - m_r * a_r
