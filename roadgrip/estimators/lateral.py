@@ -124,16 +124,16 @@ def lateral_likelihood(
 
     Given mu the understeer angle is linear in the front and rear tires' compliances over the profile's (k_f, k_r):
     k_f a_f - k_r a_r, a_* the brush model's slip angles at the profile's stiffnesses. comp holds their Gaussian (means,
-    covariance: N_COMPLIANCE numbers), so each mu's likelihood is the Kalman filter's predictive
-    density N(y; h m, h P h' + R / temper), h = (a_f, -a_r), times the tempering's own factor (R^(-temper / 2) for
-    N(y; h x, R)^temper), scaled by var0^(temper / 2) (1 at R = var0, P = 0: the one-sided terms' scale); post gets
-    each mu's Kalman update (m + K e, P - K h P: N_COMPLIANCE numbers a mu). var0: the variance of the measurement and of the calibrated offset; R adds
-    the brush model's error against other tires (LATERAL_MODEL_SHARE of its bend) and the force per load's standard
-    deviation sf (the lateral accelerometer's remaining bias over g) through the brush model's slope, each at the mean
-    compliances. An axle at its limit (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then
-    one-sided (and post is comp), and uninformative where both axles are: there the likelihood is the nearest cell's
-    with an axle that holds (from above), so that a sample the model fits badly does not favour the cells where it
-    says nothing (the friction bound judges those)."""
+    covariance: N_COMPLIANCE numbers), so each mu's likelihood is the Kalman filter's predictive density of the
+    tempered measurement, N(y; h m, s) with h = (a_f, -a_r) and s = h P h' + R / temper, times sqrt(2 pi R / temper):
+    1 at y = h m with the compliances known (P = 0), the one-sided terms' scale. post gets each mu's Kalman update
+    (m + K e, P - K h P: N_COMPLIANCE numbers a mu). var0: the variance of the measurement and of the calibrated
+    offset; R adds the brush model's error against other tires (LATERAL_MODEL_SHARE of its bend) and the force per
+    load's standard deviation sf (the lateral accelerometer's remaining bias over g) through the brush model's slope,
+    each at the mean compliances. An axle at its limit (|f| >= mu_y) only bounds its slip angle from below: the
+    likelihood is then one-sided (and post is comp), and uninformative where both axles are: there the likelihood is
+    the nearest cell's with an axle that holds (from above), so that a sample the model fits badly does not favour the
+    cells where it says nothing (the friction bound judges those)."""
     n = N_COMPLIANCE
     m_f, m_r, p_ff, p_fr, p_rr = comp[0], comp[1], comp[2], comp[3], comp[4]
     for i in range(mu_grid.size - 1, -1, -1):
