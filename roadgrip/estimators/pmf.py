@@ -59,9 +59,9 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
 
 The tires' cornering compliances over the profile's (k_f, k_r: 1 +- LAT_SLOPE_SIGMA0 common, +- LAT_AXLE_SIGMA each
 axle's own) are a state the samples share, not noise each sample has: given mu the understeer angle is linear in them,
-so each grid mu carries their Gaussian, updated by a Kalman step with the angle and collapsed after it into one pair
-for every mu (weighted by the posterior over mu: the tires are the car's, whatever the road), stepped between samples
-as the grid moves its mass and forgetting towards the prior at C_FORGET_PER_S. The term speaks from a new car's first
+so the state carries their Gaussian; at each sample every grid mu's Kalman update with the angle is collapsed into
+one pair again (weighted by the posterior over mu: the tires are the car's, whatever the road), and between samples
+the pair forgets towards the prior at C_FORGET_PER_S. The term speaks from a new car's first
 sample, its likelihood the predictive density, so a compliance the angle has not yet pinned down widens it once
 rather than at every sample (docs/ESTIMATORS.md 11).
 
@@ -249,6 +249,11 @@ LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: 
 # ... and each axle's against the other's, apart from that common factor: front and rear tires wear unequally (the
 # driven axle faster) and may differ in make, size or pressure (1 sigma, about +-20 %)
 LAT_AXLE_SIGMA = 0.12
+# The tires' compliances over the profile's (k_f, k_r) of a new car, as `lateral_likelihood` reads them (means, then
+# the covariance's ff, fr, rr): 1 each, the common spread on both and each axle's own on its diagonal
+COMPLIANCE_PRIOR = np.array(
+    [1.0, 1.0, LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2, LAT_SLOPE_SIGMA0**2, LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2]
+)
 LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
 LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
 LAT_BIAS_FLOOR_MPS2 = 0.1  # what calibration leaves: crossfall varying by 1 % around the one it learned
@@ -455,17 +460,8 @@ def _mu_marginal(mem):
 
 
 @njit(cache=True)
-def _compliance_prior(out):
-    """The tires' compliances over the profile's (k_f, k_r) of a new car: 1 each, a common spread (LAT_SLOPE_SIGMA0)
-    and each axle's own (LAT_AXLE_SIGMA); as `lateral_likelihood` reads them (means, then ff, fr, rr)."""
-    common, own = LAT_SLOPE_SIGMA0**2, LAT_AXLE_SIGMA**2
-    out[0], out[1] = 1.0, 1.0
-    out[2], out[3], out[4] = common + own, common, common + own
-
-
-@njit(cache=True)
 def _compliance_collapse(post, weights, out):
-    """One Gaussian (means and covariance, as _compliance_prior's) with the moments of the grid mus' compliance
+    """One Gaussian (means and covariance, as COMPLIANCE_PRIOR's) with the moments of the grid mus' compliance
     Gaussians `post` (N_COMPLIANCE numbers a mu), weighted by `weights` (one a grid mu)."""
     total = 0.0
     second = np.zeros(3)
@@ -492,7 +488,7 @@ def _start(mem, keep_stiffness):
     """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps, as are the
     tires' cornering compliances: a restart leaves the tires as they were), or a new car's."""
     if not keep_stiffness:
-        _compliance_prior(mem[K_KC : K_KC + N_COMPLIANCE])
+        mem[K_KC : K_KC + N_COMPLIANCE] = COMPLIANCE_PRIOR
     cm = _c_marginal(mem) if keep_stiffness else C_PRIOR.copy()
     total = 0.0
     for j in range(NC):
@@ -565,12 +561,10 @@ def _compliance_forget(mem, dt):
     """The tires' cornering compliances forget towards a new car's at C_FORGET_PER_S, as the grid's stiffness does: an
     Ornstein-Uhlenbeck step, x0 + e^(-a) (x - x0) for the means and the covariance towards the prior's (its stationary
     law)."""
-    prior = np.empty(N_COMPLIANCE)
-    _compliance_prior(prior)
     keep = exp(-C_FORGET_PER_S * dt)
     for k in range(N_COMPLIANCE):
         w = keep if k < 2 else keep * keep
-        mem[K_KC + k] = prior[k] + w * (mem[K_KC + k] - prior[k])
+        mem[K_KC + k] = COMPLIANCE_PRIOR[k] + w * (mem[K_KC + k] - COMPLIANCE_PRIOR[k])
 
 
 @njit(cache=True)
@@ -939,13 +933,12 @@ def init_brake_line(mem, q):
 def init_appended_blocks(mem, q):
     """The blocks appended to the memory's layout since its first version, each as a new car's: the optional channels'
     (V1), the steering torques' (V2), the braking line's (V4), the GNSS reference's accelerometer error (V5) and the
-    tires' compliances (V6). A state
-    saved before one of them loads with that block from here (`state_from_dict`)."""
+    tires' compliances (V6). A state saved before one of them loads with that block from here (`state_from_dict`)."""
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
     init_brake_line(mem, q)
     ch.init_bias_memory(mem, K_GB, BIAS_SIGMA0_MPS2)
-    _compliance_prior(mem[K_KC : K_KC + N_COMPLIANCE])
+    mem[K_KC : K_KC + N_COMPLIANCE] = COMPLIANCE_PRIOR
 
 
 @njit(cache=True)
@@ -1500,8 +1493,7 @@ class PMFEstimator(Estimator):
 
     def calibration(self, state: PMFState) -> dict:
         """The self-calibration this vehicle has reached, with the stiffness factor's posterior mean."""
-        grid = state.mem[G0 : G0 + NM * NC].reshape(NM, NC)
-        cm = grid.sum(axis=0)
+        cm = _c_marginal(state.mem)
         out = {name: float(state.mem[k]) for name, k in CALIBRATION.items()}
         out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
         out["cornering_compliance_front"] = float(state.mem[K_KC])

@@ -89,8 +89,7 @@ def test_an_unknown_compliance_is_paid_for_and_learned():
     asks at a high mu (the line explains the angle there) and shrinks its spread."""
     c_f, c_r = 14.0, 20.0
     f = 0.12
-    prior = np.empty(5)
-    pmf._compliance_prior(prior)
+    prior = pmf.COMPLIANCE_PRIOR
     post = np.empty(5 * MU_GRID.size)
     measured = brush_slip_angle(f, 0.15, c_f)[0] - brush_slip_angle(f, 0.15, c_r)[0]
     out = np.empty(MU_GRID.size)

@@ -10,6 +10,7 @@ from roadgrip.estimators import aligning as al
 from roadgrip.estimators import slip_slope as ch
 from roadgrip.estimators.pmf import (
     BIAS_SIGMA0_MPS2,
+    COMPLIANCE_PRIOR,
     K_AL,
     K_CH,
     K_GB,
@@ -22,7 +23,6 @@ from roadgrip.estimators.pmf import (
     Q_C0_FRONT,
     Q_C0_REAR,
     PMFEstimator,
-    _compliance_prior,
     init_brake_line,
 )
 from roadgrip.sim.driver import SpeedProfile
@@ -192,7 +192,7 @@ def test_a_state_saved_before_the_channels_continues_with_a_fresh_channel_block(
     al.init_aligning_memory(fresh, K_AL, NM)  # the steering torques' block, appended after it
     init_brake_line(fresh, restored.q)  # and the braking line's, after that
     ch.init_bias_memory(fresh, K_GB, BIAS_SIGMA0_MPS2)  # and the reference filter's accelerometer error
-    _compliance_prior(fresh[K_KC : K_KC + N_COMPLIANCE])  # and the tires' compliances, last: a new car's
+    fresh[K_KC : K_KC + N_COMPLIANCE] = COMPLIANCE_PRIOR  # and the tires' compliances, last: a new car's
     np.testing.assert_array_equal(restored.mem[K_CH:], fresh[K_CH:])
     with pytest.raises(ValueError, match="memory must hold"):
         est.state_from_dict(saved | {"memory": saved["memory"][:-1]})
