@@ -32,12 +32,19 @@ so an axle's slip angle grows faster than f / c as it nears its limit: the under
 K_us a_y where the front axle nears its limit (understeer), and towards zero or below where the rear does (oversteer).
 That bend, on the calibrated line, is the evidence over mu. An axle also driven or braked has less left for the side
 (the friction ellipse, Pacejka section 3.2.4): mu_y = sqrt(mu^2 - f_x^2).
+
+The kinematic angle L r / v is the profile's: its wheelbase, the steering ratio that turns the steering wheel's angle
+into delta, and the speed from the wheels' rolling radius are each known to a few percent, and each error scales the
+whole angle. In a 20 m turn at 4.5 m/s that angle is 0.13 rad against slip angles of 0.007: 4 % of it is an ice
+tire's bend. So the understeer angle is read as k_f alpha_f - k_r alpha_r + e L r / v, with the scale error e
+marginalised alongside the tires' compliances.
 """
 
 from __future__ import annotations
 
 from math import erf, exp, sqrt
 
+import numpy as np
 from numba import njit
 
 from roadgrip.units import G_MPS2
@@ -109,33 +116,80 @@ def normal_cdf(x):
     return 0.5 * (1.0 + erf(x / sqrt(2.0)))
 
 
-# The tires' compliance state (lateral_likelihood's `comp`, and `post` a grid mu): the means of the front and rear
-# tires' cornering compliance over the profile's, then their covariance's (ff, fr, rr)
-N_COMPLIANCE = 5
+# The lateral state (lateral_likelihood's `comp`, and `post` a grid mu): the means of the front and rear tires'
+# cornering compliance over the profile's and of the kinematic angle's scale error, then their covariance's upper
+# triangle (00, 01, 02, 11, 12, 22)
+N_LATERAL_PARAMS = 3
+N_COMPLIANCE = N_LATERAL_PARAMS + N_LATERAL_PARAMS * (N_LATERAL_PARAMS + 1) // 2
+
+
+@njit(cache=True)
+def unpack_gaussian(comp, mean, cov):
+    """The lateral state's means and covariance (comp: N_COMPLIANCE numbers) into a vector and a symmetric matrix."""
+    k = N_LATERAL_PARAMS
+    for a in range(N_LATERAL_PARAMS):
+        mean[a] = comp[a]
+        for b in range(a, N_LATERAL_PARAMS):
+            cov[a, b] = comp[k]
+            cov[b, a] = comp[k]
+            k += 1
+
+
+@njit(cache=True)
+def pack_gaussian(mean, cov, out):
+    """unpack_gaussian's inverse: a vector and a symmetric matrix into N_COMPLIANCE numbers."""
+    k = N_LATERAL_PARAMS
+    for a in range(N_LATERAL_PARAMS):
+        out[a] = mean[a]
+        for b in range(a, N_LATERAL_PARAMS):
+            out[k] = cov[a, b]
+            k += 1
 
 
 @njit(cache=True)
 def lateral_likelihood(
-    mu_grid, comp, understeer, f_front, f_rear, fx_front, fx_rear, c_front, c_rear, var0, sf, temper, out, post
+    mu_grid,
+    comp,
+    understeer,
+    kinematic,
+    f_front,
+    f_rear,
+    fx_front,
+    fx_rear,
+    c_front,
+    c_rear,
+    var0,
+    sf,
+    temper,
+    out,
+    post,
 ):
     """The likelihood over mu (out, one value per grid mu) of a measured understeer angle (rad, the calibrated offset
-    taken out), raised to `temper`, with the tires' compliances marginalised; f_*: the axles' lateral, fx_*: their
-    longitudinal forces per load.
+    taken out), raised to `temper`, with the tires' compliances and the kinematic angle's scale marginalised; f_*: the
+    axles' lateral, fx_*: their longitudinal forces per load; kinematic: the angle L r / v the understeer angle
+    subtracts.
 
-    Given mu the understeer angle is linear in the front and rear tires' compliances over the profile's (k_f, k_r):
-    k_f a_f - k_r a_r, a_* the brush model's slip angles at the profile's stiffnesses. comp holds their Gaussian (means,
-    covariance: N_COMPLIANCE numbers), so each mu's likelihood is the Kalman filter's predictive density of the
-    tempered measurement, N(y; h m, s) with h = (a_f, -a_r) and s = h P h' + R / temper, times sqrt(2 pi R / temper):
-    1 at y = h m with the compliances known (P = 0), the one-sided terms' scale. post gets each mu's Kalman update
-    (m + K e, P - K h P: N_COMPLIANCE numbers a mu). var0: the variance of the measurement and of the calibrated
-    offset; R adds the brush model's error against other tires (LATERAL_MODEL_SHARE of its bend) and the force per
-    load's standard deviation sf (the lateral accelerometer's remaining bias over g) through the brush model's slope,
-    each at the mean compliances. An axle at its limit (|f| >= mu_y) only bounds its slip angle from below: the
-    likelihood is then one-sided (and post is comp), and uninformative where both axles are: there the likelihood is
-    the nearest cell's with an axle that holds (from above), so that a sample the model fits badly does not favour the
-    cells where it says nothing (the friction bound judges those)."""
-    n = N_COMPLIANCE
-    m_f, m_r, p_ff, p_fr, p_rr = comp[0], comp[1], comp[2], comp[3], comp[4]
+    Given mu the understeer angle is linear in the front and rear tires' compliances over the profile's (k_f, k_r) and
+    in the kinematic angle's scale error e: k_f a_f - k_r a_r + e L r / v, a_* the brush model's slip angles at the
+    profile's stiffnesses. e is what the profile's wheelbase and steering ratio and the wheels' rolling radius (the
+    speed v) get wrong: each moves the kinematic angle in proportion, which at walking pace in a tight turn is 20 times
+    the tires' slip angles. comp holds the three's Gaussian (N_COMPLIANCE numbers), so each mu's likelihood is the
+    Kalman filter's predictive density of the tempered measurement, N(y; h m, s) with h = (a_f, -a_r, L r / v) and
+    s = h P h' + R / temper, times sqrt(2 pi R / temper): 1 at y = h m with the three known (P = 0), the one-sided
+    terms' scale. post gets each mu's Kalman update (m + K e, P - K h P: N_COMPLIANCE numbers a mu). var0: the variance
+    of the measurement and of the calibrated offset; R adds the brush model's error against other tires
+    (LATERAL_MODEL_SHARE of its bend) and the force per load's standard deviation sf (the lateral accelerometer's
+    remaining bias over g) through the brush model's slope, each at the mean compliances. An axle at its limit
+    (|f| >= mu_y) only bounds its slip angle from below: the likelihood is then one-sided (and post is comp), and
+    uninformative where both axles are: there the likelihood is the nearest cell's with an axle that holds (from
+    above), so that a sample the model fits badly does not favour the cells where it says nothing (the friction bound
+    judges those)."""
+    n, d = N_COMPLIANCE, N_LATERAL_PARAMS
+    mean = np.empty(d)
+    cov = np.empty((d, d))
+    unpack_gaussian(comp, mean, cov)
+    h = np.empty(d)
+    ph = np.empty(d)
     for i in range(mu_grid.size - 1, -1, -1):
         mu = mu_grid[i]
         for k in range(n):
@@ -144,16 +198,21 @@ def lateral_likelihood(
         mu_r = lateral_friction(mu, fx_rear)
         a_f, sat_f = brush_slip_angle(f_front, mu_f, c_front)
         a_r, sat_r = brush_slip_angle(f_rear, mu_r, c_rear)
-        pred = m_f * a_f - m_r * a_r
-        excess = m_f * (a_f - f_front / c_front) - m_r * (a_r - f_rear / c_rear)
-        d_slope = m_f * brush_slip_angle_slope(f_front, mu_f, c_front) - m_r * brush_slip_angle_slope(
+        h[0], h[1], h[2] = a_f, -a_r, kinematic
+        excess = mean[0] * (a_f - f_front / c_front) - mean[1] * (a_r - f_rear / c_rear)
+        d_slope = mean[0] * brush_slip_angle_slope(f_front, mu_f, c_front) - mean[1] * brush_slip_angle_slope(
             f_rear, mu_r, c_rear
         )
         r = var0 + (LATERAL_MODEL_SHARE * excess) ** 2 + (sf * d_slope) ** 2
-        # P h' with h = (a_f, -a_r), and h P h'
-        ph_f = p_ff * a_f - p_fr * a_r
-        ph_r = p_fr * a_f - p_rr * a_r
-        hph = a_f * ph_f - a_r * ph_r
+        pred = 0.0
+        hph = 0.0
+        for a in range(d):
+            pred += h[a] * mean[a]
+            ph[a] = 0.0
+            for b in range(d):
+                ph[a] += cov[a, b] * h[b]
+        for a in range(d):
+            hph += h[a] * ph[a]
         if sat_f and sat_r:
             out[i] = out[i + 1] if i + 1 < mu_grid.size else 1.0
         elif sat_f:  # the front slides: the understeer angle is at least (in the force's direction) the prediction
@@ -167,9 +226,9 @@ def lateral_likelihood(
             e = understeer - pred
             out[i] = sqrt(r / (temper * s)) * exp(-0.5 * e * e / s)
             # K = P h' / s; m = m + K e; P = P - K h P
-            k_f, k_r = ph_f / s, ph_r / s
-            post[i * n] = m_f + k_f * e
-            post[i * n + 1] = m_r + k_r * e
-            post[i * n + 2] = p_ff - k_f * ph_f
-            post[i * n + 3] = p_fr - k_f * ph_r
-            post[i * n + 4] = p_rr - k_r * ph_r
+            k = d
+            for a in range(d):
+                post[i * n + a] = mean[a] + ph[a] / s * e
+                for b in range(a, d):
+                    post[i * n + k] = cov[a, b] - ph[a] * ph[b] / s
+                    k += 1

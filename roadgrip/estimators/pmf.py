@@ -63,7 +63,10 @@ so the state carries their Gaussian; at each sample every grid mu's Kalman updat
 one pair again (weighted by the posterior over mu: the tires are the car's, whatever the road), and between samples
 the pair forgets towards the prior at C_FORGET_PER_S. The term speaks from a new car's first
 sample, its likelihood the predictive density, so a compliance the angle has not yet pinned down widens it once
-rather than at every sample (docs/ESTIMATORS.md 11).
+rather than at every sample (docs/ESTIMATORS.md 11). The same Gaussian carries the kinematic angle's scale error
+(0 +- LAT_KINEMATIC_SIGMA: the profile's wheelbase and steering ratio, the wheels' radius in v): in a tight turn at
+walking pace the kinematic angle L r / v is 20 times the tires' slip angles, and a few percent of it, read as the
+tires', was a dry or wet turn read as ice.
 
 The lateral channel needs no steady state: the understeer angle alpha_f - alpha_r = delta - L r / v is kinematic (v_y
 cancels) and the axles' forces come from a_y and the yaw acceleration (Newton-Euler), so a sine steer is read as a ramp
@@ -127,13 +130,16 @@ from roadgrip.estimators.base import (
 from roadgrip.estimators.guard import PRIOR_UPPER_MU, drag_per_mass
 from roadgrip.estimators.lateral import (
     N_COMPLIANCE,
+    N_LATERAL_PARAMS,
     axle_lateral_per_load,
     brush_slip,
     brush_slip_angle_slope,
     lateral_likelihood,
     normal_cdf,
+    pack_gaussian,
     reference_yaw_rate,
     understeer_gradient,
+    unpack_gaussian,
 )
 from roadgrip.estimators.vehicle_model import roll_per_lateral_accel
 from roadgrip.units import G_MPS2
@@ -249,10 +255,25 @@ LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: 
 # ... and each axle's against the other's, apart from that common factor: front and rear tires wear unequally (the
 # driven axle faster) and may differ in make, size or pressure (1 sigma, about +-20 %)
 LAT_AXLE_SIGMA = 0.12
-# The tires' compliances over the profile's (k_f, k_r) of a new car, as `lateral_likelihood` reads them (means, then
-# the covariance's ff, fr, rr): 1 each, the common spread on both and each axle's own on its diagonal
+# The kinematic angle L r / v against the car's: the profile's wheelbase (a catalogue's, +-1 %), its steering ratio
+# (a variable-ratio rack's differs from the nominal by 5-10 % off centre) and the speed (the rolling radius: wear and
+# pressure, +-2 %), each a scale on the whole angle
+LAT_KINEMATIC_SIGMA = 0.05
+# The lateral state of a new car, as `lateral_likelihood` reads it (means, then the covariance's upper triangle): the
+# tires' compliances over the profile's (k_f, k_r) 1 each, the common spread on both and each axle's own on its
+# diagonal; the kinematic angle's scale error 0, independent of them
 COMPLIANCE_PRIOR = np.array(
-    [1.0, 1.0, LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2, LAT_SLOPE_SIGMA0**2, LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2]
+    [
+        1.0,
+        1.0,
+        0.0,
+        LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2,
+        LAT_SLOPE_SIGMA0**2,
+        0.0,
+        LAT_SLOPE_SIGMA0**2 + LAT_AXLE_SIGMA**2,
+        0.0,
+        LAT_KINEMATIC_SIGMA**2,
+    ]
 )
 LAT_BIAS_SIGMA0_MPS2 = 0.25  # an uncalibrated lateral bias: mounting roll (+-2 deg: 0.34) and the sensor's (+-0.2)
 LAT_BIAS_SETTLE_S = 5.0  # the straight-driving mean of a_y - v r settles in seconds (0.1 noise, 50 samples)
@@ -391,9 +412,11 @@ N_MEM_V5 = N_MEM_V4 + 11
 # numbers) loads with none known
 K_GB = N_MEM_V5
 N_MEM_V6 = K_GB + ch.N_BIAS_MEM
-# the tires' cornering compliances over the profile's (`_lateral`, lateral.py: a Gaussian, N_COMPLIANCE numbers),
-# appended after it: a state saved before (N_MEM_V6 numbers) loads with them at a new car's
+# the lateral state (`_lateral`, lateral.py: the tires' cornering compliances over the profile's and the kinematic
+# angle's scale error, a Gaussian of N_COMPLIANCE numbers), appended after it: a state saved before (N_MEM_V6 numbers)
+# loads with it at a new car's, and so does one saved with the compliances alone (N_MEM_V7: their 5 numbers dropped)
 K_KC = N_MEM_V6
+N_MEM_V7 = K_KC + 5
 N_MEM = K_KC + N_COMPLIANCE
 CALIBRATION = {
     "accel_bias_mps2": K_BIAS,
@@ -461,26 +484,27 @@ def _mu_marginal(mem):
 
 @njit(cache=True)
 def _compliance_collapse(post, weights, out):
-    """One Gaussian (means and covariance, as COMPLIANCE_PRIOR's) with the moments of the grid mus' compliance
-    Gaussians `post` (N_COMPLIANCE numbers a mu), weighted by `weights` (one a grid mu)."""
+    """One Gaussian (N_COMPLIANCE numbers, as COMPLIANCE_PRIOR's) with the moments of the grid mus' Gaussians `post`
+    (N_COMPLIANCE numbers a mu), weighted by `weights` (one a grid mu)."""
+    d = N_LATERAL_PARAMS
     total = 0.0
-    second = np.zeros(3)
-    for k in range(N_COMPLIANCE):
-        out[k] = 0.0
+    mean = np.zeros(d)
+    second = np.zeros((d, d))
+    m_i = np.empty(d)
+    c_i = np.empty((d, d))
     for i in range(NM):
-        b = i * N_COMPLIANCE
         w = weights[i]
         total += w
-        out[0] += w * post[b]
-        out[1] += w * post[b + 1]
-        second[0] += w * (post[b + 2] + post[b] * post[b])
-        second[1] += w * (post[b + 3] + post[b] * post[b + 1])
-        second[2] += w * (post[b + 4] + post[b + 1] * post[b + 1])
-    out[0] /= total
-    out[1] /= total
-    out[2] = second[0] / total - out[0] * out[0]
-    out[3] = second[1] / total - out[0] * out[1]
-    out[4] = second[2] / total - out[1] * out[1]
+        unpack_gaussian(post[i * N_COMPLIANCE : (i + 1) * N_COMPLIANCE], m_i, c_i)
+        for a in range(d):
+            mean[a] += w * m_i[a]
+            for b in range(d):
+                second[a, b] += w * (c_i[a, b] + m_i[a] * m_i[b])
+    mean /= total
+    for a in range(d):
+        for b in range(d):
+            second[a, b] = second[a, b] / total - mean[a] * mean[b]
+    pack_gaussian(mean, second, out)
 
 
 @njit(cache=True)
@@ -563,7 +587,7 @@ def _compliance_forget(mem, dt):
     law)."""
     keep = exp(-C_FORGET_PER_S * dt)
     for k in range(N_COMPLIANCE):
-        w = keep if k < 2 else keep * keep
+        w = keep if k < N_LATERAL_PARAMS else keep * keep
         mem[K_KC + k] = COMPLIANCE_PRIOR[k] + w * (mem[K_KC + k] - COMPLIANCE_PRIOR[k])
 
 
@@ -973,7 +997,8 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
     steer_rate = (delta - mem[K_D_PREV]) / dt
     ay = aty - mem[K_BIAS_Y]
     f_f, f_r = axle_lateral_per_load(m, lf, lr, iz, ay, yaw_accel, fz_front, fz_rear)
-    understeer = delta - wb * smp[S_R] / v - mem[K_LAT_B]
+    kinematic = wb * smp[S_R] / v
+    understeer = delta - kinematic - mem[K_LAT_B]
     # the measurement's variance: steering and gyro noise, the groups' time offsets and the tire's lag on a changing
     # steer, the yaw acceleration's noise (a difference of two gyro samples) through the axles' forces
     lag = LAT_TIME_OFFSET_S + LAT_RELAXATION_M / v
@@ -1005,7 +1030,9 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
         lk = np.empty(NM)
         post = np.empty(NM * N_COMPLIANCE)
         comp = mem[K_KC : K_KC + N_COMPLIANCE]
-        lateral_likelihood(MU_GRID, comp, understeer, f_f, f_r, fx_f, fx_r, c_f, c_r, var0, sf, TEMPER, lk, post)
+        lateral_likelihood(
+            MU_GRID, comp, understeer, kinematic, f_f, f_r, fx_f, fx_r, c_f, c_r, var0, sf, TEMPER, lk, post
+        )
         for i in range(NM):
             for j in range(NC):
                 like[i, j] = lk[i]
@@ -1498,6 +1525,7 @@ class PMFEstimator(Estimator):
         out["stiffness_factor"] = float(np.exp((cm * np.log(C_FACTORS)).sum() / cm.sum()))
         out["cornering_compliance_front"] = float(state.mem[K_KC])
         out["cornering_compliance_rear"] = float(state.mem[K_KC + 1])
+        out["kinematic_angle_scale_error"] = float(state.mem[K_KC + 2])
         out["inconsistent"] = int(state.mem[K_INCONSISTENT])
         out["gnss_latency_s"] = float(state.mem[K_CH + ch.C_L])
         out["gnss_outliers"] = int(state.mem[K_CH + ch.C_OUTLIERS])
@@ -1518,17 +1546,26 @@ class PMFEstimator(Estimator):
 
     def state_from_dict(self, data: dict) -> PMFState:
         memory = data.get("memory")
-        if isinstance(memory, list) and len(memory) in (N_MEM_V1, N_MEM_V2, N_MEM_V3, N_MEM_V4, N_MEM_V5, N_MEM_V6):
+        if isinstance(memory, list) and len(memory) in (
+            N_MEM_V1,
+            N_MEM_V2,
+            N_MEM_V3,
+            N_MEM_V4,
+            N_MEM_V5,
+            N_MEM_V6,
+            N_MEM_V7,
+        ):
             # saved before the optional channels' block (V1: the GNSS lock, latency and slip lines start afresh),
             # before the steering torques' (V2: the trail's gain at the profile's), before the slip line's input
             # filter (V3: empty), before the braking term (V4: its zero and line unlearned), before the reference
-            # filter's accelerometer error (V5: none known) or before the tires' compliances (V6: at their prior):
-            # everything kept, each missing block fresh, as for a new car
+            # filter's accelerometer error (V5: none known), before the lateral state (V6) or with the compliances
+            # alone in it (V7): everything else kept, each missing block fresh, as for a new car
             vehicle = VehicleParams.from_dict(data["vehicle"])
             q = pack(vehicle)
             block = np.zeros(N_MEM)
             init_appended_blocks(block, q)
-            data = {**data, "memory": list(memory) + block[len(memory) :].tolist()}
+            kept = memory[: min(len(memory), N_MEM_V6)]
+            data = {**data, "memory": list(kept) + block[len(kept) :].tolist()}
         vehicle, memory = memory_state(data, self.name, N_MEM)
         return PMFState(vehicle, pack(vehicle), memory, float(data["t_prev"]))
 

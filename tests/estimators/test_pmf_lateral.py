@@ -10,6 +10,7 @@ from lateral_drives import CALM_S, estimated, pooled
 
 from roadgrip.estimators import pmf
 from roadgrip.estimators.lateral import (
+    N_COMPLIANCE,
     axle_lateral_per_load,
     brush_slip_angle,
     lateral_likelihood,
@@ -70,15 +71,15 @@ def test_the_likelihood_prefers_the_mu_whose_bend_matches():
     them), so that a poor fit never favours them."""
     c_f, c_r = 14.0, 20.0
     f = 0.12
-    known = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # k_f = k_r = 1, no spread
-    post = np.empty(5 * MU_GRID.size)
+    known = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # k_f = k_r = 1, the kinematics exact
+    post = np.empty(N_COMPLIANCE * MU_GRID.size)
     measured = brush_slip_angle(f, 0.15, c_f)[0] - brush_slip_angle(f, 0.15, c_r)[0]
     out = np.empty(MU_GRID.size)
-    lateral_likelihood(MU_GRID, known, measured, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
+    lateral_likelihood(MU_GRID, known, measured, 0.05, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
     above = MU_GRID > f
     assert (out[~above] == out[above][0]).all()
     assert abs(MU_GRID[above][np.argmax(out[above])] - 0.15) <= 0.03
-    lateral_likelihood(MU_GRID, known, f / c_f - f / c_r, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
+    lateral_likelihood(MU_GRID, known, f / c_f - f / c_r, 0.05, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
     assert MU_GRID[above][np.argmax(out[above])] >= 0.8
     assert out[above & (MU_GRID <= 0.2)].max() < 0.25 * out.max()  # half the bend allowed as model error
 
@@ -90,17 +91,44 @@ def test_an_unknown_compliance_is_paid_for_and_learned():
     c_f, c_r = 14.0, 20.0
     f = 0.12
     prior = pmf.COMPLIANCE_PRIOR
-    post = np.empty(5 * MU_GRID.size)
+    post = np.empty(N_COMPLIANCE * MU_GRID.size)
     measured = brush_slip_angle(f, 0.15, c_f)[0] - brush_slip_angle(f, 0.15, c_r)[0]
     out = np.empty(MU_GRID.size)
-    lateral_likelihood(MU_GRID, prior, measured, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
+    lateral_likelihood(MU_GRID, prior, measured, 0.05, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
     above = MU_GRID > f
     assert abs(MU_GRID[above][np.argmax(out[above])] - 0.15) <= 0.05
     i = int(np.argmin(abs(MU_GRID - 0.9)))  # at a high mu the angles are nearly the line's: the pair must explain more
     a_f, a_r = brush_slip_angle(f, 0.9, c_f)[0], brush_slip_angle(f, 0.9, c_r)[0]
-    before, after = prior[0] * a_f - prior[1] * a_r, post[5 * i] * a_f - post[5 * i + 1] * a_r
+    n = N_COMPLIANCE
+    kin = 0.05 * post[n * i + 2]
+    before, after = prior[0] * a_f - prior[1] * a_r, post[n * i] * a_f - post[n * i + 1] * a_r + kin
     assert abs(measured - after) < 0.5 * abs(measured - before)
-    assert post[5 * i + 2] < prior[2] and post[5 * i + 4] < prior[4]
+    assert post[n * i + 3] < prior[3] and post[n * i + 6] < prior[6]  # the compliances' variances shrink
+
+
+def test_a_tight_turn_at_walking_pace_reads_the_kinematics_not_the_tires():
+    """A 20 m turn at 4.5 m/s (force per load 0.1; the kinematic angle L / R 0.13 rad), measured by a car whose
+    profile's wheelbase or wheel radius is 4 % off: the understeer angle is the tires' slip angles at a high mu plus 4 %
+    of the kinematic angle, 0.005 rad, larger than an ice tire's bend there. With the kinematic scale taken as exact
+    that excess is read as ice (mu 0.15 over 0.9 by two orders of magnitude) and the tires' compliances swallow the
+    rest (k_f near 2); with the scale's prior (+-LAT_KINEMATIC_SIGMA) the preference stays within a few, and the
+    Kalman update puts the excess into the scale (towards 0.04) and leaves the tires as they were."""
+    c_f, c_r, f, kin = 14.0, 20.0, 0.1, 0.13
+    n = N_COMPLIANCE
+    measured = f / c_f - f / c_r + 0.04 * kin
+    out, post = np.empty(MU_GRID.size), np.empty(n * MU_GRID.size)
+    i_ice, i_dry = int(np.argmin(abs(MU_GRID - 0.15))), int(np.argmin(abs(MU_GRID - 0.9)))
+    exact = pmf.COMPLIANCE_PRIOR.copy()
+    exact[-1] = 0.0  # the kinematic scale's variance: known to be 0
+    lateral_likelihood(MU_GRID, exact, measured, kin, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post)
+    assert out[i_ice] > 50.0 * out[i_dry]
+    assert post[n * i_dry] > 1.5
+    lateral_likelihood(
+        MU_GRID, pmf.COMPLIANCE_PRIOR, measured, kin, f, f, 0.0, 0.0, c_f, c_r, 2e-4**2, 0.0, 1.0, out, post
+    )
+    assert out[i_ice] < 5.0 * out[i_dry]
+    assert 0.03 < post[n * i_dry + 2] < 0.05  # the scale's mean: the 4 % that made the angle
+    assert abs(post[n * i_dry] - 1.0) < 0.1 and abs(post[n * i_dry + 1] - 1.0) < 0.1
 
 
 def test_the_calibration_survives_the_state_round_trip():
@@ -110,6 +138,20 @@ def test_the_calibration_survives_the_state_round_trip():
     back = est.state_from_dict(est.state_to_dict(state))
     assert est.calibration(back)["cornering_compliance_factor"] == 1.3
     assert np.array_equal(back.mem, state.mem)
+
+
+def test_a_state_saved_with_the_compliances_alone_loads_with_a_new_cars_lateral_state():
+    """A checkpoint of the layout whose lateral state held the tires' compliances alone (their 5 numbers after
+    N_MEM_V6): everything before them kept, the lateral state (compliances and kinematic scale) a new car's."""
+    est = PMFEstimator()
+    state = est.start(PAPER_SUV)
+    state.mem[CALIBRATION["cornering_compliance_factor"]] = 1.3
+    saved = est.state_to_dict(state)
+    saved["memory"] = saved["memory"][: pmf.N_MEM_V6] + [1.2, 0.9, 0.05, 0.02, 0.06]
+    assert len(saved["memory"]) == pmf.N_MEM_V7
+    loaded = est.state_from_dict(saved)
+    np.testing.assert_array_equal(loaded.mem[: pmf.N_MEM_V6], state.mem[: pmf.N_MEM_V6])
+    np.testing.assert_array_equal(loaded.mem[pmf.K_KC :], pmf.COMPLIANCE_PRIOR)
 
 
 def test_ice_steering_is_seen_before_and_at_the_limit():
