@@ -24,10 +24,11 @@ steady manoeuvre repeats (controllers, slip) are tempered (raised to TEMPER), be
 their errors (model error, bias); the bound is a maximum and is applied only where a sample raises it.
 
 Between samples mu diffuses (random walk, a 3-tap kernel whose moves are accepted against the prior, Metropolis: it
-leaves the prior as it is) and the grid is mixed with the prior at FORGET_PER_S: evidence
-ages, so that a car leaving a braking zone does not carry its mu onto the next road, and with no evidence the posterior
-returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +- 0.15) and half spread evenly over
-0.1-1.1: below excitation the answer is this wide interval, never a low number.
+leaves the prior as it is) and the grid is mixed with the prior at FORGET_PER_S while the car moves (both in proportion
+to the speed below FORGET_MOVING_MPS) and slowly in place (FORGET_STILL_PER_S: weather): evidence ages, so that a car
+leaving a braking zone does not carry its mu onto the next road, a car standing on the ice it braked on keeps knowing
+it, and with no evidence the posterior returns to the prior. The prior (PRIOR) is half dry asphalt (normal, 0.85 +-
+0.15) and half spread evenly over 0.1-1.1: below excitation the answer is this wide interval, never a low number.
 
 Self-calibration, kept in the state (so the cloud keeps it per vehicle through state_to_dict):
 - the accelerometer's bias: a slow average (BIAS_TAU_S of steady driving) of a_x - dv/dt, dv/dt from the wheels;
@@ -171,6 +172,11 @@ C_PRIOR /= C_PRIOR.sum()
 TEMPER = 0.3  # 10 Hz samples: errors correlated over about 0.3 s (ABS cycle, suspension, signal offsets)
 FORGET_PER_S = 0.3  # evidence halves in about 2.3 s: 50 m at 80 km/h, under an H3 cell of the map
 MU_WALK_PER_SQRT_S = 0.05  # the road's mu changing along the path
+# ... while the car moves: below this speed (creeping, queueing, standing) it stays on the same metres, and both scale
+# down with the speed (per metre as at this speed: halves in 12 m), so a car standing on the ice it braked on keeps
+# knowing it
+FORGET_MOVING_MPS = 5.0
+FORGET_STILL_PER_S = 1.0 / 3600.0  # the road's own change in place (weather, salt, thaw): within the hour
 C_FORGET_PER_S = 1.0 / 120.0  # the slope is the tire's and the surface's (Gustafsson 1997): it changes with the road
 # What a controller's activity says of the acting axle's utilisation u_axle / mu. Both controllers of the simulator (and
 # many production ones) act on slip thresholds, which a tire with a soft slip curve (cobblestone, snow, a worn tire)
@@ -555,14 +561,28 @@ def _stiffness_prior(mem, q, out):
 
 
 @njit(cache=True)
-def _predict(mem, dt, c_prior):
+def _moving(v):
+    """The share of FORGET_PER_S and of the walk's variance at speed v: 1 from FORGET_MOVING_MPS, in proportion below."""
+    return min(v / FORGET_MOVING_MPS, 1.0)
+
+
+@njit(cache=True)
+def _forget_rate(v):
+    """How fast the grid forgets (1/s) at speed v: FORGET_PER_S while the car moves, in proportion to the speed below
+    FORGET_MOVING_MPS, and the road's own change in place (FORGET_STILL_PER_S)."""
+    return FORGET_PER_S * _moving(v) + FORGET_STILL_PER_S
+
+
+@njit(cache=True)
+def _predict(mem, dt, v, c_prior):
     """Mu diffuses (random walk on the grid, its moves accepted against the prior: WALK_UP, WALK_DOWN) and the grid is
-    mixed with the prior; stiffness forgets slowly towards its (calibrated) prior."""
+    mixed with the prior; stiffness forgets slowly towards its (calibrated) prior. All three while the car moves
+    (`_moving`): the stiffness is the tire's on this surface, which a standing car does not leave."""
     step = MU_GRID[1] - MU_GRID[0]
-    var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * dt) / (step * step)  # in grid steps^2
+    var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * _moving(v) * dt) / (step * step)  # in grid steps^2
     side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
-    forget = 1.0 - exp(-FORGET_PER_S * dt)
-    forget_c = 1.0 - exp(-C_FORGET_PER_S * dt)
+    forget = 1.0 - exp(-_forget_rate(v) * dt)
+    forget_c = 1.0 - exp(-C_FORGET_PER_S * _moving(v) * dt)
     cm = _c_marginal(mem)
     for j in range(NC):
         col = np.empty(NM)
@@ -793,11 +813,11 @@ def wheel_kinematics(q, yaw_rate, delta, ay, gain, offset):
 
 
 @njit(cache=True)
-def _repeats(dt):
+def _repeats(dt, v):
     """How many times the grid counts one sample's evidence within its memory (tempered samples dt apart, forgotten at
-    FORGET_PER_S): 10 at 10 Hz. A systematic error (the same at every sample) whose variance is multiplied by this
-    counts once. A sample without a step (dt = 0) counts once."""
-    return TEMPER / (1.0 - exp(-FORGET_PER_S * dt)) if dt > 0.0 else 1.0
+    `_forget_rate(v)`): 10 at 10 Hz while the car moves, more where it creeps. A systematic error (the same at every
+    sample) whose variance is multiplied by this counts once. A sample without a step (dt = 0) counts once."""
+    return TEMPER / (1.0 - exp(-_forget_rate(v) * dt)) if dt > 0.0 else 1.0
 
 
 @njit(cache=True)
@@ -1098,7 +1118,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         c_prior = np.empty(NC)
         _stiffness_prior(mem, q, c_prior)
         _compliance_forget(mem, dt)
-        _predict(mem, dt, c_prior)
+        _predict(mem, dt, mem[K_V_REF], c_prior)
     radius = q[Q_RADIUS]
     # wheel ground speeds with the left/right radius ratios taken out (each side by half the ratio)
     v_wheels = np.empty(4)
@@ -1128,7 +1148,7 @@ def pmf_step(mem, q, smp, t_prev, out):
     like = np.empty((NM, NC))
     # the bound is a maximum, not a sum: only a utilisation above the largest recent one (aged as the grid forgets)
     # tells more; applying every sample's bound would count the same bias again and again
-    u_seen = mem[K_U_SEEN] * exp(-FORGET_PER_S * dt)
+    u_seen = mem[K_U_SEEN] * exp(-_forget_rate(v) * dt)
     if u > u_seen:
         _bound_likelihood(u, u_seen, s_u, like)
         _apply(mem, like, 1.0)
@@ -1215,7 +1235,7 @@ def pmf_step(mem, q, smp, t_prev, out):
                 MU_GRID,
                 C_FACTORS,
                 TEMPER,
-                _repeats(dt),
+                _repeats(dt, v),
                 like,
             ):
                 _apply(mem, like, 1.0, INCONSISTENT**TEMPER)
@@ -1291,7 +1311,7 @@ def pmf_step(mem, q, smp, t_prev, out):
             mem[K_BL_P00] + 2.0 * mem[K_BL_P01] * x + mem[K_BL_P11] * x * x
             if mem[K_BL_W] >= BRAKE_LINE_CALIBRATED_S
             else np.nan,
-            _repeats(dt),
+            _repeats(dt, v),
             like,
         )
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)

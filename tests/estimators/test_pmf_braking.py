@@ -162,3 +162,35 @@ def test_an_axle_near_its_limit_speaks_against_a_high_mu_louder_once_the_line_is
         assert like[near, j] >= 0.99
         ratio[name] = like[dry, j] / like[near, j]
     assert ratio["learned"] <= 0.85 and 1.0 - ratio["learned"] >= 3.0 * (1.0 - ratio["catalogue"])
+
+
+@pytest.mark.parametrize("entry", [COMPACT_HATCHBACK, PAPER_SUV], ids=["hatchback", "suv"])
+def test_a_car_standing_on_the_ice_it_stopped_on_keeps_knowing_it(entry):
+    """An ABS stop from 20 m/s on ice (mu 0.15) after calm driving on dry asphalt, then standing on the ice: the stop
+    proves mu to within a few tenths, and standing on the same metres changes nothing of it, so 20 s after the stop
+    mu_upper stays below 0.45 with the truth inside. While the grid forgot with time alone, 20 s standing took it back
+    to the prior (mu_upper above 1)."""
+    t = [0.0, 40.0, 40.0 + 20.0 / 3.0, 120.0]
+    speed = SpeedProfile(t, [20.0, 20.0, 0.0, 0.0])
+    before = 20.0 * 40.0
+    scenario = Scenario(
+        run_id="stand",
+        path=Path.straight(2000.0),
+        mu=MuProfile([0.0, before - 30.0], [0.95, 0.15], [0.95, 0.15]),
+        speed=speed,
+        vehicle=entry,
+        duration_s=100.0,
+        seed=5,
+        effects=ProductionEffects.production(),
+    )
+    run = simulate([scenario])
+    out = pmf.PMFEstimator().estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), entry)
+    t_s = (out["timestamp_ms"].to_numpy() - out["timestamp_ms"].to_numpy()[0]) / 1000.0
+    abs_on = run["abs_active"].to_numpy(zero_copy_only=False).astype(bool)
+    assert abs_on.any()
+    last = t_s[np.flatnonzero(abs_on)[-1]]
+    standing = (t_s >= last + 2.0) & (t_s <= last + 20.0)
+    assert standing.any() and (run["vx_true_mps"].to_numpy()[standing] < 0.1).all()
+    upper, lower = out["mu_upper"].to_numpy()[standing], out["mu_lower"].to_numpy()[standing]
+    assert upper.max() < 0.45, upper.max()
+    assert (lower <= 0.15).all() and (upper >= 0.15).all()
