@@ -123,27 +123,24 @@ N_LATERAL_PARAMS = 3
 N_COMPLIANCE = N_LATERAL_PARAMS + N_LATERAL_PARAMS * (N_LATERAL_PARAMS + 1) // 2
 
 
+# the covariance's upper triangle, entry by entry (row, column), in the state's order
+TRI_ROW, TRI_COL = np.triu_indices(N_LATERAL_PARAMS)
+
+
 @njit(cache=True)
 def unpack_gaussian(comp, mean, cov):
     """The lateral state's means and covariance (comp: N_COMPLIANCE numbers) into a vector and a symmetric matrix."""
-    k = N_LATERAL_PARAMS
-    for a in range(N_LATERAL_PARAMS):
-        mean[a] = comp[a]
-        for b in range(a, N_LATERAL_PARAMS):
-            cov[a, b] = comp[k]
-            cov[b, a] = comp[k]
-            k += 1
+    mean[:] = comp[:N_LATERAL_PARAMS]
+    for k in range(TRI_ROW.size):
+        cov[TRI_ROW[k], TRI_COL[k]] = cov[TRI_COL[k], TRI_ROW[k]] = comp[N_LATERAL_PARAMS + k]
 
 
 @njit(cache=True)
 def pack_gaussian(mean, cov, out):
     """unpack_gaussian's inverse: a vector and a symmetric matrix into N_COMPLIANCE numbers."""
-    k = N_LATERAL_PARAMS
-    for a in range(N_LATERAL_PARAMS):
-        out[a] = mean[a]
-        for b in range(a, N_LATERAL_PARAMS):
-            out[k] = cov[a, b]
-            k += 1
+    out[:N_LATERAL_PARAMS] = mean
+    for k in range(TRI_ROW.size):
+        out[N_LATERAL_PARAMS + k] = cov[TRI_ROW[k], TRI_COL[k]]
 
 
 @njit(cache=True)
@@ -226,9 +223,8 @@ def lateral_likelihood(
             e = understeer - pred
             out[i] = sqrt(r / (temper * s)) * exp(-0.5 * e * e / s)
             # K = P h' / s; m = m + K e; P = P - K h P
-            k = d
             for a in range(d):
                 post[i * n + a] = mean[a] + ph[a] / s * e
-                for b in range(a, d):
-                    post[i * n + k] = cov[a, b] - ph[a] * ph[b] / s
-                    k += 1
+            for k in range(TRI_ROW.size):
+                a, b = TRI_ROW[k], TRI_COL[k]
+                post[i * n + d + k] = cov[a, b] - ph[a] * ph[b] / s
