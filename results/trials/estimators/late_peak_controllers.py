@@ -23,6 +23,7 @@ from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import COMPACT_HATCHBACK, PAPER_SUV
 from roadgrip.vehicle.tires.magic_formula import MagicFormulaTire
 
+RUN = {"duration_s": 15.0, "seed": 3, "effects": ProductionEffects.production()}
 TIRES = (
     MagicFormulaTire(shape_c=1.4, curvature_e=0.6),
     MagicFormulaTire(shape_c=1.4, curvature_e=0.9),
@@ -49,17 +50,8 @@ def main():
                         speed = SpeedProfile([0.0, 3.0, 3.0 + ramp, 20.0], [25.0, 25.0, 0.0, 0.0])
                     else:
                         speed = SpeedProfile([0.0, 2.0, 2.0 + ramp, 20.0], [2.0, 2.0, 27.0, 27.0])
-                    scenario = Scenario(
-                        "late-peak",
-                        Path.straight(1500.0),
-                        MuProfile.uniform(mu),
-                        speed,
-                        vehicle=vehicle,
-                        tire=tire,
-                        duration_s=15.0,
-                        seed=3,
-                        effects=ProductionEffects.production(),
-                    )
+                    road = (Path.straight(1500.0), MuProfile.uniform(mu), speed)
+                    scenario = Scenario("late-peak", *road, vehicle=vehicle, tire=tire, **RUN)
                     run = simulate([scenario])
                     out = PMFEstimator().estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), vehicle)
                     upper, lower = out["mu_upper"].to_numpy(), out["mu_lower"].to_numpy()
