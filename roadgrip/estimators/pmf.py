@@ -10,7 +10,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear zero calibrated | N(d; line(x) + s_brush(f_f, mu, C) - s_brush(f_r, mu, C) - the static line, s_d): each axle's force per load by the profile's brake_front_share, the car's braking line learned in gentle stops; before it is, the brush slips alone, the split's and load share's error counted once (`_brake_slip_likelihood`) |
-| the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, |a_x| under BRAKE_MIN_MPS2, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k_f alpha_f - k_r alpha_r, s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), the tires' compliances (k_f, k_r) a Gaussian state marginalised (its predictive density), one-sided where an axle is at its limit |
+| the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, |a_x| under BRAKE_MIN_MPS2, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k_f alpha_f - k_r alpha_r + e L r / v, s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), the tires' compliances (k_f, k_r) and the kinematic angle's scale error e a Gaussian state marginalised (its predictive density), one-sided where an axle is at its limit |
 | the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
@@ -515,10 +515,9 @@ def _compliance_collapse(post, weights, out):
 
 @njit(cache=True)
 def _start(mem, keep_stiffness):
-    """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps, as are the
-    tires' cornering compliances: a restart leaves the tires as they were), or a new car's."""
-    if not keep_stiffness:
-        mem[K_KC : K_KC + N_COMPLIANCE] = COMPLIANCE_PRIOR
+    """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps, as is the
+    lateral state: a restart leaves the tires as they were), or a new car's (`init_memory`, whose appended blocks hold
+    a new car's lateral state)."""
     cm = _c_marginal(mem) if keep_stiffness else C_PRIOR.copy()
     total = 0.0
     for j in range(NC):
@@ -602,9 +601,9 @@ def _predict(mem, dt, v, c_prior):
 
 @njit(cache=True)
 def _compliance_forget(mem, dt):
-    """The tires' cornering compliances forget towards a new car's at C_FORGET_PER_S, as the grid's stiffness does: an
-    Ornstein-Uhlenbeck step, x0 + e^(-a) (x - x0) for the means and the covariance towards the prior's (its stationary
-    law)."""
+    """The lateral state (compliances, kinematic scale) forgets towards a new car's at C_FORGET_PER_S, as the grid's
+    stiffness does: an Ornstein-Uhlenbeck step, x0 + e^(-a) (x - x0) for the means and the covariance towards the
+    prior's (its stationary law)."""
     keep = exp(-C_FORGET_PER_S * dt)
     for k in range(N_COMPLIANCE):
         w = keep if k < N_LATERAL_PARAMS else keep * keep
@@ -977,7 +976,8 @@ def init_brake_line(mem, q):
 def init_appended_blocks(mem, q):
     """The blocks appended to the memory's layout since its first version, each as a new car's: the optional channels'
     (V1), the steering torques' (V2), the braking line's (V4), the GNSS reference's accelerometer error (V5) and the
-    tires' compliances (V6). A state saved before one of them loads with that block from here (`state_from_dict`)."""
+    lateral state (V6; its three-parameter layout since V7). A state saved before one of them loads with that block
+    from here (`state_from_dict`)."""
     ch.init_channel_memory(mem, K_CH, q[Q_C0_FRONT], q[Q_C0_REAR])
     al.init_aligning_memory(mem, K_AL, NM)
     init_brake_line(mem, q)
@@ -1057,7 +1057,7 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
             for j in range(NC):
                 like[i, j] = lk[i]
         if _apply(mem, like, 1.0, INCONSISTENT**TEMPER):
-            # each mu's Kalman update, collapsed into one pair by the posterior over mu: the tires are the car's
+            # each mu's Kalman update, collapsed into one Gaussian by the posterior over mu: the tires are the car's
             _compliance_collapse(post, _mu_marginal(mem), comp)
     # calibration in calm driving: well below the proven friction, following the steer's linear reference
     if (
