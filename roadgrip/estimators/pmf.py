@@ -6,9 +6,9 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | evidence | when | likelihood of (mu, C) |
 |---|---|---|
 | the friction bound | a utilisation above the largest recent one | P(mu >= u) = Phi((mu - u) / s_u), u = |a_road| / g (guard.py), s_u the accelerometer's noise and its remaining bias; plus the chance that the driver asked for more than mu and the tires saturated (`_demand_likelihood`) |
-| at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle / mu anywhere above 0.3, u_axle the driven axle's force per load |
+| at the friction limit | ABS, TCS or ESC active | ABS: the force per load it holds, the brush force at its slip band (0.06-0.15; near the peak for a stiff tire, below it for a soft one), lies between u_car = u (both axles at their limit) and u_first, the utilisation of the axle the profile's brake_front_share saturates first (only that one at its limit; the pedal is not sent, so anything between), u_first blurred by the load share's spread too (`_abs_likelihood`); traction control: u_axle, the driven axle's force per load, the brush force at some slip in its band (0.02-0.1; `_tcs_likelihood`), blurred as u_first; ESC's engine cut: u / mu anywhere above 0.1 |
 | a wheel locked or spinning | a wheel's slip against its kinematic speed at the reference speed beyond LOCK_SLIP, v_ref >= SLIP_MIN_SPEED_MPS | u / mu in [ETA_LOCK, 1] |
-| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
+| slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS, no controller or wheel past its peak (the limit terms read those wheels) | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear zero calibrated | N(d; line(x) + s_brush(f_f, mu, C) - s_brush(f_r, mu, C) - the static line, s_d): each axle's force per load by the profile's brake_front_share, the car's braking line learned in gentle stops; before it is, the brush slips alone, the split's and load share's error counted once (`_brake_slip_likelihood`) |
 | the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, |a_x| under BRAKE_MIN_MPS2, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k_f alpha_f - k_r alpha_r + e L r / v, s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), the tires' compliances (k_f, k_r) and the kinematic angle's scale error e a Gaussian state marginalised (its predictive density), one-sided where an axle is at its limit |
 | the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
@@ -179,17 +179,25 @@ FORGET_MOVING_MPS = 5.0
 FORGET_STILL_PER_S = 1.0 / 3600.0  # the road's own change in place (weather, salt, thaw): within the hour
 C_FORGET_PER_S = 1.0 / 120.0  # the slope is the tire's and the surface's (Gustafsson 1997): it changes with the road
 # What a controller's activity says of the acting axle's utilisation u_axle / mu. Both controllers of the simulator (and
-# many production ones) act on slip thresholds, which a tire with a soft slip curve (cobblestone, snow, a worn tire)
-# crosses below its peak: measured on the training and held-out runs of the generalization preset (5-95 %), ABS 0.86-1.0
-# and 0.57-1.0, traction control 0.48-0.99 and 0.22-0.87.
+# many production ones) act on slip thresholds, which a tire with a soft slip curve (cobblestone, winter tires) crosses
+# below its peak: measured on the training and held-out runs of the generalization preset (5-95 %), ABS 0.86-1.0 and
+# 0.57-1.0, traction control 0.48-0.99 and 0.22-0.87; on the physics validation split's tires of 0.3-0.45 of the
+# catalogue's stiffness traction control held 0.07-0.12. So ABS and traction control are read through the tire's slip
+# curve at their slip bands, with the grid's stiffness
 ABS_SLIP_BAND = (0.06, 0.15)  # ABS cycles the slip between about 0.08 and 0.12 (Bosch; the simulator: 0.08/0.12)
 ABS_BAND_POINTS = 5  # the slip band's force read at this many slips (midpoint rule): 1 % of mu apart on a stiff tire
 # A catalogue profile does not know the car's load: ECE R13-H's laden and unladen conditions (a driver alone against
 # the permissible maximum mass) move a car's static front load share by about 0.05
 LOAD_SHARE_SPREAD = 0.05
 LIMIT_PEAK_S = 1.0  # how long a controller's flag may lag or latch behind the utilisation it reacted to
-ETA_TCS = 0.3  # traction control (and ESC's engine cut) says little more than "the driven axle slips"
-LIMIT_TCS, LIMIT_LOCK = 1, 2
+# Traction control holds the driven wheels' slip in a band (the simulator: cut above 0.05, restore below 0.02; production
+# systems up to about 0.1): the driven axle's force is the tire's at a slip there, near the peak for a stiff tire and a
+# fraction of it for a soft one
+TCS_SLIP_BAND = (0.02, 0.10)
+# ESC's engine cut: the body's sideslip past its threshold (the simulator: 3 degrees beyond the kinematic, restored below
+# 2), which a tire of 0.3 of the profile's cornering stiffness reaches at a fifth of a dry road's limit
+ETA_ESC = 0.1
+LIMIT_ESC, LIMIT_LOCK = 1, 2
 DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
 ETA_LIMIT = 0.8  # a car at its limit without a controller: u / mu 0.76-1.07 in the simulator (5-95 %, wheels locked)
 ETA_LOCK = 0.7  # a locked or spinning wheel slides: sliding friction is 0.7-1 of the peak (Burckhardt's surfaces)
@@ -736,13 +744,34 @@ def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
 
 
 @njit(cache=True)
-def _limit_likelihood(u_axle, s_u, kind, like):
-    """At (or near) the friction limit without ABS (LIMIT_*): traction control and a locked or spinning wheel, u_axle /
-    mu spread over [eta, 1]."""
+def _tcs_likelihood(u_axle, s_u, c0, like):
+    """Traction control acting: the driven wheels crossed its slip threshold, so the driven axle's force per load u_axle
+    (the largest of the flag's last LIMIT_PEAK_S) is the tire's at some slip in TCS_SLIP_BAND, which is not sent: the
+    likelihood of (mu, C) is the best over that slip, 1 where u_axle lies between the brush forces at the band's ends
+    and falling as a normal beyond (u_axle's noise, the brush model's 3 % of mu). A stiff tire's band lies at or near
+    its peak, which puts mu within a few times u_axle; a soft one (cobblestone, winter tires: C small) reaches the band
+    far below its peak and leaves mu open above. A membership, as _band: the flag stays on for many samples that say
+    the same, and a density over the band's width would favour, at every one of them, the narrowest band that holds
+    u_axle: a saturated tire, the lowest mu."""
     for i in range(NM):
         mu = MU_GRID[i]
-        if kind == LIMIT_TCS:
-            lk = _band(mu, u_axle, s_u, ETA_TCS)
+        s_f = sqrt(s_u * s_u + (0.03 * mu) ** 2)
+        for j in range(NC):
+            c = c0 * C_FACTORS[j]
+            lo = _brush_force(TCS_SLIP_BAND[0], mu, c)
+            hi = _brush_force(TCS_SLIP_BAND[1], mu, c)
+            miss = max(lo - u_axle, u_axle - hi, 0.0) / s_f
+            like[i, j] = exp(-0.5 * miss * miss)
+
+
+@njit(cache=True)
+def _limit_likelihood(u_axle, s_u, kind, like):
+    """At (or near) the friction limit without ABS or traction control (LIMIT_*): ESC's engine cut and a locked or
+    spinning wheel, u_axle / mu spread over [eta, 1]."""
+    for i in range(NM):
+        mu = MU_GRID[i]
+        if kind == LIMIT_ESC:
+            lk = _band(mu, u_axle, s_u, ETA_ESC)
         else:
             lk = _band(mu, u_axle, s_u, ETA_LOCK) / ((1.0 - ETA_LOCK) * mu)
         for j in range(NC):
@@ -1258,9 +1287,13 @@ def pmf_step(mem, q, smp, t_prev, out):
             psi = (fz_f if f_front >= f_rear else fz_r) / (fz_f + fz_r)
             s_first = sqrt((s_u * f_first * G_MPS2 / -atx) ** 2 + (f_first * LOAD_SHARE_SPREAD / psi) ** 2)
         if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
-            # traction control: only the driven axle is at its limit
-            fz_d = fz_front if drive == 0 else fz_rear
-            u_limit = sqrt((m * atx / max(fz_d, 0.2 * m * G_MPS2)) ** 2 + (aty / G_MPS2) ** 2)
+            # traction control: only the driven axle is at its limit; its force per load known as the first braking
+            # axle's is (a_x's noise through the load share, and the load share's spread)
+            fz_d = max(fz_front if drive == 0 else fz_rear, 0.2 * m * G_MPS2)
+            f_d = m * atx / fz_d
+            u_limit = sqrt(f_d**2 + (aty / G_MPS2) ** 2)
+            psi = fz_d / (fz_front + fz_rear)
+            s_first = sqrt((s_u * m * G_MPS2 / fz_d) ** 2 + (f_d * LOAD_SHARE_SPREAD / psi) ** 2)
         # a controller's flag lags and latches (it stays on between the peaks of a sine steer): it speaks of the
         # largest utilisation of the last LIMIT_PEAK_S, not of this sample's
         u_limit = max(u_limit, mem[K_U_LIMIT] * exp(-dt / LIMIT_PEAK_S))
@@ -1268,10 +1301,13 @@ def pmf_step(mem, q, smp, t_prev, out):
         if smp[S_ABS] > 0.0:
             # ABS: mu between the car's utilisation (both axles at their limit) and the first axle's (_abs_likelihood)
             _abs_likelihood(u, s_u, u_limit, s_first, q[Q_C0], like)
+        elif smp[S_TCS] > 0.0 and atx > 0.0:
+            _tcs_likelihood(u_limit, s_first, q[Q_C0], like)
         else:
-            _limit_likelihood(u_limit, s_u, LIMIT_TCS if controller else LIMIT_LOCK, like)
+            _limit_likelihood(u_limit, s_u, LIMIT_ESC if controller else LIMIT_LOCK, like)
         _apply(mem, like, TEMPER)
-    # slip between the driven and the undriven axle
+    # slip between the driven and the undriven axle (where a controller or a wheel past its peak speaks, its term reads
+    # these wheels, once: a spinning wheel's slip says that the tire slides, not how stiff it is)
     driving = atx > -0.3 and smp[S_ABS] == 0.0
     f_d = 0.0
     s_raw = 0.0
@@ -1282,7 +1318,7 @@ def pmf_step(mem, q, smp, t_prev, out):
         f_d = (m * atx + q[Q_FRR] * fz_u) / max(fz_d, 0.2 * m * G_MPS2)
         if forces:  # the drive force channel: the driven axle's force without the accelerometer's bias
             f_d = fx[drive]
-        if straight and driving and not gnss_driven:
+        if straight and driving and not gnss_driven and not limit:
             _slip_likelihood(f_d, s_raw - mem[K_S0], v, q[Q_C0], like)
             _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
     # slip between the front and the rear axle under braking (every drive; its condition `braking_term` above)

@@ -3,8 +3,9 @@
 Data (roadgrip/sim/presets.py: physics_benchmark_runs): mu over the whole range 0.1-1.2 (ice, snow, wet, dry), every
 production-terminal effect on, manoeuvres that work the tires (braking into ABS, accelerating into traction control,
 ramp and sine steering at 0.5-0.9 of the road's limit, low-speed tight turns) and cruising. Two splits with fixed seeds:
-`validation` (paper SUV and compact hatchback, Dugoff and Magic Formula tires) is where constants may be chosen; `test`
-(midsize sedan, Burckhardt tire) is looked at once per release of the numbers, never while choosing a constant.
+`validation` (paper SUV and compact hatchback, Dugoff and Magic Formula tires of 0.3-1.3 of the catalogue's stiffness)
+is where constants may be chosen; `test` (midsize sedan, Burckhardt tire, whose surfaces carry their own slopes) is
+looked at once per release of the numbers, never while choosing a constant.
 
 Every estimator gets the catalogue profile of its car (bins.catalogue_profile), never the drawn one. Each table holds
 the prior baseline (evaluation/baseline.py) first, then every estimator, by true utilization bin (bins.py) and by mu
