@@ -8,9 +8,8 @@ Printed per run: the share of samples with ABS acting, the 90 % interval's cover
     PYTHONPATH=<checkout> nice -n 19 python results/trials/estimators/abs_falling_branch.py
 """
 
-import numpy as np
-
 from roadgrip.estimators.pmf import PMFEstimator
+from roadgrip.evaluation.bins import estimates_on_runs
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.roads import MuProfile, Path
@@ -20,37 +19,29 @@ from roadgrip.units import G_MPS2
 from roadgrip.vehicle.params import COMPACT_HATCHBACK, PAPER_SUV
 from roadgrip.vehicle.tires.magic_formula import MagicFormulaTire
 
+RUN = {"duration_s": 12.0, "seed": 3, "effects": ProductionEffects.production()}
+
 
 def main():
-    for tire in (
+    tires = (
         MagicFormulaTire(),
         MagicFormulaTire(shape_c=1.65),
         MagicFormulaTire(shape_c=1.9),
         MagicFormulaTire(shape_c=1.9, stiffness_scale=0.5),
-    ):
+    )
+    for tire in tires:
         for vehicle in (PAPER_SUV, COMPACT_HATCHBACK):
             for mu in (0.8, 1.0, 1.15):
                 ramp = 25.0 / (1.3 * mu * G_MPS2)
                 speed = SpeedProfile([0.0, 3.0, 3.0 + ramp, 20.0], [25.0, 25.0, 0.0, 0.0])
-                sc = Scenario(
-                    "abs",
-                    Path.straight(1500.0),
-                    MuProfile.uniform(mu),
-                    speed,
-                    vehicle=vehicle,
-                    tire=tire,
-                    duration_s=12.0,
-                    seed=3,
-                    effects=ProductionEffects.production(),
-                )
-                run = simulate([sc])
-                out = PMFEstimator().estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), vehicle)
-                up, lo = out["mu_upper"].to_numpy(), out["mu_lower"].to_numpy()
-                a = run["abs_active"].to_numpy(zero_copy_only=False).astype(bool)
-                cov = ((lo <= mu) & (up >= mu))[a].mean() if a.any() else float("nan")
+                road = (Path.straight(1500.0), MuProfile.uniform(mu), speed)
+                scenario = Scenario("abs", *road, vehicle=vehicle, tire=tire, **RUN)
+                e = estimates_on_runs(PMFEstimator(), simulate([scenario]), {"abs": vehicle})
+                on = e["abs_active"].astype(bool)
+                covered = (e["mu_lower"] <= mu) & (e["mu_upper"] >= mu)
                 print(
-                    f"C {tire.shape_c} x{tire.stiffness_scale} {vehicle.name} mu {mu}: ABS {a.mean():.2f}, "
-                    f"coverage under ABS {cov:.2f}, lowest mu_upper {up.min():.2f}"
+                    f"C {tire.shape_c} x{tire.stiffness_scale} {vehicle.name} mu {mu}: ABS {on.mean():.2f}, "
+                    f"coverage under ABS {covered[on].mean():.2f}, lowest mu_upper {e['mu_upper'].min():.2f}"
                 )
 
 
