@@ -6,7 +6,7 @@ is absent (NaN: "not sent"), never zero. docs/SIMULATOR.md ("Optional channels")
 |---|---|---|
 | gnss_speed_mps, gnss_speed_accuracy_mps | horizontal speed over ground, sqrt(v_x^2 + v_y^2), a GNSS Doppler fix every 100 ms (10 Hz, the stream's own rate, so no resampling beyond the latency's interpolation) | per-run latency uniform in [gnss_latency_min_s, gnss_latency_max_s] (0-0.2 s) (the fix describes t - latency); white noise gnss_noise_mps; dropouts: a two-state Markov chain with a gnss_dropout_share of the time lost in outages of mean gnss_dropout_mean_s (tunnels, underpasses); multipath outliers: a gnss_outlier_rate share of fixes off by N(0, gnss_outlier_mps), their reported accuracy left unchanged half the time; accuracy: gnss_noise_mps x U(0.8, 1.5) |
 | drive_force_n, brake_force_n | the tires' longitudinal forces summed, split by the brake switch: brake force = -sum(min(f_x, 0)) while the driver brakes (0 otherwise), drive force = sum(f_x) + brake force (negative: engine drag); the wheels' own inertia is in the ECU's torque-based figure but not here | per-run scale error uniform +-force_scale_spread (the torque model of the engine ECU, brake pad friction), a lag (the signal describes t - force_lag_s, first-order smoothing of the same time constant), white noise force_noise_n |
-| steering_torque_nm, eps_assist_torque_nm | the front axle's aligning moment M = (t_p + t_m) F_y,front, t_p the brush model's pneumatic trail t0 (1 - |alpha| / alpha_sl) (Pacejka, Tyre and Vehicle Dynamics, 3.2; 0 past alpha_sl = 3 mu F_z / C_alpha), t_m the caster's mechanical trail, through the steering ratio to the column, plus the column's Coulomb friction against the steering rate; the EPS gives the share assist_max T / (|T| + assist_half_nm) of the column torque T (an assist curve growing with the torque), the driver the rest | white noise torque_noise_nm on each |
+| steering_torque_nm, eps_assist_torque_nm | the front axle's aligning moment M = (t_p + t_m) F_y,front, t_p the brush model's pneumatic trail t0 (1 - |alpha| / alpha_sl) (Pacejka, Tyre and Vehicle Dynamics, 3.2; 0 past alpha_sl = 3 mu F_z / C_alpha, C_alpha the run's tire model's own cornering stiffness: `cornering_stiffness_per_load`), t_m the caster's mechanical trail, through the steering ratio to the column, plus the column's Coulomb friction against the steering rate; the EPS gives the share assist_max T / (|T| + assist_half_nm) of the column torque T (an assist curve growing with the torque), the driver the rest | white noise torque_noise_nm on each |
 
 Each run's draws come from its own generator (spawned by the caller), all of them whichever channels are on, so that
 switching one channel never changes another's draws nor the base signals.
@@ -21,7 +21,8 @@ import numpy as np
 
 from roadgrip.data.schema import CHANNEL_NAMES
 from roadgrip.validation import bounded, check_bounds
-from roadgrip.vehicle.params import VehicleParams
+from roadgrip.vehicle.params import TireParams, VehicleParams
+from roadgrip.vehicle.tires.base import TireModel
 
 WHEELS = ("fl", "fr", "rl", "rr")
 
@@ -62,6 +63,18 @@ class ChannelModel:
         """GNSS at its worst that issue 26 asks the estimator to tolerate: latency 0.2 s on every run, 10 % of the
         time in outages, 5 % of fixes multipath outliers of N(0, 2 m/s)."""
         return cls(gnss_latency_min_s=0.2, gnss_dropout_share=0.1, gnss_outlier_rate=0.05, gnss_outlier_mps=2.0)
+
+
+ALPHA_PROBE_RAD = 1e-4  # the slip angle at which a tire model's own cornering stiffness is read (its initial slope)
+
+
+def cornering_stiffness_per_load(tire: TireModel, params: TireParams, fz_n, mu):
+    """The tire model's cornering stiffness per load at zero slip (per rad) on a road of mu: its lateral force at a
+    slip angle of ALPHA_PROBE_RAD over F_z and the angle. The catalogue's times the model's stiffness scale for Dugoff
+    and the Magic Formula; for Burckhardt the slope of the surface its mu picks."""
+    fz = np.maximum(np.asarray(fz_n, dtype=np.float64), 1.0)
+    _, fy = tire.forces(params, 0.0, ALPHA_PROBE_RAD, fz, mu)
+    return np.maximum(np.abs(fy) / (fz * ALPHA_PROBE_RAD), 1e-6)
 
 
 def brush_trail_m(alpha_rad, mu, fz_n, c_alpha_per_load, t0_m):
@@ -110,8 +123,12 @@ def optional_channels(
     forces: bool,
     steering: bool,
     model: ChannelModel = ChannelModel(),
+    tire: TireModel | None = None,
 ) -> dict[str, np.ndarray]:
-    """The six optional channels of one run (NaN where a channel is off or, for GNSS, without a fix)."""
+    """The six optional channels of one run (NaN where a channel is off or, for GNSS, without a fix). The steering
+    torques need the run's `tire` model: the pneumatic trail follows the tire's own cornering stiffness."""
+    if steering and tire is None:
+        raise ValueError("optional_channels: the steering torques need the run's tire model")
     t = truth["t_s"]
     n = t.size
     nan = np.full(n, np.nan)
@@ -145,12 +162,11 @@ def optional_channels(
         out["drive_force_n"] = drive
         out["brake_force_n"] = np.maximum(brake, 0.0)
     if steering:
-        ca = vehicle.tire_front.cornering_stiffness_per_load_per_rad
         moment = np.zeros(n)
         for w in ("fl", "fr"):
-            trail = brush_trail_m(
-                truth[f"slip_angle_{w}_rad"], truth[f"mu_{w}"], truth[f"fz_{w}_n"], ca, model.trail_t0_m
-            )
+            mu_w, fz_w = truth[f"mu_{w}"], truth[f"fz_{w}_n"]
+            ca = cornering_stiffness_per_load(tire, vehicle.tire_front, fz_w, mu_w)
+            trail = brush_trail_m(truth[f"slip_angle_{w}_rad"], mu_w, fz_w, ca, model.trail_t0_m)
             moment += (trail + model.mechanical_trail_m) * truth[f"fy_{w}_n"]
         # the aligning moment turns the wheels back; holding the steer takes its torque at the column, plus friction
         steer_rate = np.gradient(truth["steer_rad"], t) if n > 1 else np.zeros(n)

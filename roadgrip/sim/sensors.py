@@ -35,6 +35,7 @@ from roadgrip.sim.production import ProductionEffects, ecu_signals, sensed_truth
 from roadgrip.units import G_MPS2, deg_to_rad
 from roadgrip.validation import bounded, check_bounds
 from roadgrip.vehicle.params import VehicleParams
+from roadgrip.vehicle.tires.base import TireModel
 
 HEBEI_ORIGIN = (38.0428, 114.5149)  # Shijiazhuang, Hebei Province: where the paper's vehicle-road-cloud system runs
 
@@ -93,13 +94,15 @@ class SensorModel:
         *,
         effects: ProductionEffects | None = None,
         vehicle: VehicleParams | None = None,
+        tire: TireModel | None = None,
     ) -> dict[str, np.ndarray]:
         """Telemetry signals of one run from its true signals (arrays over samples, keys as in integrator.CHANNELS).
 
         With production `effects` (which need the `vehicle`: nominal wheel radius and drive layout), the sensors see
         the truth through them (`production.sensed_truth`) and the ECU's speed and CAN resolution rewrite the speeds
         (`production.ecu_signals`). Their per-run draws come from a generator spawned from `rng`, so the base model's
-        draws are the same with the effects on or off."""
+        draws are the same with the effects on or off. The optional channels' steering torques need the run's `tire`
+        model too (the pneumatic trail follows its cornering stiffness)."""
         production = effects is not None and effects.any_sensor_effect
         true = truth  # the optional channels have their own delays (channels.py), not the CAN groups' offsets
         if production:
@@ -147,6 +150,7 @@ class SensorModel:
                 forces=effects.force_signals,
                 steering=effects.steering_torque,
                 model=self.channels,
+                tire=tire,
             )
         else:
             out |= {name: np.full(n, np.nan) for name in CHANNEL_NAMES}  # not sent

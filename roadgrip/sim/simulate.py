@@ -60,6 +60,7 @@ def simulate(
             rng,
             effects=scenario.effects,
             vehicle=scenario.vehicle,
+            tire=scenario.tire,
         )
         n = truth.shape[0]
         for name in CHANNEL_NAMES:  # an optional channel not sent (off, a GNSS outage) is null, as on the wire

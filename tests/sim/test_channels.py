@@ -2,15 +2,20 @@
 each follows its error model (GNSS speed against the true ground speed, forces against the tire forces, the steering
 torques against the brush model's aligning moment)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from roadgrip.data.schema import CHANNEL_NAMES, TELEMETRY_COLUMNS
-from roadgrip.sim.channels import ChannelModel, brush_trail_m, optional_channels
+from roadgrip.sim.channels import ChannelModel, brush_trail_m, cornering_stiffness_per_load, optional_channels
 from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.scenario import SAMPLE_PERIOD_S
 from roadgrip.sim.simulate import simulate
 from roadgrip.vehicle.params import MIDSIZE_SEDAN
+from roadgrip.vehicle.tires.burckhardt import BurckhardtTire
+from roadgrip.vehicle.tires.dugoff import DugoffTire
+from roadgrip.vehicle.tires.magic_formula import MagicFormulaTire
 from tests.sim.test_production import DRIVE
 
 WHEELS = ("fl", "fr", "rl", "rr")
@@ -101,3 +106,49 @@ def test_steering_torques_split_the_column_torque_by_the_assist_curve(runs):
     model = ChannelModel()
     share = model.assist_max * np.abs(total[big]) / (np.abs(total[big]) + model.assist_half_nm)
     np.testing.assert_allclose(assist[big] / total[big], share, atol=0.05)
+
+
+@pytest.mark.parametrize("tire", [DugoffTire(), MagicFormulaTire(), BurckhardtTire(surface="dry_asphalt")])
+def test_a_soft_tire_steers_with_the_torque_of_a_stiff_one_at_the_same_force(tire):
+    """The pneumatic trail follows the run's own tire: a tire of 0.35 of the stiffness takes 1 / 0.35 of the slip
+    angle for the same lateral force, and its full-sliding angle is as much larger, so at the same share of its limit
+    the aligning moment, and the column torque, are the same (with the catalogue's stiffness in the trail, the soft
+    tire's large angle read as a tire near sliding: 30 % less torque at half the limit)."""
+    n, mu, fz = 20, 1.0, 4000.0
+    model = ChannelModel(torque_noise_nm=0.0, column_friction_nm=0.0)
+    torques = []
+    for scale in (1.0, 0.35):
+        soft = dataclasses.replace(tire, stiffness_scale=scale)
+        c = cornering_stiffness_per_load(soft, MIDSIZE_SEDAN.tire_front, fz, mu)
+        fy = 0.5 * mu * fz  # half the limit
+        alpha = np.arctan(3.0 * mu / c * (1.0 - (1.0 - fy / (mu * fz)) ** (1.0 / 3.0)))  # the brush model's angle
+        truth = {"t_s": np.arange(n) * SAMPLE_PERIOD_S, "steer_rad": np.full(n, 0.05)}
+        for w in ("fl", "fr"):
+            truth |= {f"mu_{w}": np.full(n, mu), f"fz_{w}_n": np.full(n, fz), f"fy_{w}_n": np.full(n, fy)}
+            truth[f"slip_angle_{w}_rad"] = np.full(n, alpha)
+        out = optional_channels(
+            truth,
+            MIDSIZE_SEDAN,
+            SAMPLE_PERIOD_S,
+            np.random.default_rng(0),
+            gnss=False,
+            forces=False,
+            steering=True,
+            model=model,
+            tire=soft,
+        )
+        torques.append(out["steering_torque_nm"] + out["eps_assist_torque_nm"])
+    np.testing.assert_allclose(torques[1], torques[0], rtol=0.02)
+
+
+def test_the_steering_torques_need_the_tire_model():
+    with pytest.raises(ValueError, match="the steering torques need the run's tire model"):
+        optional_channels(
+            {"t_s": np.zeros(2)},
+            MIDSIZE_SEDAN,
+            SAMPLE_PERIOD_S,
+            np.random.default_rng(0),
+            gnss=False,
+            forces=False,
+            steering=True,
+        )
