@@ -26,6 +26,14 @@ def columns(table):
     return {n: table[n].to_numpy(zero_copy_only=False) for n in table.column_names if n not in ("vehicle_id", "run_id")}
 
 
+def sedan_channels(truth, seed=0, gnss=False, forces=False, steering=False, **kw):
+    """optional_channels of the midsize sedan on a hand-made truth (only the named channels on)."""
+    rng = np.random.default_rng(seed)
+    return optional_channels(
+        truth, MIDSIZE_SEDAN, SAMPLE_PERIOD_S, rng, gnss=gnss, forces=forces, steering=steering, **kw
+    )
+
+
 @pytest.fixture(scope="module")
 def runs():
     base = columns(simulate([DRIVE.replace(effects=PRODUCTION)]))
@@ -60,16 +68,7 @@ def test_dropouts_and_outliers_at_their_rates():
     t = np.arange(n) * SAMPLE_PERIOD_S
     truth = {"t_s": t, "vx_mps": np.full(n, 20.0), "vy_mps": np.zeros(n)}
     model = ChannelModel(gnss_dropout_share=0.1, gnss_outlier_rate=0.02, gnss_latency_max_s=0.0)
-    out = optional_channels(
-        truth,
-        MIDSIZE_SEDAN,
-        SAMPLE_PERIOD_S,
-        np.random.default_rng(1),
-        gnss=True,
-        forces=False,
-        steering=False,
-        model=model,
-    )
+    out = sedan_channels(truth, seed=1, gnss=True, model=model)
     g = out["gnss_speed_mps"]
     assert 0.06 < np.isnan(g).mean() < 0.14
     far = np.abs(g[np.isfinite(g)] - 20.0) > 5 * model.gnss_noise_mps
@@ -126,29 +125,11 @@ def test_a_soft_tire_steers_with_the_torque_of_a_stiff_one_at_the_same_force(tir
         for w in ("fl", "fr"):
             truth |= {f"mu_{w}": np.full(n, mu), f"fz_{w}_n": np.full(n, fz), f"fy_{w}_n": np.full(n, fy)}
             truth[f"slip_angle_{w}_rad"] = np.full(n, alpha)
-        out = optional_channels(
-            truth,
-            MIDSIZE_SEDAN,
-            SAMPLE_PERIOD_S,
-            np.random.default_rng(0),
-            gnss=False,
-            forces=False,
-            steering=True,
-            model=model,
-            tire=soft,
-        )
+        out = sedan_channels(truth, steering=True, model=model, tire=soft)
         torques.append(out["steering_torque_nm"] + out["eps_assist_torque_nm"])
     np.testing.assert_allclose(torques[1], torques[0], rtol=0.02)
 
 
 def test_the_steering_torques_need_the_tire_model():
     with pytest.raises(ValueError, match="the steering torques need the run's tire model"):
-        optional_channels(
-            {"t_s": np.zeros(2)},
-            MIDSIZE_SEDAN,
-            SAMPLE_PERIOD_S,
-            np.random.default_rng(0),
-            gnss=False,
-            forces=False,
-            steering=True,
-        )
+        sedan_channels({"t_s": np.zeros(2)}, steering=True)
