@@ -744,15 +744,23 @@ def _abs_likelihood(u_car, s_car, u_first, s_first, c0, like):
 
 
 @njit(cache=True)
+def _axle_force_sd(f, a, s_u, psi):
+    """The noise of one axle's force per load f, read from the accelerometer's |a_x| = a (s_u its noise per g) through
+    the axle's load share psi: a_x's (f g / a), and the load share's, known to LOAD_SHARE_SPREAD (f = F / (psi W)
+    moves by LOAD_SHARE_SPREAD / psi of itself). ABS's first axle and traction control's driven one."""
+    return sqrt((s_u * f * G_MPS2 / a) ** 2 + (f * LOAD_SHARE_SPREAD / psi) ** 2)
+
+
+@njit(cache=True)
 def _tcs_likelihood(u_axle, s_u, c0, like):
     """Traction control acting: the driven wheels crossed its slip threshold, so the driven axle's force per load u_axle
     (the largest of the flag's last LIMIT_PEAK_S) is the tire's at some slip in TCS_SLIP_BAND, which is not sent: the
     likelihood of (mu, C) is the best over that slip, 1 where u_axle lies between the brush forces at the band's ends
-    and falling as a normal beyond (u_axle's noise, the brush model's 3 % of mu). A stiff tire's band lies at or near
-    its peak, which puts mu within a few times u_axle; a soft one (cobblestone, winter tires: C small) reaches the band
-    far below its peak and leaves mu open above. A membership, as _band: the flag stays on for many samples that say
-    the same, and a density over the band's width would favour, at every one of them, the narrowest band that holds
-    u_axle: a saturated tire, the lowest mu."""
+    and falling as a normal beyond (u_axle's noise s_u, `_axle_force_sd`, and the brush model's 3 % of mu). A stiff
+    tire's band lies at or near its peak, which puts mu within a few times u_axle; a soft one (cobblestone, winter
+    tires: C small) reaches the band far below its peak and leaves mu open above. A membership, as _band: the flag
+    stays on for many samples that say the same, and a density over the band's width would favour, at every one of
+    them, the narrowest band that holds u_axle: a saturated tire, the lowest mu."""
     for i in range(NM):
         mu = MU_GRID[i]
         s_f = sqrt(s_u * s_u + (0.03 * mu) ** 2)
@@ -1282,18 +1290,14 @@ def pmf_step(mem, q, smp, t_prev, out):
             f_rear = (1.0 - share) * m * -atx / fz_r
             f_first = max(f_front, f_rear)
             u_limit = sqrt(f_first**2 + (aty / G_MPS2) ** 2)
-            # its noise: a_x's through share / load share (f_first g / -a_x), and the load share's, known to
-            # LOAD_SHARE_SPREAD: f_first = F / (psi W) moves by LOAD_SHARE_SPREAD / psi of itself
             psi = (fz_f if f_front >= f_rear else fz_r) / (fz_f + fz_r)
-            s_first = sqrt((s_u * f_first * G_MPS2 / -atx) ** 2 + (f_first * LOAD_SHARE_SPREAD / psi) ** 2)
+            s_first = _axle_force_sd(f_first, -atx, s_u, psi)
         if smp[S_TCS] > 0.0 and smp[S_ABS] == 0.0 and drive < 2 and atx > 0.0:
-            # traction control: only the driven axle is at its limit; its force per load known as the first braking
-            # axle's is (a_x's noise through the load share, and the load share's spread)
+            # traction control: only the driven axle is at its limit
             fz_d = max(fz_front if drive == 0 else fz_rear, 0.2 * m * G_MPS2)
             f_d = m * atx / fz_d
             u_limit = sqrt(f_d**2 + (aty / G_MPS2) ** 2)
-            psi = fz_d / (fz_front + fz_rear)
-            s_first = sqrt((s_u * m * G_MPS2 / fz_d) ** 2 + (f_d * LOAD_SHARE_SPREAD / psi) ** 2)
+            s_first = _axle_force_sd(f_d, atx, s_u, fz_d / (fz_front + fz_rear))
         # a controller's flag lags and latches (it stays on between the peaks of a sine steer): it speaks of the
         # largest utilisation of the last LIMIT_PEAK_S, not of this sample's
         u_limit = max(u_limit, mem[K_U_LIMIT] * exp(-dt / LIMIT_PEAK_S))

@@ -451,8 +451,8 @@ def physics_benchmark_runs(split: str, runs: int | None = None) -> list[tuple[Sc
     Run k: manoeuvre k mod 6, surface (ice, snow, wet, dry: PHYSICS_SURFACES) k div 6 mod 4, so that 24 runs hold every
     pair once, and catalogue entry k div 24 (round robin over the split's); mu constant over the run, uniform in the
     surface's range; the vehicle drawn around the entry (docs/VEHICLES.md ranges) with the entry's drive layout (the
-    variant a fleet registers); the split's tire model and its stiffness factor (in the split's range) drawn; a graded road and every
-    production-terminal effect on."""
+    variant a fleet registers); the split's tire model and its stiffness factor (in the split's range) drawn; a graded
+    road and every production-terminal effect on."""
     check_choice("physics benchmark", "split", split, set(PHYSICS_SPLITS))
     spec = PHYSICS_SPLITS[split]
     n = spec.runs if runs is None else runs
