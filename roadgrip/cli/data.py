@@ -218,6 +218,12 @@ def evaluate(
         [], "--estimator", help="physics benchmark: estimators beside the prior (repeatable; default: all four)"
     ),
     runs: int = typer.Option(0, min=0, help="physics benchmark: the split's first runs only (0: all 240)"),
+    lead_in_s: float = typer.Option(
+        0.0,
+        min=0.0,
+        help="physics benchmark: each estimator first reads this long a calm drive of the same car, a new trip "
+        "before each run (a fleet car's calibration); 0: each car seen for the first time",
+    ),
 ):
     """Regenerate a benchmark: the paper's Tables 2-6 and Figures 4-8, the generalization benchmark, the paper's
     Table 7 (real-vehicle test) in simulation (CONTRACTS 4), or the fleet benchmark (a simulated fleet through the cloud
@@ -228,7 +234,7 @@ def evaluate(
     check_choice("evaluate", "benchmark", benchmark, {"paper", "generalization", "real-vehicle", "fleet", "physics"})
     start = time.perf_counter()
     if benchmark == "physics":
-        paths = _evaluate_physics(out, split, seed, channels, tuple(estimator), runs)
+        paths = _evaluate_physics(out, split, seed, channels, tuple(estimator), runs, lead_in_s)
     elif benchmark == "fleet":
         check_choice("evaluate", "mode", mode, {"raw", "edge"})
         paths = _evaluate_fleet(out, seed, seeds, sweep, mode, channel_share)
@@ -320,7 +326,13 @@ def _evaluate_real_vehicle(out: Path, seed: int) -> dict:
 
 
 def _evaluate_physics(
-    out: Path, split: str, seed: int, channels: str = "", estimators: tuple[str, ...] = (), runs: int = 0
+    out: Path,
+    split: str,
+    seed: int,
+    channels: str = "",
+    estimators: tuple[str, ...] = (),
+    runs: int = 0,
+    lead_in_s: float = 0.0,
 ) -> dict:
     import pyarrow.csv as pacsv
 
@@ -340,10 +352,11 @@ def _evaluate_physics(
             runs or None,
             progress=lambda message: status.update(f"physics benchmark: {message}"),
             channels=tuple(c.strip() for c in channels.split(",") if c.strip()) or None,
+            lead_in_s=lead_in_s,
         )
     out.mkdir(parents=True, exist_ok=True)
     table = physics_markdown(rows)
-    stem = f"physics_{split}" + ("_channels" if channels else "")
+    stem = f"physics_{split}" + ("_channels" if channels else "") + ("_calibrated" if lead_in_s else "")
     paths = {"csv": out / f"{stem}.csv", "md": out / f"{stem}.md"}
     pacsv.write_csv(rows_table(rows), paths["csv"])
     paths["md"].write_text(table)

@@ -105,18 +105,43 @@ def _runs(table: pa.Table):
         yield run_id, table.filter(pc.equal(table["run_id"], run_id))
 
 
-def estimates_on_runs(estimator, table: pa.Table, vehicles: dict, progress=None) -> dict[str, np.ndarray]:
+LEAD_IN_GAP_S = 600.0  # a lead-in ends this long before its run starts: the car parked, then a new trip
+
+
+def _after_lead_in(run: pa.Table, lead: pa.Table) -> tuple[pa.Table, np.ndarray]:
+    """The lead-in's rows, moved in time to end LEAD_IN_GAP_S before the run, then the run's; with segment ids (0 the
+    lead-in's, 1 the run's: the estimator restarts between them, as at a new trip, keeping what it keeps of the car)."""
+    ts = lead["timestamp_ms"].to_numpy()
+    shift = int(run["timestamp_ms"][0].as_py()) - int(ts[-1]) - round(LEAD_IN_GAP_S * 1000.0)
+    k = lead.column_names.index("timestamp_ms")
+    lead = lead.set_column(k, lead.schema.field(k), pa.array(ts + shift))
+    segments = np.repeat(np.array([0, 1], dtype=np.int64), [lead.num_rows, run.num_rows])
+    return pa.concat_tables([lead, run]), segments
+
+
+def estimates_on_runs(
+    estimator, table: pa.Table, vehicles: dict, progress=None, lead_ins: pa.Table | None = None
+) -> dict[str, np.ndarray]:
     """Run a (streaming-capable) estimator over every run of a simulated table, each from its start with the profile
     `vehicles` gives its run (the catalogue profile: catalogue_profile); the estimates joined with the truth, as arrays
-    over the estimated samples."""
+    over the estimated samples. `lead_ins`: each run's lead-in (its run id + LEAD_IN_SUFFIX, presets.physics_lead_in),
+    which the estimator reads first, unscored: a car that has driven before."""
+    from roadgrip.sim.presets import LEAD_IN_SUFFIX
+
     parts = []
     runs = table["run_id"].unique().to_pylist()
+    leads = dict(_runs(lead_ins)) if lead_ins is not None else {}
     for k, (run_id, run) in enumerate(_runs(table)):
-        out = estimator.estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), vehicles[run_id])
-        rows = np.searchsorted(run["timestamp_ms"].to_numpy(), out["timestamp_ms"].to_numpy())
+        data, segments = run, np.zeros(run.num_rows, dtype=np.int64)
+        if lead_ins is not None:
+            data, segments = _after_lead_in(run, leads[f"{run_id}{LEAD_IN_SUFFIX}"])
+        out = estimator.estimate_batch(data, segments, vehicles[run_id])
+        ts = out["timestamp_ms"].to_numpy()
+        keep = ts >= run["timestamp_ms"][0].as_py()
+        rows = np.searchsorted(run["timestamp_ms"].to_numpy(), ts[keep])
         col = _truth_at(run, rows, vehicles[run_id], run_id)
-        col |= {c: out[c].to_numpy(zero_copy_only=False) for c in ("mu_lower", "mu_upper", "excited")}
-        col["mu_est"] = out["mu"].to_numpy()
+        col |= {c: out[c].to_numpy(zero_copy_only=False)[keep] for c in ("mu_lower", "mu_upper", "excited")}
+        col["mu_est"] = out["mu"].to_numpy()[keep]
         parts.append(col)
         if progress:
             progress(k + 1, len(runs))

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from roadgrip.evaluation.baseline import PRIOR_NAME, prior_baseline
 from roadgrip.evaluation.bins import (
@@ -104,15 +105,18 @@ def run_physics_benchmark(
     runs: int | None = None,
     progress=None,
     channels: tuple[str, ...] | None = None,
+    lead_in_s: float = 0.0,
 ):
     """The prior baseline and every estimator (as `load_estimator` gives it: guarded) on a split's runs: one row per
     (estimator, band, bin) with manoeuvre 'all', then one per (estimator, manoeuvre, band) over all bins; the prior's
-    first. `channels`: channel sets (CHANNEL_SETS) to run every estimator under (module doc); None: no channels."""
+    first. `channels`: channel sets (CHANNEL_SETS) to run every estimator under (module doc); None: no channels.
+    `lead_in_s`: every estimator first reads that long a calm drive of the same car (presets.physics_lead_in), a new
+    trip before the run, its rows named `<estimator> calibrated` (module doc); 0: a car seen for the first time."""
     import dataclasses
 
     from roadgrip.estimators.learned import load_estimator
     from roadgrip.sim.channels import ChannelModel
-    from roadgrip.sim.presets import physics_benchmark_runs
+    from roadgrip.sim.presets import LEAD_IN_SUFFIX, physics_benchmark_runs, physics_lead_in
     from roadgrip.sim.sensors import SensorModel
     from roadgrip.sim.simulate import simulate
     from roadgrip.validation import check_choice
@@ -125,25 +129,35 @@ def run_physics_benchmark(
     scenarios = [s for s, _ in drawn]
     if channels:
         scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s in scenarios]
-    table = simulate(scenarios)
-    tables = {None: table} if not channels else {}
+    leads = [physics_lead_in(s, lead_in_s) for s in scenarios] if lead_in_s > 0 else []
+
+    def simulated(sensors=SensorModel()):
+        """The runs' table and their lead-ins' (None without)."""
+        both = simulate(scenarios + leads, sensors)
+        is_lead = pc.ends_with(both["run_id"], LEAD_IN_SUFFIX)
+        return both.filter(pc.invert(is_lead)), both.filter(is_lead) if leads else None
+
+    table, lead_table = simulated()
+    tables = {None: (table, lead_table)} if not channels else {}
     for name in channels or ():
-        source = table
+        source = (table, lead_table)
         if name == "gnss-degraded":
-            source = simulate(scenarios, SensorModel(channels=ChannelModel.degraded_gnss()))
-        tables[name] = blank_channels(source, CHANNEL_SETS[name])
+            source = simulated(SensorModel(channels=ChannelModel.degraded_gnss()))
+        tables[name] = tuple(None if t is None else blank_channels(t, CHANNEL_SETS[name]) for t in source)
     profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
     manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
     baseline_mu = prior_baseline().mu_median
     rows = []
-    runs_of = [(PRIOR_NAME, None, table)] + [(e, c, t) for c, t in tables.items() for e in estimators]
-    for name, channel_set, data in runs_of:
+    runs_of = [(PRIOR_NAME, None, (table, None))] + [(e, c, t) for c, t in tables.items() for e in estimators]
+    for name, channel_set, (data, lead_ins) in runs_of:
         label = name if channel_set is None else f"{name} [{channel_set}]"
+        if lead_ins is not None:
+            label += " calibrated"
         say(f"{label} on the {split} split")
         if name == PRIOR_NAME:
             estimates = prior_estimates(data, profiles)
         else:
-            estimates = estimates_on_runs(load_estimator(name), data, profiles)
+            estimates = estimates_on_runs(load_estimator(name), data, profiles, lead_ins=lead_ins)
         rows += [{"estimator": label, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
         rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
     return rows

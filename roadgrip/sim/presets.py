@@ -445,6 +445,59 @@ def physics_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: floa
     raise ValueError(f"physics_manoeuvre: manoeuvre must be one of {PHYSICS_MANOEUVRES}, got {manoeuvre!r}")
 
 
+# A physics run's calm lead-in (physics_lead_in): the driving a fleet car has done before it meets the run's road
+PHYSICS_LEAD_IN_SURFACES = ("wet", "dry")  # the roads it comes from, drawn apart from the run's
+PHYSICS_LEAD_IN_SPEED_MPS = (8.0, 25.0)
+PHYSICS_LEAD_IN_ACCEL_MPS2 = (0.3, 1.5)  # speed changes, stops and starts: under 0.15 g
+PHYSICS_LEAD_IN_LATERAL_MPS2 = (0.5, 2.0)  # the curves' lateral acceleration at the top speed
+LEAD_IN_SUFFIX = "-lead-in"  # a lead-in's run id: its run's and this
+
+
+def physics_lead_in(scenario: Scenario, seconds: float) -> Scenario:
+    """The calm drive the same car made before a physics-benchmark run: `seconds` on a winding road (curvature a sine
+    along it, PHYSICS_LEAD_IN_LATERAL_MPS2 at the top speed) of a wet or dry surface drawn apart from the run's, with
+    gentle speed changes and a stop now and then (PHYSICS_LEAD_IN_ACCEL_MPS2). The run's vehicle, tire and effects, and
+    its seed, so that the per-car draws of its production effects (radii, mounting, biases) are the run's; its own
+    draws come from a generator of (the run's seed, 1), so the run is unchanged."""
+    if not seconds > 0:
+        raise ValueError(f"a lead-in lasts more than 0 s, got {seconds!r}")
+    rng = np.random.default_rng([scenario.seed, 1])
+    low, high = PHYSICS_LEAD_IN_SPEED_MPS
+    times, speeds = [0.0], [float(rng.uniform(low, high))]
+
+    def go(dt, v):
+        times.append(times[-1] + dt)
+        speeds.append(v)
+
+    while times[-1] < seconds:
+        if rng.random() < 0.25:  # a stop and a start
+            go(speeds[-1] / rng.uniform(*PHYSICS_LEAD_IN_ACCEL_MPS2), 0.0)
+            go(rng.uniform(2.0, 6.0), 0.0)
+        target = float(rng.uniform(low, high))
+        go(abs(target - speeds[-1]) / rng.uniform(*PHYSICS_LEAD_IN_ACCEL_MPS2) + 0.1, target)
+        go(rng.uniform(3.0, 10.0), target)
+    speed = SpeedProfile(times, speeds)
+    distance_m = speed.distance_m(seconds)
+    step_m, wavelength_m = 2.0, rng.uniform(300.0, 600.0)
+    curvature = rng.uniform(*PHYSICS_LEAD_IN_LATERAL_MPS2) / high**2
+    s = np.arange(0.0, 1.2 * distance_m + 300.0, step_m)
+    heading = np.cumsum(curvature * np.sin(2.0 * math.pi * s / wavelength_m + rng.uniform(0.0, 2.0 * math.pi))) * step_m
+    points = np.column_stack([np.cumsum(np.cos(heading)), np.cumsum(np.sin(heading))]) * step_m
+    surface = PHYSICS_LEAD_IN_SURFACES[int(rng.integers(len(PHYSICS_LEAD_IN_SURFACES)))]
+    return scenario.replace(
+        run_id=f"{scenario.run_id}{LEAD_IN_SUFFIX}",
+        path=Path(np.vstack([[0.0, 0.0], points])),
+        mu=MuProfile.uniform(float(rng.uniform(*PHYSICS_SURFACES[surface]))),
+        speed=speed,
+        condition=surface,
+        road="curve",
+        steer=None,
+        duration_s=seconds,
+        manoeuvre="lead_in",
+        grade=random_grade(rng, scenario.effects.grade_max_rad, distance_m),
+    )
+
+
 def physics_benchmark_runs(split: str, runs: int | None = None) -> list[tuple[Scenario, VehicleParams]]:
     """(scenario, catalogue entry its vehicle was drawn around) of every run of a physics-benchmark split.
 

@@ -43,14 +43,15 @@ def test_splits_are_fixed_cover_every_surface_and_hold_the_test_vehicle_and_tire
 
 
 class _Spy:
-    """Wraps a loaded estimator; remembers every (profile, run, estimates) it was called with."""
+    """Wraps a loaded estimator; remembers every (profile, run, estimates) it was called with, and the segment ids."""
 
     def __init__(self, inner):
-        self.inner, self.calls = inner, []
+        self.inner, self.calls, self.segments = inner, [], []
 
     def estimate_batch(self, run, segments, vehicle):
         out = self.inner.estimate_batch(run, segments, vehicle)
         self.calls.append((vehicle, run, out))
+        self.segments.append(np.asarray(segments))
         return out
 
 
@@ -155,3 +156,33 @@ def test_the_base_channel_set_is_the_benchmark_without_channels_and_sets_are_nam
     assert base == [r for r in plain if r["estimator"] == "pmf"]
     with pytest.raises(ValueError, match="channels"):
         run_physics_benchmark("validation", ("pmf",), runs=1, channels=("radar",))
+
+
+def test_a_calibrated_car_reads_its_lead_in_first_and_is_scored_on_the_run_alone():
+    """With a lead-in the estimator gets, per run, the lead-in's rows (segment 0), ending LEAD_IN_GAP_S before the run,
+    then the run's (segment 1: a new trip); the cells count the run's samples only, under `<estimator> calibrated`."""
+    from roadgrip.evaluation.bins import LEAD_IN_GAP_S
+
+    real = learned.load_estimator
+    spies = []
+
+    def load(name):
+        spies.append(_Spy(real(name)))
+        return spies[-1]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(learned, "load_estimator", load)
+        rows = run_physics_benchmark("validation", estimators=("pmf",), runs=2, lead_in_s=20.0)
+    assert {r["estimator"] for r in rows} == {PRIOR_NAME, "pmf calibrated"}
+    whole = next(
+        r for r in rows if (r["estimator"], r["manoeuvre"], r["band"], r["bin"]) == ("pmf calibrated",) + ("all",) * 3
+    )
+    assert whole["n"] == 2 * 300
+    for (_, data, out), segments in zip(spies[0].calls, spies[0].segments):
+        assert segments.tolist() == [0] * 200 + [1] * 300
+        ids = data["run_id"].to_pylist()
+        assert ids[:200] == [ids[-1] + "-lead-in"] * 200 and ids[200:] == [ids[-1]] * 300
+        ts = data["timestamp_ms"].to_numpy()
+        assert (np.diff(ts) > 0).all()
+        assert ts[200] - ts[199] == LEAD_IN_GAP_S * 1000.0
+        assert out.num_rows == 500
