@@ -43,8 +43,8 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   running mean until RADIUS_TAU_S of it, then a moving average over that span; read once it has FR_CALIBRATED_S;
 - the braking line d = b + k_b x (x the brakes' force per weight at the static loads; k_b the car's own split, load
   share and tires in one number, b what the zero leaves): recursive least squares over gentle straight stops (x under
-  BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S, from the catalogue's k_b and b = 0 +-
-  BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
+  BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S (each line is fed only once its conditions have
+  held LINE_SETTLE_S: not a manoeuvre's onset), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
 - the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
   a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
 - the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
@@ -221,6 +221,12 @@ RLS_TAU_S = 120.0  # the slip line's memory
 # tire's 0.062 on the fleet benchmark); over 1 s its variance falls 20-fold while the driver's changes of force, over
 # seconds, pass
 SLIP_LINE_FILTER_S = 1.0
+# ... and fed to the line only once its conditions have held this long without a break: a manoeuvre's onset (the body
+# pitching, about half a second at a pitch frequency of 1-1.5 Hz; the signal groups read up to 50 ms apart, so that
+# one sample mixes the force before and after a step) does not lie on the line, and a driver who brakes firmly passes
+# through gentle forces only there: a fleet car's braking line learned from such onsets and from a stop's release on
+# an ice patch (k_b ten times the catalogue's) read every firm stop on dry asphalt as ice (mu_upper 0.44)
+LINE_SETTLE_S = 0.5
 STIFFNESS_CALIBRATED_S = 30.0  # seconds of low-force driving before the slip line's slope informs the stiffness
 STIFFNESS_SURFACE_SPREAD = 0.25  # what the slope at low force leaves unknown of the curve nearer the peak (log)
 SLIP_SIGMA0 = 0.0015  # slip noise floor: wheel-speed noise, CAN quantisation, signal time offsets
@@ -412,13 +418,13 @@ N_MEM_V2 = K_AL
 # the slip line's input filter (`_calibrate`), appended after it: a state saved before (N_MEM_V3 numbers) loads with
 # the filter empty
 N_MEM_V3 = K_AL + al.memory_size(NM)
-K_LINE_F, K_LINE_S, K_LINE_ON = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
+K_LINE_F, K_LINE_S, K_LINE_AGE = N_MEM_V3, N_MEM_V3 + 1, N_MEM_V3 + 2
 # a line's slots lie in the order `_line_update` (K_S0 .. K_RLS_W, K_BL_B .. K_BL_W) and `_line_input` (K_LINE_F ..
-# K_LINE_ON, K_BL_X .. K_BL_ON) read them
+# K_LINE_AGE, K_BL_X .. K_BL_AGE) read them
 # the braking term's calibration (an AWD's front/rear radius ratio, `_calibrate`; the braking line, `_line_update`),
 # appended after it: a state saved before (N_MEM_V4 numbers) loads with both unlearned
 N_MEM_V4 = N_MEM_V3 + 3
-(K_FR, K_FR_W, K_BL_B, K_BL_K, K_BL_P00, K_BL_P01, K_BL_P11, K_BL_W, K_BL_X, K_BL_D, K_BL_ON) = range(
+(K_FR, K_FR_W, K_BL_B, K_BL_K, K_BL_P00, K_BL_P01, K_BL_P11, K_BL_W, K_BL_X, K_BL_D, K_BL_AGE) = range(
     N_MEM_V4, N_MEM_V4 + 11
 )
 N_MEM_V5 = N_MEM_V4 + 11
@@ -919,18 +925,21 @@ def _brake_slip_likelihood(
 
 
 @njit(cache=True)
-def _line_input(mem, k, x, y, dt, was_on):
+def _line_input(mem, k, x, y, dt, age):
     """A line's regressor and response through their first-order filter over SLIP_LINE_FILTER_S (mem[k], mem[k + 1];
-    mem[k + 2] set: it fed the line): from where it was if it fed the line at the previous sample (was_on), else
-    started at the raw values. Returns the filtered pair."""
-    if was_on:
+    mem[k + 2] the seconds it has run without a break): on from where it was if it fed the line at the previous sample
+    (`age`, that sample's mem[k + 2], above 0), else started at the raw values. Returns the filtered pair and whether the
+    filter has run SLIP_LINE_FILTER_S: its first second holds the manoeuvre's onset (the body pitching, the signal
+    groups read apart), where force and slip do not lie on the line; a driver who brakes firmly passes through gentle
+    forces only there, and a braking line learned from those onsets read a dry road's firm stops as ice."""
+    if age > 0.0:
         a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
         mem[k] += a * (x - mem[k])
         mem[k + 1] += a * (y - mem[k + 1])
     else:
         mem[k], mem[k + 1] = x, y
-    mem[k + 2] = 1.0
-    return mem[k], mem[k + 1]
+    mem[k + 2] = age + dt
+    return mem[k], mem[k + 1], mem[k + 2] >= LINE_SETTLE_S
 
 
 @njit(cache=True)
@@ -955,9 +964,10 @@ def _line_update(mem, k, x, y, dt, v):
 @njit(cache=True)
 def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, straight, driving):
     """Update the self-calibration with this sample (after its evidence was used with the previous calibration)."""
-    # the slip line's filter goes on only from a sample that fed it (K_LINE_ON, set again below if this one does)
-    line_on = mem[K_LINE_ON] > 0.0
-    mem[K_LINE_ON] = 0.0
+    # the slip line's filter goes on only from a sample that fed it (K_LINE_AGE: its age then, set again below if this
+    # one does)
+    line_age = mem[K_LINE_AGE]
+    mem[K_LINE_AGE] = 0.0
     controller = smp[S_ABS] + smp[S_TCS] + smp[S_ESC] > 0.0
     if dt <= 0.0 or controller or v < 3.0:
         return
@@ -990,8 +1000,9 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
     if not abs(f_d) < 0.15:
         return
-    f_d, s_raw = _line_input(mem, K_LINE_F, f_d, s_raw, dt, line_on)
-    _line_update(mem, K_S0, f_d, s_raw, dt, v)
+    f_d, s_raw, settled = _line_input(mem, K_LINE_F, f_d, s_raw, dt, line_age)
+    if settled:
+        _line_update(mem, K_S0, f_d, s_raw, dt, v)
 
 
 @njit(cache=True)
@@ -1355,15 +1366,16 @@ def pmf_step(mem, q, smp, t_prev, out):
             like,
         )
         _apply_at_stiffness(mem, like, INCONSISTENT**TEMPER)
-        was_on = mem[K_BL_ON] > 0.0
-        mem[K_BL_ON] = 0.0
+        age = mem[K_BL_AGE]
+        mem[K_BL_AGE] = 0.0
         if x <= BRAKE_LINE_MAX_G:
             # the line at the static loads: the transfer's part (at the profile's tires) taken out
             transfer = (f_f - f_f_static) / q[Q_C0_FRONT] - (f_r - f_r_static) / q[Q_C0_REAR]
-            x_f, d_f = _line_input(mem, K_BL_X, x, d - transfer, dt, was_on)
-            _line_update(mem, K_BL_B, x_f, d_f, dt, v_ref)
+            x_f, d_f, settled = _line_input(mem, K_BL_X, x, d - transfer, dt, age)
+            if settled:
+                _line_update(mem, K_BL_B, x_f, d_f, dt, v_ref)
     else:
-        mem[K_BL_ON] = 0.0
+        mem[K_BL_AGE] = 0.0
     _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, past_peak)
     # the steering torques (aligning.py): the front axle's pneumatic trail against the brush model's at its force
     if al.torques_sent(smp[S_STEER_T], smp[S_EPS_T]) and dt > 0.0 and mem[K_V_PREV] >= 0.0:

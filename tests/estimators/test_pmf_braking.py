@@ -194,3 +194,33 @@ def test_a_car_standing_on_the_ice_it_stopped_on_keeps_knowing_it(entry):
     upper, lower = out["mu_upper"].to_numpy()[standing], out["mu_lower"].to_numpy()[standing]
     assert upper.max() < 0.45, upper.max()
     assert (lower <= 0.15).all() and (upper >= 0.15).all()
+
+
+def test_a_firm_drivers_stops_on_dry_asphalt_are_not_read_as_ice():
+    """A fleet car whose driver brakes firmly (0.3 g; the fleet benchmark's tuning seed 100, vehicle bench-010, a
+    midsize sedan on Dugoff tires) passes through gentle braking only in a stop's first or last sample (one sample
+    mixes the force before and after the step: the signal groups are read apart), and once leaving an ice patch
+    with its wheels still slipping. A braking line learned from those samples took k_b ten times the catalogue's and
+    read its firm stops on dry asphalt as ice: 68 samples with mu_upper below 0.5 in its first 51 minutes. Learned
+    only where braking has held its conditions for LINE_SETTLE_S, none reads so (one sample, leaving the patch,
+    carries its reading)."""
+    import pyarrow as pa
+
+    from roadgrip.evaluation.fleet_benchmark import make_scenario
+    from roadgrip.sim.sensors import SensorModel
+
+    fleet = make_scenario(100)
+    trips = [t for t in fleet.trips if t.vehicle_id == "bench-010" and t.depart_s < 3060.0]
+    origin = fleet.network.origin
+    run = simulate([t.scenario for t in trips], SensorModel(origin_lat_deg=origin[0], origin_lon_deg=origin[1]))
+    ids = run["run_id"].to_pylist()
+    depart = {t.scenario.run_id: t.depart_s for t in trips}
+    t_s = np.array([depart[r] for r in ids]) + run["t_s"].to_numpy()
+    field = run.schema.field("timestamp_ms")
+    run = run.set_column(run.column_names.index("timestamp_ms"), field, pa.array(np.round(t_s * 1000.0).astype(int)))
+    trip = {t.scenario.run_id: k for k, t in enumerate(trips)}
+    out = pmf.PMFEstimator().estimate_batch(run, np.array([trip[r] for r in ids]), fleet.kinds["bench-010"])
+    dry = run["mu"].to_numpy() >= 0.6
+    firm = run["ax_true_mps2"].to_numpy() < -2.5
+    assert (dry & firm).sum() > 300
+    assert ((out["mu_upper"].to_numpy() < 0.5) & dry).sum() <= 1
