@@ -43,8 +43,8 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
   running mean until RADIUS_TAU_S of it, then a moving average over that span; read once it has FR_CALIBRATED_S;
 - the braking line d = b + k_b x (x the brakes' force per weight at the static loads; k_b the car's own split, load
   share and tires in one number, b what the zero leaves): recursive least squares over gentle straight stops (x under
-  BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S (each line is fed only once its conditions have
-  held LINE_SETTLE_S: not a manoeuvre's onset), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
+  BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S, fed only once a stop has held those conditions
+  LINE_SETTLE_S (not its onset), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
 - the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
   a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
 - the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
@@ -221,11 +221,13 @@ RLS_TAU_S = 120.0  # the slip line's memory
 # tire's 0.062 on the fleet benchmark); over 1 s its variance falls 20-fold while the driver's changes of force, over
 # seconds, pass
 SLIP_LINE_FILTER_S = 1.0
-# ... and fed to the line only once its conditions have held this long without a break: a manoeuvre's onset (the body
+# The braking line is fed only once a stop has held its conditions this long without a break: a stop's onset (the body
 # pitching, about half a second at a pitch frequency of 1-1.5 Hz; the signal groups read up to 50 ms apart, so that
 # one sample mixes the force before and after a step) does not lie on the line, and a driver who brakes firmly passes
-# through gentle forces only there: a fleet car's braking line learned from such onsets and from a stop's release on
-# an ice patch (k_b ten times the catalogue's) read every firm stop on dry asphalt as ice (mu_upper 0.44)
+# through gentle braking only there: a fleet car's braking line learned from such onsets and from a stop's release on
+# an ice patch (k_b ten times the catalogue's) read every firm stop on dry asphalt as ice (mu_upper 0.44). The slip
+# line is fed from its first sample: a trip starts in calm driving, and its intercept (the axles' radius mismatch,
+# which the axle-slip term takes out) is wanted from the first seconds
 LINE_SETTLE_S = 0.5
 STIFFNESS_CALIBRATED_S = 30.0  # seconds of low-force driving before the slip line's slope informs the stiffness
 STIFFNESS_SURFACE_SPREAD = 0.25  # what the slope at low force leaves unknown of the curve nearer the peak (log)
@@ -1000,9 +1002,8 @@ def _calibrate(mem, q, smp, dt, v_cog, gain, offset, v, ax_c, atx, f_d, s_raw, s
     # and slip (SLIP_LINE_FILTER_S), the filter restarted wherever the line's conditions break
     if not abs(f_d) < 0.15:
         return
-    f_d, s_raw, settled = _line_input(mem, K_LINE_F, f_d, s_raw, dt, line_age)
-    if settled:
-        _line_update(mem, K_S0, f_d, s_raw, dt, v)
+    f_d, s_raw, _ = _line_input(mem, K_LINE_F, f_d, s_raw, dt, line_age)
+    _line_update(mem, K_S0, f_d, s_raw, dt, v)
 
 
 @njit(cache=True)

@@ -93,11 +93,13 @@ def test_gentle_braking_on_ice_reads_low(entry, drive, mu, tire, median_at_most)
     wheel is past its peak, so before this term only the bound spoke (median 0.75). The front axle slips faster than
     the braking line learned in the gentle stops: over the last second the median reads ice on the Dugoff tire (2.5
     to 5 times its linear slip there) and below the prior's on the Magic Formula's, whose curve is straighter (the
-    brush model reads part of its bend as a softer tire); the interval holds the truth throughout."""
+    brush model reads part of its bend as a softer tire); the interval holds the truth throughout, to the grid's
+    resolution (half a step: its ends are read between the grid's cells)."""
     car, catalogue = drawn_car(entry, drive, -0.06)
     est = stop_estimates(car, catalogue, TIRES[tire], mu, 0.9)
     assert np.median(est["mu"][-10:]) <= median_at_most
-    assert ((est["mu_lower"] <= mu) & (est["mu_upper"] >= mu)).all()
+    half_step = 0.5 * (pmf.MU_GRID[1] - pmf.MU_GRID[0])
+    assert ((est["mu_lower"] <= mu + half_step) & (est["mu_upper"] >= mu - half_step)).all()
 
 
 @pytest.mark.parametrize("drive", DRIVES)
