@@ -24,6 +24,7 @@ from roadgrip.units import G_MPS2, kmh_to_mps
 from roadgrip.validation import check_choice
 from roadgrip.vehicle.params import COMPACT_HATCHBACK, MIDSIZE_SEDAN, PAPER_SUV, TireParams, VehicleParams
 from roadgrip.vehicle.tires import BurckhardtTire, DugoffTire, MagicFormulaTire, TireModel
+from roadgrip.vehicle.tires.base import STIFFNESS_SCALE_BOUNDS
 
 PAPER_DURATION_S = 40.0
 PAPER_TOP_SPEED_MPS = kmh_to_mps(120.0)
@@ -446,19 +447,28 @@ def physics_manoeuvre(rng: np.random.Generator, manoeuvre: str, duration_s: floa
 
 
 # A physics run's calm lead-in (physics_lead_in): the driving a fleet car has done before it meets the run's road
-PHYSICS_LEAD_IN_SURFACES = ("wet", "dry")  # the roads it comes from, drawn apart from the run's
+# the roads it comes from, drawn apart from the run's: wet or dry asphalt of 0.6 or more, where its calm driving
+# (below) stays under half the road's limit
+PHYSICS_LEAD_IN_SURFACES = {"wet": (0.6, 0.8), "dry": (0.8, 1.2)}
 PHYSICS_LEAD_IN_SPEED_MPS = (8.0, 25.0)
 PHYSICS_LEAD_IN_ACCEL_MPS2 = (0.3, 1.5)  # speed changes, stops and starts: under 0.15 g
 PHYSICS_LEAD_IN_LATERAL_MPS2 = (0.5, 2.0)  # the curves' lateral acceleration at the top speed
 LEAD_IN_SUFFIX = "-lead-in"  # a lead-in's run id: its run's and this
+# The run's surface's slope at zero slip against the lead-in's wet or dry asphalt, from Burckhardt's table (Kiencke and
+# Nielsen, Automotive Control Systems): asphalt and concrete, dry or wet, 28.6-30.2 per unit slip; wet cobblestone 13.4,
+# dry cobblestone 8.2, snow 18.3, ice 15.3. A tire model whose slope is the same on every surface (Dugoff, the Magic
+# Formula) has it put in its stiffness scale on the lead-in: the run's divided by this
+PHYSICS_SURFACE_SLOPE = {"ice": (0.45, 0.6), "snow": (0.55, 0.7), "wet": (0.45, 1.0), "dry": (0.28, 1.0)}
 
 
 def physics_lead_in(scenario: Scenario, seconds: float) -> Scenario:
     """The calm drive the same car made before a physics-benchmark run: `seconds` on a winding road (curvature a sine
-    along it, PHYSICS_LEAD_IN_LATERAL_MPS2 at the top speed) of a wet or dry surface drawn apart from the run's, with
+    along it, PHYSICS_LEAD_IN_LATERAL_MPS2 at the top speed) of wet or dry asphalt drawn apart from the run's, with
     gentle speed changes and a stop now and then (PHYSICS_LEAD_IN_ACCEL_MPS2). The run's vehicle, tire and effects, and
     its seed, so that the per-car draws of its production effects (radii, mounting, biases) are the run's; its own
-    draws come from a generator of (the run's seed, 1), so the run is unchanged."""
+    draws come from a generator of (the run's seed, 1), so the run is unchanged. The tire's slope on the lead-in's
+    asphalt is the run's over PHYSICS_SURFACE_SLOPE of the run's surface (`scenario.condition`), drawn, where the tire
+    model's slope is the same on every surface; Burckhardt's carries its own."""
     if not seconds > 0:
         raise ValueError(f"a lead-in lasts more than 0 s, got {seconds!r}")
     rng = np.random.default_rng([scenario.seed, 1])
@@ -483,11 +493,16 @@ def physics_lead_in(scenario: Scenario, seconds: float) -> Scenario:
     s = np.arange(0.0, 1.2 * distance_m + 300.0, step_m)
     heading = np.cumsum(curvature * np.sin(2.0 * math.pi * s / wavelength_m + rng.uniform(0.0, 2.0 * math.pi))) * step_m
     points = np.column_stack([np.cumsum(np.cos(heading)), np.cumsum(np.sin(heading))]) * step_m
-    surface = PHYSICS_LEAD_IN_SURFACES[int(rng.integers(len(PHYSICS_LEAD_IN_SURFACES)))]
+    surface = tuple(PHYSICS_LEAD_IN_SURFACES)[int(rng.integers(len(PHYSICS_LEAD_IN_SURFACES)))]
+    tire = scenario.tire
+    if not tire.slope_by_surface:
+        slope = float(rng.uniform(*PHYSICS_SURFACE_SLOPE[scenario.condition]))
+        tire = dataclasses.replace(tire, stiffness_scale=min(tire.stiffness_scale / slope, STIFFNESS_SCALE_BOUNDS[1]))
     return scenario.replace(
         run_id=f"{scenario.run_id}{LEAD_IN_SUFFIX}",
         path=Path(np.vstack([[0.0, 0.0], points])),
-        mu=MuProfile.uniform(float(rng.uniform(*PHYSICS_SURFACES[surface]))),
+        mu=MuProfile.uniform(float(rng.uniform(*PHYSICS_LEAD_IN_SURFACES[surface]))),
+        tire=tire,
         speed=speed,
         condition=surface,
         road="curve",

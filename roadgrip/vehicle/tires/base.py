@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -38,6 +39,9 @@ class TireModel(ABC):
     name: str
     kernel_id: int
     stiffness_scale: float
+    # whether the model's slope at zero slip changes with the road's surface (Burckhardt's table carries one per
+    # surface); where it does not, a surface's own slope is the stiffness scale's to carry
+    slope_by_surface: ClassVar[bool] = False
 
     @abstractmethod
     def shape_params(self) -> list[float]:

@@ -18,6 +18,7 @@ import csv
 from dataclasses import dataclass, field
 from importlib import resources
 from math import exp, log, sqrt, tan
+from typing import ClassVar
 
 from numba import njit
 
@@ -83,6 +84,7 @@ class BurckhardtTire(TireModel):
 
     surface: str | None = None
     stiffness_scale: float = field(default=1.0, metadata=bounded(*STIFFNESS_SCALE_BOUNDS))
+    slope_by_surface: ClassVar[bool] = True
 
     name = "burckhardt"
     kernel_id = BURCKHARDT_ID
