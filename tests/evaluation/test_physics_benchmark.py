@@ -55,8 +55,8 @@ class _Spy:
         return out
 
 
-@pytest.fixture(scope="module")
-def spied_run():
+def spied_benchmark(**options):
+    """run_physics_benchmark("validation", ("pmf",), **options) with pmf wrapped in a _Spy: (rows, the spy)."""
     real = learned.load_estimator
     spies = []
 
@@ -66,9 +66,13 @@ def spied_run():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(learned, "load_estimator", load)
-        # the first four runs: braking, accelerating, ramp and sine steering on ice
-        rows = run_physics_benchmark("validation", estimators=("pmf",), runs=4)
+        rows = run_physics_benchmark("validation", estimators=("pmf",), **options)
     return rows, spies[0]
+
+
+@pytest.fixture(scope="module")
+def spied_run():
+    return spied_benchmark(runs=4)  # the first four runs: braking, accelerating, ramp and sine steering on ice
 
 
 def test_the_estimator_receives_the_catalogue_profile_not_the_drawn_vehicle(spied_run):
@@ -163,22 +167,13 @@ def test_a_calibrated_car_reads_its_lead_in_first_and_is_scored_on_the_run_alone
     then the run's (segment 1: a new trip); the cells count the run's samples only, under `<estimator> calibrated`."""
     from roadgrip.evaluation.bins import LEAD_IN_GAP_S
 
-    real = learned.load_estimator
-    spies = []
-
-    def load(name):
-        spies.append(_Spy(real(name)))
-        return spies[-1]
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(learned, "load_estimator", load)
-        rows = run_physics_benchmark("validation", estimators=("pmf",), runs=2, lead_in_s=20.0)
+    rows, spy = spied_benchmark(runs=2, lead_in_s=20.0)
     assert {r["estimator"] for r in rows} == {PRIOR_NAME, "pmf calibrated"}
     whole = next(
         r for r in rows if (r["estimator"], r["manoeuvre"], r["band"], r["bin"]) == ("pmf calibrated",) + ("all",) * 3
     )
     assert whole["n"] == 2 * 300
-    for (_, data, out), segments in zip(spies[0].calls, spies[0].segments):
+    for (_, data, out), segments in zip(spy.calls, spy.segments):
         assert segments.tolist() == [0] * 200 + [1] * 300
         ids = data["run_id"].to_pylist()
         assert ids[:200] == [ids[-1] + "-lead-in"] * 200 and ids[200:] == [ids[-1]] * 300
