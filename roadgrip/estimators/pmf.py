@@ -44,7 +44,8 @@ Self-calibration, kept in the state (so the cloud keeps it per vehicle through s
 - the braking line d = b + k_b x (x the brakes' force per weight at the static loads; k_b the car's own split, load
   share and tires in one number, b what the zero leaves): recursive least squares over gentle straight stops (x under
   BRAKE_LINE_MAX_G) on x and d filtered over SLIP_LINE_FILTER_S, fed only once a stop has held those conditions
-  LINE_SETTLE_S (not its onset), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; once it has BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
+  LINE_SETTLE_S (not its onset), from the catalogue's k_b and b = 0 +- BRAKE_ZERO_SIGMA; once it has
+  BRAKE_LINE_CALIBRATED_S of them the braking term reads only the slip beyond it;
 - the lateral accelerometer's bias: a slow average (BIAS_TAU_S) of a_y - v r over straight driving (its mounting roll;
   a road's crossfall, which the tires do carry, is taken with it: documented in docs/PRODUCTION.md);
 - the understeer line delta - L r / v = b + k x0 (x0 = f_f / c_f - f_r / c_r at the profile's cornering stiffnesses per
@@ -190,12 +191,12 @@ ABS_BAND_POINTS = 5  # the slip band's force read at this many slips (midpoint r
 # the permissible maximum mass) move a car's static front load share by about 0.05
 LOAD_SHARE_SPREAD = 0.05
 LIMIT_PEAK_S = 1.0  # how long a controller's flag may lag or latch behind the utilisation it reacted to
-# Traction control holds the driven wheels' slip in a band (the simulator: cut above 0.05, restore below 0.02; production
-# systems up to about 0.1): the driven axle's force is the tire's at a slip there, near the peak for a stiff tire and a
-# fraction of it for a soft one
+# Traction control holds the driven wheels' slip in a band (the simulator: cut above 0.05, restore below 0.02;
+# production systems up to about 0.1): the driven axle's force is the tire's at a slip there, near the peak for a stiff
+# tire and a fraction of it for a soft one
 TCS_SLIP_BAND = (0.02, 0.10)
-# ESC's engine cut: the body's sideslip past its threshold (the simulator: 3 degrees beyond the kinematic, restored below
-# 2), which a tire of 0.3 of the profile's cornering stiffness reaches at a fifth of a dry road's limit
+# ESC's engine cut: the body's sideslip past its threshold (the simulator: 3 degrees beyond the kinematic, restored
+# below 2), which a tire of 0.3 of the profile's cornering stiffness reaches at a fifth of a dry road's limit
 ETA_ESC = 0.1
 LIMIT_ESC, LIMIT_LOCK = 1, 2
 DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
@@ -930,10 +931,8 @@ def _brake_slip_likelihood(
 def _line_input(mem, k, x, y, dt, age):
     """A line's regressor and response through their first-order filter over SLIP_LINE_FILTER_S (mem[k], mem[k + 1];
     mem[k + 2] the seconds it has run without a break): on from where it was if it fed the line at the previous sample
-    (`age`, that sample's mem[k + 2], above 0), else started at the raw values. Returns the filtered pair and whether the
-    filter has run SLIP_LINE_FILTER_S: its first second holds the manoeuvre's onset (the body pitching, the signal
-    groups read apart), where force and slip do not lie on the line; a driver who brakes firmly passes through gentle
-    forces only there, and a braking line learned from those onsets read a dry road's firm stops as ice."""
+    (`age`, that sample's mem[k + 2], above 0), else started at the raw values. Returns the filtered pair and whether
+    the input has run LINE_SETTLE_S (the braking line is fed only then; why: that constant's comment)."""
     if age > 0.0:
         a = 1.0 - exp(-dt / SLIP_LINE_FILTER_S)
         mem[k] += a * (x - mem[k])

@@ -3,7 +3,7 @@ a physics benchmark split, for a car seen for the first time or after a calm lea
 release: the test split's one look").
 
     python results/trials/estimators/slippery_readings.py validation 0      # a fresh car, the base channels
-    python results/trials/estimators/slippery_readings.py test 180          # after 180 s of calm driving (once a release)
+    python results/trials/estimators/slippery_readings.py test 180          # after 180 s of calm driving (once)
 """
 
 import collections
