@@ -206,22 +206,11 @@ def test_a_firm_drivers_stops_on_dry_asphalt_are_not_read_as_ice():
     read its firm stops on dry asphalt as ice: 68 samples with mu_upper below 0.5 in its first 51 minutes. Learned
     only where braking has held its conditions for LINE_SETTLE_S, none reads so (one sample, leaving the patch,
     carries its reading)."""
-    import pyarrow as pa
-
-    from roadgrip.evaluation.fleet_benchmark import make_scenario
-    from roadgrip.sim.sensors import SensorModel
+    from roadgrip.evaluation.fleet_benchmark import make_scenario, vehicle_drive
 
     fleet = make_scenario(100)
-    trips = [t for t in fleet.trips if t.vehicle_id == "bench-010" and t.depart_s < 3060.0]
-    origin = fleet.network.origin
-    run = simulate([t.scenario for t in trips], SensorModel(origin_lat_deg=origin[0], origin_lon_deg=origin[1]))
-    ids = run["run_id"].to_pylist()
-    depart = {t.scenario.run_id: t.depart_s for t in trips}
-    t_s = np.array([depart[r] for r in ids]) + run["t_s"].to_numpy()
-    field = run.schema.field("timestamp_ms")
-    run = run.set_column(run.column_names.index("timestamp_ms"), field, pa.array(np.round(t_s * 1000.0).astype(int)))
-    trip = {t.scenario.run_id: k for k, t in enumerate(trips)}
-    out = pmf.PMFEstimator().estimate_batch(run, np.array([trip[r] for r in ids]), fleet.kinds["bench-010"])
+    run, trips = vehicle_drive(fleet, "bench-010", until_s=3060.0)
+    out = pmf.PMFEstimator().estimate_batch(run, trips, fleet.kinds["bench-010"])
     dry = run["mu"].to_numpy() >= 0.6
     firm = run["ax_true_mps2"].to_numpy() < -2.5
     assert (dry & firm).sum() > 300
