@@ -278,6 +278,12 @@ LAT_SLOPE_SIGMA0 = 0.3  # the tires' cornering stiffness against the profile's: 
 # ... and each axle's against the other's, apart from that common factor: front and rear tires wear unequally (the
 # driven axle faster) and may differ in make, size or pressure (1 sigma, about +-20 %)
 LAT_AXLE_SIGMA = 0.12
+# ... and a segment's start at least this, in both axles alike: it starts on a road the last one did not show, and a
+# surface has its own cornering slope as it has its own slip slope (Burckhardt's table: cobblestone 0.28-0.44 of dry
+# asphalt's, snow and ice 0.5-0.6), while calm driving fixes the two axles' difference, not their common factor (in a
+# steady turn both axles' forces grow with a_y alike). Chosen on the validation split's calibrated car (0.25 and 0.3:
+# what calm driving leaves, no change; 0.5; 0.7: dry roads covered a little more, ice read a little less)
+LAT_SURFACE_SIGMA = 0.5
 # The kinematic angle L r / v against the car's: the profile's wheelbase (a catalogue's, +-1 %), its steering ratio
 # (a variable-ratio rack's differs from the nominal by 5-10 % off centre) and the speed (the rolling radius: wear and
 # pressure, +-2 %), each a scale on the whole angle
@@ -531,11 +537,39 @@ def _compliance_collapse(post, weights, out):
 
 
 @njit(cache=True)
+def _lateral_surface_unknown(comp):
+    """The lateral state's compliances with their common factor as unknown as a new road leaves it: a surface scales
+    both axles' cornering stiffness alike (k_f, k_r to s k_f, s k_r), so the covariance along (k_f, k_r, 0) is raised
+    to LAT_SURFACE_SIGMA of the means where it is narrower. The means, the axles' difference and the kinematic scale
+    are kept."""
+    d = N_LATERAL_PARAMS
+    mean = np.empty(d)
+    cov = np.empty((d, d))
+    unpack_gaussian(comp, mean, cov)
+    norm2 = mean[0] * mean[0] + mean[1] * mean[1]
+    if not norm2 > 0.0:
+        return
+    along = 0.0
+    for a in range(2):
+        for b in range(2):
+            along += mean[a] * cov[a, b] * mean[b]
+    add = LAT_SURFACE_SIGMA**2 - along / (norm2 * norm2)  # the common factor's variance short of the spread
+    if add > 0.0:
+        for a in range(2):
+            for b in range(2):
+                cov[a, b] += add * mean[a] * mean[b]
+        pack_gaussian(mean, cov, comp)
+
+
+@njit(cache=True)
 def _start(mem, keep_stiffness):
     """The grid at a segment's start: the prior over mu, times the stiffness marginal (kept across gaps, as is the
-    lateral state: a restart leaves the tires as they were), or a new car's (`init_memory`, whose appended blocks hold
+    lateral state: a restart leaves the tires as they were, but the road is new, and with it the surface's share of the
+    tires' cornering compliance: `_lateral_surface_unknown`), or a new car's (`init_memory`, whose appended blocks hold
     a new car's lateral state)."""
     cm = _c_marginal(mem) if keep_stiffness else C_PRIOR.copy()
+    if keep_stiffness:
+        _lateral_surface_unknown(mem[K_KC : K_KC + N_COMPLIANCE])
     total = 0.0
     for j in range(NC):
         total += cm[j]

@@ -150,7 +150,8 @@ def test_an_ice_ramp_steer_is_seen_by_the_understeer_angle_and_more_so_with_torq
     (mu 0.15, 0.2) to past the limit. Where the front axle works at 0.8 of the limit and more, the understeer term
     (the compliances a state its samples share, docs/ESTIMATORS.md 11) reads the bend: the median estimate is below
     0.45 without the torques (before that term spoke from the first sample, the prior's median: above 0.6), and with
-    them too, their mu_upper below the one without, the truth inside the interval on at least 90 % of the samples.
+    them too, their mean mu_upper below the one without (the medians may both sit at the grid's cell above the truth),
+    the truth inside the interval on at least 90 % of the samples.
     (Not met: mu_upper below 0.45 before the bend, docs/ESTIMATORS.md 9.)"""
     for run_id, r in _drives(False).items():
         if r["mu_true"][0] < 0.5 and run_id.startswith("ramp"):
@@ -158,7 +159,7 @@ def test_an_ice_ramp_steer_is_seen_by_the_understeer_angle_and_more_so_with_torq
             t, b = r["torques"], r["base"]
             assert np.median(b["mu"][hard]) < 0.45, run_id
             assert np.median(t["mu"][hard]) < 0.45, run_id
-            assert np.median(t["mu_upper"][hard]) < np.median(b["mu_upper"][hard]), run_id
+            assert t["mu_upper"][hard].mean() < b["mu_upper"][hard].mean(), run_id
             covered = (t["mu_lower"] <= r["mu_true"]) & (r["mu_true"] <= t["mu_upper"])
             assert covered.mean() >= 0.9, run_id
 
