@@ -281,8 +281,9 @@ LAT_AXLE_SIGMA = 0.12
 # ... and a segment's start at least this, in both axles alike: it starts on a road the last one did not show, and a
 # surface has its own cornering slope as it has its own slip slope (Burckhardt's table: cobblestone 0.28-0.44 of dry
 # asphalt's, snow and ice 0.5-0.6), while calm driving fixes the two axles' difference, not their common factor (in a
-# steady turn both axles' forces grow with a_y alike). Chosen on the validation split's calibrated car (0.25 and 0.3:
-# what calm driving leaves, no change; 0.5; 0.7: dry roads covered a little more, ice read a little less)
+# steady turn both axles' forces grow with a_y alike). Chosen on the validation split's calibrated car against 0.3
+# (about what calm driving leaves: scores moved by 0.004 at most) and 0.7 (dry roads covered a little more, ice read
+# a little less)
 LAT_SURFACE_SIGMA = 0.5
 # The kinematic angle L r / v against the car's: the profile's wheelbase (a catalogue's, +-1 %), its steering ratio
 # (a variable-ratio rack's differs from the nominal by 5-10 % off centre) and the speed (the rolling radius: wear and
