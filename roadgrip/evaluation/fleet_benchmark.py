@@ -420,33 +420,35 @@ def _sensors(network: Network) -> SensorModel:
     return SensorModel(origin_lat_deg=network.origin[0], origin_lon_deg=network.origin[1])
 
 
+def _fleet_clock(table: pa.Table, depart: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """The simulated rows in time order on the fleet's clock (each trip's t_s after its departure, `depart` by run id):
+    the order (stable) and the ordered times (s)."""
+    t_s = np.array([depart[r] for r in table["run_id"].to_pylist()]) + table["t_s"].to_numpy()
+    order = np.argsort(t_s, kind="stable")
+    return order, t_s[order]
+
+
 def vehicle_drive(scenario: FleetScenario, vehicle_id: str, until_s: float = math.inf) -> tuple[pa.Table, np.ndarray]:
     """One vehicle's trips that depart before `until_s`, simulated and put in time order on simulate_drives' clock
     (start 0), with a segment id per trip (an estimator restarts between trips, as the service's does after a gap):
     the car replayed offline through an estimator."""
     trips = [t for t in scenario.trips if t.vehicle_id == vehicle_id and t.depart_s < until_s]
     table = simulate([t.scenario for t in trips], sensors=_sensors(scenario.network), start_epoch_ms=0)
-    run_ids = table["run_id"].to_pylist()
-    depart = {t.scenario.run_id: t.depart_s for t in trips}
-    t_s = np.array([depart[r] for r in run_ids]) + table["t_s"].to_numpy()
-    order = np.argsort(t_s, kind="stable")
+    order, t_s = _fleet_clock(table, {t.scenario.run_id: t.depart_s for t in trips})
     table = table.take(pa.array(order))
     k = table.column_names.index("timestamp_ms")
-    table = table.set_column(k, table.schema.field(k), pa.array(np.round(t_s[order] * 1000.0).astype(np.int64)))
+    table = table.set_column(k, table.schema.field(k), pa.array(np.round(t_s * 1000.0).astype(np.int64)))
     trip_of = {t.scenario.run_id: n for n, t in enumerate(trips)}
-    return table, np.array([trip_of[run_ids[i]] for i in order], dtype=np.int64)
+    return table, np.array([trip_of[r] for r in table["run_id"].to_pylist()], dtype=np.int64)
 
 
 def simulate_drives(scenario: FleetScenario, start_ms: int, resolution: int = 10) -> Drives:
     """Simulate every trip; the samples of all vehicles on one clock starting at `start_ms`."""
     table = simulate([trip.scenario for trip in scenario.trips], sensors=_sensors(scenario.network), start_epoch_ms=0)
     runs = {trip.scenario.run_id: trip for trip in scenario.trips}
-    run_ids = table["run_id"].to_numpy(zero_copy_only=False)
-    depart = np.array([runs[r].depart_s for r in run_ids.tolist()])
-    t_s = depart + table["t_s"].to_numpy()
-    order = np.argsort(t_s, kind="stable")
-    vehicle = np.array([runs[r].vehicle_id for r in run_ids.tolist()], dtype=object)[order]
-    t_s = np.round(t_s[order], 1)
+    order, t_s = _fleet_clock(table, {r: trip.depart_s for r, trip in runs.items()})
+    vehicle = np.array([runs[r].vehicle_id for r in table["run_id"].to_pylist()], dtype=object)[order]
+    t_s = np.round(t_s, 1)
     wire = [
         c
         for c in TELEMETRY_COLUMNS

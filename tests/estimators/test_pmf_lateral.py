@@ -148,7 +148,7 @@ def test_a_soft_tire_calibrated_on_another_road_keeps_a_dry_ramp_steer_open():
     common factor was reopened at the segment's start: covered on 1 of 138 such samples, mu_upper down to 0.48)."""
     import pyarrow.compute as pc
 
-    from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs
+    from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs, true_utilization
     from roadgrip.sim.presets import physics_benchmark_runs, physics_lead_in
     from roadgrip.sim.simulate import simulate
 
@@ -162,8 +162,7 @@ def test_a_soft_tire_calibrated_on_another_road_keeps_a_dry_ramp_steer_open():
     profiles = {run_scenario.run_id: catalogue_profile(entry, run_scenario.vehicle)}
     e = estimates_on_runs(PMFEstimator(), run, profiles, lead_ins=table.filter(pc.equal(table["run_id"], lead.run_id)))
     mu, lower, upper = e["mu"], e["mu_lower"], e["mu_upper"]
-    u = np.hypot(e["ax_true_mps2"], e["ay_true_mps2"]) / (mu * G_MPS2)
-    working = u >= 0.3
+    working = true_utilization(e["ax_true_mps2"], e["ay_true_mps2"], mu) >= 0.3
     assert working.sum() >= 100 and mu.min() > 0.7
     assert ((lower <= mu) & (mu <= upper))[working].mean() >= 0.9
     assert upper.min() >= 0.7

@@ -17,8 +17,8 @@ sys.path.insert(0, "tests/estimators")
 from lateral_drives import calm_drive, scenarios
 
 from roadgrip.estimators.pmf import PMFEstimator
+from roadgrip.evaluation.bins import true_utilization
 from roadgrip.sim.simulate import simulate
-from roadgrip.units import G_MPS2
 
 
 def main(factor: float, dry: bool, scale: float) -> None:
@@ -40,7 +40,7 @@ def main(factor: float, dry: bool, scale: float) -> None:
         segments = np.repeat([0, 1], [calm.num_rows, run.num_rows])
         out = estimator.estimate_batch(rows, segments, s.vehicle).slice(calm.num_rows)
         mu = run["mu"].to_numpy()
-        u = np.hypot(run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy()) / (mu * G_MPS2)
+        u = true_utilization(run["ax_true_mps2"].to_numpy(), run["ay_true_mps2"].to_numpy(), mu)
         lower, upper = out["mu_lower"].to_numpy(), out["mu_upper"].to_numpy()
         working = (u >= 0.5) & (u < 0.9)
         covered.append(((lower <= mu) & (mu <= upper))[working])
