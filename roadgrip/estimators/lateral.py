@@ -46,6 +46,7 @@ from math import erf, exp, sqrt
 
 import numpy as np
 from numba import njit
+from scipy.special import ndtr
 
 from roadgrip.units import G_MPS2
 
@@ -110,10 +111,25 @@ def brush_slip_angle_slope(f, mu, c):
     return (1.0 / c) * max(1.0 - abs(f) / mu, 0.01) ** (-2.0 / 3.0)
 
 
+# Phi tabulated on [-CDF_TABLE_END, CDF_TABLE_END] every 1 / CDF_TABLE_PER_UNIT (scipy's ndtr) and read between its
+# points linearly: the error is at most h^2 / 8 |Phi''| = h^2 / 8 |x| phi(x), 2.9e-8 at |x| = 1 and under 5e-6 of Phi
+# itself in the low tail, against erf's 19 ns a call 4 ns (ABS's likelihood reads it about 2,000 times a sample)
+CDF_TABLE_END = 6.0
+CDF_TABLE_PER_UNIT = 1024
+CDF_TABLE = ndtr(
+    np.arange(-CDF_TABLE_END * CDF_TABLE_PER_UNIT, CDF_TABLE_END * CDF_TABLE_PER_UNIT + 2) / CDF_TABLE_PER_UNIT
+)
+
+
 @njit(cache=True)
 def normal_cdf(x):
-    """Phi(x), the standard normal distribution function (compiled; pmf's likelihoods use it too)."""
-    return 0.5 * (1.0 + erf(x / sqrt(2.0)))
+    """Phi(x), the standard normal distribution function (compiled; pmf's likelihoods use it too): CDF_TABLE read
+    linearly within its span, erf beyond it."""
+    if not -CDF_TABLE_END < x < CDF_TABLE_END:
+        return 0.5 * (1.0 + erf(x / sqrt(2.0)))
+    u = (x + CDF_TABLE_END) * CDF_TABLE_PER_UNIT
+    k = int(u)
+    return CDF_TABLE[k] + (u - k) * (CDF_TABLE[k + 1] - CDF_TABLE[k])
 
 
 # The lateral state (lateral_likelihood's `comp`, and `post` a grid mu): the means of the front and rear tires'
