@@ -4,9 +4,10 @@ Each estimator is fed a stream of wire-format samples (dicts, as the cloud hands
 the paper preset's run `paper-decreasing-circular-e2` repeated end to end (it starts and ends at standstill, so the
 repeats join smoothly; timestamps keep counting). `update` is timed call by call after a warm-up (which also
 triggers numba's compilation or cache load); torch is held to one thread while timing, so that the numbers are per core.
-The batch path (`estimate_batch` over the run) is timed too. With `channels`, the run carries every optional channel
-(CONTRACTS 3.1: GNSS speed, drive and brake force, steering torques; the simulator's error models), as a car that sends
-them all: what reading them costs.
+The batch path (`estimate_batch` over the run) is timed too. With channel sets (issue 26: what each channel costs), the
+run is simulated with every optional channel (CONTRACTS 3.1: GNSS speed, drive and brake force, steering torques; the
+simulator's error models) and each set streams the channels the physics benchmark's set of that name keeps
+(physics_benchmark.CHANNEL_SETS: base, gnss, forces, steering, all), the others null, as a car that does not send them.
 """
 
 from __future__ import annotations
@@ -34,17 +35,26 @@ def bench_estimator_by_name(name: str) -> Estimator:
     return load_estimator(name)
 
 
-def _stream(n_updates: int, channels: bool = False):
-    """(samples as dicts, the run's table, its vehicle): n_updates samples of the bench run, repeated."""
+BENCH_CHANNEL_SETS = ("base", "gnss", "forces", "steering", "all")
+
+
+def stream_samples(n_updates: int, channel_set: str | None = None):
+    """(samples as dicts, the run's table, its vehicle): n_updates samples of the bench run, repeated; with a channel
+    set (BENCH_CHANNEL_SETS), the optional channels it keeps, the others null."""
     import dataclasses
 
+    from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
     from roadgrip.sim.presets import paper_scenarios
     from roadgrip.sim.simulate import simulate
 
+    if channel_set is not None and channel_set not in BENCH_CHANNEL_SETS:
+        raise ValueError(f"unknown channel set {channel_set!r}: use one of {', '.join(BENCH_CHANNEL_SETS)}")
     scenario = next(s for s in paper_scenarios() if s.run_id == BENCH_RUN)
-    if channels:
+    if channel_set is not None:
         scenario = dataclasses.replace(scenario, effects=scenario.effects.with_channels())
     table = simulate([scenario])
+    if channel_set is not None:
+        table = blank_channels(table, CHANNEL_SETS[channel_set])
     rows = table.select(
         [
             c
@@ -61,53 +71,61 @@ def _stream(n_updates: int, channels: bool = False):
     return samples, table, scenario.vehicle
 
 
-def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000, channels: bool = False) -> list[dict]:
+def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000, channel_sets: tuple[str, ...] = ()) -> list[dict]:
     """For each estimator name: streaming updates per second on one core, per-update latency (median and 99th
-    percentile, microseconds), and batch rows per second. `n_updates` timed updates each (at least 100); `channels`:
-    the stream carries every optional channel."""
+    percentile, microseconds), and batch rows per second. `n_updates` timed updates each (at least 100); with
+    `channel_sets`, each estimator once per set (rows `<name> [<set>]`), else on the run without channels."""
     if n_updates < 100:
         raise ValueError(f"n_updates must be at least 100, got {n_updates!r}")
     import torch
 
-    samples, table, vehicle = _stream(n_updates + WARMUP_UPDATES, channels)
+    streams = [(None, stream_samples(n_updates + WARMUP_UPDATES))] if not channel_sets else []
+    streams += [(c, stream_samples(n_updates + WARMUP_UPDATES, c)) for c in channel_sets]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     results = []
     try:
-        for name in names:
-            estimator = bench_estimator_by_name(name)
-            state = estimator.start(vehicle)
-            for sample in samples[:WARMUP_UPDATES]:
-                estimator.update(state, sample)
-            latencies = np.empty(n_updates)
-            clock = time.perf_counter_ns
-            start = clock()
-            for k, sample in enumerate(samples[WARMUP_UPDATES:]):
-                t0 = clock()
-                estimator.update(state, sample)
-                latencies[k] = clock() - t0
-            total_s = (clock() - start) / 1e9
-            segments = np.zeros(table.num_rows, dtype=np.int64)
-            estimator.estimate_batch(table, segments, vehicle)  # warm
-            t0 = time.perf_counter()
-            repeats = 5
-            for _ in range(repeats):
-                estimator.estimate_batch(table, segments, vehicle)
-            batch_s = (time.perf_counter() - t0) / repeats
-            results.append(
-                {
-                    "estimator": f"{name} (all channels)" if channels else name,
-                    "updates": n_updates,
-                    "updates_per_s": n_updates / total_s,
-                    "latency_median_us": float(np.median(latencies)) / 1e3,
-                    "latency_p99_us": float(np.percentile(latencies, 99)) / 1e3,
-                    "batch_rows_per_s": table.num_rows / batch_s,
-                    "threads": 1,
-                }
-            )
+        for channel_set, (samples, table, vehicle) in streams:
+            for name in names:
+                results.append(
+                    _bench_one(name, samples, table, vehicle, n_updates)
+                    | {"estimator": name if channel_set is None else f"{name} [{channel_set}]"}
+                )
     finally:
         torch.set_num_threads(threads)
     return results
+
+
+def _bench_one(name: str, samples: list[dict], table, vehicle, n_updates: int) -> dict:
+    """One estimator's streaming and batch timings over a stream (its first WARMUP_UPDATES samples untimed)."""
+    estimator = bench_estimator_by_name(name)
+    state = estimator.start(vehicle)
+    for sample in samples[:WARMUP_UPDATES]:
+        estimator.update(state, sample)
+    latencies = np.empty(n_updates)
+    clock = time.perf_counter_ns
+    start = clock()
+    for k, sample in enumerate(samples[WARMUP_UPDATES:]):
+        t0 = clock()
+        estimator.update(state, sample)
+        latencies[k] = clock() - t0
+    total_s = (clock() - start) / 1e9
+    segments = np.zeros(table.num_rows, dtype=np.int64)
+    estimator.estimate_batch(table, segments, vehicle)  # warm
+    t0 = time.perf_counter()
+    repeats = 5
+    for _ in range(repeats):
+        estimator.estimate_batch(table, segments, vehicle)
+    batch_s = (time.perf_counter() - t0) / repeats
+    return {
+        "estimator": name,
+        "updates": n_updates,
+        "updates_per_s": n_updates / total_s,
+        "latency_median_us": float(np.median(latencies)) / 1e3,
+        "latency_p99_us": float(np.percentile(latencies, 99)) / 1e3,
+        "batch_rows_per_s": table.num_rows / batch_s,
+        "threads": 1,
+    }
 
 
 def format_bench(results: list[dict]) -> str:

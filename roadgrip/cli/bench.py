@@ -16,17 +16,21 @@ def estimate(
         ["pmf", "ekf", "ukf", "default"], "--estimator", help="estimators (repeatable)"
     ),
     updates: int = typer.Option(20000, help="streamed updates per estimator"),
-    channels: bool = typer.Option(
-        False, help="the stream carries every optional channel (GNSS speed, forces, steering torques)"
+    channel_set: list[str] = typer.Option(
+        [],
+        "--channel-set",
+        help="stream only these optional channels: base, gnss, forces, steering or all (repeatable: a row each)",
     ),
+    channels: bool = typer.Option(False, help="the stream carries every optional channel: --channel-set all"),
 ):
     """Vehicle updates per second per core and per-update latency of each estimator, streaming one sample at a time."""
     from roadgrip.bench.estimate import bench_estimators, format_bench
     from roadgrip.bench.sim import machine_description
 
+    sets = tuple(dict.fromkeys([*channel_set, *(["all"] if channels else [])]))
     with console.status("benchmarking the estimators..."):
-        rows = bench_estimators(tuple(estimators), updates, channels)
-    console.print(format_bench(rows))
+        rows = bench_estimators(tuple(estimators), updates, sets)
+    console.print(format_bench(rows), markup=False)
     console.print(f"machine: {machine_description()}")
 
 

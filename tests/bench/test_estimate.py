@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from roadgrip.bench.estimate import bench_estimators, format_bench
+from roadgrip.bench.estimate import BENCH_CHANNEL_SETS, bench_estimators, format_bench, stream_samples
 from roadgrip.estimators.fusion import FusionEstimator, fuse
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.physics import physics_estimator
 from roadgrip.estimators.vehicle_model import INTERVAL_Z
+from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS
 from roadgrip.sim.presets import paper_scenarios
 from roadgrip.sim.simulate import simulate
 from roadgrip.vehicle.params import PAPER_SUV
@@ -38,6 +39,25 @@ def test_bench_reports_throughput_and_latency_of_each_estimator():  # the figure
     assert "| ekf |" in table and "| default |" in table
     with pytest.raises(ValueError, match="n_updates"):
         bench_estimators(("ekf",), 10)
+
+
+def test_each_channel_set_streams_only_its_channels_and_gets_a_row():
+    """A set's stream carries the channels the physics benchmark's set of that name keeps, and no other (null, as a car
+    that does not send them); the base channels are the same in every set; a row per estimator and set."""
+    channel_names = {c for names in CHANNEL_SETS.values() for c in names}
+    base = None
+    for name in BENCH_CHANNEL_SETS:
+        samples, _, _ = stream_samples(500, name)
+        sent = {c for c in channel_names if any(s[c] is not None for s in samples)}
+        assert sent == set(CHANNEL_SETS[name]), name
+        common = [{k: v for k, v in s.items() if k not in channel_names} for s in samples]
+        base = common if base is None else base
+        assert common == base, name
+    results = bench_estimators(("pmf",), 100, ("base", "all"))
+    assert [r["estimator"] for r in results] == ["pmf [base]", "pmf [all]"]
+    assert "| pmf [all] |" in format_bench(results)
+    with pytest.raises(ValueError, match="unknown channel set 'radar'"):
+        bench_estimators(("pmf",), 100, ("radar",))
 
 
 def test_fuse_is_inverse_variance_weighting():
