@@ -22,24 +22,3 @@ HELPER_FOLDERS = sorted(
 for folder in HELPER_FOLDERS:
     if str(folder) not in sys.path:
         sys.path.insert(0, str(folder))
-
-
-def pytest_configure(config):
-    """Under pytest-xdist, before its workers start: compile numba's kernels once (the simulator's, and pmf's, the
-    EKF's and the UKF's batch and streaming paths) into numba's cache, which each worker then loads. On a fresh clone
-    every worker would otherwise compile them itself, about a minute each on a busy machine (README)."""
-    if hasattr(config, "workerinput") or not config.getoption("numprocesses", default=None):
-        return
-    import numpy as np
-
-    from roadgrip.cloud.process import warm_up
-    from roadgrip.estimators.learned import load_estimator
-    from roadgrip.sim.presets import paper_scenarios
-    from roadgrip.sim.simulate import simulate
-
-    scenario = paper_scenarios()[0]
-    table = simulate([scenario]).slice(0, 100)
-    for name in ("pmf", "ekf", "ukf"):
-        estimator = load_estimator(name)
-        estimator.estimate_batch(table, np.zeros(table.num_rows, dtype=np.int64), scenario.vehicle)
-        warm_up(estimator)
