@@ -1,5 +1,4 @@
-"""Shared by every test: the helper modules' folders on sys.path, and under pytest-xdist one thread a worker for torch
-and BLAS.
+"""Shared by every test: the helper modules' folders on sys.path.
 
 The helpers (tests/fake_clock.py; tests/cloud/drives.py, service_fixtures.py, broker_fixtures.py, ...;
 tests/data/telemetry_samples.py; tests/estimators/contract_drives.py) are plain modules, imported by name (`from drives
@@ -11,13 +10,8 @@ is put there here, before any test module is imported. No test module imports an
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
-
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    # four workers on two cores: torch's and BLAS's own threads (one per core each) would only contend with them
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 TESTS = Path(__file__).resolve().parent
 
