@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from roadgrip.estimators.base import Estimator
+from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
 
 BENCH_RUN = "paper-decreasing-circular-e2"
 WARMUP_UPDATES = 200
@@ -35,7 +36,8 @@ def bench_estimator_by_name(name: str) -> Estimator:
     return load_estimator(name)
 
 
-BENCH_CHANNEL_SETS = ("base", "gnss", "forces", "steering", "all")
+# the physics benchmark's channel sets that blank channels of one simulated run (gnss-degraded simulates another)
+BENCH_CHANNEL_SETS = tuple(name for name in CHANNEL_SETS if name != "gnss-degraded")
 
 
 def stream_samples(n_updates: int, channel_set: str | None = None):
@@ -43,7 +45,6 @@ def stream_samples(n_updates: int, channel_set: str | None = None):
     set (BENCH_CHANNEL_SETS), the optional channels it keeps, the others null."""
     import dataclasses
 
-    from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
     from roadgrip.sim.presets import paper_scenarios
     from roadgrip.sim.simulate import simulate
 
@@ -79,25 +80,23 @@ def bench_estimators(names=DEFAULT_NAMES, n_updates: int = 20000, channel_sets: 
         raise ValueError(f"n_updates must be at least 100, got {n_updates!r}")
     import torch
 
-    streams = [(None, stream_samples(n_updates + WARMUP_UPDATES))] if not channel_sets else []
-    streams += [(c, stream_samples(n_updates + WARMUP_UPDATES, c)) for c in channel_sets]
+    streams = [(c, stream_samples(n_updates + WARMUP_UPDATES, c)) for c in channel_sets or (None,)]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     results = []
     try:
         for channel_set, (samples, table, vehicle) in streams:
             for name in names:
-                results.append(
-                    _bench_one(name, samples, table, vehicle, n_updates)
-                    | {"estimator": name if channel_set is None else f"{name} [{channel_set}]"}
-                )
+                label = name if channel_set is None else f"{name} [{channel_set}]"
+                results.append(_bench_one(name, label, samples, table, vehicle, n_updates))
     finally:
         torch.set_num_threads(threads)
     return results
 
 
-def _bench_one(name: str, samples: list[dict], table, vehicle, n_updates: int) -> dict:
-    """One estimator's streaming and batch timings over a stream (its first WARMUP_UPDATES samples untimed)."""
+def _bench_one(name: str, label: str, samples: list[dict], table, vehicle, n_updates: int) -> dict:
+    """One estimator's streaming and batch timings over a stream (its first WARMUP_UPDATES samples untimed), as the
+    row `label`."""
     estimator = bench_estimator_by_name(name)
     state = estimator.start(vehicle)
     for sample in samples[:WARMUP_UPDATES]:
@@ -118,7 +117,7 @@ def _bench_one(name: str, samples: list[dict], table, vehicle, n_updates: int) -
         estimator.estimate_batch(table, segments, vehicle)
     batch_s = (time.perf_counter() - t0) / repeats
     return {
-        "estimator": name,
+        "estimator": label,
         "updates": n_updates,
         "updates_per_s": n_updates / total_s,
         "latency_median_us": float(np.median(latencies)) / 1e3,
