@@ -9,11 +9,7 @@ import pytest
 from roadgrip.bench.cluster import ClusterBench, format_cluster_bench, run_cluster_bench
 from roadgrip.cloud.transport.amqp import RabbitCluster
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-b"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 
 
 def test_cluster_bench_measures_every_case():

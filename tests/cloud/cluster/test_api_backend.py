@@ -47,11 +47,7 @@ from roadgrip.cloud.transport.mqtt import WARNINGS_TOPIC, friction_topic, teleme
 from roadgrip.cloud.transport.rabbit_users import RabbitUsers
 from roadgrip.fleet.terminal import wire_samples
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-b"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 PARTITIONS = 2
 SECRET = "api-test-broker-secret"
 ADMIN = ("admin", "admin-secret-for-cluster-tests-0123")

@@ -31,12 +31,7 @@ from roadgrip.estimators.learned import load_estimator
 from roadgrip.fleet.terminal import wire_samples
 from roadgrip.vehicle.params import PAPER_SUV
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.slow,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-a"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 DRIVEN_AGO_MS = (
     60_000  # the drives end 30 s before now: well within a warning's validity (VALIDITY_S) on the wall clock
 )

@@ -27,11 +27,7 @@ from roadgrip.cloud.cluster.local import DESCRIPTION, LocalCluster
 from roadgrip.cloud.cluster.reaper import tagged
 from roadgrip.cloud.transport.amqp import SERVICE_USER, RabbitCluster, partition_queue
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-a"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 VEHICLES = 3
 SAMPLES_PER_VEHICLE = 200  # 20 s of driving at 10 Hz
 runner = CliRunner()

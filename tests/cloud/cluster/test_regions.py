@@ -51,11 +51,7 @@ from roadgrip.fleet.terminal import wire_samples
 from roadgrip.sim.sensors import HEBEI_ORIGIN
 from roadgrip.vehicle.params import PAPER_SUV
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-a"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 PARTITIONS = 4
 REGION_QUEUES = 4
 WORKER_ENV = {"ROADGRIP_MAP_CLOCK": "data", "ROADGRIP_REGION_QUEUES": str(REGION_QUEUES)}  # the map on the data's clock

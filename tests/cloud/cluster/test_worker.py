@@ -39,11 +39,7 @@ from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import CALIBRATION
 from roadgrip.vehicle.params import PAPER_SUV
 
-pytestmark = [
-    pytest.mark.cluster,
-    pytest.mark.timeout(900),
-    pytest.mark.xdist_group("cluster-lane-b"),
-]  # needs a local RabbitMQ cluster; the lane: pyproject.toml, [tool.pytest.ini_options]
+pytestmark = [pytest.mark.cluster, pytest.mark.timeout(900)]  # needs a local RabbitMQ cluster
 PARTITIONS = 4
 VEHICLES_PER_TEST = 8
 GROUPS = ("a", "b", "c", "d", "e", "g")  # one set of vehicles per test (their users exist from the cluster's start)
