@@ -1129,7 +1129,9 @@ def _lateral(mem, q, smp, dt, v, aty, atx, fz_front, fz_rear, like, at_limit):
         # the offset's uncertainty is noise a sample has; the tires' compliances are the state K_KC carries
         var0 = var_meas + mem[K_LP00] + LAT_OFFSET_FLOOR_RAD**2
         bias_y_var = LAT_BIAS_SIGMA0_MPS2**2 * exp(-mem[K_BIAS_Y_W] / LAT_BIAS_SETTLE_S) + LAT_BIAS_FLOOR_MPS2**2
-        sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var) / G_MPS2
+        # the bias is the same at every sample: its variance counts once over the grid's memory, as every term's
+        # systematic error does (docs/ESTIMATORS.md 11)
+        sf = sqrt(ACCEL_NOISE_MPS2**2 + bias_y_var * _repeats(dt, v)) / G_MPS2
         lk = np.empty(NM)
         post = np.empty(NM * N_COMPLIANCE)
         comp = mem[K_KC : K_KC + N_COMPLIANCE]

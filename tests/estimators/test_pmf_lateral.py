@@ -202,17 +202,18 @@ def test_a_state_saved_with_the_compliances_alone_loads_with_a_new_cars_lateral_
 
 def test_ice_steering_is_seen_before_and_at_the_limit():
     """mu 0.15-0.2, the tires at 50-90 % of their limit, the car calibrated by a calm drive: the 90 % interval covers
-    the truth on at least 85 % of those samples (0.86; without the lateral channel 0.42 at 50-80 % and 0.08 beyond),
-    and mu_upper lies below 0.45 on more than half of those at 80-90 % (0.59) and on a quarter of all (0.32: below
-    80 % the brush model's bend, 1.3 x the line at 60 %, is the size of what the tires' shape and stiffness leave
-    unknown). A fresh state has no calibrated line and gets no lateral evidence (docs/PRODUCTION.md)."""
+    the truth on at least 85 % of those samples (0.99; without the lateral channel 0.42 at 50-80 % and 0.08 beyond),
+    and mu_upper lies below 0.45 on at least 45 % of those at 80-90 % (0.49) and on a fifth of all (0.25: below 80 % the
+    brush model's bend, 1.3 x the line at 60 %, is the size of what the tires' shape and stiffness and the lateral
+    accelerometer's bias leave unknown; with that bias counted at every sample as if new, 0.26 and 0.52:
+    docs/RESULTS.md, "The lateral accelerometer's bias counted once")."""
     p = pooled("test", True, 0.5, 0.9)
     assert p["mu"].size >= 500
     covered = (p["lower"] <= p["mu_true"]) & (p["mu_true"] <= p["upper"])
     assert covered.mean() >= 0.85, covered.mean()
-    assert (p["upper"] < 0.45).mean() >= 0.25, (p["upper"] < 0.45).mean()
+    assert (p["upper"] < 0.45).mean() >= 0.2, (p["upper"] < 0.45).mean()
     near = pooled("test", True, 0.8, 0.9)
-    assert (near["upper"] < 0.45).mean() > 0.5, (near["upper"] < 0.45).mean()
+    assert (near["upper"] < 0.45).mean() >= 0.45, (near["upper"] < 0.45).mean()
     assert (p["upper"] < p["mu_true"]).mean() <= 0.05  # never a confident number below the truth
 
 
