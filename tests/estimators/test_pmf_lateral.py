@@ -186,6 +186,28 @@ def test_a_soft_tire_calibrated_on_another_road_keeps_a_dry_ramp_steer_open():
     assert upper.min() >= 0.7
 
 
+def test_the_straight_before_a_soft_tires_steer_does_not_teach_the_accelerometers_bias():
+    """The physics validation split's run 92, a car seen for the first time (base channels): a drawn compact hatchback on
+    Magic Formula tires of 0.47 of the catalogue's stiffness, a ramp steer on a dry road of 1.19, the tires at most at
+    0.28 of their limit. Before the steer, 3 s of straight driving read a_y 0.34-0.43 m/s^2, mostly the accelerometer's
+    bias that 5 s of straight driving settle; that bias is the same at every sample and counts once (pmf `_lateral`).
+    Counted at every sample as if new, it took the compliances from 1 to 0.53 and the steer read as the front axle's
+    bend: mu_upper down to 0.34 (docs/RESULTS.md, "The lateral accelerometer's bias counted once"; 0.69 now)."""
+    from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs
+    from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
+    from roadgrip.sim.presets import physics_benchmark_runs
+    from roadgrip.sim.simulate import simulate
+
+    ((scenario, entry),) = [
+        (s, e) for s, e in physics_benchmark_runs("validation") if s.run_id == "physics-validation-0092"
+    ]
+    assert scenario.manoeuvre == "ramp_steer" and scenario.tire.stiffness_scale < 0.5
+    run = blank_channels(simulate([scenario]), CHANNEL_SETS["base"])
+    e = estimates_on_runs(PMFEstimator(), run, {scenario.run_id: catalogue_profile(entry, scenario.vehicle)})
+    assert e["mu"].min() > 1.0
+    assert e["mu_upper"].min() >= 0.6, e["mu_upper"].min()
+
+
 def test_a_state_saved_with_the_compliances_alone_loads_with_a_new_cars_lateral_state():
     """A checkpoint of the layout whose lateral state held the tires' compliances alone (their 5 numbers after
     N_MEM_V6): everything before them kept, the lateral state (compliances and kinematic scale) a new car's."""
