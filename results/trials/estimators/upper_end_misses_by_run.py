@@ -11,15 +11,12 @@ import sys
 
 import numpy as np
 
+from roadgrip.estimators.guard import PRIOR_UPPER_MU
 from roadgrip.estimators.learned import load_estimator
 from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs
-from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
+from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels, mu_band
 from roadgrip.sim.presets import physics_benchmark_runs
 from roadgrip.sim.simulate import simulate
-
-
-def band(mu: float) -> str:
-    return "mu >= 0.6" if mu >= 0.6 else ("mu 0.3-0.6" if mu > 0.3 else "mu <= 0.3")
 
 
 def main(channels: str) -> None:
@@ -29,15 +26,21 @@ def main(channels: str) -> None:
     runs = blank_channels(simulate(list(scenarios.values())), CHANNEL_SETS[channels])
     e = estimates_on_runs(load_estimator("pmf"), runs, profiles)
     upper, mu, run_id = e["mu_upper"], e["mu"], e["run_id"]
-    read = upper < 1.2
+    read = upper < PRIOR_UPPER_MU  # 1.2: nothing known above
     miss = read & (mu > upper)
+    bands = mu_band(mu)
     print(
         f"mu_upper below 1.2 on {read.sum()} samples, the truth above it on {miss.sum()} ({miss.mean() / read.mean():.3f})"
     )
     groups, excess, per_run = collections.Counter(), collections.Counter(), collections.Counter()
     for i in np.nonzero(miss)[0]:
         s = scenarios[run_id[i]]
-        key = (s.manoeuvre, type(s.tire).__name__, "soft" if s.tire.stiffness_scale < 0.7 else "other", band(mu[i]))
+        key = (
+            s.manoeuvre,
+            type(s.tire).__name__,
+            "soft" if s.tire.stiffness_scale < 0.7 else "other",
+            f"mu {bands[i]}",
+        )
         groups[key] += 1
         excess[key] += mu[i] - upper[i]
         per_run[run_id[i]] += 1
