@@ -628,13 +628,20 @@ def _forget_rate(v):
 def _predict(mem, dt, v, c_prior):
     """Mu diffuses (random walk on the grid, its moves accepted against the prior: WALK_UP, WALK_DOWN) and the grid is
     mixed with the prior; stiffness forgets slowly towards its (calibrated) prior. All three while the car moves
-    (`_moving`): the stiffness is the tire's on this surface, which a standing car does not leave."""
+    (`_moving`): the stiffness is the tire's on this surface, which a standing car does not leave.
+
+    The mixing redraws mu and keeps the tire: its stiffness from the grid's marginal, except while the last sample was
+    at the limit (K_U_LIMIT set). There the evidence pairs mu with the stiffness (a low road, or a soft tire far below
+    its peak) and says nothing of the tire alone, and the marginal follows the pairing: redrawn from it, sample after
+    sample, the mass moved to the one pairing that needs no road to stay the same, a very soft tire on any road, and the
+    median back to the prior's while traction control held for 10 s on ice. At the limit the redraw takes the
+    stiffness from c_prior, what calibration knows of the tire (docs/ESTIMATORS.md 14)."""
     step = MU_GRID[1] - MU_GRID[0]
     var = (MU_WALK_PER_SQRT_S * MU_WALK_PER_SQRT_S * _moving(v) * dt) / (step * step)  # in grid steps^2
     side = min(0.5 * var, 0.25)  # a 3-tap kernel with this variance (up to its limit; the forgetting does the rest)
     forget = 1.0 - exp(-_forget_rate(v) * dt)
     forget_c = 1.0 - exp(-C_FORGET_PER_S * _moving(v) * dt)
-    cm = _c_marginal(mem)
+    cm = c_prior if mem[K_U_LIMIT] > 0.0 else _c_marginal(mem)
     for j in range(NC):
         col = np.empty(NM)
         for i in range(NM):

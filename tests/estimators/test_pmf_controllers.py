@@ -87,6 +87,21 @@ def test_an_all_wheel_drive_car_without_a_gnss_speed_never_shows_its_stiffness()
     assert out["mu_lower"][-1] <= 0.15 and out["mu_upper"][-1] >= 0.9
 
 
+@pytest.mark.parametrize(("vehicle", "calm_s"), [(COMPACT_HATCHBACK, 0.0), (PAPER_SUV, 120.0)])
+def test_traction_control_held_through_a_start_on_ice_does_not_wear_its_own_evidence_away(vehicle, calm_s):
+    """Traction control on ice for the whole start, each sample saying what the last said (a low road, or a tire far
+    softer than known): the median stays where the first seconds put it, it does not drift back to the prior's 0.78
+    as the grid's forgetting redraws mu (docs/ESTIMATORS.md 14; before, from the second second to the last five: 0.61
+    -> 0.73 on a new car, 0.36 -> 0.68 on the four-wheel-driven SUV after calm driving), and the interval keeps both
+    readings open where the stiffness is not known."""
+    out, tcs = start_estimates(1.0, 0.15, calm_s, vehicle)
+    assert tcs > 0.5
+    early = out["mu"][10:20].mean()  # the start's second second
+    assert early < 0.65
+    assert out["mu"][-50:].mean() <= early + 0.05
+    assert (out["mu_lower"] <= 0.15).all() and out["mu_upper"][-1] >= 0.9
+
+
 def test_the_band_puts_a_stiff_tire_at_its_peak_and_leaves_a_soft_one_open():
     """_tcs_likelihood at a driven axle's force per load of 0.2: the catalogue tire holds it only where mu is near
     0.2 (saturated in the band), the softest tire of the grid at any mu above it."""
