@@ -21,6 +21,8 @@ then every estimator under each set, its rows named `<estimator> [<set>]`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -99,6 +101,66 @@ def manoeuvre_metrics(estimates: dict[str, np.ndarray], manoeuvres: dict, baseli
     return rows
 
 
+@dataclass(frozen=True)
+class SimulatedSplit:
+    """A physics split simulated: its drawn scenarios (presets.physics_benchmark_runs: (scenario, catalogue entry)),
+    each run's catalogue profile and manoeuvre by run id, and by channel set (None: no channels) the runs' table and
+    their lead-ins' (None without a lead-in)."""
+
+    drawn: list
+    profiles: dict
+    manoeuvres: dict
+    tables: dict
+
+
+def simulate_split(
+    split: str = "validation",
+    runs: int | None = None,
+    channels: tuple[str, ...] | None = None,
+    lead_in_s: float = 0.0,
+    progress=None,
+) -> SimulatedSplit:
+    """A split's runs simulated once with every optional channel on where `channels` names sets (once more with
+    degraded GNSS where `gnss-degraded` is among them), each set's tables with the channels it lacks blanked; without
+    `channels`, the runs as the presets draw them (key None). `lead_in_s` > 0: each run's calm lead-in
+    (presets.physics_lead_in) simulated beside it (module doc)."""
+    import dataclasses
+
+    from roadgrip.sim.channels import ChannelModel
+    from roadgrip.sim.presets import LEAD_IN_SUFFIX, physics_benchmark_runs, physics_lead_in
+    from roadgrip.sim.sensors import SensorModel
+    from roadgrip.sim.simulate import simulate
+    from roadgrip.validation import check_choice
+
+    for name in channels or ():
+        check_choice("physics benchmark", "channels", name, set(CHANNEL_SETS))
+    drawn = physics_benchmark_runs(split, runs)
+    (progress or (lambda message: None))(f"simulating the {len(drawn)} runs of the {split} split")
+    scenarios = [s for s, _ in drawn]
+    if channels:
+        scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s in scenarios]
+    leads = [physics_lead_in(s, lead_in_s) for s in scenarios] if lead_in_s > 0 else []
+
+    def simulated(sensors=SensorModel()):
+        both = simulate(scenarios + leads, sensors)
+        is_lead = pc.ends_with(both["run_id"], LEAD_IN_SUFFIX)
+        return both.filter(pc.invert(is_lead)), both.filter(is_lead) if leads else None
+
+    table, lead_table = simulated()
+    tables = {None: (table, lead_table)} if not channels else {}
+    for name in channels or ():
+        source = (table, lead_table)
+        if name == "gnss-degraded":
+            source = simulated(SensorModel(channels=ChannelModel.degraded_gnss()))
+        tables[name] = tuple(None if t is None else blank_channels(t, CHANNEL_SETS[name]) for t in source)
+    return SimulatedSplit(
+        drawn,
+        {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn},
+        {s.run_id: s.manoeuvre for s, _ in drawn},
+        tables,
+    )
+
+
 def run_physics_benchmark(
     split: str = "validation",
     estimators=BIN_ESTIMATORS,
@@ -112,54 +174,27 @@ def run_physics_benchmark(
     first. `channels`: channel sets (CHANNEL_SETS) to run every estimator under (module doc); None: no channels.
     `lead_in_s`: every estimator first reads that long a calm drive of the same car (presets.physics_lead_in), a new
     trip before the run, its rows named `<estimator> calibrated` (module doc); 0: a car seen for the first time."""
-    import dataclasses
-
     from roadgrip.estimators.learned import load_estimator
-    from roadgrip.sim.channels import ChannelModel
-    from roadgrip.sim.presets import LEAD_IN_SUFFIX, physics_benchmark_runs, physics_lead_in
-    from roadgrip.sim.sensors import SensorModel
-    from roadgrip.sim.simulate import simulate
-    from roadgrip.validation import check_choice
 
-    for name in channels or ():
-        check_choice("physics benchmark", "channels", name, set(CHANNEL_SETS))
     say = progress or (lambda message: None)
-    drawn = physics_benchmark_runs(split, runs)
-    say(f"simulating the {len(drawn)} runs of the {split} split")
-    scenarios = [s for s, _ in drawn]
-    if channels:
-        scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s in scenarios]
-    leads = [physics_lead_in(s, lead_in_s) for s in scenarios] if lead_in_s > 0 else []
-
-    def simulated(sensors=SensorModel()):
-        """The runs' table and their lead-ins' (None without)."""
-        both = simulate(scenarios + leads, sensors)
-        is_lead = pc.ends_with(both["run_id"], LEAD_IN_SUFFIX)
-        return both.filter(pc.invert(is_lead)), both.filter(is_lead) if leads else None
-
-    table, lead_table = simulated()
-    tables = {None: (table, lead_table)} if not channels else {}
-    for name in channels or ():
-        source = (table, lead_table)
-        if name == "gnss-degraded":
-            source = simulated(SensorModel(channels=ChannelModel.degraded_gnss()))
-        tables[name] = tuple(None if t is None else blank_channels(t, CHANNEL_SETS[name]) for t in source)
-    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
+    split_runs = simulate_split(split, runs, channels, lead_in_s, say)
     baseline_mu = prior_baseline().mu_median
     rows = []
-    runs_of = [(PRIOR_NAME, None, (table, None))] + [(e, c, t) for c, t in tables.items() for e in estimators]
+    table = next(iter(split_runs.tables.values()))[0]
+    runs_of = [(PRIOR_NAME, None, (table, None))] + [
+        (e, c, t) for c, t in split_runs.tables.items() for e in estimators
+    ]
     for name, channel_set, (data, lead_ins) in runs_of:
         label = name if channel_set is None else f"{name} [{channel_set}]"
         if lead_ins is not None:
             label += " calibrated"
         say(f"{label} on the {split} split")
         if name == PRIOR_NAME:
-            estimates = prior_estimates(data, profiles)
+            estimates = prior_estimates(data, split_runs.profiles)
         else:
-            estimates = estimates_on_runs(load_estimator(name), data, profiles, lead_ins=lead_ins)
+            estimates = estimates_on_runs(load_estimator(name), data, split_runs.profiles, lead_ins=lead_ins)
         rows += [{"estimator": label, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
-        rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
+        rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, split_runs.manoeuvres, baseline_mu)]
     return rows
 
 

@@ -7,29 +7,19 @@ at the limit").
 """
 
 import collections
-import dataclasses
 import sys
 
 import numpy as np
-import pyarrow.compute as pc
 
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs, true_utilization
-from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels
-from roadgrip.sim.presets import LEAD_IN_SUFFIX, physics_benchmark_runs, physics_lead_in
-from roadgrip.sim.simulate import simulate
+from roadgrip.evaluation.bins import estimates_on_runs, true_utilization
+from roadgrip.evaluation.physics_benchmark import simulate_split
 
 
 def main(channels: str, lead_in_s: float) -> None:
-    drawn = physics_benchmark_runs("validation")
-    scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s, _ in drawn]
-    leads = [physics_lead_in(s, lead_in_s) for s in scenarios] if lead_in_s > 0 else []
-    both = simulate(scenarios + leads)
-    is_lead = pc.ends_with(both["run_id"], LEAD_IN_SUFFIX)
-    runs = blank_channels(both.filter(pc.invert(is_lead)), CHANNEL_SETS[channels])
-    lead_ins = blank_channels(both.filter(is_lead), CHANNEL_SETS[channels]) if leads else None
-    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    e = estimates_on_runs(load_estimator("pmf"), runs, profiles, lead_ins=lead_ins)
+    split = simulate_split("validation", channels=(channels,), lead_in_s=lead_in_s)
+    runs, lead_ins = split.tables[channels]
+    e = estimates_on_runs(load_estimator("pmf"), runs, split.profiles, lead_ins=lead_ins)
     u = true_utilization(e["ax_true_mps2"], e["ay_true_mps2"], e["mu"])
     chosen = (e["mu"] <= 0.3) & (u >= 0.8) & ~e["abs_active"].astype(bool)
     error = e["mu_est"] - e["mu"]
@@ -37,7 +27,7 @@ def main(channels: str, lead_in_s: float) -> None:
         f"{channels}, lead-in {lead_in_s:.0f} s: {chosen.sum()} samples of mu <= 0.3 at u >= 0.8 (not ABS), "
         f"RMSE {np.sqrt((error[chosen] ** 2).mean()):.3f}"
     )
-    scenario = {s.run_id: s for s in scenarios}
+    scenario = {s.run_id: s for s, _ in split.drawn}
     groups = collections.defaultdict(list)
     for i in np.nonzero(chosen)[0]:
         s = scenario[e["run_id"][i]]

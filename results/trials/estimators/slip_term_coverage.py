@@ -8,7 +8,6 @@ Validation split only (never the test split)."""
 
 import argparse
 import collections
-import dataclasses
 
 import numpy as np
 
@@ -16,17 +15,11 @@ import numpy as np
 def save(path: str) -> None:
     from roadgrip.estimators.learned import load_estimator
     from roadgrip.evaluation.bins import estimates_on_runs
-    from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels, catalogue_profile
-    from roadgrip.sim.presets import physics_benchmark_runs
-    from roadgrip.sim.simulate import simulate
+    from roadgrip.evaluation.physics_benchmark import simulate_split
 
-    drawn = physics_benchmark_runs("validation", None)
-    scenarios = [dataclasses.replace(s, effects=s.effects.with_channels()) for s, _ in drawn]
-    table = blank_channels(simulate(scenarios), CHANNEL_SETS["base"])  # as run_physics_benchmark's "base" set
-    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    manoeuvres = {s.run_id: s.manoeuvre for s, _ in drawn}
-    est = estimates_on_runs(load_estimator("pmf"), table, profiles)
-    est["manoeuvre"] = np.array([manoeuvres[r] for r in est["run_id"]])
+    split = simulate_split("validation", channels=("base",))  # as run_physics_benchmark's "base" set
+    est = estimates_on_runs(load_estimator("pmf"), split.tables["base"][0], split.profiles)
+    est["manoeuvre"] = np.array([split.manoeuvres[r] for r in est["run_id"]])
     np.savez(path, **est)
 
 

@@ -13,18 +13,14 @@ import numpy as np
 
 from roadgrip.estimators.guard import PRIOR_UPPER_MU
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs
-from roadgrip.evaluation.physics_benchmark import CHANNEL_SETS, blank_channels, mu_band
-from roadgrip.sim.presets import physics_benchmark_runs
-from roadgrip.sim.simulate import simulate
+from roadgrip.evaluation.bins import estimates_on_runs
+from roadgrip.evaluation.physics_benchmark import mu_band, simulate_split
 
 
 def main(channels: str) -> None:
-    drawn = physics_benchmark_runs("validation")
-    scenarios = {s.run_id: s for s, _ in drawn}
-    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    runs = blank_channels(simulate(list(scenarios.values())), CHANNEL_SETS[channels])
-    e = estimates_on_runs(load_estimator("pmf"), runs, profiles)
+    split = simulate_split("validation", channels=(channels,))
+    scenarios = {s.run_id: s for s, _ in split.drawn}
+    e = estimates_on_runs(load_estimator("pmf"), split.tables[channels][0], split.profiles)
     upper, mu, run_id = e["mu_upper"], e["mu"], e["run_id"]
     read = upper < PRIOR_UPPER_MU  # 1.2: nothing known above
     miss = read & (mu > upper)

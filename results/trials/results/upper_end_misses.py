@@ -9,25 +9,19 @@ A car seen for the first time, and after 180 s of calm driving (the benchmark's 
 """
 
 import numpy as np
-import pyarrow.compute as pc
 
 from roadgrip.estimators.learned import load_estimator
-from roadgrip.evaluation.bins import catalogue_profile, estimates_on_runs
-from roadgrip.sim.presets import LEAD_IN_SUFFIX, physics_benchmark_runs, physics_lead_in
-from roadgrip.sim.simulate import simulate
+from roadgrip.evaluation.bins import estimates_on_runs
+from roadgrip.evaluation.physics_benchmark import simulate_split
 
 BANDS = ((0.0, 0.6), (0.6, 0.8), (0.8, 1.0), (1.0, 1.1), (1.1, 1.2))
 
 
 def main() -> None:
-    drawn = physics_benchmark_runs("validation")
-    scenarios = [s for s, _ in drawn]
-    profiles = {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn}
-    both = simulate(scenarios + [physics_lead_in(s, 180.0) for s in scenarios])
-    is_lead = pc.ends_with(both["run_id"], LEAD_IN_SUFFIX)
-    runs, leads = both.filter(pc.invert(is_lead)), both.filter(is_lead)
+    split = simulate_split("validation", lead_in_s=180.0)
+    runs, leads = split.tables[None]
     for name, lead_ins in (("fresh", None), ("after 180 s", leads)):
-        e = estimates_on_runs(load_estimator("pmf"), runs, profiles, lead_ins=lead_ins)
+        e = estimates_on_runs(load_estimator("pmf"), runs, split.profiles, lead_ins=lead_ins)
         upper, mu = e["mu_upper"], e["mu"]
         read = upper < 1.2
         print(f"{name}: upper ends below 1.2 {read.sum()}, truth above {np.mean(mu[read] > upper[read]):.3f}")
