@@ -31,9 +31,7 @@ torque model), else from m a_x allocated the same way (the accelerometer's remai
 The evidence. The brush model's slip at the axle's force per load (lateral.py `brush_slip`, the same relation as pmf's
 axle-slip term) against the measured slip minus s0, for every (mu, C) of pmf's grid; the spread is the reference's,
 the wheels' (noise, a time offset against the accelerometer under deceleration), the force's through the line's
-slope, the brush model's error against real tires (a share of the prediction) and the curve's shape: its excess over
-the linear slip known to SHAPE_SPREAD of itself, counted once over the grid's memory, since a tire's shape is the same
-at every sample (read as a per-sample error alone, a straighter tire's slip said "dry"). Under braking where pmf's braking
+slope, and the brush model's error against real tires (a share of the prediction). Under braking where pmf's braking
 term speaks, that term reads the wheels and this one is silent (`evidence` False). What it can prove
 (docs/ESTIMATORS.md 9): at low utilization the brush slip is f / C whatever mu (its excess over the line is about
 f / (3 mu)), so calm driving tells the stiffness, not mu; and the stiffness is the tire's and the surface's together
@@ -77,10 +75,6 @@ EVIDENCE_MAX_AY_MPS2 = 1.5  # combined slip: a cornering axle slips more at the 
 WHEEL_TIME_OFFSET_S = 0.05  # the wheel speeds and the accelerometer read up to 50 ms apart (pmf LAT_TIME_OFFSET_S)
 FORCE_SCALE_SD = 0.05  # the drive and brake forces' scale: the ECU's torque model, the pads' friction
 FORCE_NOISE_N = 100.0  # ... and their noise and lag (0.1 s) on a changing force
-# The brush curve's excess over its linear slip f / C is known to this share of itself: Dugoff's tire bends a third as
-# much at two thirds of its limit, the Magic Formula's (shape 1.4) 0.6 as much; a tire may as well bend more. The same
-# at every sample of a tire, so its variance counts once over the grid's memory (`repeats`)
-SHAPE_SPREAD = 0.6
 # Memory block (offsets from its start)
 C_V, C_PVV, C_PVL, C_PLL, C_L, C_AGREE, C_MISS, C_OUTLIERS, C_LOCKED, C_A_PREV = range(10)
 C_LINE = 10  # per axle (front, rear): s0, k, P00, P01, P11, seconds of data
@@ -286,11 +280,10 @@ def axle_slip_evidence(
         sd0 = sqrt(var_meas + repeats * mem[b + L_P00] + (f_sd * mem[b + L_K]) ** 2)
         for i in range(mu_grid.size):
             shape = brush_slip(f, mu_grid[i], c0)  # at C = c0; at C it is shape / C
-            excess2 = repeats * (SHAPE_SPREAD * (shape - f / c0)) ** 2
             for j in range(c_factors.size):
                 pred = shape / c_factors[j]
-                var = (sd0 + model_share * abs(pred)) ** 2 + excess2 / (c_factors[j] * c_factors[j])
-                like[i, j] = exp(-0.5 * temper * (s_meas - pred) ** 2 / var)
+                sig = sd0 + model_share * abs(pred)
+                like[i, j] = exp(-0.5 * temper * ((s_meas - pred) / sig) ** 2)
         used = True
     if calm and dt > 0.0 and abs(f) < LINE_MAX_F and abs(ax) < LINE_MAX_ACCEL_MPS2:
         lam = exp(-dt / RLS_TAU_S)

@@ -3,13 +3,11 @@ outages; the axles' forces; slip against GNSS as evidence on a snow road; a stat
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 import pytest
 
 from roadgrip.data.schema import CHANNEL_NAMES
 from roadgrip.estimators import aligning as al
 from roadgrip.estimators import slip_slope as ch
-from roadgrip.estimators.learned import load_estimator
 from roadgrip.estimators.pmf import (
     BIAS_SIGMA0_MPS2,
     COMPLIANCE_PRIOR,
@@ -27,8 +25,6 @@ from roadgrip.estimators.pmf import (
     PMFEstimator,
     init_brake_line,
 )
-from roadgrip.evaluation.bins import estimates_on_runs
-from roadgrip.evaluation.physics_benchmark import simulate_split
 from roadgrip.sim.driver import SpeedProfile
 from roadgrip.sim.production import ProductionEffects
 from roadgrip.sim.roads import MuProfile, Path
@@ -254,21 +250,3 @@ def test_a_state_saved_before_the_reference_filter_learned_its_accelerometer_err
     fresh = est.start(PAPER_SUV)
     np.testing.assert_array_equal(loaded.mem[K_GB:], fresh.mem[K_GB:])
     assert not np.array_equal(state.mem[K_GB:], fresh.mem[K_GB:])
-
-
-def test_a_degraded_gnss_speed_reads_the_validation_splits_stops_on_snow_and_wet_roads_no_worse_than_none():
-    """Issue 26: a GNSS speed with 0.2 s latency, 10 % outages and multipath (ChannelModel.degraded_gnss) may not make
-    pmf worse than the base channels. On the physics validation split's braking runs on roads of mu 0.3-0.6 (stops into
-    ABS and the pull-aways after them) it read 0.239 against 0.221: the pull-aways' slip against the reference, read
-    against the brush curve with its error a share of each sample, said "dry" of a straighter tire (Dugoff's slips 1.13
-    times its linear slip at two thirds of its limit, the brush 1.38 times). With the curve's shape known to
-    SHAPE_SPREAD, counted once over the grid's memory, no worse (RMSE within 0.005)."""
-    split = simulate_split("validation", channels=("base", "gnss-degraded"))
-    chosen = [s.run_id for s, _ in split.drawn if s.manoeuvre == "braking_abs" and 0.3 < s.mu.mu_left[0] <= 0.6]
-    rmse = {}
-    for name in ("base", "gnss-degraded"):
-        runs = split.tables[name][0]
-        runs = runs.filter(pc.is_in(runs["run_id"], pa.array(chosen)))
-        e = estimates_on_runs(load_estimator("pmf"), runs, split.profiles)
-        rmse[name] = float(np.sqrt(np.mean((e["mu_est"] - e["mu"]) ** 2)))
-    assert len(chosen) >= 10 and rmse["gnss-degraded"] <= rmse["base"] + 0.005, (len(chosen), rmse)
