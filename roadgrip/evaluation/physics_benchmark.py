@@ -104,13 +104,17 @@ def manoeuvre_metrics(estimates: dict[str, np.ndarray], manoeuvres: dict, baseli
 @dataclass(frozen=True)
 class SimulatedSplit:
     """A physics split simulated: its drawn scenarios (presets.physics_benchmark_runs: (scenario, catalogue entry)),
-    each run's catalogue profile and manoeuvre by run id, and by channel set (None: no channels) the runs' table and
-    their lead-ins' (None without a lead-in)."""
+    each run's catalogue profile by run id, and by channel set (None: no channels) the runs' table and their lead-ins'
+    (None without a lead-in)."""
 
     drawn: list
     profiles: dict
-    manoeuvres: dict
     tables: dict
+
+    @property
+    def manoeuvres(self) -> dict:
+        """Each run's manoeuvre by run id."""
+        return {s.run_id: s.manoeuvre for s, _ in self.drawn}
 
 
 def simulate_split(
@@ -156,7 +160,6 @@ def simulate_split(
     return SimulatedSplit(
         drawn,
         {s.run_id: catalogue_profile(entry, s.vehicle) for s, entry in drawn},
-        {s.run_id: s.manoeuvre for s, _ in drawn},
         tables,
     )
 
@@ -178,6 +181,7 @@ def run_physics_benchmark(
 
     say = progress or (lambda message: None)
     split_runs = simulate_split(split, runs, channels, lead_in_s, say)
+    manoeuvres = split_runs.manoeuvres
     baseline_mu = prior_baseline().mu_median
     rows = []
     table = next(iter(split_runs.tables.values()))[0]
@@ -194,7 +198,7 @@ def run_physics_benchmark(
         else:
             estimates = estimates_on_runs(load_estimator(name), data, split_runs.profiles, lead_ins=lead_ins)
         rows += [{"estimator": label, "manoeuvre": ALL} | r for r in cell_metrics(estimates, baseline_mu)]
-        rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, split_runs.manoeuvres, baseline_mu)]
+        rows += [{"estimator": label} | r for r in manoeuvre_metrics(estimates, manoeuvres, baseline_mu)]
     return rows
 
 

@@ -55,21 +55,18 @@ def _pct(x):
 def main() -> None:
     from roadgrip.estimators.learned import load_estimator
     from roadgrip.estimators.pmf import LIMIT_PEAK_S
-    from roadgrip.evaluation.bins import catalogue_profile
-    from roadgrip.evaluation.physics_benchmark import BAND_NAMES, mu_band
-    from roadgrip.sim.presets import physics_benchmark_runs
-    from roadgrip.sim.simulate import simulate
+    from roadgrip.evaluation.physics_benchmark import BAND_NAMES, mu_band, simulate_split
 
-    drawn = physics_benchmark_runs("validation")
-    table = simulate([s for s, _ in drawn])
+    split = simulate_split("validation")
+    table = split.tables[None][0]
     names = ("mu", "u_car", "u_first", "u_first_latched", "p", "front", "front_true", "share_err", "est", "lo", "hi")
     cols = {k: [] for k in names + ("bound",)}
-    for scenario, entry in drawn:
+    for scenario, _ in split.drawn:
         run = table.filter(pc.equal(table["run_id"], scenario.run_id))
         rows = np.flatnonzero(run["abs_active"].to_numpy(zero_copy_only=False))
         if not rows.size:
             continue
-        profile = catalogue_profile(entry, scenario.vehicle)
+        profile = split.profiles[scenario.run_id]
         out = load_estimator("pmf").estimate_batch(run, np.zeros(run.num_rows, dtype=np.int64), profile)
         at = np.searchsorted(out["timestamp_ms"].to_numpy(), run["timestamp_ms"].to_numpy()[rows])
         u_car, u_first, front = _utilisations(run, profile)
