@@ -4,6 +4,7 @@ drive: samples, runs, RMSE, the mean estimate and the median interval (docs/RESU
 at the limit").
 
     python results/trials/estimators/ice_at_the_limit.py base 0       # a fresh car; or all, and 180 (a calm lead-in)
+    python results/trials/estimators/ice_at_the_limit.py base 0 0.5 0.8   # another utilization bin: [0.5, 0.8)
 """
 
 import collections
@@ -16,15 +17,13 @@ from roadgrip.evaluation.bins import estimates_on_runs, true_utilization
 from roadgrip.evaluation.physics_benchmark import simulate_split
 
 
-def main(channels: str, lead_in_s: float) -> None:
-    split = simulate_split("validation", channels=(channels,), lead_in_s=lead_in_s)
-    runs, lead_ins = split.tables[channels]
-    e = estimates_on_runs(load_estimator("pmf"), runs, split.profiles, lead_ins=lead_ins)
+def by_group(e: dict, split, title: str, u_low: float = 0.8, u_high: float = np.inf) -> None:
+    """Print the ice and snow samples (not ABS) of estimates `e` at u in [u_low, u_high), by manoeuvre, tire and drive."""
     u = true_utilization(e["ax_true_mps2"], e["ay_true_mps2"], e["mu"])
-    chosen = (e["mu"] <= 0.3) & (u >= 0.8) & ~e["abs_active"].astype(bool)
+    chosen = (e["mu"] <= 0.3) & (u >= u_low) & (u < u_high) & ~e["abs_active"].astype(bool)
     error = e["mu_est"] - e["mu"]
     print(
-        f"{channels}, lead-in {lead_in_s:.0f} s: {chosen.sum()} samples of mu <= 0.3 at u >= 0.8 (not ABS), "
+        f"{title}: {chosen.sum()} samples of mu <= 0.3 at u in [{u_low}, {u_high}) (not ABS), "
         f"RMSE {np.sqrt((error[chosen] ** 2).mean()):.3f}"
     )
     scenario = {s.run_id: s for s, _ in split.drawn}
@@ -41,5 +40,12 @@ def main(channels: str, lead_in_s: float) -> None:
         )
 
 
+def main(channels: str, lead_in_s: float = 0.0, u_low: float = 0.8, u_high: float = np.inf) -> None:
+    split = simulate_split("validation", channels=(channels,), lead_in_s=lead_in_s)
+    runs, lead_ins = split.tables[channels]
+    e = estimates_on_runs(load_estimator("pmf"), runs, split.profiles, lead_ins=lead_ins)
+    by_group(e, split, f"{channels}, lead-in {lead_in_s:.0f} s", u_low, u_high)
+
+
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "base", float(sys.argv[2]) if len(sys.argv) > 2 else 0.0)
+    main(sys.argv[1] if len(sys.argv) > 1 else "base", *(float(a) for a in sys.argv[2:5]))
