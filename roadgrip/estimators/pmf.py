@@ -202,7 +202,6 @@ LIMIT_ESC, LIMIT_LOCK = 1, 2
 DEMAND_G = 0.15  # everyday drivers ask for 0.15 g on average, rarely more than 0.3 g (naturalistic driving studies)
 ETA_LIMIT = 0.8  # a car at its limit without a controller: u / mu 0.76-1.07 in the simulator (5-95 %, wheels locked)
 ETA_LOCK = 0.7  # a locked or spinning wheel slides: sliding friction is 0.7-1 of the peak (Burckhardt's surfaces)
-PEAK_FALL_Z = 3.0  # ... reached at this multiple of the brush's saturation slip 3 mu / C (_fallen_force)
 LOCK_SLIP = 0.15  # a wheel this far from the reference speed is past its peak (ABS thresholds: 0.1-0.2)
 REF_AGREE = 0.03  # wheels within 3 % of each other roll freely: the reference speed is theirs (radius spread 2 %)
 REF_TOLERANCE_MPS2 = 0.5  # the reference speed follows the wheels unless they change faster than a_x by this much
@@ -756,19 +755,6 @@ def _brush_force(slip, mu, c):
 
 
 @njit(cache=True)
-def _fallen_force(slip, mu, c):
-    """The least force per load a real tire keeps at a slip past its peak: the brush saturates at z = C s / (3 mu) = 1
-    and stays at mu, a real tire falls beyond its peak towards sliding friction (Burckhardt's surfaces 0.7-1 of the
-    peak, the Magic Formula's sin(C pi / 2)); taken as falling linearly from mu at z = 1 to ETA_LOCK mu at
-    z = PEAK_FALL_Z (Burckhardt's dry asphalt: 0.74 of its peak at 2.6 times the brush's saturation slip; the Magic
-    Formula of C 1.4: 0.96 at 2, 0.92 at 3). Below the peak, the brush force."""
-    z = c * slip / (3.0 * mu)
-    if z <= 1.0:
-        return _brush_force(slip, mu, c)
-    return mu * (1.0 - (1.0 - ETA_LOCK) * min((z - 1.0) / (PEAK_FALL_Z - 1.0), 1.0))
-
-
-@njit(cache=True)
 def _soft_between(p, lo, s_lo, hi, s_hi):
     """P(lo <= p <= hi) with each end blurred (normal, s_lo and s_hi): Phi((p - lo) / s_lo) Phi((hi - p) / s_hi), each
     factor taken as 0 or 1 beyond 6 sigma (1e-9 off), where it costs no erf."""
@@ -831,7 +817,7 @@ def _tcs_likelihood(u_axle, s_u, c0, like):
         s_f = sqrt(s_u * s_u + (0.03 * mu) ** 2)
         for j in range(NC):
             c = c0 * C_FACTORS[j]
-            lo = min(_brush_force(TCS_SLIP_BAND[0], mu, c), _fallen_force(TCS_SLIP_BAND[1], mu, c))
+            lo = _brush_force(TCS_SLIP_BAND[0], mu, c)
             hi = _brush_force(TCS_SLIP_BAND[1], mu, c)
             miss = max(lo - u_axle, u_axle - hi, 0.0) / s_f
             like[i, j] = exp(-0.5 * miss * miss)

@@ -13,10 +13,8 @@ from roadgrip.sim.roads import MuProfile, Path
 from roadgrip.sim.scenario import Scenario
 from roadgrip.sim.simulate import simulate
 from roadgrip.units import G_MPS2
-from roadgrip.vehicle.params import COMPACT_HATCHBACK, PAPER_SUV, TireParams
-from roadgrip.vehicle.tires.burckhardt import SURFACES, burckhardt_curve, peak_mu, peak_slip
+from roadgrip.vehicle.params import COMPACT_HATCHBACK, PAPER_SUV
 from roadgrip.vehicle.tires.dugoff import DugoffTire
-from roadgrip.vehicle.tires.magic_formula import MagicFormulaTire
 
 SOFT = 0.35  # a slip curve this soft (per unit of the catalogue's) is Burckhardt's dry cobblestone against dry asphalt
 START_S = 10.0  # the start under test lasts this long
@@ -77,44 +75,6 @@ def test_an_unknown_tire_under_traction_control_leaves_ice_and_dry_open():
     hold the same force at the controller's slip, so the interval spans both (never a confident number)."""
     out, _ = start_estimates(1.0, 0.15, 0.0)
     assert out["mu_lower"][-1] <= 0.15 and out["mu_upper"][-1] >= 0.9
-
-
-@pytest.mark.parametrize("vehicle", [COMPACT_HATCHBACK, PAPER_SUV])
-def test_a_new_cars_start_on_ice_leans_to_the_ice_its_stiff_tire_holds_past_the_peak(vehicle):
-    """A new car's catalogue tire starting on ice: traction control holds it past its peak, where a real tire keeps
-    less than the peak (_fallen_force), so a stiff tire on ice explains the held force over a span of mu, not at one
-    value, and the median of the start's last 5 s leans to the ice (before the fall was allowed: 0.55 on the
-    hatchback, 0.50 on the SUV), while the interval still holds a dry road the unknown stiffness leaves open."""
-    out, tcs = start_estimates(1.0, 0.15, 0.0, vehicle)
-    assert tcs > 0.5
-    assert out["mu"][-50:].mean() < 0.45
-    assert out["mu_lower"][-1] <= 0.15 and out["mu_upper"][-1] >= 0.9
-
-
-def test_the_least_force_past_the_peak_lies_below_the_simulators_tires_and_the_brush_above_them():
-    """_fallen_force against tire models it was not fitted to: Burckhardt's surfaces (each scaled to its peak, its
-    curve read at stiffness 0.5-2) and the Magic Formula (shape C 1.2-1.6), past their peak and within the slips the
-    controllers hold (up to 0.15): the real force per load is never more than the brush model's allowance (0.03 mu)
-    below the rule's least force; the brush itself, flat at mu past its saturation, lies further above snow's falling
-    curve than that, so the fall is needed."""
-    slips = np.linspace(0.002, 0.15, 300)
-    mu = 0.5
-    brush_excess = 0.0
-    for c1, c2, c3 in SURFACES.values():
-        peak = peak_mu(c1, c2, c3)
-        for scale in (0.5, 1.0, 2.0):
-            c = scale * mu * (c1 * c2 - c3) / peak  # the slope per load at zero slip
-            for s in slips[slips >= peak_slip(c1, c2, c3) / scale]:
-                real = mu * burckhardt_curve(c1, c2, c3, min(scale * s, 1.0)) / peak
-                assert real >= pmf._fallen_force(s, mu, c) - 0.03 * mu, (c1, scale, s)
-                brush_excess = max(brush_excess, pmf._brush_force(s, mu, c) - real)
-    assert brush_excess > 0.03 * mu
-    tire = TireParams()
-    for shape in (1.2, 1.4, 1.6):  # sliding keeps sin(C pi / 2) of the peak: 0.95-0.81-0.59 (the simulator's: 1.4)
-        fx, _ = MagicFormulaTire(shape_c=shape).forces(tire, slips, 0.0, 4000.0, mu)
-        past = slice(int(np.argmax(fx)), None)
-        least = np.array([pmf._fallen_force(s, mu, tire.longitudinal_stiffness_per_load) for s in slips[past]])
-        assert (fx[past] / 4000.0 >= least - 0.03 * mu).all(), shape
 
 
 def test_an_all_wheel_drive_car_without_a_gnss_speed_never_shows_its_stiffness():
