@@ -9,8 +9,10 @@ patches pmf's prior before numba compiles it, into a cache of its own: run each 
     python results/trials/estimators/stiffness_oracle.py base 0 oracle      # ... knowing its tires' stiffness
 """
 
+import atexit
 import dataclasses
 import os
+import shutil
 import sys
 import tempfile
 
@@ -18,6 +20,7 @@ import numpy as np
 
 if sys.argv[3] == "oracle":  # before numba reads pmf's globals, and never into the package's own cache
     os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="roadgrip-oracle-")
+    atexit.register(shutil.rmtree, os.environ["NUMBA_CACHE_DIR"], ignore_errors=True)
     from roadgrip.estimators import pmf
 
     narrow = np.exp(-0.5 * (np.log(pmf.C_FACTORS) / 0.1) ** 2)
