@@ -17,12 +17,16 @@ from roadgrip.units import G_MPS2
 def main() -> None:
     split = simulate_split("validation")
     runs, _ = split.tables[None]
+    columns = ("run_id", "mu", "tcs_active", "accel_lon_mps2") + tuple(
+        f"wheel_speed_{w}_radps" for w in ("fl", "fr", "rl", "rr")
+    )
+    table = {c: runs[c].to_numpy(zero_copy_only=False) for c in columns}
     print("run: surface mu, tire, stiffness | TCS samples, slip range, force range, slope (per unit slip) against C")
     for scenario, _ in split.drawn:
         if scenario.manoeuvre != "acceleration" or scenario.vehicle.drive != "fwd":
             continue
-        ids = runs["run_id"].to_numpy(zero_copy_only=False)
-        run = {c: runs[c].to_numpy(zero_copy_only=False)[ids == scenario.run_id] for c in runs.column_names}
+        rows = table["run_id"] == scenario.run_id
+        run = {c: values[rows] for c, values in table.items()}
         profile = split.profiles[scenario.run_id]
         front = 0.5 * (run["wheel_speed_fl_radps"] + run["wheel_speed_fr_radps"])
         rear = 0.5 * (run["wheel_speed_rl_radps"] + run["wheel_speed_rr_radps"])
