@@ -37,7 +37,7 @@ only below CALIBRATION_MAX_X of its limit (where its trail is not near zero) and
 it the regressor is mostly its own noise, which would pull the gain towards zero).
 
 The evidence. After CALIBRATED_S of readable driving, at |f| >= EVIDENCE_MIN_F, off at a controller's limit (ABS,
-traction control, ESC), a wheel past its peak or below pmf's slip speed: the spread is the torque noise, the column
+traction control, ESC), a wheel past its peak or below pmf's ALIGNING_MIN_SPEED_MPS: the spread is the torque noise, the column
 friction's remaining error, the gain's variance (and its floor GAIN_FLOOR: the trail varies with load and temperature),
 the force per load's error (the lateral accelerometer's noise and remaining bias, and the force's change between
 samples times the signals' time offset, each times the trail) and the brush model's error against real tires
@@ -46,8 +46,9 @@ is not judged here (the friction bound does that): it takes the value of the nea
 
 Not modelled: the trail's dependence on load transfer between the left and right wheels (each wheel's own trail at its
 own slip angle; the axle's sum is read as one trail), the EPS's own friction compensation and damping (they shift the
-column friction's size: COLUMN_FRICTION_SD_NM), jacking and steering-axis moments at large steer angles (pmf's
-LAT_MAX_STEER_RAD gate applies), and a torque sign that differs from ISO 8855's (positive left) in a car's mapping.
+column friction's size: COLUMN_FRICTION_SD_NM), jacking and steering-axis moments at large steer angles (no gate:
+they centre the wheels, so a tight turn's column torque reads as a longer trail, grippier, not as ice), and a torque
+sign that differs from ISO 8855's (positive left) in a car's mapping.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ bias and road grade; their tires are worn and of unknown stiffness. This estimat
 | slip between driven and undriven axles | 2WD, driving (not braking), straight, v >= SLIP_MIN_SPEED_MPS, no controller or wheel past its peak (the limit terms read those wheels) | N(s; s_brush(f, mu, C), s_s): the brush model's slip at the driven axle's force per load f |
 | slip between front and rear axles under braking | every drive, braking at BRAKE_MIN_MPS2 or more without a controller or a wheel past its peak, straight, v >= SLIP_MIN_SPEED_MPS, the front/rear zero calibrated | N(d; line(x) + s_brush(f_f, mu, C) - s_brush(f_r, mu, C) - the static line, s_d): each axle's force per load by the profile's brake_front_share, the car's braking line learned in gentle stops; before it is, the brush slips alone, the split's and load share's error counted once (`_brake_slip_likelihood`) |
 | the understeer angle delta - L r / v | v >= SLIP_MIN_SPEED_MPS, no ABS, no wheel past its peak, |a_x| under BRAKE_MIN_MPS2, road-wheel angle under LAT_MAX_STEER_RAD | N(delta - L r / v - b; k_f alpha_f - k_r alpha_r + e L r / v, s_a): the brush model's slip angles at each axle's lateral force per load (lateral.py), the tires' compliances (k_f, k_r) and the kinematic angle's scale error e a Gaussian state marginalised (its predictive density), one-sided where an axle is at its limit |
-| the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
+| the front axle's aligning moment (both steering torques sent) | its gain calibrated (aligning.py), |f_front| >= 0.05, no controller, no wheel past its peak, v >= ALIGNING_MIN_SPEED_MPS (2 m/s: walking-pace turns included) | N(n T; g (t0 (1 - f / mu)^(1/3) + t_m) F_y,f, s_M): the brush model's pneumatic trail at the front axle's force, each mu with its own calibrated gain g |
 
 with C the longitudinal slip stiffness per load (N per unit slip per N), carried on the grid as a factor of the
 profile's and marginalised out, so that an unknown tire widens the posterior rather than biasing it. The brush model
@@ -242,6 +242,11 @@ SLIP_MODEL_SHARE = 0.25  # brush model error against real tires (Dugoff, Magic F
 # SLIP_SIGMA_PER_MPS / v (CAN resolution, tone-wheel jitter) is 0.002 at 5 m/s, the brush slip of gentle driving
 # (f = 0.05 at C = 25), which the axle slip term needs to see. Parking, junctions and roundabouts lie mostly below.
 SLIP_MIN_SPEED_MPS = 5.0
+# The steering torques' term reads no wheel speed: its force is a_y's and the yaw acceleration's, its moment the
+# column's, and the brush model's trail holds for a rolling tire at any speed at which its force settles within the
+# turn (the relaxation length 0.6 m: 0.3 s at 2 m/s); below it a wheel that steers turns more about its vertical axis
+# than it rolls (the parking torque). Junctions and roundabouts at walking pace (3-5 m/s) lie above.
+ALIGNING_MIN_SPEED_MPS = 2.0
 # Braking without a controller: every wheel brakes, so no axle is a reference, but the fixed brake split loads the axles
 # unequally (brake_front_share against the front's load share) and the axle nearer its limit slips faster than its
 # force (the brush curve), so the slip between front and rear axles tells mu where the tire's stiffness is known.
@@ -1442,7 +1447,7 @@ def pmf_step(mem, q, smp, t_prev, out):
             q[Q_STEER_RATIO],
             q[Q_TRAIL_T0],
             q[Q_TRAIL_MECH],
-            limit or smp[S_ABS] + smp[S_ESC] > 0.0 or v < SLIP_MIN_SPEED_MPS,
+            limit or smp[S_ABS] + smp[S_ESC] > 0.0 or v < ALIGNING_MIN_SPEED_MPS,
             MU_GRID,
             TEMPER,
             lk,
