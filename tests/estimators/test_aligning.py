@@ -123,6 +123,12 @@ def _drives(calibrated: bool):
     """lateral_drives' test split with the steering torques sent: per run, the truth and pmf's estimates with the
     torques and without them (after the calm drive where `calibrated`)."""
     runs = [s.replace(effects=dataclasses.replace(s.effects, steering_torque=True)) for s in scenarios("test")]
+    return _with_and_without_torques(runs, calibrated)
+
+
+def _with_and_without_torques(runs, calibrated: bool):
+    """Per run (torques sent): the truth and pmf's estimates with the torques and without them, after the run's calm
+    drive where `calibrated` (a segment of its own: the grid restarts, the calibration carries on)."""
     table = simulate(runs + ([calm_drive(s) for s in runs] if calibrated else []))
     estimator = PMFEstimator()
     out = {}
@@ -189,18 +195,7 @@ def _walking_pace_turns():
                     effects=dataclasses.replace(s.effects, steering_torque=True),
                 )
             )
-    table = simulate(runs + [calm_drive(s) for s in runs])
-    estimator = PMFEstimator()
-    out = {}
-    for scenario in runs:
-        run, rows, segments = run_rows(table, scenario.run_id, True)
-        mu = run["mu"].to_numpy()
-        res = {"mu_true": mu, "u_lat": np.abs(run["ay_true_mps2"].to_numpy()) / (mu * G_MPS2)}
-        for name, tab in (("torques", rows), ("base", rows.drop_columns(list(TORQUES)))):
-            est = estimator.estimate_batch(tab, segments, scenario.vehicle).slice(rows.num_rows - run.num_rows)
-            res[name] = {k: est[k].to_numpy() for k in ("mu", "mu_lower", "mu_upper")}
-        out[scenario.run_id] = res
-    return out
+    return _with_and_without_torques(runs, True)
 
 
 @pytest.mark.slow
