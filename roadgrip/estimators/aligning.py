@@ -37,10 +37,10 @@ only below CALIBRATION_MAX_X of its limit (where its trail is not near zero) and
 it the regressor is mostly its own noise, which would pull the gain towards zero).
 
 The evidence. After CALIBRATED_S of readable driving, at |f| >= EVIDENCE_MIN_F, off at a controller's limit (ABS,
-traction control, ESC), a wheel past its peak or below pmf's ALIGNING_MIN_SPEED_MPS: the spread is the torque noise, the column
-friction's remaining error, the gain's variance (and its floor GAIN_FLOOR: the trail varies with load and temperature),
-the force per load's error (the lateral accelerometer's noise and remaining bias, and the force's change between
-samples times the signals' time offset, each times the trail) and the brush model's error against real tires
+traction control, ESC), a wheel past its peak or below pmf's ALIGNING_MIN_SPEED_MPS: the spread is the torque noise,
+the column friction's remaining error, the gain's variance (and its floor GAIN_FLOOR: the trail varies with load and
+temperature), the force per load's error (the lateral accelerometer's noise and remaining bias, and the force's change
+between samples times the signals' time offset, each times the trail) and the brush model's error against real tires
 (MODEL_SHARE of the trail's reduction t0 - t_p). A mu under which the front axle would be past its limit (|f| >= mu_y)
 is not judged here (the friction bound does that): it takes the value of the nearest mu above it.
 

@@ -181,8 +181,11 @@ def _walking_pace_turns():
     and pmf's estimates with and without the torques."""
     radius = 22.0
     v_end = np.sqrt(0.95 * 0.1 * G_MPS2 * radius)
+    cars = {}  # the first of lateral_drives' test runs for each of its two cars on each of its two tires
+    for s in scenarios("test"):
+        cars.setdefault((s.vehicle.name, type(s.tire).__name__), s)
     runs = []
-    for s in scenarios("test")[0:12:3]:  # the ramp steers' two cars on their two tires
+    for s in cars.values():
         for mu in (0.1, 0.9):
             runs.append(
                 s.replace(
